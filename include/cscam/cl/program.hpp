@@ -1,0 +1,86 @@
+#pragma once
+/// @file
+/// A cutter-location program: what a CAM main processor asks the machine to do, independent of any machine.
+#include <Eigen/Core>
+#include <optional>
+#include <string>
+#include <vector>
+
+#include "cscam/core/error.hpp"
+#include "cscam/core/units.hpp"
+
+namespace cscam::cl {
+
+/// A cutting tool, from CUTTER/ or TLDATA/ (and LOADTL/ or LOAD/TOOL for the number).
+struct Tool {
+  int number = 0;
+  std::string name;
+  double diameter_mm = 0.0;
+  double corner_radius_mm = 0.0;  ///< diameter/2 for a ball mill
+  double length_mm = 0.0;         ///< flute/overall length as the CL gives it (0 if unknown)
+
+  /// A ball-end mill: the corner radius equals the radius (then the ball centre is tip + r * axis).
+  [[nodiscard]] bool is_ball() const {
+    return diameter_mm > 0 && std::abs(corner_radius_mm - 0.5 * diameter_mm) < 1e-6 * diameter_mm;
+  }
+};
+
+enum class MotionKind { Rapid, Feed };
+
+/// One CL point. Positions are the tool tip in the part (CL) frame, in mm; the axis is a unit
+/// vector from the tip toward the spindle.
+struct Move {
+  Eigen::Vector3d tip_in_part_mm = Eigen::Vector3d::Zero();
+  Eigen::Vector3d axis_in_part = Eigen::Vector3d::UnitZ();
+  MotionKind kind = MotionKind::Feed;
+  double feed_mm_per_min = 0.0;  ///< 0 for rapids
+  int line = 0;                  ///< CL line this point comes from (arc points: the CIRCLE/ line)
+  int tool_index = -1;           ///< index into Program::tools, -1 before any tool
+  bool from_arc = false;         ///< an intermediate point generated from a CIRCLE/ record
+};
+
+/// A non-motion event, attached to the move that follows it.
+struct Event {
+  enum class Kind { ToolChange, SpindleOn, SpindleOff, CoolantOn, CoolantOff, Comment, OperationStart, Stop };
+  Kind kind = Kind::Comment;
+  std::size_t before_move = 0;  ///< index of the first move after the event
+  int line = 0;
+  int tool_index = -1;         ///< ToolChange
+  double spindle_rpm = 0.0;    ///< SpindleOn
+  bool clockwise = true;       ///< SpindleOn
+  std::string text;            ///< Comment / OperationStart name / coolant mode (FLOOD, MIST, ...)
+};
+
+struct Warning {
+  SourceLoc where;
+  std::string message;
+};
+
+/// A whole CL file.
+struct Program {
+  std::string file;
+  std::string part_name;             ///< PARTNO / TOOL PATH name
+  LengthUnit source_units = LengthUnit::Millimetre;
+  bool multax = false;               ///< the file declared MULTAX or gave i,j,k on a GOTO
+  std::optional<Eigen::Matrix<double, 3, 4>> msys;  ///< NX MSYS (origin, x axis, y axis), mm
+  std::vector<Tool> tools;
+  std::vector<Move> moves;
+  std::vector<Event> events;         ///< ordered by before_move, then by line
+  std::vector<Warning> warnings;
+};
+
+/// Options of the reader.
+struct ReadOptions {
+  /// Forces the input unit. Unset: UNITS/ decides, else FEDRAT/IPM vs MMPM, else mm.
+  std::optional<LengthUnit> units;
+  /// Chord tolerance for turning CIRCLE/ records into points, mm.
+  double arc_tolerance_mm = 0.001;
+};
+
+/// Reads APT/CLDATA (NX CLSF, ISO 4343, CATIA flavours) or the CSV form x,y,z,i,j,k[,feed].
+/// The format is detected from the content. Throws InputError with file:line:column on malformed input.
+Program read_file(const std::string& path, const ReadOptions& options = {});
+/// The same for text already in memory; `name` is used in messages.
+Program read_text(const std::string& text, const std::string& name, const ReadOptions& options = {});
+
+}  // namespace cscam::cl

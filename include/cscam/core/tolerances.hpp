@@ -1,0 +1,22 @@
+#pragma once
+/// @file
+/// Every numerical tolerance of cscam and of its tests, in one place.
+namespace cscam::tol {
+
+/// Kinematic round trips (IK then FK) must close to this.
+inline constexpr double kRoundTripMm = 1e-9;
+inline constexpr double kRoundTripRad = 1e-10;
+/// Default chord tolerance of the post's linearisation (tip deviation from the CL segment).
+inline constexpr double kLinearisationMm = 0.01;
+/// Default angular tolerance of the tool axis during linearisation.
+inline constexpr double kAxisDeviationRad = 0.005;  // ~0.29 deg
+/// Below this, a tool axis counts as parallel to the primary rotary axis (IK singularity).
+inline constexpr double kSingularRad = 1e-9;
+/// Allowed slack when comparing an axis value to its limit (floating-point noise only).
+inline constexpr double kLimitSlackMm = 1e-7;
+inline constexpr double kLimitSlackDeg = 1e-7;
+/// Hysteresis for counting a reversal in statistics.
+inline constexpr double kReversalHysteresisMm = 0.002;
+inline constexpr double kReversalHysteresisDeg = 0.01;
+
+}  // namespace cscam::tol

@@ -1,0 +1,40 @@
+#pragma once
+/// @file
+/// The interface every machine's kinematics offers to the planner, the post and verification.
+#include <array>
+#include <memory>
+#include <optional>
+#include <string>
+#include <vector>
+
+#include "cscam/kin/types.hpp"
+
+namespace cscam::kin {
+
+/// Immutable kinematic model of a 5-axis machine. Implementations are thread-safe for const use.
+class Kinematics {
+ public:
+  virtual ~Kinematics() = default;
+  /// The five axes in their canonical order (the order of Axes).
+  [[nodiscard]] virtual const std::vector<AxisInfo>& axes() const = 0;
+  /// Indices of the two rotary axes in the order the C-space uses (primary, secondary).
+  [[nodiscard]] virtual std::array<int, 2> rotary_pair() const = 0;
+  /// Forward kinematics: axis values to the tool pose in the part frame.
+  [[nodiscard]] virtual Posed forward(const Axes& q) const = 0;
+  /// Every IK branch with every rotary winding inside the limits (limit-violating solutions are
+  /// returned too, flagged). `hint` resolves singular rotaries (keeps the previous angle).
+  virtual void inverse_all(const Posed& pose, const Axes* hint, std::vector<Solution>& out) const = 0;
+  /// The basic IK branches (one winding each, principal angles in (-pi, pi]). Cheaper than inverse_all.
+  virtual void inverse_branches(const Posed& pose, const Axes* hint, std::vector<Solution>& out) const = 0;
+  /// Given both rotary values, the remaining (linear/leg) axes that put the tip at `tip_mm`.
+  /// Returns false if no such values exist. `q` holds the rotaries on entry and all axes on exit.
+  virtual bool solve_for_rotaries(const Posed& pose, Axes& q) const = 0;
+  /// First limit that q violates, or empty.
+  [[nodiscard]] std::string check_limits(const Axes& q) const;
+  /// Choose for every rotary of `s` the winding nearest to `prev` (same angle modulo 2 pi), if within limits.
+  void nearest_winding(Axes& s, const Axes& prev) const;
+  /// Adds to `out` every winding of `base` that lies inside the rotary limits.
+  void expand_windings(const Solution& base, std::vector<Solution>& out) const;
+};
+
+}  // namespace cscam::kin

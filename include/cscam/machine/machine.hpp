@@ -1,0 +1,77 @@
+#pragma once
+/// @file
+/// Machine definition files (YAML): the kinematic model, axis limits and feeds, post settings, geometry.
+#include <array>
+#include <functional>
+#include <limits>
+#include <map>
+#include <memory>
+#include <optional>
+#include <string>
+#include <vector>
+
+#include "cscam/kin/kinematics.hpp"
+#include "cscam/kin/serial.hpp"
+
+namespace cscam::machine {
+
+/// How the post writes programs for this machine.
+struct PostSettings {
+  std::string dialect = "linuxcnc";          ///< linuxcnc | fanuc | xmini-joint | ...
+  bool tcp = false;                          ///< true: the control does the kinematics (G43.4 / TCPM)
+  std::array<std::string, 5> letters;        ///< G-code word letter of each axis
+  int decimals_linear = 4;
+  int decimals_rotary = 4;
+  double tolerance_mm = 0.01;                ///< linearisation chord tolerance of the tip
+  double axis_tolerance_deg = 0.3;           ///< linearisation tolerance of the tool axis
+  double safe_z_mm = std::numeric_limits<double>::quiet_NaN();  ///< machine Z of the safe retract plane; NaN: the Z limit
+  std::string start_branch = "nearest_home";  ///< nearest_home | positive:<axis> | negative:<axis>
+  std::string program_name = "CSCAM";
+};
+
+/// Optional meshes and tool-holder shapes used by collision checking.
+struct GeometrySettings {
+  std::string head_mesh;   ///< absolute path (resolved against the machine file)
+  std::string table_mesh;
+  double holder_diameter_mm = 0.0;
+  double holder_length_mm = 0.0;
+  double spindle_diameter_mm = 0.0;
+  double spindle_length_mm = 0.0;
+};
+
+/// The kinds of kinematic model a machine file can name.
+enum class ModelKind { Serial, Xmini };
+
+/// A machine definition. Immutable once loaded; cheap to copy (shares the kinematics).
+struct Machine {
+  std::string name;
+  std::string file;  ///< the file it was read from
+  std::string description;
+  ModelKind kind = ModelKind::Serial;
+  std::vector<kin::AxisInfo> axes;
+  PostSettings post;
+  GeometrySettings geometry;
+  double default_tool_length_mm = 0.0;
+  std::map<std::string, int> preferred_sign;  ///< per rotary axis name: +1 / -1 branch preference
+  std::optional<kin::SerialGeometry<double>> serial;  ///< the serial model's parameters (kind Serial)
+  /// Builds the model for a given tool length (gauge point to tip, mm). Other kinds plug in here.
+  std::function<std::shared_ptr<const kin::Kinematics>(double)> make_kinematics;
+
+  /// Kinematics for the default tool length.
+  [[nodiscard]] std::shared_ptr<const kin::Kinematics> kinematics() const {
+    return make_kinematics(default_tool_length_mm);
+  }
+  [[nodiscard]] int axis_index(const std::string& axis_name) const;  ///< -1 if none
+};
+
+/// Reads and validates a machine file. Throws InputError naming the file, line and key on bad input.
+Machine load(const std::string& path);
+/// The same from text; `name` is used in messages and to resolve relative mesh paths.
+Machine load_text(const std::string& yaml, const std::string& name);
+
+/// Registers a loader for a `kinematics:` kind other than serial (e.g. the XMINI). The hook receives the
+/// YAML root node (as an opaque pointer to YAML::Node) and fills the machine.
+using ModelLoader = std::function<void(const void* yaml_root, Machine& m)>;
+void register_model(const std::string& kind, ModelLoader loader);
+
+}  // namespace cscam::machine

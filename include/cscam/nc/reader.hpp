@@ -1,0 +1,42 @@
+#pragma once
+/// @file
+/// Reads G-code (ours and common ISO/Fanuc/LinuxCNC/Haas dialects) back into axis values per motion block.
+#include <array>
+#include <optional>
+#include <string>
+#include <vector>
+
+namespace cscam::nc {
+
+/// What the reader needs to know about the machine's axes (letters and which ones are rotary).
+struct AxisLetters {
+  std::array<char, 5> letter{};
+  std::array<bool, 5> rotary{};
+};
+
+enum class Motion { Rapid, Linear, ArcCW, ArcCCW };
+
+/// One motion block with the full modal axis state after it. Linear axes in mm, rotary in radians.
+struct Block {
+  int line = 0;
+  Motion motion = Motion::Linear;
+  bool inverse_time = false;  ///< G93 active
+  double feed = 0.0;          ///< F word in force (mm/min, or 1/min in G93)
+  std::array<double, 5> axes{};
+  std::array<bool, 5> known{};  ///< the axis has been programmed at least once so far
+  std::array<bool, 5> words{};  ///< the axis word appears in this block
+};
+
+struct Program {
+  std::string file;
+  std::vector<Block> blocks;
+  std::optional<double> tool_length_mm;  ///< from a "(cscam tool_length_mm=...)" header comment
+  bool tcp = false;                      ///< G43.4 / G234 / TCPM seen: axis values are part coordinates
+  std::vector<std::string> notes;        ///< things skipped on purpose (G28/G53 blocks, arcs treated as chords)
+};
+
+/// Reads an NC file. Throws InputError with file:line:column on a malformed word.
+Program read_file(const std::string& path, const AxisLetters& letters);
+Program read_text(const std::string& text, const std::string& name, const AxisLetters& letters);
+
+}  // namespace cscam::nc

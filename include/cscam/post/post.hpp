@@ -1,0 +1,56 @@
+#pragma once
+/// @file
+/// Posts: turn a CL program plus the chosen axis values per CL point into NC text for one machine.
+/// The post linearises rotary motion (inserting points until the real tip path stays within the
+/// tolerance of the straight CL segment), chooses G93/G94 feed modes, and refuses to leave the limits.
+#include <iosfwd>
+#include <string>
+#include <vector>
+
+#include "cscam/cl/program.hpp"
+#include "cscam/kin/kinematics.hpp"
+#include "cscam/machine/machine.hpp"
+
+namespace cscam::post {
+
+/// Per-run options; unset fields fall back to the machine file's post settings.
+struct Options {
+  std::string dialect;              ///< empty: the machine's
+  double tolerance_mm = 0.0;        ///< 0: the machine's
+  double axis_tolerance_deg = 0.0;  ///< 0: the machine's
+  bool linearise = true;
+  int max_subdivision_depth = 14;   ///< at most 2^depth pieces per CL segment
+  std::string source_name;          ///< shown in the header comment
+  std::string strategy = "conventional";
+  double tool_length_mm = 0.0;      ///< recorded in the header so that verify can rebuild the same model
+};
+
+/// What the post did.
+struct Summary {
+  size_t blocks = 0;             ///< motion blocks written
+  size_t cl_points = 0;
+  size_t inserted_points = 0;    ///< points added by linearisation
+  size_t ik_calls = 0;
+  double max_checked_tip_deviation_mm = 0.0;
+  std::vector<std::string> warnings;
+};
+
+/// The conventional strategy a typical post uses: the machine's preferred branch at the start, then
+/// for every CL point the IK solution nearest (in rotary travel) to the previous one, within limits.
+/// Throws InputError naming the CL line when a point has no solution inside the limits.
+std::vector<kin::Axes> conventional_axes(const cl::Program& program, const machine::Machine& machine,
+                                         const kin::Kinematics& kinematics);
+
+/// Writes the NC program. `axes[i]` are the axis values chosen for `program.moves[i]`.
+/// Throws InputError (naming the CL line) if any block would leave an axis limit.
+void write_nc(std::ostream& out, const cl::Program& program, const machine::Machine& machine,
+              const kin::Kinematics& kinematics, const std::vector<kin::Axes>& axes, const Options& options,
+              Summary& summary);
+
+/// The dialects this build knows.
+std::vector<std::string> dialects();
+
+/// Tool length (gauge to tip, mm) to use for a program: the option if > 0, else the machine default.
+double tool_length_for(const machine::Machine& machine, double option_mm);
+
+}  // namespace cscam::post

@@ -1,0 +1,38 @@
+#pragma once
+/// @file
+/// Back-simulation: read NC axis values, run forward kinematics inside every block, and compare the
+/// tool tip and axis with the CL path.
+#include <string>
+
+#include "cscam/cl/program.hpp"
+#include "cscam/kin/kinematics.hpp"
+#include "cscam/nc/reader.hpp"
+
+namespace cscam::report {
+
+struct VerifyOptions {
+  double tip_tolerance_mm = 0.012;
+  double axis_tolerance_deg = 0.35;
+  int samples_per_block = 8;  ///< FK evaluations inside every feed block (besides its ends)
+};
+
+struct VerifyResult {
+  bool ok = false;
+  std::string message;
+  size_t feed_blocks = 0;
+  size_t samples = 0;
+  double max_tip_deviation_mm = 0.0;
+  int max_tip_nc_line = 0;
+  int max_tip_cl_line = 0;
+  double max_axis_deviation_deg = 0.0;
+  int max_axis_nc_line = 0;
+  double max_uncovered_cl_mm = 0.0;  ///< largest distance from a CL feed point to the NC path
+  int max_uncovered_cl_line = 0;
+  [[nodiscard]] std::string to_json() const;
+};
+
+/// Compares the NC program (machine axis values) with the CL program through `kinematics`.
+VerifyResult verify(const nc::Program& nc, const cl::Program& cl, const kin::Kinematics& kinematics,
+                    const VerifyOptions& options);
+
+}  // namespace cscam::report

@@ -1,0 +1,209 @@
+// The cscam command-line program: batch CL-to-NC conversion, verification and statistics.
+#include <CLI/CLI.hpp>
+#include <fmt/format.h>
+
+#include <chrono>
+#include <filesystem>
+#include <fstream>
+#include <iostream>
+
+#include "cscam/cl/program.hpp"
+#include "cscam/core/atomic_file.hpp"
+#include "cscam/core/error.hpp"
+#include "cscam/machine/machine.hpp"
+#include "cscam/nc/reader.hpp"
+#include "cscam/post/post.hpp"
+#include "cscam/report/stats.hpp"
+#include "cscam/report/verify.hpp"
+
+namespace fs = std::filesystem;
+using namespace cscam;
+
+namespace {
+
+/// A machine may be named by path or by its name in the bundled machines/ folder.
+std::string resolve_machine(const std::string& arg) {
+  if (fs::exists(arg)) return arg;
+  for (const std::string dir : {std::string(CSCAM_MACHINES_DIR), std::string(CSCAM_INSTALLED_MACHINES_DIR)}) {
+    const fs::path p = fs::path(dir) / (arg + ".yaml");
+    if (fs::exists(p)) return p.string();
+  }
+  throw InputError(SourceLoc{arg}, fmt::format("machine file not found (neither a path nor a bundled machine in {})",
+                                              CSCAM_MACHINES_DIR));
+}
+
+std::optional<LengthUnit> parse_units(const std::string& s) {
+  if (s.empty()) return std::nullopt;
+  if (s == "mm") return LengthUnit::Millimetre;
+  if (s == "inch" || s == "in") return LengthUnit::Inch;
+  throw InputError(fmt::format("--units: expected mm or inch, got '{}'", s));
+}
+
+nc::AxisLetters letters_of(const machine::Machine& m) {
+  nc::AxisLetters l;
+  for (size_t i = 0; i < 5; ++i) {
+    l.letter[i] = m.post.letters[i][0];
+    l.rotary[i] = m.axes[i].rotary();
+  }
+  return l;
+}
+
+std::array<std::string, 5> names_of(const machine::Machine& m, bool use_letters) {
+  std::array<std::string, 5> n;
+  for (size_t i = 0; i < 5; ++i) n[i] = use_letters ? m.post.letters[i] : m.axes[i].name;
+  return n;
+}
+
+std::array<bool, 5> rotary_of(const machine::Machine& m) {
+  std::array<bool, 5> r{};
+  for (size_t i = 0; i < 5; ++i) r[i] = m.axes[i].rotary();
+  return r;
+}
+
+struct PostArgs {
+  std::string cl, machine, out, dialect, units;
+  double tolerance = 0, axis_tolerance = 0, tool_length = 0;
+  bool json = false, no_linearise = false;
+};
+
+int cmd_post(const PostArgs& a) {
+  const auto t0 = std::chrono::steady_clock::now();
+  const machine::Machine m = machine::load(resolve_machine(a.machine));
+  cl::ReadOptions ro;
+  ro.units = parse_units(a.units);
+  const cl::Program prog = cl::read_file(a.cl, ro);
+  for (const auto& w : prog.warnings) std::cerr << "warning: " << w.where.str() << ": " << w.message << "\n";
+  const double L = post::tool_length_for(m, a.tool_length);
+  const auto kin = m.make_kinematics(L);
+  const auto axes = post::conventional_axes(prog, m, *kin);
+  post::Options po;
+  po.dialect = a.dialect;
+  po.tolerance_mm = a.tolerance;
+  po.axis_tolerance_deg = a.axis_tolerance;
+  po.linearise = !a.no_linearise;
+  po.source_name = fs::path(a.cl).filename().string();
+  po.tool_length_mm = L;
+  post::Summary sum;
+  const std::string out = a.out.empty() ? fs::path(a.cl).replace_extension(".ngc").string() : a.out;
+  write_file_atomically(out, [&](std::ostream& os) { post::write_nc(os, prog, m, *kin, axes, po, sum); });
+  const double secs = std::chrono::duration<double>(std::chrono::steady_clock::now() - t0).count();
+  for (const auto& w : sum.warnings) std::cerr << "warning: " << w << "\n";
+  if (a.json) {
+    std::cout << fmt::format(
+        "{{\"nc\": \"{}\", \"machine\": \"{}\", \"cl_points\": {}, \"blocks\": {}, \"inserted_points\": {}, "
+        "\"seconds\": {:.4f}}}\n",
+        out, m.name, sum.cl_points, sum.blocks, sum.inserted_points, secs);
+  } else {
+    std::cout << fmt::format("wrote {} ({} CL points -> {} blocks, {} points inserted by linearisation) for machine {} in {:.3f} s\n",
+                             out, sum.cl_points, sum.blocks, sum.inserted_points, m.name, secs);
+  }
+  return 0;
+}
+
+struct VerifyArgs {
+  std::string nc, machine, cl, units;
+  double tolerance = 0, axis_tolerance = 0, tool_length = -1;
+  int samples = 8;
+  bool json = false;
+};
+
+int cmd_verify(const VerifyArgs& a) {
+  const machine::Machine m = machine::load(resolve_machine(a.machine));
+  cl::ReadOptions ro;
+  ro.units = parse_units(a.units);
+  const cl::Program prog = cl::read_file(a.cl, ro);
+  const nc::Program ncp = nc::read_file(a.nc, letters_of(m));
+  if (ncp.tcp)
+    throw InputError(SourceLoc{a.nc}, "this program uses TCP (G43.4/G234): its axis values are not machine coordinates, "
+                                      "verify needs a machine-coordinate program");
+  const double L = a.tool_length >= 0 ? a.tool_length : ncp.tool_length_mm.value_or(m.default_tool_length_mm);
+  const auto kin = m.make_kinematics(L);
+  report::VerifyOptions vo;
+  // Allow for the rounding of printed axis values on top of the post's tolerance.
+  vo.tip_tolerance_mm = a.tolerance > 0 ? a.tolerance : m.post.tolerance_mm + 0.002;
+  vo.axis_tolerance_deg = a.axis_tolerance > 0 ? a.axis_tolerance : m.post.axis_tolerance_deg + 0.01;
+  vo.samples_per_block = a.samples;
+  const auto r = report::verify(ncp, prog, *kin, vo);
+  if (a.json)
+    std::cout << r.to_json() << "\n";
+  else
+    std::cout << r.message << "\n";
+  return r.ok ? 0 : 1;
+}
+
+int cmd_stats(const std::vector<std::string>& files, const std::string& machine_arg, bool json) {
+  const machine::Machine m = machine::load(resolve_machine(machine_arg));
+  std::vector<report::Stats> cols;
+  std::vector<std::string> headers;
+  for (const auto& f : files) {
+    const nc::Program p = nc::read_file(f, letters_of(m));
+    cols.push_back(report::compute(p, names_of(m, true), rotary_of(m)));
+    headers.push_back(fs::path(f).filename().string());
+  }
+  if (json) {
+    std::cout << "[";
+    for (size_t i = 0; i < cols.size(); ++i) std::cout << (i ? ",\n " : "") << cols[i].to_json();
+    std::cout << "]\n";
+  } else {
+    std::cout << report::table(cols, headers);
+  }
+  return 0;
+}
+
+}  // namespace
+
+int main(int argc, char** argv) {
+  CLI::App app{"cscam: 5-axis CAM post-processor with a configuration-space tool-orientation planner"};
+  app.require_subcommand(1);
+
+  PostArgs pa;
+  auto* post_cmd = app.add_subcommand("post", "Convert a CL file to NC with the conventional (nearest-solution) strategy");
+  post_cmd->add_option("cl", pa.cl, "CL file (APT/CLDATA, NX CLSF, CSV)")->required();
+  post_cmd->add_option("-m,--machine", pa.machine, "machine file or bundled machine name")->required();
+  post_cmd->add_option("-o,--output", pa.out, "NC file to write (default: CL name with .ngc)");
+  post_cmd->add_option("--dialect", pa.dialect, "override the machine's dialect (linuxcnc, fanuc)");
+  post_cmd->add_option("--units", pa.units, "force the CL units (mm or inch)");
+  post_cmd->add_option("--tolerance", pa.tolerance, "linearisation tolerance of the tip, mm");
+  post_cmd->add_option("--axis-tolerance", pa.axis_tolerance, "linearisation tolerance of the tool axis, deg");
+  post_cmd->add_option("--tool-length", pa.tool_length, "gauge-to-tip tool length, mm (default: machine file)");
+  post_cmd->add_flag("--no-linearise", pa.no_linearise, "do not insert points between CL points");
+  post_cmd->add_flag("--json", pa.json, "print a JSON summary");
+
+  VerifyArgs va;
+  auto* verify_cmd = app.add_subcommand("verify", "Back-simulate an NC file by FK and compare it with the CL path");
+  verify_cmd->add_option("nc", va.nc, "NC file")->required();
+  verify_cmd->add_option("-m,--machine", va.machine, "machine file or bundled machine name")->required();
+  verify_cmd->add_option("--cl", va.cl, "the CL file the NC was made from")->required();
+  verify_cmd->add_option("--units", va.units, "force the CL units (mm or inch)");
+  verify_cmd->add_option("--tolerance", va.tolerance, "allowed tip deviation, mm");
+  verify_cmd->add_option("--axis-tolerance", va.axis_tolerance, "allowed tool-axis deviation, deg");
+  verify_cmd->add_option("--tool-length", va.tool_length, "tool length, mm (default: from the NC header)");
+  verify_cmd->add_option("--samples", va.samples, "FK samples inside every block")->check(CLI::Range(1, 10000));
+  verify_cmd->add_flag("--json", va.json, "print the result as JSON");
+
+  std::vector<std::string> stat_files;
+  std::string stat_machine;
+  bool stat_json = false;
+  auto* stats_cmd = app.add_subcommand("stats", "Axis travel, reversals, steps and simultaneous axes of NC files");
+  stats_cmd->add_option("nc", stat_files, "one or more NC files (shown side by side)")->required();
+  stats_cmd->add_option("-m,--machine", stat_machine, "machine file or bundled machine name")->required();
+  stats_cmd->add_flag("--json", stat_json, "print JSON");
+
+  try {
+    app.parse(argc, argv);
+  } catch (const CLI::ParseError& e) {
+    return app.exit(e);
+  }
+  try {
+    if (*post_cmd) return cmd_post(pa);
+    if (*verify_cmd) return cmd_verify(va);
+    if (*stats_cmd) return cmd_stats(stat_files, stat_machine, stat_json);
+  } catch (const InputError& e) {
+    std::cerr << "error: " << e.what() << "\n";
+    return 2;
+  } catch (const std::exception& e) {
+    std::cerr << "internal error: " << e.what() << "\n";
+    return 3;
+  }
+  return 0;
+}

@@ -1,0 +1,204 @@
+#include "cscam/kin/serial.hpp"
+
+#include <fmt/format.h>
+
+#include <cmath>
+#include <stdexcept>
+
+#include "cscam/core/tolerances.hpp"
+#include "cscam/core/units.hpp"
+
+namespace cscam::kin {
+
+namespace {
+
+using Vec3 = Eigen::Vector3d;
+
+/// Paden-Kahan subproblem 1: the angle about unit `w` that turns p into q (both projected onto the
+/// plane normal to w). Returns false when p is (nearly) parallel to w: the angle is then undetermined.
+bool pk1(const Vec3& w, const Vec3& p, const Vec3& q, double& angle) {
+  const Vec3 pp = p - w * w.dot(p);
+  const Vec3 qp = q - w * w.dot(q);
+  if (pp.norm() < tol::kSingularRad || qp.norm() < tol::kSingularRad) return false;
+  angle = std::atan2(w.dot(pp.cross(qp)), pp.dot(qp));
+  return true;
+}
+
+}  // namespace
+
+std::string Kinematics::check_limits(const Axes& q) const {
+  const auto& ax = axes();
+  for (int i = 0; i < 5; ++i) {
+    const AxisInfo& a = ax[static_cast<size_t>(i)];
+    const double slack = a.rotary() ? deg2rad(tol::kLimitSlackDeg) : tol::kLimitSlackMm;
+    if (q[i] < a.min - slack || q[i] > a.max + slack) {
+      if (a.rotary())
+        return fmt::format("{} = {:.4f} deg outside its limits [{:.4f}, {:.4f}] deg", a.name, rad2deg(q[i]),
+                           rad2deg(a.min), rad2deg(a.max));
+      return fmt::format("{} = {:.4f} mm outside its limits [{:.4f}, {:.4f}] mm", a.name, q[i], a.min, a.max);
+    }
+  }
+  return {};
+}
+
+void Kinematics::nearest_winding(Axes& s, const Axes& prev) const {
+  const auto& ax = axes();
+  for (int i = 0; i < 5; ++i) {
+    const AxisInfo& a = ax[static_cast<size_t>(i)];
+    if (!a.rotary()) continue;
+    const double turns = std::round((prev[i] - s[i]) / (2.0 * kPi));
+    double v = s[i] + turns * 2.0 * kPi;
+    // Keep inside the limits if the nearest winding is not: step one turn back toward the range.
+    if (v > a.max && v - 2.0 * kPi >= a.min) v -= 2.0 * kPi;
+    if (v < a.min && v + 2.0 * kPi <= a.max) v += 2.0 * kPi;
+    s[i] = v;
+  }
+}
+
+void Kinematics::expand_windings(const Solution& base, std::vector<Solution>& out) const {
+  const auto rp = rotary_pair();
+  const auto& ax = axes();
+  auto range = [&](int i, double v, int& kmin, int& kmax) {
+    const AxisInfo& a = ax[static_cast<size_t>(i)];
+    const double slack = deg2rad(tol::kLimitSlackDeg);
+    kmin = static_cast<int>(std::ceil((a.min - slack - v) / (2.0 * kPi)));
+    kmax = static_cast<int>(std::floor((a.max + slack - v) / (2.0 * kPi)));
+  };
+  int k0min, k0max, k1min, k1max;
+  range(rp[0], base.axes[rp[0]], k0min, k0max);
+  range(rp[1], base.axes[rp[1]], k1min, k1max);
+  if (k0min > k0max || k1min > k1max) {  // no winding inside the limits: keep the base, flagged
+    Solution s = base;
+    s.violation = check_limits(s.axes);
+    out.push_back(std::move(s));
+    return;
+  }
+  for (int k0 = k0min; k0 <= k0max; ++k0)
+    for (int k1 = k1min; k1 <= k1max; ++k1) {
+      Solution s = base;
+      s.axes[rp[0]] += k0 * 2.0 * kPi;
+      s.axes[rp[1]] += k1 * 2.0 * kPi;
+      s.violation = check_limits(s.axes);
+      out.push_back(std::move(s));
+    }
+}
+
+SerialKinematics::SerialKinematics(SerialGeometry<double> geometry, std::vector<AxisInfo> axes)
+    : geometry_(std::move(geometry)), axes_(std::move(axes)) {
+  if (axes_.size() != 5) throw std::invalid_argument("a serial machine needs exactly 5 axes");
+  std::vector<int> rot_table, rot_head;
+  int nlin = 0;
+  for (int i = 0; i < 5; ++i) {
+    auto& j = geometry_.joints[static_cast<size_t>(i)];
+    if (std::abs(j.direction.norm() - 1.0) > 1e-6)
+      throw std::invalid_argument(fmt::format("axis {}: direction must be a unit vector", axes_[i].name));
+    j.direction.normalize();
+    if (j.type != axes_[i].type) throw std::invalid_argument("axis type mismatch between geometry and axis info");
+    if (j.type == AxisType::Linear) {
+      if (nlin < 3) lin_[static_cast<size_t>(nlin)] = i;
+      ++nlin;
+    }
+  }
+  if (nlin != 3) throw std::invalid_argument(fmt::format("a serial 5-axis machine needs 3 linear axes, got {}", nlin));
+  for (int idx : geometry_.table_chain)
+    if (geometry_.joints[static_cast<size_t>(idx)].type == AxisType::Rotary) rot_table.push_back(idx);
+  for (int idx : geometry_.head_chain)
+    if (geometry_.joints[static_cast<size_t>(idx)].type == AxisType::Rotary) rot_head.push_back(idx);
+  if (geometry_.table_chain.size() + geometry_.head_chain.size() != 5)
+    throw std::invalid_argument("every axis must be in exactly one chain (table or head)");
+  // u_part = R_tn^T ... R_t1^T R_h1 ... R_hm d0: table rotaries outermost first (inverse), then head.
+  std::vector<std::pair<int, double>> order;
+  for (auto it = rot_table.rbegin(); it != rot_table.rend(); ++it) order.emplace_back(*it, -1.0);
+  for (int idx : rot_head) order.emplace_back(idx, 1.0);
+  if (order.size() != 2) throw std::invalid_argument(fmt::format("a 5-axis machine needs 2 rotary axes, got {}", order.size()));
+  rot_ = {order[0].first, order[1].first};
+  sign_ = {order[0].second, order[1].second};
+  const Vec3 w1 = geometry_.joints[static_cast<size_t>(rot_[0])].direction;
+  const Vec3 w2 = geometry_.joints[static_cast<size_t>(rot_[1])].direction;
+  if (w1.cross(w2).norm() < 1e-6) throw std::invalid_argument("the two rotary axes are parallel");
+  Eigen::Matrix3d L;
+  for (int k = 0; k < 3; ++k) L.col(k) = geometry_.joints[static_cast<size_t>(lin_[static_cast<size_t>(k)])].direction;
+  if (std::abs(L.determinant()) < 1e-6) throw std::invalid_argument("the linear axes do not span space");
+}
+
+Eigen::Vector3d SerialKinematics::axis_for_rotaries(double primary, double secondary) const {
+  const auto& j1 = geometry_.joints[static_cast<size_t>(rot_[0])];
+  const auto& j2 = geometry_.joints[static_cast<size_t>(rot_[1])];
+  return detail::axis_angle<double>(j1.direction, sign_[0] * (primary + j1.offset)) *
+         (detail::axis_angle<double>(j2.direction, sign_[1] * (secondary + j2.offset)) * geometry_.tool_direction_home);
+}
+
+void SerialKinematics::inverse_branches(const Posed& pose, const Axes* hint, std::vector<Solution>& out) const {
+  out.clear();
+  const auto& j1 = geometry_.joints[static_cast<size_t>(rot_[0])];
+  const auto& j2 = geometry_.joints[static_cast<size_t>(rot_[1])];
+  const Vec3& w1 = j1.direction;
+  const Vec3& w2 = j2.direction;
+  const Vec3 p = geometry_.tool_direction_home;
+  const Vec3 q = pose.axis.normalized();
+  // Paden-Kahan subproblem 2: Rot(w1, t1) Rot(w2, t2) p = q. The intermediate z = Rot(w2, t2) p satisfies
+  // w2.z = w2.p and w1.z = w1.q; write z = a w1 + b w2 + c (w1 x w2).
+  const double c12 = w1.dot(w2);
+  const double den = c12 * c12 - 1.0;
+  const double a = (c12 * w2.dot(p) - w1.dot(q)) / den;
+  const double b = (c12 * w1.dot(q) - w2.dot(p)) / den;
+  const Vec3 w12 = w1.cross(w2);
+  double g2 = (p.squaredNorm() - a * a - b * b - 2.0 * a * b * c12) / w12.squaredNorm();
+  if (g2 < -1e-12) return;  // this orientation is unreachable for this head (e.g. beyond a nutating head's cone)
+  g2 = std::max(g2, 0.0);
+  const double g = std::sqrt(g2);
+  const int nroots = g > 1e-12 ? 2 : 1;
+  for (int r = 0; r < nroots; ++r) {
+    const Vec3 z = a * w1 + b * w2 + (r == 0 ? g : -g) * w12;
+    double t2 = 0.0, t1 = 0.0;
+    if (!pk1(w2, p, z, t2)) t2 = 0.0;  // p on w2: the secondary does nothing to the axis
+    Solution s;
+    s.branch = r;
+    if (!pk1(w1, z, q, t1)) {
+      // Tool axis parallel to the primary rotary: its angle is free; keep the previous one.
+      s.singular = true;
+      t1 = hint ? sign_[0] * ((*hint)[rot_[0]] + j1.offset) : 0.0;
+    }
+    s.axes[rot_[0]] = wrap_pi(sign_[0] * t1 - j1.offset);
+    s.axes[rot_[1]] = wrap_pi(sign_[1] * t2 - j2.offset);
+    if (!solve_for_rotaries(pose, s.axes)) continue;
+    out.push_back(std::move(s));
+  }
+  // Singular: both roots collapse to z parallel to w1; the two branches differ only by how the
+  // secondary got there. They are genuine distinct solutions (e.g. A=+0 vs the flipped one) only if
+  // they differ; drop exact duplicates.
+  if (out.size() == 2 && (out[0].axes - out[1].axes).norm() < 1e-12) out.pop_back();
+}
+
+void SerialKinematics::inverse_all(const Posed& pose, const Axes* hint, std::vector<Solution>& out) const {
+  std::vector<Solution> base;
+  inverse_branches(pose, hint, base);
+  out.clear();
+  for (const Solution& s : base) {
+    const size_t first = out.size();
+    expand_windings(s, out);
+    // Windings change the rotaries by whole turns: the linear axes are unchanged, so nothing to redo.
+    (void)first;
+  }
+}
+
+bool SerialKinematics::solve_for_rotaries(const Posed& pose, Axes& q) const {
+  // With the rotaries fixed, the tip in the part frame is affine in the three linear axes:
+  // tip(l) = tip(0) + sum_k l_k * d_k. Find d_k by differencing (exact for an affine map).
+  Axes q0 = q;
+  for (int k : lin_) q0[k] = 0.0;
+  const Vec3 t0 = serial_forward(geometry_, q0).tip_mm;
+  Eigen::Matrix3d A;
+  for (int c = 0; c < 3; ++c) {
+    Axes qk = q0;
+    qk[lin_[static_cast<size_t>(c)]] = 1.0;
+    A.col(c) = serial_forward(geometry_, qk).tip_mm - t0;
+  }
+  const Eigen::PartialPivLU<Eigen::Matrix3d> lu(A);
+  if (std::abs(A.determinant()) < 1e-12) return false;
+  const Vec3 l = lu.solve(pose.tip_mm - t0);
+  for (int c = 0; c < 3; ++c) q[lin_[static_cast<size_t>(c)]] = l[c];
+  return true;
+}
+
+}  // namespace cscam::kin

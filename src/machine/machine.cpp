@@ -1,0 +1,343 @@
+#include "cscam/machine/machine.hpp"
+
+#include <fmt/format.h>
+#include <yaml-cpp/yaml.h>
+
+#include <filesystem>
+#include <fstream>
+#include <mutex>
+#include <set>
+#include <sstream>
+
+#include "cscam/core/error.hpp"
+#include "cscam/core/units.hpp"
+
+namespace cscam::machine {
+
+namespace {
+
+/// Reads a YAML node with the file name at hand, so every error can say file:line: key: what.
+class Reader {
+ public:
+  explicit Reader(std::string file) : file_(std::move(file)) {}
+
+  [[noreturn]] void fail(const YAML::Node& n, const std::string& key, const std::string& what) const {
+    SourceLoc where{file_, 0, 0};
+    if (n.IsDefined() && n.Mark().line >= 0) {
+      where.line = n.Mark().line + 1;
+      where.column = n.Mark().column + 1;
+    }
+    throw InputError(where, key.empty() ? what : fmt::format("'{}': {}", key, what));
+  }
+
+  /// Rejects keys that are not in `allowed` (a typo must not silently fall back to a default).
+  void only_keys(const YAML::Node& map, const std::string& where, std::initializer_list<const char*> allowed) const {
+    if (!map.IsMap()) fail(map, where, "expected a mapping");
+    std::set<std::string> ok(allowed.begin(), allowed.end());
+    for (const auto& kv : map) {
+      const auto k = kv.first.as<std::string>();
+      if (!ok.count(k)) {
+        std::string list;
+        for (const auto& a : allowed) list += (list.empty() ? "" : ", ") + std::string(a);
+        fail(kv.first, where.empty() ? k : where + "." + k, fmt::format("unknown key (expected one of: {})", list));
+      }
+    }
+  }
+
+  YAML::Node required(const YAML::Node& map, const char* key, const std::string& path) const {
+    const YAML::Node n = map[key];
+    if (!n.IsDefined() || n.IsNull()) fail(map, path.empty() ? key : path + "." + key, "required key is missing");
+    return n;
+  }
+
+  double number(const YAML::Node& n, const std::string& key) const {
+    if (!n.IsScalar()) fail(n, key, "expected a number");
+    try {
+      const double v = n.as<double>();
+      if (!std::isfinite(v)) fail(n, key, "expected a finite number");
+      return v;
+    } catch (const YAML::Exception&) {
+      fail(n, key, fmt::format("expected a number, got '{}'", n.Scalar()));
+    }
+  }
+
+  std::string string(const YAML::Node& n, const std::string& key) const {
+    if (!n.IsScalar()) fail(n, key, "expected a string");
+    return n.as<std::string>();
+  }
+
+  bool boolean(const YAML::Node& n, const std::string& key) const {
+    try {
+      return n.as<bool>();
+    } catch (const YAML::Exception&) {
+      fail(n, key, fmt::format("expected true or false, got '{}'", n.Scalar()));
+    }
+  }
+
+  template <int N>
+  Eigen::Matrix<double, N, 1> vec(const YAML::Node& n, const std::string& key) const {
+    if (!n.IsSequence() || n.size() != N) fail(n, key, fmt::format("expected a list of {} numbers", N));
+    Eigen::Matrix<double, N, 1> v;
+    for (int i = 0; i < N; ++i) v[i] = number(n[static_cast<size_t>(i)], key);
+    return v;
+  }
+
+  Eigen::Vector3d unit(const YAML::Node& n, const std::string& key) const {
+    Eigen::Vector3d v = vec<3>(n, key);
+    if (v.norm() < 1e-9) fail(n, key, "direction must not be the zero vector");
+    return v.normalized();
+  }
+
+  [[nodiscard]] const std::string& file() const { return file_; }
+
+ private:
+  std::string file_;
+};
+
+std::mutex& registry_mutex() {
+  static std::mutex m;
+  return m;
+}
+std::map<std::string, ModelLoader>& registry() {
+  static std::map<std::string, ModelLoader> r;
+  return r;
+}
+
+void load_post(const Reader& r, const YAML::Node& n, Machine& m) {
+  r.only_keys(n, "post",
+              {"dialect", "tcp", "letters", "decimals_linear", "decimals_rotary", "tolerance_mm", "axis_tolerance_deg",
+               "safe_z_mm", "start_branch", "program_name"});
+  PostSettings& p = m.post;
+  if (n["dialect"]) p.dialect = r.string(n["dialect"], "post.dialect");
+  if (n["tcp"]) p.tcp = r.boolean(n["tcp"], "post.tcp");
+  if (n["decimals_linear"]) p.decimals_linear = static_cast<int>(r.number(n["decimals_linear"], "post.decimals_linear"));
+  if (n["decimals_rotary"]) p.decimals_rotary = static_cast<int>(r.number(n["decimals_rotary"], "post.decimals_rotary"));
+  if (p.decimals_linear < 0 || p.decimals_linear > 9) r.fail(n["decimals_linear"], "post.decimals_linear", "must be 0..9");
+  if (p.decimals_rotary < 0 || p.decimals_rotary > 9) r.fail(n["decimals_rotary"], "post.decimals_rotary", "must be 0..9");
+  if (n["tolerance_mm"]) p.tolerance_mm = r.number(n["tolerance_mm"], "post.tolerance_mm");
+  if (p.tolerance_mm <= 0) r.fail(n["tolerance_mm"], "post.tolerance_mm", "must be positive");
+  if (n["axis_tolerance_deg"]) p.axis_tolerance_deg = r.number(n["axis_tolerance_deg"], "post.axis_tolerance_deg");
+  if (n["safe_z_mm"]) p.safe_z_mm = r.number(n["safe_z_mm"], "post.safe_z_mm");
+  if (n["program_name"]) p.program_name = r.string(n["program_name"], "post.program_name");
+  if (n["start_branch"]) {
+    p.start_branch = r.string(n["start_branch"], "post.start_branch");
+    const auto& s = p.start_branch;
+    bool ok = s == "nearest_home";
+    for (const char* pre : {"positive:", "negative:"}) {
+      if (s.rfind(pre, 0) == 0) {
+        const std::string ax = s.substr(std::string(pre).size());
+        const int i = m.axis_index(ax);
+        if (i < 0 || !m.axes[static_cast<size_t>(i)].rotary())
+          r.fail(n["start_branch"], "post.start_branch", fmt::format("'{}' is not a rotary axis of this machine", ax));
+        ok = true;
+      }
+    }
+    if (!ok) r.fail(n["start_branch"], "post.start_branch", "expected nearest_home, positive:<axis> or negative:<axis>");
+  }
+  if (n["letters"]) {
+    const YAML::Node l = n["letters"];
+    if (!l.IsMap()) r.fail(l, "post.letters", "expected a mapping axis: letter");
+    for (const auto& kv : l) {
+      const auto ax = kv.first.as<std::string>();
+      const int i = m.axis_index(ax);
+      if (i < 0) r.fail(kv.first, "post.letters." + ax, "no such axis in this machine");
+      const auto letter = r.string(kv.second, "post.letters." + ax);
+      if (letter.size() != 1 || !std::isalpha(static_cast<unsigned char>(letter[0])))
+        r.fail(kv.second, "post.letters." + ax, "expected a single letter");
+      p.letters[static_cast<size_t>(i)] = std::string(1, static_cast<char>(std::toupper(letter[0])));
+    }
+  }
+}
+
+void load_geometry(const Reader& r, const YAML::Node& n, Machine& m) {
+  r.only_keys(n, "geometry",
+              {"head_mesh", "table_mesh", "holder_diameter_mm", "holder_length_mm", "spindle_diameter_mm",
+               "spindle_length_mm"});
+  const std::filesystem::path dir = std::filesystem::path(r.file()).parent_path();
+  auto mesh = [&](const char* key, std::string& out) {
+    if (!n[key]) return;
+    std::filesystem::path p = r.string(n[key], std::string("geometry.") + key);
+    if (p.is_relative()) p = dir / p;
+    if (!std::filesystem::exists(p)) r.fail(n[key], std::string("geometry.") + key, fmt::format("mesh file '{}' not found", p.string()));
+    out = p.string();
+  };
+  mesh("head_mesh", m.geometry.head_mesh);
+  mesh("table_mesh", m.geometry.table_mesh);
+  auto num = [&](const char* key, double& out) {
+    if (!n[key]) return;
+    out = r.number(n[key], std::string("geometry.") + key);
+    if (out < 0) r.fail(n[key], std::string("geometry.") + key, "must not be negative");
+  };
+  num("holder_diameter_mm", m.geometry.holder_diameter_mm);
+  num("holder_length_mm", m.geometry.holder_length_mm);
+  num("spindle_diameter_mm", m.geometry.spindle_diameter_mm);
+  num("spindle_length_mm", m.geometry.spindle_length_mm);
+}
+
+void load_serial(const Reader& r, const YAML::Node& root, Machine& m) {
+  kin::SerialGeometry<double> g;
+  const YAML::Node axes = r.required(root, "axes", "");
+  if (!axes.IsSequence() || axes.size() != 5) r.fail(axes, "axes", "expected a list of exactly 5 axes");
+  for (size_t i = 0; i < 5; ++i) {
+    const YAML::Node a = axes[i];
+    const std::string path = fmt::format("axes[{}]", i);
+    r.only_keys(a, path, {"name", "type", "side", "direction", "pivot_mm", "limits", "max_feed", "cyclic", "prefer", "offset"});
+    kin::AxisInfo info;
+    info.name = r.string(r.required(a, "name", path), path + ".name");
+    for (auto& ch : info.name) ch = static_cast<char>(std::tolower(static_cast<unsigned char>(ch)));
+    if (m.axis_index(info.name) >= 0) r.fail(a["name"], path + ".name", fmt::format("axis '{}' is defined twice", info.name));
+    const std::string type = r.string(r.required(a, "type", path), path + ".type");
+    if (type == "linear")
+      info.type = kin::AxisType::Linear;
+    else if (type == "rotary")
+      info.type = kin::AxisType::Rotary;
+    else
+      r.fail(a["type"], path + ".type", fmt::format("expected linear or rotary, got '{}'", type));
+    const double scale = info.rotary() ? kPi / 180.0 : 1.0;
+    const Eigen::Vector2d lim = r.vec<2>(r.required(a, "limits", path), path + ".limits");
+    if (!(lim[0] < lim[1])) r.fail(a["limits"], path + ".limits", "expected [min, max] with min < max");
+    info.min = lim[0] * scale;
+    info.max = lim[1] * scale;
+    if (a["max_feed"]) info.max_feed = r.number(a["max_feed"], path + ".max_feed") * scale;
+    if (a["cyclic"]) info.cyclic = r.boolean(a["cyclic"], path + ".cyclic");
+    if (info.cyclic && !info.rotary()) r.fail(a["cyclic"], path + ".cyclic", "only a rotary axis can be cyclic");
+
+    kin::JointGeometry<double>& j = g.joints[i];
+    j.type = info.type;
+    j.direction = r.unit(r.required(a, "direction", path), path + ".direction");
+    if (a["pivot_mm"]) {
+      if (!info.rotary()) r.fail(a["pivot_mm"], path + ".pivot_mm", "only a rotary axis has a pivot");
+      j.pivot_mm = r.vec<3>(a["pivot_mm"], path + ".pivot_mm");
+    }
+    if (a["offset"]) j.offset = r.number(a["offset"], path + ".offset") * scale;
+    const std::string side = r.string(r.required(a, "side", path), path + ".side");
+    if (side == "table")
+      j.side = kin::Side::Table;
+    else if (side == "head")
+      j.side = kin::Side::Head;
+    else
+      r.fail(a["side"], path + ".side", fmt::format("expected table or head, got '{}'", side));
+    if (a["prefer"]) {
+      const std::string pref = r.string(a["prefer"], path + ".prefer");
+      if (pref != "positive" && pref != "negative") r.fail(a["prefer"], path + ".prefer", "expected positive or negative");
+      m.preferred_sign[info.name] = pref == "positive" ? 1 : -1;
+    }
+    m.axes.push_back(info);
+  }
+  // Chains: from the base outward. Default: axes in file order, split by side.
+  auto chain = [&](const char* key, kin::Side side, std::vector<int>& out) {
+    if (root["chains"] && root["chains"][key]) {
+      const YAML::Node c = root["chains"][key];
+      if (!c.IsSequence()) r.fail(c, std::string("chains.") + key, "expected a list of axis names");
+      for (const auto& e : c) {
+        const std::string nm = r.string(e, std::string("chains.") + key);
+        const int idx = m.axis_index(nm);
+        if (idx < 0) r.fail(e, std::string("chains.") + key, fmt::format("no axis named '{}'", nm));
+        if (g.joints[static_cast<size_t>(idx)].side != side)
+          r.fail(e, std::string("chains.") + key, fmt::format("axis '{}' is declared on the other side", nm));
+        out.push_back(idx);
+      }
+    } else {
+      for (int i = 0; i < 5; ++i)
+        if (g.joints[static_cast<size_t>(i)].side == side) out.push_back(i);
+    }
+  };
+  if (root["chains"]) r.only_keys(root["chains"], "chains", {"table", "head"});
+  chain("table", kin::Side::Table, g.table_chain);
+  chain("head", kin::Side::Head, g.head_chain);
+  if (g.table_chain.size() + g.head_chain.size() != 5)
+    r.fail(root["chains"], "chains", "every axis must appear exactly once in chains.table or chains.head");
+  if (root["tool_direction"]) g.tool_direction_home = r.unit(root["tool_direction"], "tool_direction");
+  if (root["spindle_gauge_mm"]) g.gauge_home_mm = r.vec<3>(root["spindle_gauge_mm"], "spindle_gauge_mm");
+  if (root["part_origin_mm"]) g.part_origin_home_mm = r.vec<3>(root["part_origin_mm"], "part_origin_mm");
+  try {
+    // Validate once now so that a bad file fails at load time, not at first use.
+    kin::SerialKinematics probe(g, m.axes);
+  } catch (const std::invalid_argument& e) {
+    r.fail(axes, "axes", e.what());
+  }
+  m.serial = g;
+  const auto axes_copy = m.axes;
+  m.make_kinematics = [g, axes_copy](double tool_length_mm) -> std::shared_ptr<const kin::Kinematics> {
+    kin::SerialGeometry<double> gg = g;
+    gg.tool_length_mm = tool_length_mm;
+    return std::make_shared<kin::SerialKinematics>(gg, axes_copy);
+  };
+}
+
+Machine load_node(const YAML::Node& root, const std::string& name) {
+  const Reader r(name);
+  if (!root.IsMap()) r.fail(root, "", "a machine file must be a YAML mapping");
+  r.only_keys(root, "",
+              {"name", "description", "kinematics", "axes", "chains", "tool_direction", "spindle_gauge_mm",
+               "part_origin_mm", "default_tool_length_mm", "post", "geometry", "xmini"});
+  Machine m;
+  m.file = name;
+  m.name = r.string(r.required(root, "name", ""), "name");
+  if (root["description"]) m.description = r.string(root["description"], "description");
+  const std::string kind = root["kinematics"] ? r.string(root["kinematics"], "kinematics") : "serial";
+  if (root["default_tool_length_mm"]) {
+    m.default_tool_length_mm = r.number(root["default_tool_length_mm"], "default_tool_length_mm");
+    if (m.default_tool_length_mm < 0) r.fail(root["default_tool_length_mm"], "default_tool_length_mm", "must not be negative");
+  }
+  if (kind == "serial") {
+    m.kind = ModelKind::Serial;
+    load_serial(r, root, m);
+  } else {
+    ModelLoader loader;
+    {
+      std::lock_guard<std::mutex> lock(registry_mutex());
+      auto it = registry().find(kind);
+      if (it != registry().end()) loader = it->second;
+    }
+    if (!loader) r.fail(root["kinematics"], "kinematics", fmt::format("unknown kinematics '{}' (expected serial or xmini)", kind));
+    try {
+      loader(&root, m);
+    } catch (const InputError& e) {
+      if (!e.where().file.empty()) throw;
+      r.fail(root["kinematics"], "", e.what());
+    }
+  }
+  for (size_t i = 0; i < 5; ++i)
+    if (m.post.letters[i].empty()) {
+      std::string l = m.axes[i].name.substr(0, 1);
+      l[0] = static_cast<char>(std::toupper(static_cast<unsigned char>(l[0])));
+      m.post.letters[i] = l;
+    }
+  if (root["post"]) load_post(r, root["post"], m);
+  if (root["geometry"]) load_geometry(r, root["geometry"], m);
+  return m;
+}
+
+}  // namespace
+
+int Machine::axis_index(const std::string& axis_name) const {
+  for (size_t i = 0; i < axes.size(); ++i)
+    if (axes[i].name == axis_name) return static_cast<int>(i);
+  return -1;
+}
+
+Machine load_text(const std::string& yaml, const std::string& name) {
+  YAML::Node root;
+  try {
+    root = YAML::Load(yaml);
+  } catch (const YAML::ParserException& e) {
+    throw InputError(SourceLoc{name, e.mark.line + 1, e.mark.column + 1}, "YAML syntax error: " + e.msg);
+  }
+  return load_node(root, name);
+}
+
+Machine load(const std::string& path) {
+  std::ifstream in(path);
+  if (!in) throw InputError(SourceLoc{path}, "cannot open machine file");
+  std::stringstream ss;
+  ss << in.rdbuf();
+  return load_text(ss.str(), path);
+}
+
+void register_model(const std::string& kind, ModelLoader loader) {
+  std::lock_guard<std::mutex> lock(registry_mutex());
+  registry()[kind] = std::move(loader);
+}
+
+}  // namespace cscam::machine

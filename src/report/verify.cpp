@@ -1,0 +1,181 @@
+#include "cscam/report/verify.hpp"
+
+#include <fmt/format.h>
+
+#include <algorithm>
+#include <cmath>
+#include <limits>
+
+#include "cscam/core/units.hpp"
+
+namespace cscam::report {
+
+namespace {
+
+using Vec3 = Eigen::Vector3d;
+
+struct ClSeg {
+  Vec3 p0, p1, u0, u1;
+  int line;
+};
+
+Vec3 slerp(const Vec3& a, const Vec3& b, double s) {
+  const double th = std::acos(std::clamp(a.dot(b), -1.0, 1.0));
+  if (th < 1e-9) return ((1 - s) * a + s * b).normalized();
+  return (std::sin((1 - s) * th) / std::sin(th) * a + std::sin(s * th) / std::sin(th) * b).normalized();
+}
+
+/// Distance from p to the segment and the segment parameter of the closest point.
+double seg_distance(const ClSeg& s, const Vec3& p, double& t) {
+  const Vec3 ab = s.p1 - s.p0;
+  const double L2 = ab.squaredNorm();
+  t = L2 > 0 ? std::clamp((p - s.p0).dot(ab) / L2, 0.0, 1.0) : 0.0;
+  return (s.p0 + t * ab - p).norm();
+}
+
+}  // namespace
+
+VerifyResult verify(const nc::Program& nc, const cl::Program& cl, const kin::Kinematics& kinematics,
+                    const VerifyOptions& options) {
+  VerifyResult r;
+  std::vector<ClSeg> segs;
+  for (size_t i = 1; i < cl.moves.size(); ++i) {
+    const auto& a = cl.moves[i - 1];
+    const auto& b = cl.moves[i];
+    if (b.kind != cl::MotionKind::Feed) continue;
+    segs.push_back({a.tip_in_part_mm, b.tip_in_part_mm, a.axis_in_part.normalized(), b.axis_in_part.normalized(), b.line});
+  }
+  if (segs.empty()) {
+    r.ok = true;
+    r.message = "the CL program has no feed moves: nothing to compare";
+    return r;
+  }
+  auto nearest = [&](const Vec3& p, size_t& cursor, bool global, double& t) {
+    size_t lo = global ? 0 : (cursor > 2 ? cursor - 2 : 0);
+    size_t hi = global ? segs.size() : std::min(segs.size(), cursor + 64);
+    double best = std::numeric_limits<double>::infinity();
+    size_t arg = cursor;
+    double tb = 0;
+    for (size_t k = lo; k < hi; ++k) {
+      double tk;
+      const double d = seg_distance(segs[k], p, tk);
+      if (d < best - 1e-12) {
+        best = d;
+        arg = k;
+        tb = tk;
+      }
+    }
+    cursor = arg;
+    t = tb;
+    return best;
+  };
+
+  std::vector<Vec3> nc_feed_points;
+  std::vector<int> nc_feed_lines;
+  size_t cursor = 0;
+  bool after_rapid = true;
+  const nc::Block* prev = nullptr;
+  auto to_axes = [](const nc::Block& b) {
+    kin::Axes q;
+    for (int a = 0; a < 5; ++a) q[a] = b.axes[static_cast<size_t>(a)];
+    return q;
+  };
+  for (const nc::Block& b : nc.blocks) {
+    if (b.motion == nc::Motion::Rapid || prev == nullptr) {
+      after_rapid = true;
+      prev = &b;
+      continue;
+    }
+    ++r.feed_blocks;
+    const kin::Axes qa = to_axes(*prev), qb = to_axes(b);
+    const int n = std::max(1, options.samples_per_block);
+    for (int k = after_rapid ? 0 : 1; k <= n; ++k) {
+      const double s = static_cast<double>(k) / n;
+      const kin::Posed p = kinematics.forward(qa + s * (qb - qa));
+      double t;
+      const double d = nearest(p.tip_mm, cursor, after_rapid && k == 0, t);
+      after_rapid = false;
+      ++r.samples;
+      if (d > r.max_tip_deviation_mm) {
+        r.max_tip_deviation_mm = d;
+        r.max_tip_nc_line = b.line;
+        r.max_tip_cl_line = segs[cursor].line;
+      }
+      const Vec3 u = slerp(segs[cursor].u0, segs[cursor].u1, t);
+      const double ang = rad2deg(std::acos(std::clamp(u.dot(p.axis), -1.0, 1.0)));
+      if (ang > r.max_axis_deviation_deg) {
+        r.max_axis_deviation_deg = ang;
+        r.max_axis_nc_line = b.line;
+      }
+      if (k == n || k == 0) {
+        nc_feed_points.push_back(p.tip_mm);
+        nc_feed_lines.push_back(b.line);
+      }
+    }
+    prev = &b;
+  }
+  // Coverage: every CL feed point must be reached by the NC path (nothing skipped).
+  if (!nc_feed_points.empty()) {
+    size_t c = 0;
+    for (const ClSeg& s : segs) {
+      double best = std::numeric_limits<double>::infinity();
+      const size_t lo = c > 4 ? c - 4 : 0, hi = std::min(nc_feed_points.size(), c + 256);
+      size_t arg = c;
+      for (size_t k = lo; k < hi; ++k) {
+        const double d = (nc_feed_points[k] - s.p1).norm();
+        if (d < best) {
+          best = d;
+          arg = k;
+        }
+      }
+      if (best > options.tip_tolerance_mm) {  // lost the thread (e.g. after a long rapid): search globally
+        for (size_t k = 0; k < nc_feed_points.size(); ++k) {
+          const double d = (nc_feed_points[k] - s.p1).norm();
+          if (d < best) {
+            best = d;
+            arg = k;
+          }
+        }
+      }
+      c = arg;
+      if (best > r.max_uncovered_cl_mm) {
+        r.max_uncovered_cl_mm = best;
+        r.max_uncovered_cl_line = s.line;
+      }
+    }
+  } else {
+    r.max_uncovered_cl_mm = std::numeric_limits<double>::infinity();
+    r.max_uncovered_cl_line = segs.front().line;
+  }
+  const bool tip_ok = r.max_tip_deviation_mm <= options.tip_tolerance_mm;
+  const bool axis_ok = r.max_axis_deviation_deg <= options.axis_tolerance_deg;
+  const bool cover_ok = r.max_uncovered_cl_mm <= options.tip_tolerance_mm;
+  r.ok = tip_ok && axis_ok && cover_ok;
+  if (r.ok) {
+    r.message = fmt::format("OK: max tip deviation {:.5f} mm, max axis deviation {:.4f} deg over {} samples in {} feed blocks",
+                            r.max_tip_deviation_mm, r.max_axis_deviation_deg, r.samples, r.feed_blocks);
+  } else {
+    r.message = "FAILED:";
+    if (!tip_ok)
+      r.message += fmt::format(" tip deviation {:.5f} mm > {:.5f} mm at NC line {} (CL line {});", r.max_tip_deviation_mm,
+                               options.tip_tolerance_mm, r.max_tip_nc_line, r.max_tip_cl_line);
+    if (!axis_ok)
+      r.message += fmt::format(" axis deviation {:.4f} deg > {:.4f} deg at NC line {};", r.max_axis_deviation_deg,
+                               options.axis_tolerance_deg, r.max_axis_nc_line);
+    if (!cover_ok)
+      r.message += fmt::format(" CL point at line {} not reached (nearest NC point {:.5f} mm away);",
+                               r.max_uncovered_cl_line, r.max_uncovered_cl_mm);
+  }
+  return r;
+}
+
+std::string VerifyResult::to_json() const {
+  return fmt::format(
+      "{{\"ok\": {}, \"feed_blocks\": {}, \"samples\": {}, \"max_tip_deviation_mm\": {:.6f}, \"max_tip_nc_line\": {}, "
+      "\"max_tip_cl_line\": {}, \"max_axis_deviation_deg\": {:.6f}, \"max_axis_nc_line\": {}, "
+      "\"max_uncovered_cl_mm\": {:.6f}, \"max_uncovered_cl_line\": {}, \"message\": \"{}\"}}",
+      ok ? "true" : "false", feed_blocks, samples, max_tip_deviation_mm, max_tip_nc_line, max_tip_cl_line,
+      max_axis_deviation_deg, max_axis_nc_line, max_uncovered_cl_mm, max_uncovered_cl_line, message);
+}
+
+}  // namespace cscam::report

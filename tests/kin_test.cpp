@@ -1,0 +1,187 @@
+// Serial kinematics: IK -> FK round trips, the LinuxCNC xyzac-trt closed form as an independent oracle,
+// singularity handling and winding enumeration.
+#include <gtest/gtest.h>
+
+#include <cmath>
+
+#include "cscam/core/units.hpp"
+#include "cscam/kin/serial.hpp"
+#include "test_support.hpp"
+
+using namespace cscam;
+using namespace cscam::kin;
+using Vec3 = Eigen::Vector3d;
+
+namespace {
+
+AxisInfo lin(const char* n, double lo, double hi) { return {n, AxisType::Linear, lo, hi, false, 0}; }
+AxisInfo rot(const char* n, double lo_deg, double hi_deg, bool cyc = false) {
+  return {n, AxisType::Rotary, deg2rad(lo_deg), deg2rad(hi_deg), cyc, 0};
+}
+
+JointGeometry<double> J(AxisType t, Side s, Vec3 d, Vec3 p = Vec3::Zero()) {
+  JointGeometry<double> j;
+  j.type = t;
+  j.side = s;
+  j.direction = d.normalized();
+  j.pivot_mm = p;
+  return j;
+}
+
+/// The A/C trunnion of LinuxCNC's xyzac-trt sim: A about +X through (y 20, z 10), C about +Z.
+SerialKinematics trunnion_ac(double y_off = 20, double z_off = 10) {
+  SerialGeometry<double> g;
+  g.joints = {J(AxisType::Linear, Side::Head, Vec3::UnitX()), J(AxisType::Linear, Side::Head, Vec3::UnitY()),
+              J(AxisType::Linear, Side::Head, Vec3::UnitZ()),
+              J(AxisType::Rotary, Side::Table, Vec3::UnitX(), Vec3(0, y_off, z_off)),
+              J(AxisType::Rotary, Side::Table, Vec3::UnitZ())};
+  g.table_chain = {3, 4};
+  g.head_chain = {0, 1, 2};
+  return SerialKinematics(g, {lin("x", -1e4, 1e4), lin("y", -1e4, 1e4), lin("z", -1e4, 1e4), rot("a", -100, 50),
+                              rot("c", -36000, 36000, true)});
+}
+
+/// LinuxCNC xyzac-trt-kins forward map written from its published equations (rot points 0, tool offset 0):
+/// the part-frame position of the tool tip for joints (x, y, z, a, c), and the tool axis.
+Vec3 linuxcnc_xyzac_forward(double jx, double jy, double jz, double a, double c, double dy, double dz) {
+  const double ca = std::cos(a), sa = std::sin(a), cc = std::cos(c), sc = std::sin(c);
+  const double ty = jy - dy, tz = jz - dz;
+  return {cc * jx + sc * ca * ty + sc * sa * tz + sc * dy, -sc * jx + cc * ca * ty + cc * sa * tz + cc * dy,
+          -sa * ty + ca * tz + dz};
+}
+
+Vec3 random_unit_in_cone(std::mt19937_64& rng, double max_tilt_rad) {
+  std::uniform_real_distribution<double> U(0, 1);
+  const double tilt = max_tilt_rad * std::sqrt(U(rng));
+  const double az = 2 * kPi * U(rng);
+  return {std::sin(tilt) * std::cos(az), std::sin(tilt) * std::sin(az), std::cos(tilt)};
+}
+
+}  // namespace
+
+TEST(SerialKinematics, MatchesLinuxcncXyzacTrtForward) {
+  const auto k = trunnion_ac();
+  auto rng = test::rng(1);
+  std::uniform_real_distribution<double> U(-200, 200), A(deg2rad(-100.0), deg2rad(50.0)), C(-10, 10);
+  for (int i = 0; i < 1000; ++i) {
+    Axes q;
+    q << U(rng), U(rng), U(rng), A(rng), C(rng);
+    const Posed p = k.forward(q);
+    const Vec3 oracle = linuxcnc_xyzac_forward(q[0], q[1], q[2], q[3], q[4], 20, 10);
+    EXPECT_LT((p.tip_mm - oracle).norm(), tol::kRoundTripMm) << "sample " << i;
+    // The tool axis is the image of +Z under the same rotation (no translation).
+    const Vec3 axis_oracle = linuxcnc_xyzac_forward(0, 0, 1, q[3], q[4], 0, 0);
+    EXPECT_LT((p.axis - axis_oracle).norm(), tol::kRoundTripRad);
+  }
+}
+
+TEST(SerialKinematics, IkThenFkRoundTripTrunnion) {
+  const auto k = trunnion_ac();
+  auto rng = test::rng(2);
+  std::uniform_real_distribution<double> U(-150, 150);
+  std::vector<Solution> sols;
+  int checked = 0;
+  for (int i = 0; i < 2000; ++i) {
+    const Posed target{Vec3(U(rng), U(rng), U(rng)), random_unit_in_cone(rng, deg2rad(89.0))};
+    k.inverse_branches(target, nullptr, sols);
+    ASSERT_FALSE(sols.empty());
+    for (const auto& s : sols) {
+      const Posed p = k.forward(s.axes);
+      EXPECT_LT((p.tip_mm - target.tip_mm).norm(), tol::kRoundTripMm);
+      EXPECT_LT((p.axis - target.axis).norm(), tol::kRoundTripRad);
+      ++checked;
+    }
+  }
+  EXPECT_GT(checked, 3000);  // two branches almost everywhere
+}
+
+TEST(SerialKinematics, InverseMatchesLinuxcncLinearAxes) {
+  // For given rotaries, LinuxCNC's inverse is the unique joint position whose forward image is the pose.
+  const auto k = trunnion_ac();
+  auto rng = test::rng(3);
+  std::uniform_real_distribution<double> U(-150, 150);
+  std::vector<Solution> sols;
+  for (int i = 0; i < 200; ++i) {
+    const Posed target{Vec3(U(rng), U(rng), U(rng)), random_unit_in_cone(rng, deg2rad(80.0))};
+    k.inverse_branches(target, nullptr, sols);
+    for (const auto& s : sols) {
+      const Vec3 world = linuxcnc_xyzac_forward(s.axes[0], s.axes[1], s.axes[2], s.axes[3], s.axes[4], 20, 10);
+      EXPECT_LT((world - target.tip_mm).norm(), tol::kRoundTripMm);
+    }
+  }
+}
+
+TEST(SerialKinematics, AllWindingsInsideLimits) {
+  const auto k = trunnion_ac();
+  std::vector<Solution> all;
+  const Posed target{Vec3(10, 20, 5), Vec3(0.3, 0.2, 0.9).normalized()};
+  k.inverse_all(target, nullptr, all);
+  // C spans +-36000 deg: 200 windings per branch; A has one winding in [-100, 50].
+  int feasible = 0;
+  for (const auto& s : all) feasible += s.feasible();
+  EXPECT_GE(feasible, 200);
+  EXPECT_LE(feasible, 2 * 201);
+  for (const auto& s : all)
+    if (s.feasible()) {
+      EXPECT_GE(s.axes[4], deg2rad(-36000.0) - 1e-9);
+      EXPECT_LE(s.axes[4], deg2rad(36000.0) + 1e-9);
+      EXPECT_LT((k.forward(s.axes).tip_mm - target.tip_mm).norm(), tol::kRoundTripMm);
+    }
+}
+
+TEST(SerialKinematics, SingularityKeepsThePreviousPrimaryAngle) {
+  const auto k = trunnion_ac();
+  std::vector<Solution> sols;
+  Axes hint = Axes::Zero();
+  hint[4] = deg2rad(37.0);
+  const Posed vertical{Vec3(5, 6, 7), Vec3::UnitZ()};
+  k.inverse_branches(vertical, &hint, sols);
+  ASSERT_FALSE(sols.empty());
+  EXPECT_TRUE(sols[0].singular);
+  EXPECT_NEAR(sols[0].axes[4], deg2rad(37.0), 1e-12);
+  EXPECT_NEAR(sols[0].axes[3], 0.0, 1e-12);
+  EXPECT_LT((k.forward(sols[0].axes).tip_mm - vertical.tip_mm).norm(), tol::kRoundTripMm);
+}
+
+TEST(SerialKinematics, LimitsAreReported) {
+  const auto k = trunnion_ac();
+  Axes q = Axes::Zero();
+  q[3] = deg2rad(60.0);
+  const std::string v = k.check_limits(q);
+  EXPECT_NE(v.find("a = 60.0000 deg"), std::string::npos) << v;
+  EXPECT_NE(v.find("[-100.0000, 50.0000]"), std::string::npos) << v;
+}
+
+TEST(SerialKinematics, NonOrthogonalHeadRoundTrip) {
+  // 45-degree nutating B head on X/Y/Z, C table: reachable tilts 0..90 deg.
+  SerialGeometry<double> g;
+  g.joints = {J(AxisType::Linear, Side::Head, Vec3::UnitX()), J(AxisType::Linear, Side::Head, Vec3::UnitY()),
+              J(AxisType::Linear, Side::Head, Vec3::UnitZ()),
+              J(AxisType::Rotary, Side::Head, Vec3(0, -1, 1), Vec3(0, 0, 450)),
+              J(AxisType::Rotary, Side::Table, -Vec3::UnitZ())};
+  g.table_chain = {4};
+  g.head_chain = {0, 1, 2, 3};
+  g.gauge_home_mm = Vec3(0, 0, 300);
+  g.tool_length_mm = 100;
+  const SerialKinematics k(g, {lin("x", -1e4, 1e4), lin("y", -1e4, 1e4), lin("z", -1e4, 1e4), rot("b", -5, 185),
+                               rot("c", -1e5, 1e5, true)});
+  auto rng = test::rng(4);
+  std::uniform_real_distribution<double> U(-100, 100);
+  std::vector<Solution> sols;
+  int n = 0;
+  for (int i = 0; i < 1000; ++i) {
+    const Posed target{Vec3(U(rng), U(rng), U(rng)), random_unit_in_cone(rng, deg2rad(89.0))};
+    k.inverse_branches(target, nullptr, sols);
+    ASSERT_FALSE(sols.empty()) << "tilts up to 90 deg are reachable";
+    for (const auto& s : sols) {
+      const Posed p = k.forward(s.axes);
+      EXPECT_LT((p.tip_mm - target.tip_mm).norm(), tol::kRoundTripMm);
+      EXPECT_LT((p.axis - target.axis).norm(), tol::kRoundTripRad);
+      ++n;
+    }
+  }
+  EXPECT_GT(n, 1000);
+  // Beyond the head's cone (tool pointing down-ish) there is no solution.
+  k.inverse_branches(Posed{Vec3::Zero(), Vec3(0, 0, -1)}, nullptr, sols);
+  EXPECT_TRUE(sols.empty());
+}

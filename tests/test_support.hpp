@@ -1,0 +1,35 @@
+#pragma once
+// Shared test helpers: paths, seeded randomness, and the tolerances (all from cscam/core/tolerances.hpp).
+#include <cstdio>
+#include <random>
+#include <string>
+
+#include "cscam/core/tolerances.hpp"
+
+namespace cscam::test {
+
+inline std::string source_path(const std::string& rel) { return std::string(CSCAM_SOURCE_DIR) + "/" + rel; }
+inline std::string shared_path(const std::string& rel) { return std::string(CSCAM_SHARED_DIR) + "/" + rel; }
+
+/// Every randomised test draws from this seed so failures reproduce.
+inline constexpr unsigned kSeed = 20261122u;
+inline std::mt19937_64 rng(unsigned salt = 0) { return std::mt19937_64(kSeed + salt); }
+
+/// Runs a shell command, returns its exit status and captures stdout (+stderr if merge).
+struct CommandResult {
+  int status = -1;
+  std::string output;
+};
+inline CommandResult run_command(const std::string& cmd) {
+  CommandResult r;
+  FILE* p = ::popen((cmd + " 2>&1").c_str(), "r");
+  if (!p) return r;
+  char buf[4096];
+  size_t n;
+  while ((n = fread(buf, 1, sizeof buf, p)) > 0) r.output.append(buf, n);
+  int st = ::pclose(p);
+  r.status = WIFEXITED(st) ? WEXITSTATUS(st) : -1;
+  return r;
+}
+
+}  // namespace cscam::test
