@@ -184,19 +184,47 @@ void SerialKinematics::inverse_all(const Posed& pose, const Axes* hint, std::vec
 
 bool SerialKinematics::solve_for_rotaries(const Posed& pose, Axes& q) const {
   // With the rotaries fixed, the tip in the part frame is affine in the three linear axes:
-  // tip(l) = tip(0) + sum_k l_k * d_k. Find d_k by differencing (exact for an affine map).
-  Axes q0 = q;
-  for (int k : lin_) q0[k] = 0.0;
-  const Vec3 t0 = serial_forward(geometry_, q0).tip_mm;
-  Eigen::Matrix3d A;
-  for (int c = 0; c < 3; ++c) {
-    Axes qk = q0;
-    qk[lin_[static_cast<size_t>(c)]] = 1.0;
-    A.col(c) = serial_forward(geometry_, qk).tip_mm - t0;
+  // tip(l) = t0 + A l. Build t0 and A in one pass over the chains with the rotations computed once
+  // (this is the hot path of the post: one call per IK branch).
+  std::array<Eigen::Matrix3d, 5> R;
+  for (int i : rot_) {
+    const auto& j = geometry_.joints[static_cast<size_t>(i)];
+    R[static_cast<size_t>(i)] = detail::axis_angle<double>(j.direction, q[i] + j.offset);
   }
-  const Eigen::PartialPivLU<Eigen::Matrix3d> lu(A);
-  if (std::abs(A.determinant()) < 1e-12) return false;
-  const Vec3 l = lu.solve(pose.tip_mm - t0);
+  const auto& g = geometry_;
+  Vec3 t0 = g.gauge_home_mm - g.tool_length_mm * g.tool_direction_home;
+  Eigen::Matrix3d A = Eigen::Matrix3d::Zero();  // column c: d tip / d l_c
+  auto lin_col = [&](int idx) {
+    for (int c = 0; c < 3; ++c)
+      if (lin_[static_cast<size_t>(c)] == idx) return c;
+    return -1;
+  };
+  for (auto it = g.head_chain.rbegin(); it != g.head_chain.rend(); ++it) {
+    const auto& j = g.joints[static_cast<size_t>(*it)];
+    if (j.type == AxisType::Linear) {
+      t0 += j.direction * j.offset;
+      A.col(lin_col(*it)) += j.direction;
+    } else {
+      const Eigen::Matrix3d& Rj = R[static_cast<size_t>(*it)];
+      t0 = Rj * (t0 - j.pivot_mm) + j.pivot_mm;
+      A = Rj * A;
+    }
+  }
+  for (int idx : g.table_chain) {
+    const auto& j = g.joints[static_cast<size_t>(idx)];
+    if (j.type == AxisType::Linear) {
+      t0 -= j.direction * j.offset;
+      A.col(lin_col(idx)) -= j.direction;
+    } else {
+      const Eigen::Matrix3d Rt = R[static_cast<size_t>(idx)].transpose();
+      t0 = Rt * (t0 - j.pivot_mm) + j.pivot_mm;
+      A = Rt * A;
+    }
+  }
+  t0 -= g.part_origin_home_mm;
+  const double det = A.determinant();
+  if (std::abs(det) < 1e-12) return false;
+  const Vec3 l = A.inverse() * (pose.tip_mm - t0);
   for (int c = 0; c < 3; ++c) q[lin_[static_cast<size_t>(c)]] = l[c];
   return true;
 }

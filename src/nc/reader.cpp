@@ -54,6 +54,8 @@ Program read_text(const std::string& text, const std::string& name, const AxisLe
   for (size_t li = first; li < lines.size(); ++li) {
     const std::string_view raw = lines[li];
     const int lineno = static_cast<int>(li) + 1;
+    // The closing '%' ends the program; NX appends a listing trailer after it.
+    if (li > first && trim(raw) == "%" && trim(lines[first]) == "%") break;
     std::string_view s = raw;
     // Header comment carrying the tool length our post used.
     if (auto p = s.find("cscam tool_length_mm="); p != std::string_view::npos) {
@@ -93,9 +95,7 @@ Program read_text(const std::string& text, const std::string& name, const AxisLe
       size_t k = j;
       if (k < s.size() && (s[k] == '-' || s[k] == '+')) ++k;
       while (k < s.size() && (std::isdigit(static_cast<unsigned char>(s[k])) || s[k] == '.')) ++k;
-      if (L == 'O' && k == j) {  // "O2021-11-28_..." program names: skip the rest of the line
-        break;
-      }
+      if (L == 'O') break;  // program number/name ("O2021-11-28_part"): not a block
       std::string num(s.substr(j, k - j));
       if (!num.empty() && num[0] == '+') num.erase(0, 1);
       double v = 0;

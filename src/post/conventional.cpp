@@ -1,5 +1,6 @@
 #include <fmt/format.h>
 
+#include <algorithm>
 #include <limits>
 
 #include "cscam/core/error.hpp"
@@ -29,6 +30,81 @@ double start_score(const machine::Machine& m, const kin::Kinematics& k, const ki
   return score;
 }
 
+/// Picks, among the IK solutions of `pose`, the one nearest to `prev` that lies inside the limits.
+/// Returns false (with the first violation) when none does.
+bool nearest_feasible(const kin::Kinematics& k, const kin::Posed& pose, const kin::Axes& prev,
+                      std::vector<kin::Solution>& sols, kin::Axes& out, std::string& violation, bool* singular = nullptr) {
+  k.inverse_branches(pose, &prev, sols);
+  double best = std::numeric_limits<double>::infinity();
+  for (kin::Solution& s : sols) {
+    k.nearest_winding(s.axes, prev);
+    const std::string v = k.check_limits(s.axes);
+    if (!v.empty()) {
+      if (violation.empty()) violation = v;
+      continue;
+    }
+    const double d = rotary_distance(k, s.axes, prev);
+    if (d < best) {
+      best = d;
+      out = s.axes;
+      if (singular) *singular = s.singular;
+    }
+  }
+  return std::isfinite(best);
+}
+
+/// At a singular point (tool axis along the primary rotary) the primary angle is free. A post that keeps
+/// the previous angle there forces a large primary rotation right after it, while the tool is on the
+/// part; looking ahead to the next non-singular point and turning the primary now costs nothing.
+void resolve_singular(const kin::Kinematics& k, const cl::Program& prog, size_t i, kin::Axes& q,
+                      std::vector<kin::Solution>& sols) {
+  const int p = k.rotary_pair()[0];
+  for (size_t j = i + 1; j < prog.moves.size(); ++j) {
+    const kin::Posed pose{prog.moves[j].tip_in_part_mm, prog.moves[j].axis_in_part.normalized()};
+    k.inverse_branches(pose, &q, sols);
+    if (sols.empty()) return;
+    if (sols[0].singular) continue;
+    double best = std::numeric_limits<double>::infinity();
+    kin::Axes pick = q;
+    for (kin::Solution& s : sols) {
+      k.nearest_winding(s.axes, q);
+      if (!k.check_limits(s.axes).empty()) continue;
+      const double d = std::abs(s.axes[p] - q[p]) + std::abs(s.axes[k.rotary_pair()[1]] - q[k.rotary_pair()[1]]);
+      if (d < best) {
+        best = d;
+        pick = s.axes;
+      }
+    }
+    if (!std::isfinite(best)) return;
+    kin::Axes trial = q;
+    trial[p] = pick[p];
+    const kin::Posed here{prog.moves[i].tip_in_part_mm, prog.moves[i].axis_in_part.normalized()};
+    if (k.solve_for_rotaries(here, trial) && k.check_limits(trial).empty()) q = trial;
+    return;
+  }
+}
+
+/// Above this rotary change between two CL points, tracking subdivides the CL orientation change:
+/// nearest-solution choice is only meaningful for small steps (near the singularity the tilt
+/// azimuth turns fast, and a single "nearest" jump may land on a branch the motion cannot reach).
+constexpr double kMaxTrackStepRad = 5.0 * kPi / 180.0;
+
+/// Continuous tracking from `prev` (a solution at pose0) to pose1 along the interpolated CL pose.
+bool track(const kin::Kinematics& k, const kin::Axes& prev, const kin::Posed& p0, const kin::Posed& p1, int depth,
+           std::vector<kin::Solution>& sols, kin::Axes& out, std::string& violation, bool* singular) {
+  if (!nearest_feasible(k, p1, prev, sols, out, violation, singular)) return false;
+  if (rotary_distance(k, out, prev) <= kMaxTrackStepRad || depth >= 20) return true;
+  const double ang = std::acos(std::clamp(p0.axis.dot(p1.axis), -1.0, 1.0));
+  if (ang < 1e-12) return true;
+  const double s = 0.5;
+  const Eigen::Vector3d axis_mid =
+      (std::sin((1 - s) * ang) / std::sin(ang) * p0.axis + std::sin(s * ang) / std::sin(ang) * p1.axis).normalized();
+  const kin::Posed mid{0.5 * (p0.tip_mm + p1.tip_mm), axis_mid};
+  kin::Axes qm;
+  if (!track(k, prev, p0, mid, depth + 1, sols, qm, violation, nullptr)) return false;
+  return track(k, qm, mid, p1, depth + 1, sols, out, violation, singular);
+}
+
 }  // namespace
 
 std::vector<kin::Axes> conventional_axes(const cl::Program& program, const machine::Machine& machine,
@@ -38,39 +114,45 @@ std::vector<kin::Axes> conventional_axes(const cl::Program& program, const machi
   std::vector<kin::Solution> sols;
   kin::Axes prev = kin::Axes::Zero();
   bool have_prev = false;
+  kin::Posed prev_pose;
   for (const cl::Move& mv : program.moves) {
-    const kin::Posed pose{mv.tip_in_part_mm, mv.axis_in_part};
-    kinematics.inverse_branches(pose, have_prev ? &prev : nullptr, sols);
-    double best = std::numeric_limits<double>::infinity();
+    const kin::Posed pose{mv.tip_in_part_mm, mv.axis_in_part.normalized()};
     kin::Axes chosen = kin::Axes::Zero();
     std::string first_violation;
-    for (kin::Solution& s : sols) {
-      if (have_prev) {
-        kinematics.nearest_winding(s.axes, prev);
-      } else {
+    bool ok = false, singular = false;
+    if (have_prev) {
+      ok = track(kinematics, prev, prev_pose, pose, 0, sols, chosen, first_violation, &singular);
+    } else {
+      kinematics.inverse_branches(pose, nullptr, sols);
+      double best = std::numeric_limits<double>::infinity();
+      for (kin::Solution& s : sols) {
         kinematics.nearest_winding(s.axes, kin::Axes::Zero());
+        const std::string v = kinematics.check_limits(s.axes);
+        if (!v.empty()) {
+          if (first_violation.empty()) first_violation = v;
+          continue;
+        }
+        const double score = start_score(machine, kinematics, s.axes);
+        if (score < best) {
+          best = score;
+          chosen = s.axes;
+          singular = s.singular;
+        }
       }
-      const std::string v = kinematics.check_limits(s.axes);
-      if (!v.empty()) {
-        if (first_violation.empty()) first_violation = v;
-        continue;
-      }
-      const double score = have_prev ? rotary_distance(kinematics, s.axes, prev) : start_score(machine, kinematics, s.axes);
-      if (score < best) {
-        best = score;
-        chosen = s.axes;
-      }
+      ok = std::isfinite(best);
     }
-    if (!std::isfinite(best)) {
+    if (!ok) {
       const auto& t = mv.tip_in_part_mm;
       const auto& u = mv.axis_in_part;
       throw InputError(SourceLoc{program.file, mv.line, 0},
                        fmt::format("CL point ({:.4f}, {:.4f}, {:.4f}) axis ({:.5f}, {:.5f}, {:.5f}) cannot be reached "
                                    "on machine '{}': {}",
                                    t.x(), t.y(), t.z(), u.x(), u.y(), u.z(), machine.name,
-                                   sols.empty() ? std::string("no inverse-kinematics solution for this tool axis")
-                                                : first_violation));
+                                   first_violation.empty() ? std::string("no inverse-kinematics solution for this tool axis")
+                                                           : first_violation));
     }
+    if (singular) resolve_singular(kinematics, program, static_cast<size_t>(&mv - program.moves.data()), chosen, sols);
+    prev_pose = pose;
     out.push_back(chosen);
     prev = chosen;
     have_prev = true;

@@ -3,6 +3,7 @@
 #include <fmt/format.h>
 
 #include <algorithm>
+#include <charconv>
 #include <cmath>
 #include <ostream>
 
@@ -16,14 +17,21 @@ namespace {
 
 using Vec3 = Eigen::Vector3d;
 
-/// Spherical interpolation of unit vectors (the CL tool axis between two points).
-Vec3 slerp(const Vec3& a, const Vec3& b, double s) {
-  const double d = std::clamp(a.dot(b), -1.0, 1.0);
-  const double th = std::acos(d);
-  if (th < 1e-9) return ((1 - s) * a + s * b).normalized();
-  const double sn = std::sin(th);
-  return (std::sin((1 - s) * th) / sn * a + std::sin(s * th) / sn * b).normalized();
-}
+/// Spherical interpolation of the CL tool axis between two points (angle computed once per segment).
+class Slerp {
+ public:
+  Slerp(const Vec3& a, const Vec3& b) : a_(a), b_(b), th_(std::acos(std::clamp(a.dot(b), -1.0, 1.0))) {
+    sn_ = std::sin(th_);
+  }
+  Vec3 operator()(double s) const {
+    if (th_ < 1e-9) return ((1 - s) * a_ + s * b_).normalized();
+    return (std::sin((1 - s) * th_) / sn_ * a_ + std::sin(s * th_) / sn_ * b_).normalized();
+  }
+
+ private:
+  Vec3 a_, b_;
+  double th_, sn_ = 0.0;
+};
 
 double point_segment_distance(const Vec3& p, const Vec3& a, const Vec3& b) {
   const Vec3 ab = b - a;
@@ -65,6 +73,7 @@ class Writer {
     dialect_ = make_dialect(opt.dialect.empty() ? machine.post.dialect : opt.dialect);
     tol_mm_ = opt.tolerance_mm > 0 ? opt.tolerance_mm : machine.post.tolerance_mm;
     tol_axis_rad_ = deg2rad(opt.axis_tolerance_deg > 0 ? opt.axis_tolerance_deg : machine.post.axis_tolerance_deg);
+    cos_tol_axis_ = std::cos(tol_axis_rad_);
     for (int i = 0; i < 5; ++i) {
       const auto& a = m_.axes[static_cast<size_t>(i)];
       const int d = a.rotary() ? m_.post.decimals_rotary : m_.post.decimals_linear;
@@ -199,13 +208,32 @@ class Writer {
       if (!force && have_word_[static_cast<size_t>(i)] && r == last_[static_cast<size_t>(i)]) continue;
       buf_.push_back(' ');
       buf_.append(m_.post.letters[static_cast<size_t>(i)]);
-      fmt::format_to(std::back_inserter(buf_), "{:.{}f}", q[i] * to_file_[static_cast<size_t>(i)],
-                     decimals_[static_cast<size_t>(i)]);
+      append_fixed(r, decimals_[static_cast<size_t>(i)]);
       last_[static_cast<size_t>(i)] = r;
       have_word_[static_cast<size_t>(i)] = true;
       any = true;
     }
     return any;
+  }
+
+  /// Writes r / 10^d with exactly d decimals (the value is already rounded: no float formatting needed).
+  void append_fixed(long long r, int d) {
+    if (r < 0) {
+      buf_.push_back('-');
+      r = -r;
+    }
+    long long p = 1;
+    for (int k = 0; k < d; ++k) p *= 10;
+    char tmp[32];
+    auto res = std::to_chars(tmp, tmp + sizeof tmp, r / p);
+    buf_.append(tmp, res.ptr);
+    if (d > 0) {
+      buf_.push_back('.');
+      res = std::to_chars(tmp, tmp + sizeof tmp, r % p);
+      const auto len = res.ptr - tmp;
+      buf_.append(static_cast<size_t>(d - len), '0');
+      buf_.append(tmp, res.ptr);
+    }
   }
 
   bool rotaries_differ(const kin::Axes& q) const {
@@ -274,18 +302,21 @@ class Writer {
 
   /// The largest normalised deviation (1 = at tolerance) of the machine's straight joint-space move
   /// qa->qb from the CL segment P0P1 (tip) and from the interpolated CL axis.
-  double deviation(const kin::Axes& qa, const kin::Axes& qb, double sa, double sb, const Vec3& P0, const Vec3& P1,
-                   const Vec3& u0, const Vec3& u1) {
-    double worst = 0.0;
-    for (double t : {0.25, 0.5, 0.75}) {
+  /// Whether the machine's straight joint-space move qa->qb leaves the tolerance of the CL segment P0P1
+  /// (tip) or of the interpolated CL axis, sampled at a quarter, half and three quarters.
+  bool exceeds(const kin::Axes& qa, const kin::Axes& qb, double sa, double sb, const Vec3& P0, const Vec3& P1,
+               const Slerp& axis) {
+    bool bad = false;
+    for (double t : {0.5, 0.25, 0.75}) {
       const kin::Posed p = kin_.forward(qa + t * (qb - qa));
       const double dtip = point_segment_distance(p.tip_mm, P0, P1);
       sum_.max_checked_tip_deviation_mm = std::max(sum_.max_checked_tip_deviation_mm, dtip);
-      const Vec3 u = slerp(u0, u1, sa + t * (sb - sa));
-      const double dang = std::acos(std::clamp(p.axis.dot(u), -1.0, 1.0));
-      worst = std::max({worst, dtip / tol_mm_, dang / tol_axis_rad_});
+      if (dtip > tol_mm_ || p.axis.dot(axis(sa + t * (sb - sa))) < cos_tol_axis_) {
+        bad = true;
+        break;
+      }
     }
-    return worst;
+    return bad;
   }
 
   void feed(const cl::Move& m0, const kin::Axes& q0, const cl::Move& m1, const kin::Axes& q1) {
@@ -312,7 +343,7 @@ class Writer {
       return;
     }
     const Vec3 &P0 = m0.tip_in_part_mm, &P1 = m1.tip_in_part_mm;
-    const Vec3 u0 = m0.axis_in_part.normalized(), u1 = m1.axis_in_part.normalized();
+    const Slerp axis(m0.axis_in_part.normalized(), m1.axis_in_part.normalized());
     // Explicit stack of pieces [sa, sb] with their axis values; emits pieces in order.
     stack_.clear();
     stack_.push_back({0.0, 1.0, q0, q1, 0});
@@ -320,9 +351,9 @@ class Writer {
       Piece pc = stack_.back();
       stack_.pop_back();
       if (opt_.linearise && pc.depth < opt_.max_subdivision_depth &&
-          deviation(pc.qa, pc.qb, pc.sa, pc.sb, P0, P1, u0, u1) > 1.0) {
+          exceeds(pc.qa, pc.qb, pc.sa, pc.sb, P0, P1, axis)) {
         const double sm = 0.5 * (pc.sa + pc.sb);
-        const kin::Posed target{P0 + sm * (P1 - P0), slerp(u0, u1, sm)};
+        const kin::Posed target{P0 + sm * (P1 - P0), axis(sm)};
         const kin::Axes guess = 0.5 * (pc.qa + pc.qb);
         kin_.inverse_branches(target, &guess, sols_);
         ++sum_.ik_calls;
@@ -346,7 +377,7 @@ class Writer {
           continue;
         }
       } else if (opt_.linearise && pc.depth >= opt_.max_subdivision_depth &&
-                 deviation(pc.qa, pc.qb, pc.sa, pc.sb, P0, P1, u0, u1) > 1.0) {
+                 exceeds(pc.qa, pc.qb, pc.sa, pc.sb, P0, P1, axis)) {
         sum_.warnings.push_back(fmt::format("{}: tolerance not reached after {} subdivisions (singular region?)",
                                             SourceLoc{prog_.file, m1.line, 0}.str(), opt_.max_subdivision_depth));
       }
@@ -383,7 +414,7 @@ class Writer {
   const Options& opt_;
   Summary& sum_;
   Dialect dialect_;
-  double tol_mm_ = 0.01, tol_axis_rad_ = 0.005;
+  double tol_mm_ = 0.01, tol_axis_rad_ = 0.005, cos_tol_axis_ = 1.0;
   std::array<int, 5> decimals_{};
   std::array<double, 5> scale_{}, to_file_{};
   std::array<long long, 5> last_{};

@@ -97,7 +97,7 @@ Stats compute_samples(const std::vector<Sample>& s, const std::array<std::string
     for (size_t a = 0; a < 5; ++a) {
       const double d = std::abs(s[i].v[a] - s[i - 1].v[a]);
       st.axes[a].travel += d;
-      st.axes[a].largest_step = std::max(st.axes[a].largest_step, d);
+      if (!s[i].rapid) st.axes[a].largest_step = std::max(st.axes[a].largest_step, d);
       if (d > 1e-6) {
         mv[a] = true;
         ++moving;
@@ -182,7 +182,8 @@ std::string Stats::to_json() const {
 
 std::string table(const std::vector<Stats>& cols, const std::vector<std::string>& headers) {
   std::string t;
-  const int w = 22;
+  int w = 14;
+  for (const auto& h : headers) w = std::max(w, static_cast<int>(h.size()) + 2);
   t += fmt::format("{:<28}", "");
   for (const auto& h : headers) t += fmt::format("{:>{}}", h, w);
   t += "\n";

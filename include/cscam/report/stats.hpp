@@ -15,7 +15,7 @@ struct AxisStat {
   bool rotary = false;
   double travel = 0.0;    ///< mm or deg
   int reversals = 0;      ///< direction changes larger than the hysteresis
-  double largest_step = 0.0;  ///< largest change in one block (mm or deg)
+  double largest_step = 0.0;  ///< largest change in one feed block (mm or deg); rapids only reposition
   double min = 0.0, max = 0.0;
 };
 

@@ -1,0 +1,231 @@
+#pragma once
+/// @file
+/// Tool shapes, the obstacle scene (FCL bounding-volume hierarchies) and collision / distance queries.
+///
+/// Frames and units: every query takes the tool pose in the part frame (kin::Posed: tool tip in mm and
+/// the unit tool axis pointing from the tip toward the spindle). Obstacle meshes are given in the part
+/// frame, except obstacles with ObstacleRole::Machine, which are given in a machine frame and placed
+/// per query by CheckOptions::machine_in_part.
+///
+/// Threading (Pinocchio Model/Data pattern): a Scene is filled, then build() once, and is immutable
+/// afterwards, so any number of threads may query it concurrently. Everything that changes during a
+/// query (FCL tool shapes, scratch, counters) lives in a QueryWorkspace, one per thread.
+#include <Eigen/Core>
+#include <Eigen/Geometry>
+#include <cstddef>
+#include <cstdint>
+#include <limits>
+#include <memory>
+#include <string>
+#include <vector>
+
+#include "cscam/geom/mesh.hpp"
+#include "cscam/kin/types.hpp"
+
+namespace cscam::geom {
+
+// ---------------------------------------------------------------------------------------------------
+// Tool shape
+// ---------------------------------------------------------------------------------------------------
+
+/// The parts of a tool assembly, from the tip upward.
+enum class ToolPart { CutterBody, Shank, Holder, Holder2, Spindle };
+
+/// "cutter_body", "shank", "holder", "holder2", "spindle".
+[[nodiscard]] const char* to_string(ToolPart part);
+
+/// The cutting part. corner_radius_mm = 0: flat end mill; = diameter/2: ball end mill; between: bull nose.
+struct CutterShape {
+  double diameter_mm = 0.0;
+  double corner_radius_mm = 0.0;
+  double flute_length_mm = 0.0;  ///< from the tip, along the axis
+  bool operator==(const CutterShape&) const = default;
+};
+
+/// A cylindrical stage of the tool assembly. A stage with zero diameter or zero length is absent.
+struct CylinderStage {
+  double diameter_mm = 0.0;
+  double length_mm = 0.0;
+  [[nodiscard]] bool present() const { return diameter_mm > 0.0 && length_mm > 0.0; }
+  bool operator==(const CylinderStage&) const = default;
+};
+
+/// Axial extent and radius of one tool part, measured along the tool axis from the tip (mm).
+struct ToolSegment {
+  ToolPart part = ToolPart::CutterBody;
+  double z0_mm = 0.0;  ///< lower end, distance from the tip along the axis
+  double z1_mm = 0.0;  ///< upper end
+  double radius_mm = 0.0;
+};
+
+/// Defaults used by ToolShape::from_cutter for what the CL file does not say (typically supplied by the
+/// machine file). A negative value means "derive from the cutter diameter D" as documented per field.
+struct ToolDefaults {
+  double shank_diameter_mm = -1.0;  ///< < 0: D
+  double shank_length_mm = -1.0;    ///< stick-out between flutes and holder; < 0: 2 D
+  double holder_diameter_mm = -1.0; ///< < 0: 2.5 D
+  double holder_length_mm = 40.0;
+  CylinderStage holder2{};          ///< optional second holder stage (absent by default)
+  CylinderStage spindle{};          ///< spindle nose (absent by default: the machine file should give it)
+};
+
+/// A tool assembly described along its axis from the tip upward, stacked without gaps:
+/// cutter [0, flute], shank, holder, optional second holder stage, spindle nose.
+struct ToolShape {
+  CutterShape cutter;
+  CylinderStage shank;
+  CylinderStage holder;
+  CylinderStage holder2;  ///< optional
+  CylinderStage spindle;  ///< optional
+
+  /// A tool from the cutter data of a CL file (CUTTER/D,R) plus defaults for the rest.
+  /// @throws InputError when the resulting shape is invalid (see validate()).
+  [[nodiscard]] static ToolShape from_cutter(double diameter_mm, double corner_radius_mm, double flute_length_mm,
+                                             const ToolDefaults& defaults = {});
+
+  /// @throws InputError for a non-positive cutter diameter or flute length, a corner radius outside
+  ///         [0, D/2], or a negative stage dimension.
+  void validate() const;
+
+  /// True when the corner radius equals the cutter radius (within 1e-9 mm).
+  [[nodiscard]] bool is_ball() const;
+
+  /// Tip to the top of the holder stages (the spindle nose face), mm.
+  [[nodiscard]] double gauge_length_mm() const;
+
+  /// The present parts as stacked cylinders (the cutter as the full cylinder [0, flute]).
+  [[nodiscard]] std::vector<ToolSegment> segments() const;
+
+  bool operator==(const ToolShape&) const = default;
+};
+
+// ---------------------------------------------------------------------------------------------------
+// Scene
+// ---------------------------------------------------------------------------------------------------
+
+/// What an obstacle is. Roles are bit flags so that CheckOptions::roles can select several.
+enum class ObstacleRole : unsigned { Part = 1u, Fixture = 2u, Machine = 4u };
+inline constexpr unsigned kAllRoles = 7u;
+
+/// "part", "fixture", "machine".
+[[nodiscard]] const char* to_string(ObstacleRole role);
+
+/// A set of obstacle meshes with one FCL BVH (OBBRSS) each. Immutable and thread-safe after build().
+class Scene {
+ public:
+  Scene();
+  ~Scene();
+  Scene(Scene&&) noexcept;
+  Scene& operator=(Scene&&) noexcept;
+  Scene(const Scene&) = delete;
+  Scene& operator=(const Scene&) = delete;
+
+  /// Adds an obstacle (before build()). Returns its index.
+  /// @throws InputError for a mesh without triangles or with out-of-range indices (names mesh.source);
+  ///         std::logic_error when called after build().
+  std::size_t add(std::string name, ObstacleRole role, Mesh mesh);
+
+  /// Builds the bounding-volume hierarchies. Call once; queries require it.
+  void build();
+  [[nodiscard]] bool built() const;
+
+  [[nodiscard]] std::size_t obstacle_count() const;
+  [[nodiscard]] const std::string& obstacle_name(std::size_t i) const;
+  [[nodiscard]] ObstacleRole obstacle_role(std::size_t i) const;
+  [[nodiscard]] const Mesh& obstacle_mesh(std::size_t i) const;
+  /// Bounding box of obstacle i in its own frame (part frame, or machine frame for Machine obstacles).
+  [[nodiscard]] const Eigen::AlignedBox3d& obstacle_bounds(std::size_t i) const;
+  /// Total number of triangles over all obstacles.
+  [[nodiscard]] std::size_t triangle_count() const;
+  /// Wall-clock seconds build() took.
+  [[nodiscard]] double build_seconds() const;
+
+  struct Impl;
+  [[nodiscard]] const Impl& impl() const { return *impl_; }
+
+ private:
+  std::unique_ptr<Impl> impl_;
+};
+
+// ---------------------------------------------------------------------------------------------------
+// Queries
+// ---------------------------------------------------------------------------------------------------
+
+/// Counters of one workspace. Add workspaces' stats together for a run total.
+struct QueryStats {
+  std::uint64_t collision_queries = 0;   ///< check() calls
+  std::uint64_t distance_queries = 0;    ///< clearance() calls and check() calls with compute_distance
+  std::uint64_t fcl_collide_calls = 0;   ///< narrow FCL collide() calls (tool segment x obstacle)
+  std::uint64_t fcl_distance_calls = 0;  ///< narrow FCL distance() calls
+  std::uint64_t aabb_rejects = 0;        ///< segment x obstacle pairs settled by bounding boxes alone
+  QueryStats& operator+=(const QueryStats& o);
+};
+
+/// Per-thread scratch for queries: the FCL tool shapes (rebuilt only when the tool or the inflation
+/// changes) and the counters. Not thread-safe; use one per thread.
+class QueryWorkspace {
+ public:
+  QueryWorkspace();
+  ~QueryWorkspace();
+  QueryWorkspace(QueryWorkspace&&) noexcept;
+  QueryWorkspace& operator=(QueryWorkspace&&) noexcept;
+  QueryWorkspace(const QueryWorkspace&) = delete;
+  QueryWorkspace& operator=(const QueryWorkspace&) = delete;
+
+  QueryStats stats;
+
+  struct Impl;
+  [[nodiscard]] Impl& impl() { return *impl_; }
+
+ private:
+  std::unique_ptr<Impl> impl_;
+};
+
+/// How to check a tool pose.
+///
+/// The cutting end is in contact with the machined surface by design and never counts: the checked
+/// cutter body is the cylinder of radius D/2 (+ cutter_clearance_mm) from `corner_radius + relief`
+/// above the tip to the end of the flutes. For a ball mill this excludes the whole ball plus `relief`;
+/// for a flat mill only the bottom `relief`. Shank, holder(s) and spindle nose are checked whole,
+/// inflated by clearance_mm in radius and at both ends.
+struct CheckOptions {
+  double clearance_mm = 0.0;         ///< safety margin around shank, holder(s), spindle nose
+  double cutter_clearance_mm = 0.0;  ///< margin around the checked cutter body (radius only)
+  bool check_cutter_body = true;     ///< false: ignore the flutes entirely
+  double relief_mm = -1.0;           ///< < 0: 0.2 x corner radius, or 0.5 mm for a flat mill
+  bool compute_distance = false;     ///< check(): also fill CollisionResult::min_distance_mm when free
+  unsigned roles = kAllRoles;        ///< which obstacle roles to test (bit or of ObstacleRole)
+  /// Pose of the machine frame in the part frame, applied to ObstacleRole::Machine obstacles.
+  Eigen::Isometry3d machine_in_part = Eigen::Isometry3d::Identity();
+};
+
+/// Outcome of check().
+struct CollisionResult {
+  bool collides = false;
+  ToolPart part = ToolPart::CutterBody;  ///< the tool part that hit (valid when collides)
+  int obstacle = -1;                     ///< index of the obstacle hit in the Scene, -1 when free
+  /// With CheckOptions::compute_distance: smallest distance (mm) between the checked, inflated tool
+  /// parts and the obstacles; 0 when colliding; +inf when nothing is in range. NaN when not requested.
+  double min_distance_mm = std::numeric_limits<double>::quiet_NaN();
+  ToolPart nearest_part = ToolPart::CutterBody;  ///< part realising min_distance_mm (when computed)
+  int nearest_obstacle = -1;                     ///< obstacle realising min_distance_mm (when computed)
+};
+
+/// The tool segments check() actually tests for this tool and these options (after the cutting-end
+/// exclusion and the inflation), from the tip upward.
+[[nodiscard]] std::vector<ToolSegment> checked_segments(const ToolShape& tool, const CheckOptions& options);
+
+/// Does the tool at `tool_pose_in_part` (tip in mm, unit axis tip -> spindle, part frame) collide with
+/// the scene? Stops at the first hit (parts in order tip upward, obstacles in insertion order).
+/// Counts one collision query (and one distance query with compute_distance).
+/// @pre scene.built(); tool_pose_in_part.axis non-zero (it is normalised).
+[[nodiscard]] CollisionResult check(const Scene& scene, const ToolShape& tool, const kin::Posed& tool_pose_in_part,
+                                    const CheckOptions& options, QueryWorkspace& workspace);
+
+/// Smallest distance (mm) between the checked tool parts (as in check()) and the scene; 0 when they
+/// collide; +inf when the scene has no obstacle of the selected roles. FCL GJK distance: exact for
+/// flat-faced contacts, to ~1e-6 mm otherwise. Counts one distance query. For planner tie-breaking.
+[[nodiscard]] double clearance(const Scene& scene, const ToolShape& tool, const kin::Posed& tool_pose_in_part,
+                               const CheckOptions& options, QueryWorkspace& workspace);
+
+}  // namespace cscam::geom

@@ -1,0 +1,274 @@
+#include "cscam/geom/mesh.hpp"
+
+#include <assimp/Importer.hpp>
+#include <assimp/postprocess.h>
+#include <assimp/scene.h>
+#include <fmt/format.h>
+
+#include <algorithm>
+#include <array>
+#include <bit>
+#include <cmath>
+#include <cstdint>
+#include <cstring>
+#include <fstream>
+#include <unordered_map>
+
+#include "cscam/core/atomic_file.hpp"
+#include "cscam/core/error.hpp"
+
+namespace cscam::geom {
+
+namespace {
+
+std::string fmt_point(const Eigen::Vector3d& p) { return fmt::format("({:.6g}, {:.6g}, {:.6g})", p.x(), p.y(), p.z()); }
+
+std::uint64_t edge_key(int a, int b) {
+  return (static_cast<std::uint64_t>(static_cast<std::uint32_t>(a)) << 32) | static_cast<std::uint32_t>(b);
+}
+
+/// Welds vertices closer than `tol` (hash grid with cell size tol, 27-cell neighbourhood) and
+/// re-indexes the triangles; drops triangles that became degenerate. Returns the number dropped.
+std::size_t weld(Mesh& mesh, double tol) {
+  if (mesh.vertices_mm.empty() || !(tol > 0.0)) return 0;
+  struct KeyHash {
+    std::size_t operator()(const std::array<std::int64_t, 3>& k) const {
+      std::uint64_t h = static_cast<std::uint64_t>(k[0]) * 0x9E3779B97F4A7C15ull;
+      h ^= static_cast<std::uint64_t>(k[1]) * 0xC2B2AE3D27D4EB4Full + (h << 6) + (h >> 2);
+      h ^= static_cast<std::uint64_t>(k[2]) * 0x165667B19E3779F9ull + (h << 6) + (h >> 2);
+      return static_cast<std::size_t>(h);
+    }
+  };
+  std::unordered_map<std::array<std::int64_t, 3>, std::vector<int>, KeyHash> grid;
+  grid.reserve(mesh.vertices_mm.size());
+  std::vector<Eigen::Vector3d> out;
+  out.reserve(mesh.vertices_mm.size());
+  std::vector<int> remap(mesh.vertices_mm.size());
+  const double tol2 = tol * tol;
+  for (std::size_t i = 0; i < mesh.vertices_mm.size(); ++i) {
+    const Eigen::Vector3d& p = mesh.vertices_mm[i];
+    const std::array<std::int64_t, 3> key{static_cast<std::int64_t>(std::floor(p.x() / tol)),
+                                          static_cast<std::int64_t>(std::floor(p.y() / tol)),
+                                          static_cast<std::int64_t>(std::floor(p.z() / tol))};
+    int found = -1;
+    for (int dx = -1; dx <= 1 && found < 0; ++dx)
+      for (int dy = -1; dy <= 1 && found < 0; ++dy)
+        for (int dz = -1; dz <= 1 && found < 0; ++dz) {
+          auto it = grid.find({key[0] + dx, key[1] + dy, key[2] + dz});
+          if (it == grid.end()) continue;
+          for (int j : it->second)
+            if ((out[static_cast<std::size_t>(j)] - p).squaredNorm() <= tol2) {
+              found = j;
+              break;
+            }
+        }
+    if (found < 0) {
+      found = static_cast<int>(out.size());
+      out.push_back(p);
+      grid[key].push_back(found);
+    }
+    remap[i] = found;
+  }
+  std::vector<Eigen::Vector3i> tris;
+  tris.reserve(mesh.triangles.size());
+  std::size_t dropped = 0;
+  for (const auto& t : mesh.triangles) {
+    const Eigen::Vector3i u(remap[static_cast<std::size_t>(t[0])], remap[static_cast<std::size_t>(t[1])],
+                            remap[static_cast<std::size_t>(t[2])]);
+    if (u[0] == u[1] || u[1] == u[2] || u[0] == u[2]) {
+      ++dropped;
+      continue;
+    }
+    tris.push_back(u);
+  }
+  mesh.vertices_mm = std::move(out);
+  mesh.triangles = std::move(tris);
+  return dropped;
+}
+
+void collect(const aiScene* scene, const aiNode* node, const aiMatrix4x4& parent, double scale, Mesh& mesh) {
+  const aiMatrix4x4 T = parent * node->mTransformation;
+  for (unsigned k = 0; k < node->mNumMeshes; ++k) {
+    const aiMesh* m = scene->mMeshes[node->mMeshes[k]];
+    const int base = static_cast<int>(mesh.vertices_mm.size());
+    for (unsigned v = 0; v < m->mNumVertices; ++v) {
+      const aiVector3D p = T * m->mVertices[v];
+      mesh.vertices_mm.emplace_back(scale * p.x, scale * p.y, scale * p.z);
+    }
+    for (unsigned f = 0; f < m->mNumFaces; ++f) {
+      const aiFace& face = m->mFaces[f];
+      if (face.mNumIndices != 3) continue;  // points and lines (polygons were triangulated)
+      mesh.triangles.emplace_back(base + static_cast<int>(face.mIndices[0]), base + static_cast<int>(face.mIndices[1]),
+                                  base + static_cast<int>(face.mIndices[2]));
+    }
+  }
+  for (unsigned c = 0; c < node->mNumChildren; ++c) collect(scene, node->mChildren[c], T, scale, mesh);
+}
+
+}  // namespace
+
+Eigen::AlignedBox3d Mesh::bounding_box() const {
+  Eigen::AlignedBox3d box;  // empty
+  for (const auto& v : vertices_mm) box.extend(v);
+  return box;
+}
+
+bool Mesh::is_closed(std::string* why) const {
+  auto fail = [&](std::string msg) {
+    if (why) *why = std::move(msg);
+    return false;
+  };
+  if (triangles.empty()) return fail("mesh has no triangles");
+  const int nv = static_cast<int>(vertices_mm.size());
+  std::size_t degenerate = 0;
+  std::unordered_map<std::uint64_t, int> directed;
+  directed.reserve(triangles.size() * 3);
+  for (std::size_t t = 0; t < triangles.size(); ++t) {
+    const auto& tri = triangles[t];
+    for (int k = 0; k < 3; ++k)
+      if (tri[k] < 0 || tri[k] >= nv)
+        return fail(fmt::format("triangle {} has vertex index {} out of range [0, {})", t, tri[k], nv));
+    if (tri[0] == tri[1] || tri[1] == tri[2] || tri[0] == tri[2]) {
+      ++degenerate;
+      continue;
+    }
+    for (int k = 0; k < 3; ++k) ++directed[edge_key(tri[k], tri[(k + 1) % 3])];
+  }
+  std::size_t boundary = 0, non_manifold = 0, flipped = 0;
+  std::string example;
+  auto note = [&](int a, int b, const char* what) {
+    if (example.empty())
+      example = fmt::format("; e.g. {} edge {} - {}", what, fmt_point(vertices_mm[static_cast<std::size_t>(a)]),
+                            fmt_point(vertices_mm[static_cast<std::size_t>(b)]));
+  };
+  for (const auto& [key, count] : directed) {
+    const int a = static_cast<int>(key >> 32), b = static_cast<int>(key & 0xffffffffu);
+    const auto rev = directed.find(edge_key(b, a));
+    const int rcount = rev == directed.end() ? 0 : rev->second;
+    if (rcount > 0 && a > b) continue;  // the pair is handled once, from its smaller first index
+    const int total = count + rcount;
+    if (total == 1) {
+      ++boundary;
+      note(a, b, "boundary");
+    } else if (total > 2) {
+      ++non_manifold;
+      note(a, b, "non-manifold");
+    } else if (count != rcount) {
+      ++flipped;
+      note(a, b, "inconsistently oriented");
+    }
+  }
+  if (boundary == 0 && non_manifold == 0 && flipped == 0 && degenerate == 0) return true;
+  return fail(fmt::format(
+      "mesh is not closed: {} boundary edge(s), {} non-manifold edge(s), {} inconsistently oriented edge(s), "
+      "{} degenerate triangle(s){}",
+      boundary, non_manifold, flipped, degenerate, example));
+}
+
+double Mesh::signed_volume_mm3() const {
+  if (vertices_mm.empty()) return 0.0;
+  const Eigen::Vector3d o = bounding_box().center();  // better conditioned than the origin
+  double six_v = 0.0;
+  for (const auto& t : triangles) {
+    const Eigen::Vector3d a = vertices_mm[static_cast<std::size_t>(t[0])] - o;
+    const Eigen::Vector3d b = vertices_mm[static_cast<std::size_t>(t[1])] - o;
+    const Eigen::Vector3d c = vertices_mm[static_cast<std::size_t>(t[2])] - o;
+    six_v += a.dot(b.cross(c));
+  }
+  return six_v / 6.0;
+}
+
+double Mesh::area_mm2() const {
+  double a2 = 0.0;
+  for (const auto& t : triangles) {
+    const Eigen::Vector3d& a = vertices_mm[static_cast<std::size_t>(t[0])];
+    a2 += (vertices_mm[static_cast<std::size_t>(t[1])] - a).cross(vertices_mm[static_cast<std::size_t>(t[2])] - a).norm();
+  }
+  return 0.5 * a2;
+}
+
+void Mesh::transform(const Eigen::Isometry3d& T) {
+  for (auto& v : vertices_mm) v = T * v;
+}
+
+void Mesh::append(const Mesh& other) {
+  const int base = static_cast<int>(vertices_mm.size());
+  vertices_mm.insert(vertices_mm.end(), other.vertices_mm.begin(), other.vertices_mm.end());
+  triangles.reserve(triangles.size() + other.triangles.size());
+  for (const auto& t : other.triangles) triangles.emplace_back(t.array() + base);
+}
+
+Mesh load_mesh(const std::string& path, double scale_to_mm, bool require_closed) {
+  const SourceLoc where{path};
+  if (!(scale_to_mm > 0.0) || !std::isfinite(scale_to_mm))
+    throw InputError(where, fmt::format("scale to mm must be a positive number, got {}", scale_to_mm));
+  {
+    std::ifstream probe(path, std::ios::binary);
+    if (!probe) throw InputError(where, "cannot open mesh file");
+  }
+  Assimp::Importer importer;
+  importer.SetPropertyInteger(AI_CONFIG_PP_RVC_FLAGS, aiComponent_NORMALS | aiComponent_TANGENTS_AND_BITANGENTS |
+                                                          aiComponent_COLORS | aiComponent_TEXCOORDS |
+                                                          aiComponent_BONEWEIGHTS);
+  importer.SetPropertyInteger(AI_CONFIG_PP_SBP_REMOVE, aiPrimitiveType_POINT | aiPrimitiveType_LINE);
+  // RemoveComponent first: STL stores a normal per face corner, which would stop JoinIdenticalVertices
+  // from welding the corners of neighbouring faces.
+  const aiScene* scene = importer.ReadFile(path, aiProcess_RemoveComponent | aiProcess_JoinIdenticalVertices |
+                                                     aiProcess_Triangulate | aiProcess_SortByPType);
+  if (!scene || !scene->mRootNode)
+    throw InputError(where, fmt::format("cannot read mesh: {}", importer.GetErrorString()));
+  if (scene->mFlags & AI_SCENE_FLAGS_INCOMPLETE)
+    throw InputError(where, fmt::format("mesh file is incomplete: {}", importer.GetErrorString()));
+
+  Mesh mesh;
+  mesh.source = path;
+  aiMatrix4x4 identity;
+  collect(scene, scene->mRootNode, identity, scale_to_mm, mesh);
+  if (mesh.triangles.empty()) throw InputError(where, "mesh file contains no triangles");
+  for (const auto& v : mesh.vertices_mm)
+    if (!v.allFinite()) throw InputError(where, "mesh file contains a non-finite vertex coordinate");
+
+  // Weld across sub-meshes (assimp only joins within one mesh), tolerance relative to the part size.
+  const double diag = mesh.bounding_box().diagonal().norm();
+  weld(mesh, std::max(diag * 1e-7, 1e-12));
+  if (mesh.triangles.empty()) throw InputError(where, "mesh file contains only degenerate triangles");
+
+  if (require_closed) {
+    std::string why;
+    if (!mesh.is_closed(&why)) throw InputError(where, why);
+  }
+  return mesh;
+}
+
+void save_stl(const Mesh& mesh, const std::string& path) {
+  static_assert(std::endian::native == std::endian::little, "binary STL writer assumes a little-endian host");
+  const auto n = static_cast<std::uint32_t>(mesh.triangles.size());
+  CSCAM_CHECK(mesh.triangles.size() == n, "too many triangles for STL");
+  write_file_atomically(path, [&](std::ostream& out) {
+    std::array<char, 80> header{};
+    const std::string title = "cscam binary STL " + mesh.source;  // must not start with "solid"
+    std::memcpy(header.data(), title.data(), std::min(title.size(), header.size()));
+    out.write(header.data(), static_cast<std::streamsize>(header.size()));
+    out.write(reinterpret_cast<const char*>(&n), sizeof n);
+    std::array<char, 50> rec{};
+    for (const auto& t : mesh.triangles) {
+      const Eigen::Vector3d& a = mesh.vertices_mm.at(static_cast<std::size_t>(t[0]));
+      const Eigen::Vector3d& b = mesh.vertices_mm.at(static_cast<std::size_t>(t[1]));
+      const Eigen::Vector3d& c = mesh.vertices_mm.at(static_cast<std::size_t>(t[2]));
+      Eigen::Vector3d nrm = (b - a).cross(c - a);
+      const double len = nrm.norm();
+      nrm = len > 0.0 ? Eigen::Vector3d(nrm / len) : Eigen::Vector3d::Zero();
+      std::array<float, 12> f{};
+      for (int k = 0; k < 3; ++k) {
+        f[static_cast<std::size_t>(k)] = static_cast<float>(nrm[k]);
+        f[static_cast<std::size_t>(3 + k)] = static_cast<float>(a[k]);
+        f[static_cast<std::size_t>(6 + k)] = static_cast<float>(b[k]);
+        f[static_cast<std::size_t>(9 + k)] = static_cast<float>(c[k]);
+      }
+      std::memcpy(rec.data(), f.data(), sizeof f);  // 48 bytes, then a zero attribute word
+      out.write(rec.data(), static_cast<std::streamsize>(rec.size()));
+    }
+  });
+}
+
+}  // namespace cscam::geom

@@ -1,0 +1,559 @@
+// geom: mesh I/O (assimp), closedness, the groove test part, tool shapes, FCL collision and distance queries.
+// The oracles are analytic (box and groove geometry computed by hand), not FCL.
+#include <gtest/gtest.h>
+#include <unistd.h>
+
+#include <cmath>
+#include <filesystem>
+#include <fstream>
+#include <thread>
+
+#include "cscam/core/error.hpp"
+#include "cscam/core/units.hpp"
+#include "cscam/geom/groove.hpp"
+#include "cscam/geom/mesh.hpp"
+#include "cscam/geom/scene.hpp"
+#include "test_support.hpp"
+
+using namespace cscam;
+using namespace cscam::geom;
+namespace fs = std::filesystem;
+
+namespace {
+
+fs::path temp_dir() {
+  const fs::path d = fs::temp_directory_path() / ("cscam_geom_test_" + std::to_string(::getpid()));
+  fs::create_directories(d);
+  return d;
+}
+
+/// Axis-aligned box [lo, hi] as a closed, outward-oriented 12-triangle mesh.
+Mesh make_box(const Eigen::Vector3d& lo, const Eigen::Vector3d& hi) {
+  Mesh m;
+  m.source = "box";
+  for (int i = 0; i < 8; ++i)
+    m.vertices_mm.emplace_back(i & 1 ? hi.x() : lo.x(), i & 2 ? hi.y() : lo.y(), i & 4 ? hi.z() : lo.z());
+  // Faces as quads (counter-clockwise seen from outside), split into two triangles each.
+  const int q[6][4] = {{0, 2, 3, 1}, {4, 5, 7, 6}, {0, 1, 5, 4}, {2, 6, 7, 3}, {0, 4, 6, 2}, {1, 3, 7, 5}};
+  for (const auto& f : q) {
+    m.triangles.emplace_back(f[0], f[1], f[2]);
+    m.triangles.emplace_back(f[0], f[2], f[3]);
+  }
+  return m;
+}
+
+std::string message_of(const std::function<void()>& f) {
+  try {
+    f();
+  } catch (const InputError& e) {
+    return e.what();
+  }
+  return "<no InputError thrown>";
+}
+
+kin::Posed pose(const Eigen::Vector3d& tip, const Eigen::Vector3d& axis) { return {tip, axis.normalized()}; }
+
+}  // namespace
+
+// ---------------------------------------------------------------------------------------------------
+// Meshes
+// ---------------------------------------------------------------------------------------------------
+
+TEST(GeomMesh, BoxIsClosedWithOutwardVolume) {
+  const Mesh box = make_box({0, 0, 0}, {10, 20, 30});
+  std::string why;
+  EXPECT_TRUE(box.is_closed(&why)) << why;
+  EXPECT_NEAR(box.signed_volume_mm3(), 6000.0, 1e-9);
+  EXPECT_NEAR(box.area_mm2(), 2 * (200 + 300 + 600), 1e-9);
+  const auto bb = box.bounding_box();
+  EXPECT_TRUE(bb.min().isApprox(Eigen::Vector3d(0, 0, 0)));
+  EXPECT_TRUE(bb.max().isApprox(Eigen::Vector3d(10, 20, 30)));
+}
+
+TEST(GeomMesh, IsClosedReportsBoundaryFlippedAndNonManifold) {
+  Mesh open = make_box({0, 0, 0}, {1, 1, 1});
+  open.triangles.resize(10);  // drop the last face (x = hi): a square hole of 4 boundary edges
+  std::string why;
+  EXPECT_FALSE(open.is_closed(&why));
+  EXPECT_NE(why.find("4 boundary edge(s)"), std::string::npos) << why;
+  EXPECT_NE(why.find("e.g. boundary edge ("), std::string::npos) << why;
+
+  Mesh flipped = make_box({0, 0, 0}, {1, 1, 1});
+  std::swap(flipped.triangles[0][1], flipped.triangles[0][2]);
+  EXPECT_FALSE(flipped.is_closed(&why));
+  EXPECT_NE(why.find("3 inconsistently oriented edge(s)"), std::string::npos) << why;
+
+  Mesh nm = make_box({0, 0, 0}, {1, 1, 1});
+  nm.triangles.push_back(nm.triangles[0]);  // a duplicated triangle: its three edges are used three times
+  nm.triangles.push_back(Eigen::Vector3i(nm.triangles[0][0], nm.triangles[0][2], nm.triangles[0][1]));
+  EXPECT_FALSE(nm.is_closed(&why));
+  EXPECT_NE(why.find("3 non-manifold edge(s)"), std::string::npos) << why;
+
+  EXPECT_FALSE(Mesh{}.is_closed(&why));
+}
+
+TEST(GeomMesh, StlRoundTripKeepsTrianglesAndBox) {
+  const fs::path dir = temp_dir();
+  const Mesh box = make_box({-1.5, 2.25, -3}, {4, 7.75, 0.5});
+  const std::string path = (dir / "box.stl").string();
+  save_stl(box, path);
+  EXPECT_EQ(fs::file_size(path), 84u + 50u * 12u);
+  const Mesh back = load_mesh(path);
+  EXPECT_EQ(back.triangle_count(), 12u);
+  EXPECT_EQ(back.vertices_mm.size(), 8u);  // welded across faces
+  EXPECT_EQ(back.source, path);
+  EXPECT_TRUE(back.bounding_box().min().isApprox(box.bounding_box().min(), 1e-7));
+  EXPECT_TRUE(back.bounding_box().max().isApprox(box.bounding_box().max(), 1e-7));
+  EXPECT_NEAR(back.signed_volume_mm3(), box.signed_volume_mm3(), 1e-6);  // orientation kept
+
+  // A larger, curved mesh: the groove.
+  GrooveParams gp;
+  gp.length_segments = 3;
+  const Mesh g = make_groove(gp);
+  const std::string gpath = (dir / "groove.stl").string();
+  save_stl(g, gpath);
+  const Mesh gb = load_mesh(gpath);
+  EXPECT_EQ(gb.triangle_count(), g.triangle_count());
+  EXPECT_EQ(gb.vertices_mm.size(), g.vertices_mm.size());
+  EXPECT_LT((gb.bounding_box().min() - g.bounding_box().min()).norm(), 1e-5);
+  EXPECT_LT((gb.bounding_box().max() - g.bounding_box().max()).norm(), 1e-5);
+  EXPECT_NEAR(gb.signed_volume_mm3(), g.signed_volume_mm3(), 1e-6 * g.signed_volume_mm3());
+
+  // Scale to mm (a file in inches).
+  const Mesh inch = load_mesh(path, 25.4);
+  EXPECT_NEAR(inch.bounding_box().max().x(), 4 * 25.4, 1e-4);
+}
+
+TEST(GeomMesh, ObjQuadsAreTriangulatedAndMultipleObjectsMerged) {
+  const fs::path dir = temp_dir();
+  const std::string path = (dir / "two_cubes.obj").string();
+  std::ofstream out(path);
+  // Two unit cubes as quads, in two objects; the second offset by 3 in x. Outward winding.
+  for (int c = 0; c < 2; ++c) {
+    out << "o cube" << c << "\n";
+    for (int i = 0; i < 8; ++i)
+      out << "v " << ((i & 1) + 3 * c) << " " << ((i >> 1) & 1) << " " << ((i >> 2) & 1) << "\n";
+    const int q[6][4] = {{0, 2, 3, 1}, {4, 5, 7, 6}, {0, 1, 5, 4}, {2, 6, 7, 3}, {0, 4, 6, 2}, {1, 3, 7, 5}};
+    for (const auto& f : q) out << "f " << f[0] + 1 + 8 * c << " " << f[1] + 1 + 8 * c << " " << f[2] + 1 + 8 * c << " "
+                                << f[3] + 1 + 8 * c << "\n";
+  }
+  out.close();
+  const Mesh m = load_mesh(path);
+  EXPECT_EQ(m.triangle_count(), 24u);
+  EXPECT_NEAR(m.signed_volume_mm3(), 2.0, 1e-9);
+  EXPECT_NEAR(m.bounding_box().max().x(), 4.0, 1e-12);
+}
+
+TEST(GeomMesh, OpenMeshesAreRejectedNamingTheFile) {
+  const fs::path dir = temp_dir();
+  Mesh tri;
+  tri.vertices_mm = {{0, 0, 0}, {1, 0, 0}, {0, 1, 0}};
+  tri.triangles = {{0, 1, 2}};
+  const std::string p1 = (dir / "one_triangle.stl").string();
+  save_stl(tri, p1);
+  std::string msg = message_of([&] { (void)load_mesh(p1); });
+  EXPECT_EQ(msg.rfind(p1 + ": ", 0), 0u) << msg;
+  EXPECT_NE(msg.find("3 boundary edge(s)"), std::string::npos) << msg;
+
+  Mesh open = make_box({0, 0, 0}, {2, 2, 2});
+  open.triangles.resize(10);
+  const std::string p2 = (dir / "open_box.stl").string();
+  save_stl(open, p2);
+  msg = message_of([&] { (void)load_mesh(p2); });
+  EXPECT_EQ(msg.rfind(p2 + ": ", 0), 0u) << msg;
+  EXPECT_NE(msg.find("4 boundary edge(s)"), std::string::npos) << msg;
+  EXPECT_NE(msg.find("(2, "), std::string::npos) << msg;  // the example edge lies on the removed face x = 2
+
+  // Allowed when closedness is not required.
+  EXPECT_EQ(load_mesh(p2, 1.0, /*require_closed=*/false).triangle_count(), 10u);
+}
+
+TEST(GeomMesh, MissingAndGarbageFilesAreInputErrorsNamingTheFile) {
+  const fs::path dir = temp_dir();
+  const std::string missing = (dir / "no_such_part.stl").string();
+  std::string msg = message_of([&] { (void)load_mesh(missing); });
+  EXPECT_EQ(msg, missing + ": cannot open mesh file");
+
+  const std::string garbage = (dir / "garbage.ply").string();
+  std::ofstream(garbage) << "this is not a PLY file\n\x01\x02\x03";
+  msg = message_of([&] { (void)load_mesh(garbage); });
+  EXPECT_EQ(msg.rfind(garbage + ": ", 0), 0u) << msg;
+
+  EXPECT_THROW((void)load_mesh(missing, -1.0), InputError);
+  EXPECT_THROW(save_stl(make_box({0, 0, 0}, {1, 1, 1}), (dir / "no_dir" / "x.stl").string()), InputError);
+}
+
+// ---------------------------------------------------------------------------------------------------
+// The groove test part
+// ---------------------------------------------------------------------------------------------------
+
+TEST(GeomGroove, ClosedOutwardWithAnalyticVolumeAndBox) {
+  const GrooveParams p;  // L 100, floor 30, mouth 20, depth 20, R 25, block 60, thickness 10
+  const Mesh g = make_groove(p);
+  std::string why;
+  ASSERT_TRUE(g.is_closed(&why)) << why;
+  const int K = 2 * p.floor_segments + 4 * p.wall_segments + 6;
+  EXPECT_EQ(g.triangle_count(),
+            static_cast<std::size_t>(2 * K * p.length_segments + 8 * p.wall_segments + 4 * p.floor_segments + 8));
+
+  const auto bb = g.bounding_box();
+  EXPECT_TRUE(bb.min().isApprox(Eigen::Vector3d(-50, -30, -10), 1e-12));
+  EXPECT_TRUE(bb.max().isApprox(Eigen::Vector3d(50, 30, 20), 1e-12));
+
+  // Cross-section area, by hand: block minus cavity; cavity = trapezoid under the chords + 2 arc segments.
+  // Wall chord from (15, 0) to (10, 20): length sqrt(425); central angle alpha = 2 asin(len / 2R).
+  const double R = 25.0, len = std::sqrt(425.0), alpha = 2.0 * std::asin(len / (2.0 * R));
+  const double trapezoid = 0.5 * (30.0 + 20.0) * 20.0;
+  const double exact_segment = 0.5 * R * R * (alpha - std::sin(alpha));  // circle segment beyond the chord
+  const int n = p.wall_segments;
+  const double poly_segment = 0.5 * R * R * (n * std::sin(alpha / n) - std::sin(alpha));  // inscribed polygon
+  const double block = 60.0 * 30.0;
+  EXPECT_NEAR(g.signed_volume_mm3(), 100.0 * (block - trapezoid - 2 * poly_segment), 1e-6);
+  // Against the true arcs the chords cut off R^2/2 (alpha - n sin(alpha/n)) ~ R^2 alpha^3 / (12 n^2) per wall.
+  const double chord_loss = 100.0 * 2.0 * R * R * alpha * alpha * alpha / (12.0 * n * n);
+  EXPECT_NEAR(g.signed_volume_mm3() - 100.0 * (block - trapezoid - 2 * exact_segment), chord_loss, 0.01 * chord_loss);
+
+  // The profile: overhang (floor wider than mouth) and the bulge.
+  const GrooveProfile prof = groove_profile(p);
+  EXPECT_NEAR(groove_half_width_at(p, 0.0), 15.0, 1e-12);
+  EXPECT_NEAR(groove_half_width_at(p, 20.0), 10.0, 1e-12);
+  EXPECT_GT(prof.max_half_width_mm, 15.0);
+  EXPECT_NEAR(std::hypot(15.0 - prof.centre_y_mm, 0.0 - prof.centre_z_mm), 25.0, 1e-12);
+  EXPECT_NEAR(std::hypot(10.0 - prof.centre_y_mm, 20.0 - prof.centre_z_mm), 25.0, 1e-12);
+  // Every wall vertex is on the analytic arc (checked through the half-width function).
+  for (const auto& v : g.vertices_mm)
+    if (v.z() > 0.0 && v.z() < 20.0 && std::abs(v.y()) < 29.0)
+      EXPECT_NEAR(std::abs(v.y()), groove_half_width_at(p, v.z()), 1e-9) << v.transpose();
+}
+
+TEST(GeomGroove, ParameterErrorsAndStraightWalls) {
+  GrooveParams p;
+  p.wall_radius_mm = 5.0;  // smaller than half the chord (10.3)
+  EXPECT_THROW((void)make_groove(p), InputError);
+  p = GrooveParams{};
+  p.block_width_mm = 30.6;  // the bulge reaches |y| = 15.37 (> floor half width 15)
+  EXPECT_THROW((void)make_groove(p), InputError);
+  p = GrooveParams{};
+  p.depth_mm = -1;
+  EXPECT_THROW((void)make_groove(p), InputError);
+  p = GrooveParams{};
+  p.wall_radius_mm = 0.0;  // straight dovetail
+  const Mesh g = make_groove(p);
+  EXPECT_TRUE(g.is_closed());
+  EXPECT_NEAR(g.signed_volume_mm3(), 100.0 * (60.0 * 30.0 - 0.5 * (30.0 + 20.0) * 20.0), 1e-6);
+  EXPECT_NEAR(groove_half_width_at(p, 10.0), 12.5, 1e-12);
+}
+
+TEST(GeomGroove, BenchmarkPartHasAbout200kTrianglesAndIsClosed) {
+  const Mesh m = make_benchmark_part(200000);
+  EXPECT_NEAR(static_cast<double>(m.triangle_count()), 200000.0, 2000.0);
+  EXPECT_TRUE(m.is_closed());
+  EXPECT_GT(m.signed_volume_mm3(), 0.0);
+}
+
+// ---------------------------------------------------------------------------------------------------
+// Tool shapes
+// ---------------------------------------------------------------------------------------------------
+
+TEST(GeomTool, FromCutterDefaultsAndValidation) {
+  const ToolShape t = ToolShape::from_cutter(6.0, 3.0, 18.0);
+  EXPECT_TRUE(t.is_ball());
+  EXPECT_DOUBLE_EQ(t.shank.diameter_mm, 6.0);
+  EXPECT_DOUBLE_EQ(t.shank.length_mm, 12.0);
+  EXPECT_DOUBLE_EQ(t.holder.diameter_mm, 15.0);
+  EXPECT_DOUBLE_EQ(t.holder.length_mm, 40.0);
+  EXPECT_FALSE(t.spindle.present());
+  EXPECT_DOUBLE_EQ(t.gauge_length_mm(), 18.0 + 12.0 + 40.0);
+  const auto segs = t.segments();
+  ASSERT_EQ(segs.size(), 3u);
+  EXPECT_EQ(segs[2].part, ToolPart::Holder);
+  EXPECT_DOUBLE_EQ(segs[2].z0_mm, 30.0);
+  EXPECT_DOUBLE_EQ(segs[2].z1_mm, 70.0);
+
+  EXPECT_THROW((void)ToolShape::from_cutter(6.0, 3.5, 18.0), InputError);
+  EXPECT_THROW((void)ToolShape::from_cutter(0.0, 0.0, 18.0), InputError);
+  EXPECT_THROW((void)ToolShape::from_cutter(6.0, 0.0, -1.0), InputError);
+}
+
+TEST(GeomTool, CheckedSegmentsExcludeTheCuttingEndAndInflate) {
+  ToolDefaults d;
+  d.spindle = {60.0, 30.0};
+  const ToolShape ball = ToolShape::from_cutter(6.0, 3.0, 18.0, d);
+  CheckOptions o;
+  o.clearance_mm = 1.0;
+  auto s = checked_segments(ball, o);
+  ASSERT_EQ(s.size(), 4u);
+  EXPECT_EQ(s[0].part, ToolPart::CutterBody);
+  EXPECT_DOUBLE_EQ(s[0].z0_mm, 3.0 + 0.6);  // ball radius + 0.2 r relief
+  EXPECT_DOUBLE_EQ(s[0].radius_mm, 3.0);     // cutter clearance 0
+  EXPECT_DOUBLE_EQ(s[1].z0_mm, 18.0);        // shank not extended into the flutes
+  EXPECT_DOUBLE_EQ(s[1].radius_mm, 4.0);
+  EXPECT_DOUBLE_EQ(s[2].z0_mm, 30.0 - 1.0);  // holder bottom face is exposed
+  EXPECT_DOUBLE_EQ(s[2].z1_mm, 70.0);        // covered by the wider spindle above
+  EXPECT_DOUBLE_EQ(s[2].radius_mm, 8.5);
+  EXPECT_DOUBLE_EQ(s[3].z1_mm, 100.0 + 1.0);
+
+  const ToolShape flat = ToolShape::from_cutter(10.0, 0.0, 20.0);
+  s = checked_segments(flat, {});
+  EXPECT_DOUBLE_EQ(s[0].z0_mm, 0.5);
+  o = {};
+  o.check_cutter_body = false;
+  EXPECT_EQ(checked_segments(flat, o).front().part, ToolPart::Shank);
+}
+
+// ---------------------------------------------------------------------------------------------------
+// Collision and distance queries against analytic geometry
+// ---------------------------------------------------------------------------------------------------
+
+namespace {
+
+/// A box with its top face at z = 0 and its side face y = 0 toward the tool: [0,100] x [0,100] x [-50,0].
+Scene box_scene() {
+  Scene s;
+  s.add("box", ObstacleRole::Part, make_box({0, 0, -50}, {100, 100, 0}));
+  s.build();
+  return s;
+}
+
+}  // namespace
+
+TEST(GeomQuery, HolderEntersBoxExactlyAtTheAnalyticHeight) {
+  const Scene scene = box_scene();
+  QueryWorkspace ws;
+  // Ball mill D6, flutes 15, shank 12 -> holder (D15 -> radius 7.5) from 27 mm above the tip.
+  const ToolShape tool = ToolShape::from_cutter(6.0, 3.0, 15.0);
+  CheckOptions o;
+  o.clearance_mm = 1.0;  // holder: radius 8.5, bottom face at tip + 26; shank radius 4
+  // Axis at y = -5: cutter and shank stay 1 mm off the side face y = 0; the holder overhangs the box.
+  const double y = -5.0, boundary_tip_z = -(27.0 - 1.0);
+  for (double dz : {50.0, 10.0, 1.0, 0.1, 0.01}) {
+    const auto r = check(scene, tool, pose({50, y, boundary_tip_z + dz}, {0, 0, 1}), o, ws);
+    EXPECT_FALSE(r.collides) << "dz = " << dz;
+    EXPECT_EQ(r.obstacle, -1);
+  }
+  for (double dz : {-0.01, -0.1, -1.0, -10.0}) {
+    const auto r = check(scene, tool, pose({50, y, boundary_tip_z + dz}, {0, 0, 1}), o, ws);
+    EXPECT_TRUE(r.collides) << "dz = " << dz;
+    EXPECT_EQ(r.part, ToolPart::Holder) << "dz = " << dz;
+    EXPECT_EQ(r.obstacle, 0);
+  }
+  // Without the clearance the boundary is 1 mm lower.
+  CheckOptions o0;
+  EXPECT_FALSE(check(scene, tool, pose({50, y, -27.0 + 0.01}, {0, 0, 1}), o0, ws).collides);
+  EXPECT_TRUE(check(scene, tool, pose({50, y, -27.0 - 0.01}, {0, 0, 1}), o0, ws).collides);
+
+  // Sideways: the holder (radius 8.5 with clearance) beside the face y = 0, holder well below the top.
+  for (double dy : {0.01, -0.01}) {
+    const auto r = check(scene, tool, pose({50, -(8.5 + dy), -40.0}, {0, 0, 1}), o, ws);
+    EXPECT_EQ(r.collides, dy < 0) << "dy = " << dy;
+    if (r.collides) EXPECT_EQ(r.part, ToolPart::Holder);
+  }
+  EXPECT_EQ(ws.stats.collision_queries, 13u);
+  EXPECT_GT(ws.stats.fcl_collide_calls, 0u);
+}
+
+TEST(GeomQuery, BallContactAtTheSurfaceIsNotACollision) {
+  const Scene scene = box_scene();
+  QueryWorkspace ws;
+  const ToolShape ball = ToolShape::from_cutter(6.0, 3.0, 15.0);
+  // Tip on the top face, vertical and tilted by up to 60 deg about the ball centre (tip = C - r a).
+  for (double deg : {0.0, 15.0, 30.0, 45.0, 60.0}) {
+    const double t = deg2rad(deg);
+    const Eigen::Vector3d a(std::sin(t), 0.0, std::cos(t)), C(50, 50, 3.0);
+    EXPECT_FALSE(check(scene, ball, pose(C - 3.0 * a, a), {}, ws).collides) << deg;
+  }
+  // Even 2 mm deep (a gouge of the ball itself is the CL path's business, not the checker's)...
+  EXPECT_FALSE(check(scene, ball, pose({50, 50, -2.0}, {0, 0, 1}), {}, ws).collides);
+  // ...but the cylinder above the ball counts: start at 3.6 mm above the tip.
+  EXPECT_FALSE(check(scene, ball, pose({50, 50, -3.59}, {0, 0, 1}), {}, ws).collides);
+  EXPECT_TRUE(check(scene, ball, pose({50, 50, -3.61}, {0, 0, 1}), {}, ws).collides);
+
+  // Flat mill: only the bottom 0.5 mm relief is excluded.
+  const ToolShape flat = ToolShape::from_cutter(6.0, 0.0, 15.0);
+  EXPECT_FALSE(check(scene, flat, pose({50, 50, 0.0}, {0, 0, 1}), {}, ws).collides);
+  EXPECT_FALSE(check(scene, flat, pose({50, 50, -0.49}, {0, 0, 1}), {}, ws).collides);
+  EXPECT_TRUE(check(scene, flat, pose({50, 50, -0.51}, {0, 0, 1}), {}, ws).collides);
+  // A flat mill tilted about its tip on the surface digs its rim in: rim at 0.5 along the axis, 3 aside;
+  // the rim's lowest point is 0.5 cos t - 3 sin t, negative beyond atan(1/6) = 9.46 deg.
+  const double t_flat = std::atan(0.5 / 3.0);
+  for (double d : {-0.2, 0.2}) {
+    const double t = t_flat + deg2rad(d);
+    EXPECT_EQ(check(scene, flat, pose({50, 50, 0}, {std::sin(t), 0, std::cos(t)}), {}, ws).collides, d > 0) << d;
+  }
+  // Without the cutter body check, nothing below the shank counts.
+  CheckOptions no_cutter;
+  no_cutter.check_cutter_body = false;
+  EXPECT_FALSE(check(scene, flat, pose({50, 50, -10.0}, {0, 0, 1}), no_cutter, ws).collides);
+  EXPECT_TRUE(check(scene, flat, pose({50, 50, -15.01}, {0, 0, 1}), no_cutter, ws).collides);
+}
+
+TEST(GeomQuery, DistanceMatchesAnalyticCylinderToBox) {
+  const Scene scene = box_scene();
+  QueryWorkspace ws;
+  const ToolShape flat = ToolShape::from_cutter(6.0, 0.0, 15.0);  // checked cutter body from 0.5 above the tip
+  for (double h : {0.3, 1.0, 5.0, 17.25}) {
+    const double d = clearance(scene, flat, pose({50, 50, h}, {0, 0, 1}), {}, ws);
+    EXPECT_NEAR(d, h + 0.5, 1e-6) << "h = " << h;
+  }
+  // Beside the side face y = 0 (axis at y = -12), tip at z = -40: the holder (radius 7.5, from 27 above the
+  // tip) is beside the face, 12 - 7.5 = 4.5 mm away; flat cylinder side against a flat face.
+  EXPECT_NEAR(clearance(scene, flat, pose({50, -12.0, -40.0}, {0, 0, 1}), {}, ws), 4.5, 1e-6);
+  // With a long shank the holder is far up: the nearest is the cutter/shank side (radius 3), 9 mm away.
+  ToolDefaults long_shank;
+  long_shank.shank_length_mm = 60.0;
+  const ToolShape flat_long = ToolShape::from_cutter(6.0, 0.0, 15.0, long_shank);
+  EXPECT_NEAR(clearance(scene, flat_long, pose({50, -12.0, -20.0}, {0, 0, 1}), {}, ws), 9.0, 1e-6);
+  // Tip at z = -20: the holder's bottom rim (y = -4.5, z = 7) is nearest to the box's top edge (y = 0, z = 0):
+  // hypot(4.5, 7) < 9. Circle against an edge: GJK converges only to ~1e-6 relative, tolerance 1e-4.
+  EXPECT_NEAR(clearance(scene, flat, pose({50, -12.0, -20.0}, {0, 0, 1}), {}, ws), std::hypot(4.5, 7.0), 1e-4);
+
+  // check() with compute_distance agrees and names the nearest part.
+  CheckOptions o;
+  o.compute_distance = true;
+  const auto r = check(scene, flat, pose({50, 50, 5.0}, {0, 0, 1}), o, ws);
+  EXPECT_FALSE(r.collides);
+  EXPECT_NEAR(r.min_distance_mm, 5.5, 1e-6);
+  EXPECT_EQ(r.nearest_part, ToolPart::CutterBody);
+  EXPECT_EQ(r.nearest_obstacle, 0);
+  // Colliding: distance 0.
+  EXPECT_EQ(clearance(scene, flat, pose({50, 50, -5.0}, {0, 0, 1}), {}, ws), 0.0);
+  const auto rc = check(scene, flat, pose({50, 50, -5.0}, {0, 0, 1}), o, ws);
+  EXPECT_TRUE(rc.collides);
+  EXPECT_EQ(rc.min_distance_mm, 0.0);
+  // Not asked: NaN.
+  EXPECT_TRUE(std::isnan(check(scene, flat, pose({50, 50, 5.0}, {0, 0, 1}), {}, ws).min_distance_mm));
+
+  EXPECT_EQ(ws.stats.distance_queries, 8u + 2u);
+  EXPECT_EQ(ws.stats.collision_queries, 3u);
+  EXPECT_GT(ws.stats.fcl_distance_calls, 0u);
+}
+
+namespace {
+
+/// Tool for the groove: ball D6, flutes 25, shank 20, holder D15 x 40 (from 45 mm above the tip).
+ToolShape groove_tool() {
+  ToolDefaults d;
+  d.shank_length_mm = 20.0;
+  return ToolShape::from_cutter(6.0, 3.0, 25.0, d);
+}
+
+/// Ball tool on the groove floor at (0, 0, 0), tilted by t toward +y (sign > 0) or -y about the ball centre.
+kin::Posed tilted(double t, double sign) {
+  const Eigen::Vector3d a(0.0, sign * std::sin(t), std::cos(t)), C(0.0, 0.0, 3.0);
+  return {C - 3.0 * a, a};
+}
+
+}  // namespace
+
+TEST(GeomQuery, TiltedToolInTheGrooveHitsTheOverhangAtTheAnalyticAngle) {
+  const GrooveParams p;  // mouth half width 10 at depth 20
+  Scene scene;
+  scene.add("groove", ObstacleRole::Part, make_groove(p));
+  scene.build();
+  QueryWorkspace ws;
+  const ToolShape tool = groove_tool();
+
+  // The groove is an extrusion along X, so in the section x = 0 the tool is a band of half width rho = 3 around
+  // its axis line through the ball centre C = (0, 3). The cavity is convex, so the band leaves it through the
+  // mouth until its side touches the lip (10, 20): A cos t - B sin t = rho with A = 10, B = 20 - 3.
+  const double A = 10.0, B = 17.0, rho = 3.0;
+  const double t_star = std::acos(rho / std::hypot(A, B)) - std::atan2(B, A);  // ~21.7 deg
+  ASSERT_GT(t_star, deg2rad(15.0));
+  ASSERT_LT(t_star, deg2rad(30.0));
+  // The lip meets the tool at (P - C).a + r from the tip, inside the flutes (25).
+  const double s_star = A * std::sin(t_star) + B * std::cos(t_star) + 3.0;
+  ASSERT_LT(s_star, 25.0);
+
+  EXPECT_FALSE(check(scene, tool, tilted(0.0, 1.0), {}, ws).collides);  // vertical on the floor centre
+  for (double sign : {1.0, -1.0}) {
+    EXPECT_FALSE(check(scene, tool, tilted(t_star - deg2rad(0.05), sign), {}, ws).collides) << sign;
+    const auto hit = check(scene, tool, tilted(t_star + deg2rad(0.05), sign), {}, ws);
+    EXPECT_TRUE(hit.collides) << sign;
+    EXPECT_EQ(hit.part, ToolPart::CutterBody) << sign;
+    EXPECT_TRUE(check(scene, tool, tilted(deg2rad(40.0), sign), {}, ws).collides) << sign;
+  }
+  // Tilting along the groove (toward +x) is free far beyond t_star: the band in y stays within the mouth.
+  const Eigen::Vector3d ax(std::sin(deg2rad(40.0)), 0.0, std::cos(deg2rad(40.0)));
+  EXPECT_FALSE(check(scene, tool, pose(Eigen::Vector3d(0, 0, 3.0) - 3.0 * ax, ax), {}, ws).collides);
+
+  // Distance below the threshold: from the lip to the cylinder side, A cos t - B sin t - rho. The nearest
+  // feature is an edge of the mesh against the curved side of the cylinder (GJK: tolerance 1e-4).
+  const double t = t_star - deg2rad(1.0);
+  EXPECT_NEAR(clearance(scene, tool, tilted(t, 1.0), {}, ws), A * std::cos(t) - B * std::sin(t) - rho, 1e-4);
+}
+
+TEST(GeomQuery, RolesAndMachineObstaclePlacement) {
+  Scene scene;
+  scene.add("part", ObstacleRole::Part, make_box({-10, -10, -10}, {10, 10, 0}));
+  // A fixture clamp 30 mm to the side, and a machine-frame obstacle that is placed per query.
+  scene.add("clamp", ObstacleRole::Fixture, make_box({30, -5, -10}, {40, 5, 20}));
+  scene.add("column", ObstacleRole::Machine, make_box({-5, -5, 0}, {5, 5, 10}));
+  EXPECT_THROW(scene.add("empty", ObstacleRole::Part, Mesh{}), InputError);
+  scene.build();
+  EXPECT_THROW(scene.add("late", ObstacleRole::Part, make_box({0, 0, 0}, {1, 1, 1})), std::logic_error);
+  EXPECT_EQ(scene.obstacle_count(), 3u);
+  EXPECT_EQ(scene.triangle_count(), 36u);
+  EXPECT_EQ(scene.obstacle_name(1), "clamp");
+  EXPECT_EQ(scene.obstacle_role(2), ObstacleRole::Machine);
+
+  QueryWorkspace ws;
+  const ToolShape tool = ToolShape::from_cutter(10.0, 0.0, 20.0);  // holder D25 from 40 to 80
+  CheckOptions o;
+  o.machine_in_part = Eigen::Translation3d(500, 500, 500) * Eigen::Isometry3d::Identity();  // far away
+  // Tool tilted 60 deg toward the clamp, 5 mm above the part: the shank (radius 5) crosses x = 30..40 at z ~ 20.
+  const double t = deg2rad(60.0);
+  const kin::Posed p = pose({5, 0, 5}, {std::sin(t), 0, std::cos(t)});
+  auto r = check(scene, tool, p, o, ws);
+  EXPECT_TRUE(r.collides);
+  EXPECT_EQ(r.obstacle, 1);
+  o.roles = static_cast<unsigned>(ObstacleRole::Part);
+  EXPECT_FALSE(check(scene, tool, p, o, ws).collides);
+
+  // The machine obstacle moved onto the tool's shank: collides only when placed there and selected.
+  o.roles = kAllRoles;
+  const kin::Posed v = pose({0, 0, 0.1}, {0, 0, 1});
+  EXPECT_FALSE(check(scene, tool, v, o, ws).collides);
+  o.machine_in_part = Eigen::Translation3d(0, 0, 25) * Eigen::Isometry3d::Identity();
+  r = check(scene, tool, v, o, ws);
+  EXPECT_TRUE(r.collides);
+  EXPECT_EQ(r.obstacle, 2);
+  o.roles = static_cast<unsigned>(ObstacleRole::Part) | static_cast<unsigned>(ObstacleRole::Fixture);
+  EXPECT_FALSE(check(scene, tool, v, o, ws).collides);
+}
+
+TEST(GeomQuery, ConcurrentQueriesWithPerThreadWorkspacesAgreeWithSerial) {
+  Scene scene;
+  GrooveParams gp;
+  gp.length_segments = 20;
+  scene.add("groove", ObstacleRole::Part, make_groove(gp));
+  scene.build();
+  const ToolShape tool = groove_tool();
+  auto rng = test::rng(7);
+  std::uniform_real_distribution<double> ux(-40, 40), ut(0, deg2rad(45.0)), uphi(0, 2 * kPi);
+  std::vector<kin::Posed> poses;
+  for (int i = 0; i < 400; ++i) {
+    const double t = ut(rng), ph = uphi(rng);
+    const Eigen::Vector3d a(std::sin(t) * std::cos(ph), std::sin(t) * std::sin(ph), std::cos(t));
+    poses.push_back({Eigen::Vector3d(ux(rng), 0, 3) - 3.0 * a, a});
+  }
+  QueryWorkspace serial_ws;
+  std::vector<int> serial(poses.size());
+  for (std::size_t i = 0; i < poses.size(); ++i) serial[i] = check(scene, tool, poses[i], {}, serial_ws).collides;
+  const auto hits = std::count(serial.begin(), serial.end(), 1);
+  EXPECT_GT(hits, 20);  // a mix of free and colliding poses
+  EXPECT_LT(hits, 380);
+
+  std::vector<int> par(poses.size(), -1);
+  std::vector<QueryWorkspace> wss(2);
+  std::vector<std::thread> th;
+  for (int k = 0; k < 2; ++k)
+    th.emplace_back([&, k] {
+      for (std::size_t i = static_cast<std::size_t>(k); i < poses.size(); i += 2)
+        par[i] = check(scene, tool, poses[i], {}, wss[static_cast<std::size_t>(k)]).collides;
+    });
+  for (auto& t : th) t.join();
+  EXPECT_EQ(par, serial);
+  QueryStats total = wss[0].stats;
+  total += wss[1].stats;
+  EXPECT_EQ(total.collision_queries, poses.size());
+}

@@ -1,0 +1,39 @@
+// Axis statistics against hand-computed values, and verification catching a deviating program.
+#include <gtest/gtest.h>
+
+#include "cscam/core/units.hpp"
+#include "cscam/report/stats.hpp"
+#include "test_support.hpp"
+
+using namespace cscam;
+
+TEST(Stats, TravelReversalsStepsAndSimultaneity) {
+  // X: 0 -> 10 -> 5 -> 5.001 (noise) -> 8 : travel 10+5+0.001+2.999 = 18, one reversal (10 -> 5, then 5 -> 8 is a second).
+  std::vector<kin::Axes> path;
+  auto P = [&](double x, double b_deg) {
+    kin::Axes q = kin::Axes::Zero();
+    q[0] = x;
+    q[3] = deg2rad(b_deg);
+    path.push_back(q);
+  };
+  P(0, 0);
+  P(10, 0);
+  P(5, 10);
+  P(5.001, 10);  // below the hysteresis: not a reversal
+  P(8, 10);
+  P(8, -20);
+  const std::vector<bool> rapid = {true, false, false, false, false, false};
+  const auto st = report::compute(path, rapid, {"x", "y", "z", "b", "c"}, {false, false, false, true, true});
+  EXPECT_NEAR(st.axes[0].travel, 18.0, 1e-9);
+  EXPECT_EQ(st.axes[0].reversals, 2);  // 10 -> 5 and 5 -> 8
+  EXPECT_NEAR(st.axes[3].travel, 40.0, 1e-9);
+  EXPECT_EQ(st.axes[3].reversals, 1);
+  EXPECT_NEAR(st.axes[3].largest_step, 30.0, 1e-9);
+  ASSERT_EQ(st.segments.size(), 1u);
+  EXPECT_EQ(st.segments[0].moving_rotaries, 1);
+  EXPECT_EQ(st.segments[0].max_simultaneous, 2);
+  EXPECT_EQ(st.blocks_by_simultaneous[1], 4);
+  EXPECT_EQ(st.blocks_by_simultaneous[2], 1);
+  const std::string j = st.to_json();
+  EXPECT_NE(j.find("\"reversals\": 2"), std::string::npos);
+}
