@@ -404,8 +404,16 @@ TEST(GeomQuery, DistanceMatchesAnalyticCylinderToBox) {
   const ToolShape flat_long = ToolShape::from_cutter(6.0, 0.0, 15.0, long_shank);
   EXPECT_NEAR(clearance(scene, flat_long, pose({50, -12.0, -20.0}, {0, 0, 1}), {}, ws), 9.0, 1e-6);
   // Tip at z = -20: the holder's bottom rim (y = -4.5, z = 7) is nearest to the box's top edge (y = 0, z = 0):
-  // hypot(4.5, 7) < 9. Circle against an edge: GJK converges only to ~1e-6 relative, tolerance 1e-4.
-  EXPECT_NEAR(clearance(scene, flat, pose({50, -12.0, -20.0}, {0, 0, 1}), {}, ws), std::hypot(4.5, 7.0), 1e-4);
+  // hypot(4.5, 7) < 9 (a circle against an edge).
+  EXPECT_NEAR(clearance(scene, flat, pose({50, -12.0, -20.0}, {0, 0, 1}), {}, ws), std::hypot(4.5, 7.0), 1e-6);
+  // Tilted over the top face: the lowest rim point of the checked body (0.5 up the axis, radius 3) is at
+  // h + 0.5 cos t - 3 sin t.
+  for (double deg : {10.0, 30.0}) {
+    const double t = deg2rad(deg), h = 2.0;
+    EXPECT_NEAR(clearance(scene, flat, pose({50, 50, h}, {std::sin(t), 0, std::cos(t)}), {}, ws),
+                h + 0.5 * std::cos(t) - 3.0 * std::sin(t), 1e-6)
+        << deg;
+  }
 
   // check() with compute_distance agrees and names the nearest part.
   CheckOptions o;
@@ -423,7 +431,7 @@ TEST(GeomQuery, DistanceMatchesAnalyticCylinderToBox) {
   // Not asked: NaN.
   EXPECT_TRUE(std::isnan(check(scene, flat, pose({50, 50, 5.0}, {0, 0, 1}), {}, ws).min_distance_mm));
 
-  EXPECT_EQ(ws.stats.distance_queries, 8u + 2u);
+  EXPECT_EQ(ws.stats.distance_queries, 10u + 2u);
   EXPECT_EQ(ws.stats.collision_queries, 3u);
   EXPECT_GT(ws.stats.fcl_distance_calls, 0u);
 }
@@ -466,8 +474,8 @@ TEST(GeomQuery, TiltedToolInTheGrooveHitsTheOverhangAtTheAnalyticAngle) {
 
   EXPECT_FALSE(check(scene, tool, tilted(0.0, 1.0), {}, ws).collides);  // vertical on the floor centre
   for (double sign : {1.0, -1.0}) {
-    EXPECT_FALSE(check(scene, tool, tilted(t_star - deg2rad(0.05), sign), {}, ws).collides) << sign;
-    const auto hit = check(scene, tool, tilted(t_star + deg2rad(0.05), sign), {}, ws);
+    EXPECT_FALSE(check(scene, tool, tilted(t_star - deg2rad(0.001), sign), {}, ws).collides) << sign;
+    const auto hit = check(scene, tool, tilted(t_star + deg2rad(0.001), sign), {}, ws);
     EXPECT_TRUE(hit.collides) << sign;
     EXPECT_EQ(hit.part, ToolPart::CutterBody) << sign;
     EXPECT_TRUE(check(scene, tool, tilted(deg2rad(40.0), sign), {}, ws).collides) << sign;
@@ -476,10 +484,11 @@ TEST(GeomQuery, TiltedToolInTheGrooveHitsTheOverhangAtTheAnalyticAngle) {
   const Eigen::Vector3d ax(std::sin(deg2rad(40.0)), 0.0, std::cos(deg2rad(40.0)));
   EXPECT_FALSE(check(scene, tool, pose(Eigen::Vector3d(0, 0, 3.0) - 3.0 * ax, ax), {}, ws).collides);
 
-  // Distance below the threshold: from the lip to the cylinder side, A cos t - B sin t - rho. The nearest
-  // feature is an edge of the mesh against the curved side of the cylinder (GJK: tolerance 1e-4).
-  const double t = t_star - deg2rad(1.0);
-  EXPECT_NEAR(clearance(scene, tool, tilted(t, 1.0), {}, ws), A * std::cos(t) - B * std::sin(t) - rho, 1e-4);
+  // Distance below the threshold: from the lip edge to the cylinder side, A cos t - B sin t - rho.
+  for (double below : {1.0, 5.0}) {
+    const double t = t_star - deg2rad(below);
+    EXPECT_NEAR(clearance(scene, tool, tilted(t, 1.0), {}, ws), A * std::cos(t) - B * std::sin(t) - rho, 1e-6);
+  }
 }
 
 TEST(GeomQuery, RolesAndMachineObstaclePlacement) {
@@ -519,6 +528,22 @@ TEST(GeomQuery, RolesAndMachineObstaclePlacement) {
   EXPECT_EQ(r.obstacle, 2);
   o.roles = static_cast<unsigned>(ObstacleRole::Part) | static_cast<unsigned>(ObstacleRole::Fixture);
   EXPECT_FALSE(check(scene, tool, v, o, ws).collides);
+}
+
+TEST(GeomQuery, SceneWithoutDistanceSupportStillChecksCollisions) {
+  Scene scene;
+  scene.add("box", ObstacleRole::Part, make_box({0, 0, -50}, {100, 100, 0}));
+  scene.build(/*with_distance=*/false);
+  EXPECT_FALSE(scene.supports_distance());
+  QueryWorkspace ws;
+  const ToolShape flat = ToolShape::from_cutter(6.0, 0.0, 15.0);
+  EXPECT_TRUE(check(scene, flat, pose({50, 50, -0.51}, {0, 0, 1}), {}, ws).collides);
+  EXPECT_THROW((void)clearance(scene, flat, pose({50, 50, 1.0}, {0, 0, 1}), {}, ws), std::logic_error);
+  Scene unbuilt;
+  unbuilt.add("box", ObstacleRole::Part, make_box({0, 0, -50}, {100, 100, 0}));
+  EXPECT_THROW((void)check(unbuilt, flat, pose({50, 50, 1.0}, {0, 0, 1}), {}, ws), std::logic_error);
+  // A zero axis is a caller bug.
+  EXPECT_THROW((void)check(scene, flat, kin::Posed{{50, 50, 1.0}, {0, 0, 0}}, {}, ws), std::logic_error);
 }
 
 TEST(GeomQuery, ConcurrentQueriesWithPerThreadWorkspacesAgreeWithSerial) {

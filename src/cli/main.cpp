@@ -2,6 +2,7 @@
 #include <CLI/CLI.hpp>
 #include <fmt/format.h>
 
+#include <algorithm>
 #include <chrono>
 #include <filesystem>
 #include <fstream>
@@ -13,14 +14,21 @@
 #include "cscam/machine/machine.hpp"
 #include "cscam/nc/reader.hpp"
 #include "cscam/post/post.hpp"
+#include "cscam/report/backlash.hpp"
 #include "cscam/report/stats.hpp"
 #include "cscam/report/verify.hpp"
+#include "plan_cmd.hpp"
 
 namespace fs = std::filesystem;
 using namespace cscam;
 
 namespace {
 
+using cli::resolve_machine;
+
+}  // namespace
+
+namespace cscam::cli {
 /// A machine may be named by path or by its name in the bundled machines/ folder.
 std::string resolve_machine(const std::string& arg) {
   if (fs::exists(arg)) return arg;
@@ -31,6 +39,9 @@ std::string resolve_machine(const std::string& arg) {
   throw InputError(SourceLoc{arg}, fmt::format("machine file not found (neither a path nor a bundled machine in {})",
                                               CSCAM_MACHINES_DIR));
 }
+}  // namespace cscam::cli
+
+namespace {
 
 std::optional<LengthUnit> parse_units(const std::string& s) {
   if (s.empty()) return std::nullopt;
@@ -102,7 +113,7 @@ int cmd_post(const PostArgs& a) {
 
 struct VerifyArgs {
   std::string nc, machine, cl, units;
-  double tolerance = 0, axis_tolerance = 0, tool_length = -1;
+  double tolerance = 0, axis_tolerance = 0, tool_length = -1, cone = 0;
   int samples = 8;
   bool json = false;
 };
@@ -123,6 +134,10 @@ int cmd_verify(const VerifyArgs& a) {
   vo.tip_tolerance_mm = a.tolerance > 0 ? a.tolerance : m.post.tolerance_mm + 0.002;
   vo.axis_tolerance_deg = a.axis_tolerance > 0 ? a.axis_tolerance : m.post.axis_tolerance_deg + 0.01;
   vo.samples_per_block = a.samples;
+  // A planned program may tilt within a cone: then the axis may deviate by the cone and a ball mill's
+  // centre (not its tip) is what stays on the CL path.
+  vo.axis_tolerance_deg += a.cone;
+  vo.ball_centre = a.cone > 0;
   const auto r = report::verify(ncp, prog, *kin, vo);
   if (a.json)
     std::cout << r.to_json() << "\n";
@@ -146,6 +161,69 @@ int cmd_stats(const std::vector<std::string>& files, const std::string& machine_
     std::cout << "]\n";
   } else {
     std::cout << report::table(cols, headers);
+  }
+  return 0;
+}
+
+// --- backlash: simulate a lost motion on one axis and show what it does to the tip -------------------
+struct BacklashArgs {
+  std::vector<std::string> nc;
+  std::string machine, axis;
+  double width_mm = -1, width_deg = -1, tool_length = -1, max_step = 0;
+  bool json = false;
+};
+
+int cmd_backlash(const BacklashArgs& a) {
+  const machine::Machine m = machine::load(resolve_machine(a.machine));
+  const int axis = m.axis_index(a.axis);
+  if (axis < 0) throw InputError(fmt::format("--axis: machine {} has no axis '{}'", m.name, a.axis));
+  const bool rotary = m.axes[static_cast<size_t>(axis)].rotary();
+  if ((a.width_mm >= 0) == (a.width_deg >= 0)) throw InputError("backlash: give exactly one of --width-mm and --width-deg");
+  if (rotary != (a.width_deg >= 0))
+    throw InputError(fmt::format("backlash: axis '{}' is {}: give its width with {}", a.axis, rotary ? "rotary" : "linear",
+                                 rotary ? "--width-deg" : "--width-mm"));
+  const double width = rotary ? deg2rad(a.width_deg) : a.width_mm;
+  // Fine enough that the play acts within a tenth of its width (default), whatever the block lengths.
+  const double step = a.max_step > 0 ? (rotary ? deg2rad(a.max_step) : a.max_step) : (width > 0 ? width / 10 : 0.001);
+  std::vector<report::BacklashResult> results;
+  for (const auto& f : a.nc) {
+    const nc::Program ncp = nc::read_file(f, letters_of(m));
+    if (ncp.tcp)
+      throw InputError(SourceLoc{f}, "this program uses TCP (G43.4/G234): its axis values are not machine coordinates");
+    const double L = a.tool_length >= 0 ? a.tool_length : ncp.tool_length_mm.value_or(m.default_tool_length_mm);
+    const auto kin = m.make_kinematics(L);
+    results.push_back(report::simulate_backlash(report::sample_nc(ncp, axis, step), *kin, axis, width));
+  }
+  if (a.json) {
+    std::cout << "[";
+    for (size_t i = 0; i < results.size(); ++i)
+      std::cout << (i ? ",\n " : "") << fmt::format("{{\"nc\": \"{}\", \"result\": {}}}", a.nc[i], results[i].to_json());
+    std::cout << "]\n";
+    return 0;
+  }
+  for (size_t i = 0; i < results.size(); ++i) std::cout << fs::path(a.nc[i]).filename().string() << ": " << results[i].text();
+  if (results.size() > 1) {  // side by side: the step at feed reversals is what marks the surface
+    std::cout << fmt::format("\n{:<36}", "");
+    for (const auto& f : a.nc) std::cout << fmt::format("{:>18}", fs::path(f).filename().string());
+    std::cout << "\n";
+    auto row = [&](const std::string& label, auto&& cell) {
+      std::cout << fmt::format("{:<36}", label);
+      for (const auto& r : results) std::cout << fmt::format("{:>18}", cell(r));
+      std::cout << "\n";
+    };
+    row(a.axis + " reversals while cutting", [](const report::BacklashResult& r) {
+      return fmt::format("{}", std::count_if(r.reversals.begin(), r.reversals.end(), [](const auto& v) { return v.in_feed; }));
+    });
+    for (int c = 0; c < 3; ++c) {
+      const char comp = "xyz"[c];
+      row(fmt::format("max |step {}| at those (um)", comp),
+          [c](const report::BacklashResult& r) { return fmt::format("{:.3f}", 1000.0 * r.max_abs_step_mm[c]); });
+    }
+    for (int c = 0; c < 3; ++c) {
+      const char comp = "xyz"[c];
+      row(fmt::format("max |d{}| over feed (um)", comp),
+          [c](const report::BacklashResult& r) { return fmt::format("{:.3f}", 1000.0 * r.max_abs_deviation_mm[c]); });
+    }
   }
   return 0;
 }
@@ -178,6 +256,7 @@ int main(int argc, char** argv) {
   verify_cmd->add_option("--tolerance", va.tolerance, "allowed tip deviation, mm");
   verify_cmd->add_option("--axis-tolerance", va.axis_tolerance, "allowed tool-axis deviation, deg");
   verify_cmd->add_option("--tool-length", va.tool_length, "tool length, mm (default: from the NC header)");
+  verify_cmd->add_option("--cone", va.cone, "the program was planned with this cone, deg: compare ball centres, allow the cone");
   verify_cmd->add_option("--samples", va.samples, "FK samples inside every block")->check(CLI::Range(1, 10000));
   verify_cmd->add_flag("--json", va.json, "print the result as JSON");
 
@@ -189,6 +268,19 @@ int main(int argc, char** argv) {
   stats_cmd->add_option("-m,--machine", stat_machine, "machine file or bundled machine name")->required();
   stats_cmd->add_flag("--json", stat_json, "print JSON");
 
+  BacklashArgs ba;
+  auto* backlash_cmd = app.add_subcommand("backlash", "Simulate a lost motion (backlash) on one axis of NC files and report the tip deviation");
+  backlash_cmd->add_option("nc", ba.nc, "one or more NC files (compared side by side)")->required();
+  backlash_cmd->add_option("-m,--machine", ba.machine, "machine file or bundled machine name")->required();
+  backlash_cmd->add_option("--axis", ba.axis, "axis with the play, by its machine-file name (e.g. q2)")->required();
+  backlash_cmd->add_option("--width-mm", ba.width_mm, "full lost-motion width of a linear axis, mm");
+  backlash_cmd->add_option("--width-deg", ba.width_deg, "full lost-motion width of a rotary axis, deg");
+  backlash_cmd->add_option("--tool-length", ba.tool_length, "tool length, mm (default: from the NC header)");
+  backlash_cmd->add_option("--max-step", ba.max_step, "largest axis step between samples, mm or deg (default: width/10)");
+  backlash_cmd->add_flag("--json", ba.json, "print JSON");
+
+  auto run_plan_commands = cli::add_plan_commands(app);
+
   try {
     app.parse(argc, argv);
   } catch (const CLI::ParseError& e) {
@@ -198,6 +290,8 @@ int main(int argc, char** argv) {
     if (*post_cmd) return cmd_post(pa);
     if (*verify_cmd) return cmd_verify(va);
     if (*stats_cmd) return cmd_stats(stat_files, stat_machine, stat_json);
+    if (*backlash_cmd) return cmd_backlash(ba);
+    if (const int rc = run_plan_commands(); rc >= 0) return rc;
   } catch (const InputError& e) {
     std::cerr << "error: " << e.what() << "\n";
     return 2;

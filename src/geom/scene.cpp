@@ -2,7 +2,8 @@
 
 #include <fcl/geometry/bvh/BVH_model.h>
 #include <fcl/geometry/shape/cylinder.h>
-#include <fcl/math/bv/OBBRSS.h>
+#include <fcl/math/bv/OBB.h>
+#include <fcl/math/bv/RSS.h>
 #include <fcl/narrowphase/collision.h>
 #include <fcl/narrowphase/distance.h>
 #include <fmt/format.h>
@@ -19,12 +20,31 @@ namespace cscam::geom {
 
 namespace {
 
-using Bvh = fcl::BVHModel<fcl::OBBRSSd>;
+// Two hierarchies per obstacle, both on FCL's const ("oriented") traversal path, so concurrent queries never
+// modify the model (FCL's AABB path would re-transform the model's vertices in place):
+// - collision: OBB. FCL computes the tool cylinder's OBB exactly (a specialisation), while for OBBRSS it fits
+//   one to the cylinder's bound vertices by PCA on every query (heap allocation + eigen-solve, and a looser
+//   box): on the 200k-triangle benchmark part OBB answers 3-4x faster than OBBRSS.
+// - distance: RSS (OBB has no distance traversal in FCL; RSS builds faster than OBBRSS and queries as fast).
+using CollideBvh = fcl::BVHModel<fcl::OBBd>;
+using DistanceBvh = fcl::BVHModel<fcl::RSSd>;
 constexpr double kInf = std::numeric_limits<double>::infinity();
 
-/// Narrow phase: libccd GJK/MPR (FCL's default). Measured against GST_INDEP on the benchmark part,
-/// see bench/geom_bench.cpp.
-constexpr fcl::GJKSolverType kSolver = fcl::GST_LIBCCD;
+/// Narrow phase. Collision: libccd (GJK/MPR), 3.5x faster than FCL's own GJK (GST_INDEP) on the benchmark.
+/// Distance: GST_INDEP, ~10 % faster than libccd there, and exact on flat contacts (tests).
+constexpr fcl::GJKSolverType kCollideSolver = fcl::GST_LIBCCD;
+constexpr fcl::GJKSolverType kDistanceSolver = fcl::GST_INDEP;
+
+template <typename Model>
+std::shared_ptr<Model> make_bvh(const Mesh& mesh, const std::vector<fcl::Triangle>& tris, const std::string& name) {
+  auto bvh = std::make_shared<Model>();
+  int rc = bvh->beginModel(static_cast<int>(tris.size()), static_cast<int>(mesh.vertices_mm.size()));
+  if (rc == fcl::BVH_OK) rc = bvh->addSubModel(mesh.vertices_mm, tris);
+  if (rc == fcl::BVH_OK) rc = bvh->endModel();
+  CSCAM_CHECK(rc == fcl::BVH_OK, fmt::format("FCL BVH build failed for obstacle '{}' (code {})", name, rc));
+  bvh->computeLocalAABB();
+  return bvh;
+}
 
 double aabb_gap(const Eigen::AlignedBox3d& a, const Eigen::AlignedBox3d& b) {
   const Eigen::Vector3d gap = (a.min() - b.max()).cwiseMax(b.min() - a.max()).cwiseMax(0.0);
@@ -152,12 +172,14 @@ struct Obstacle {
   ObstacleRole role = ObstacleRole::Part;
   Mesh mesh;
   Eigen::AlignedBox3d box;
-  std::shared_ptr<Bvh> bvh;
+  std::shared_ptr<CollideBvh> collide_bvh;
+  std::shared_ptr<DistanceBvh> distance_bvh;  // null when built without distance support
 };
 
 struct Scene::Impl {
   std::vector<Obstacle> obstacles;
   bool built = false;
+  bool distance = false;
   double build_seconds = 0.0;
   std::size_t triangles = 0;
 };
@@ -186,7 +208,7 @@ std::size_t Scene::add(std::string name, ObstacleRole role, Mesh mesh) {
   return impl_->obstacles.size() - 1;
 }
 
-void Scene::build() {
+void Scene::build(bool with_distance) {
   if (impl_->built) return;
   const auto t0 = std::chrono::steady_clock::now();
   std::vector<fcl::Triangle> tris;
@@ -196,21 +218,18 @@ void Scene::build() {
     tris.reserve(o.mesh.triangles.size());
     for (const auto& t : o.mesh.triangles)
       tris.emplace_back(static_cast<std::size_t>(t[0]), static_cast<std::size_t>(t[1]), static_cast<std::size_t>(t[2]));
-    auto bvh = std::make_shared<Bvh>();
-    int rc = bvh->beginModel(static_cast<int>(tris.size()), static_cast<int>(o.mesh.vertices_mm.size()));
-    if (rc == fcl::BVH_OK) rc = bvh->addSubModel(o.mesh.vertices_mm, tris);
-    if (rc == fcl::BVH_OK) rc = bvh->endModel();
-    CSCAM_CHECK(rc == fcl::BVH_OK, fmt::format("FCL BVH build failed for obstacle '{}' (code {})", o.name, rc));
-    bvh->computeLocalAABB();
-    o.bvh = std::move(bvh);
+    o.collide_bvh = make_bvh<CollideBvh>(o.mesh, tris, o.name);
+    if (with_distance) o.distance_bvh = make_bvh<DistanceBvh>(o.mesh, tris, o.name);
     total += o.mesh.triangles.size();
   }
   impl_->triangles = total;
   impl_->built = true;
+  impl_->distance = with_distance;
   impl_->build_seconds = std::chrono::duration<double>(std::chrono::steady_clock::now() - t0).count();
 }
 
 bool Scene::built() const { return impl_->built; }
+bool Scene::supports_distance() const { return impl_->distance; }
 std::size_t Scene::obstacle_count() const { return impl_->obstacles.size(); }
 const std::string& Scene::obstacle_name(std::size_t i) const { return impl_->obstacles.at(i).name; }
 ObstacleRole Scene::obstacle_role(std::size_t i) const { return impl_->obstacles.at(i).role; }
@@ -262,10 +281,10 @@ struct QueryWorkspace::Impl {
   Impl() {
     creq.num_max_contacts = 1;
     creq.enable_contact = false;
-    creq.gjk_solver_type = kSolver;
+    creq.gjk_solver_type = kCollideSolver;
     dreq.enable_nearest_points = false;
     dreq.enable_signed_distance = false;
-    dreq.gjk_solver_type = kSolver;
+    dreq.gjk_solver_type = kDistanceSolver;
   }
 
   void prepare(const ToolShape& t, const CheckOptions& o) {
@@ -351,7 +370,7 @@ Nearest nearest(const Scene::Impl& scene, const CheckOptions& o, QueryWorkspace&
       }
       w.dres.clear();
       ++ws.stats.fcl_distance_calls;
-      const double d = fcl::distance(ob.bvh.get(), w.obstacle_tf[j], w.segs[i].shape.get(), w.seg_tf[i], w.dreq, w.dres);
+      const double d = fcl::distance(ob.distance_bvh.get(), w.obstacle_tf[j], w.segs[i].shape.get(), w.seg_tf[i], w.dreq, w.dres);
       if (d < best.d) best = {std::max(d, 0.0), w.segs[i].seg.part, static_cast<int>(j)};
       if (best.d <= 0.0) return best;
     }
@@ -381,7 +400,7 @@ CollisionResult check(const Scene& scene, const ToolShape& tool, const kin::Pose
       }
       w.cres.clear();
       ++ws.stats.fcl_collide_calls;
-      fcl::collide(ob.bvh.get(), w.obstacle_tf[j], w.segs[i].shape.get(), w.seg_tf[i], w.creq, w.cres);
+      fcl::collide(ob.collide_bvh.get(), w.obstacle_tf[j], w.segs[i].shape.get(), w.seg_tf[i], w.creq, w.cres);
       if (w.cres.isCollision()) {
         out.collides = true;
         out.part = w.segs[i].seg.part;
@@ -391,6 +410,7 @@ CollisionResult check(const Scene& scene, const ToolShape& tool, const kin::Pose
     }
   }
   if (o.compute_distance) {
+    CSCAM_CHECK(sc.distance, "geom::check(compute_distance) on a Scene built without distance support");
     ++ws.stats.distance_queries;
     if (out.collides) {
       out.min_distance_mm = 0.0;
@@ -410,6 +430,7 @@ double clearance(const Scene& scene, const ToolShape& tool, const kin::Posed& po
                  QueryWorkspace& ws) {
   const Scene::Impl& sc = scene.impl();
   CSCAM_CHECK(sc.built, "geom::clearance() before Scene::build()");
+  CSCAM_CHECK(sc.distance, "geom::clearance() on a Scene built without distance support");
   ++ws.stats.distance_queries;
   auto& w = ws.impl();
   w.prepare(tool, o);

@@ -14,6 +14,9 @@
 
 namespace cscam::machine {
 
+// Defined in xmini_loader.cpp: fills a Machine of kind xmini from the file's root node.
+void load_xmini(const YAML::Node& root, const std::string& file, Machine& m);
+
 namespace {
 
 /// Reads a YAML node with the file name at hand, so every error can say file:line: key: what.
@@ -283,6 +286,9 @@ Machine load_node(const YAML::Node& root, const std::string& name) {
   if (kind == "serial") {
     m.kind = ModelKind::Serial;
     load_serial(r, root, m);
+  } else if (kind == "xmini") {
+    m.kind = ModelKind::Xmini;
+    load_xmini(root, name, m);
   } else {
     ModelLoader loader;
     {
@@ -290,7 +296,7 @@ Machine load_node(const YAML::Node& root, const std::string& name) {
       auto it = registry().find(kind);
       if (it != registry().end()) loader = it->second;
     }
-    if (!loader) r.fail(root["kinematics"], "kinematics", fmt::format("unknown kinematics '{}' (expected serial or xmini)", kind));
+    if (!loader) r.fail(root["kinematics"], "kinematics", fmt::format("unknown kinematics '{}' (expected serial, xmini or a registered kind)", kind));
     try {
       loader(&root, m);
     } catch (const InputError& e) {

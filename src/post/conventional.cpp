@@ -5,6 +5,7 @@
 
 #include "cscam/core/error.hpp"
 #include "cscam/core/units.hpp"
+#include "cscam/kin/track.hpp"
 #include "cscam/post/post.hpp"
 
 namespace cscam::post {
@@ -28,29 +29,6 @@ double start_score(const machine::Machine& m, const kin::Kinematics& k, const ki
     if (i >= 0 && sign * q[i] < -1e-9) score += 1e6;  // wrong side: only if nothing else exists
   }
   return score;
-}
-
-/// Picks, among the IK solutions of `pose`, the one nearest to `prev` that lies inside the limits.
-/// Returns false (with the first violation) when none does.
-bool nearest_feasible(const kin::Kinematics& k, const kin::Posed& pose, const kin::Axes& prev,
-                      std::vector<kin::Solution>& sols, kin::Axes& out, std::string& violation, bool* singular = nullptr) {
-  k.inverse_branches(pose, &prev, sols);
-  double best = std::numeric_limits<double>::infinity();
-  for (kin::Solution& s : sols) {
-    k.nearest_winding(s.axes, prev);
-    const std::string v = k.check_limits(s.axes);
-    if (!v.empty()) {
-      if (violation.empty()) violation = v;
-      continue;
-    }
-    const double d = rotary_distance(k, s.axes, prev);
-    if (d < best) {
-      best = d;
-      out = s.axes;
-      if (singular) *singular = s.singular;
-    }
-  }
-  return std::isfinite(best);
 }
 
 /// At a singular point (tool axis along the primary rotary) the primary angle is free. A post that keeps
@@ -84,27 +62,6 @@ void resolve_singular(const kin::Kinematics& k, const cl::Program& prog, size_t 
   }
 }
 
-/// Above this rotary change between two CL points, tracking subdivides the CL orientation change:
-/// nearest-solution choice is only meaningful for small steps (near the singularity the tilt
-/// azimuth turns fast, and a single "nearest" jump may land on a branch the motion cannot reach).
-constexpr double kMaxTrackStepRad = 5.0 * kPi / 180.0;
-
-/// Continuous tracking from `prev` (a solution at pose0) to pose1 along the interpolated CL pose.
-bool track(const kin::Kinematics& k, const kin::Axes& prev, const kin::Posed& p0, const kin::Posed& p1, int depth,
-           std::vector<kin::Solution>& sols, kin::Axes& out, std::string& violation, bool* singular) {
-  if (!nearest_feasible(k, p1, prev, sols, out, violation, singular)) return false;
-  if (rotary_distance(k, out, prev) <= kMaxTrackStepRad || depth >= 20) return true;
-  const double ang = std::acos(std::clamp(p0.axis.dot(p1.axis), -1.0, 1.0));
-  if (ang < 1e-12) return true;
-  const double s = 0.5;
-  const Eigen::Vector3d axis_mid =
-      (std::sin((1 - s) * ang) / std::sin(ang) * p0.axis + std::sin(s * ang) / std::sin(ang) * p1.axis).normalized();
-  const kin::Posed mid{0.5 * (p0.tip_mm + p1.tip_mm), axis_mid};
-  kin::Axes qm;
-  if (!track(k, prev, p0, mid, depth + 1, sols, qm, violation, nullptr)) return false;
-  return track(k, qm, mid, p1, depth + 1, sols, out, violation, singular);
-}
-
 }  // namespace
 
 std::vector<kin::Axes> conventional_axes(const cl::Program& program, const machine::Machine& machine,
@@ -121,7 +78,7 @@ std::vector<kin::Axes> conventional_axes(const cl::Program& program, const machi
     std::string first_violation;
     bool ok = false, singular = false;
     if (have_prev) {
-      ok = track(kinematics, prev, prev_pose, pose, 0, sols, chosen, first_violation, &singular);
+      ok = kin::track(kinematics, prev, prev_pose, pose, chosen, &first_violation, &singular);
     } else {
       kinematics.inverse_branches(pose, nullptr, sols);
       double best = std::numeric_limits<double>::infinity();

@@ -4,12 +4,14 @@
 
 #include <algorithm>
 #include <charconv>
+#include <limits>
 #include <cmath>
 #include <ostream>
 
 #include "cscam/core/error.hpp"
 #include "cscam/core/tolerances.hpp"
 #include "cscam/core/units.hpp"
+#include "cscam/kin/track.hpp"
 
 namespace cscam::post {
 
@@ -50,13 +52,45 @@ struct Piece {
 struct Dialect {
   std::string name;
   bool fanuc = false;
+  bool cartesian = false;  ///< tip X Y Z + tool-vector rotaries; the control does the kinematics
 };
 
 Dialect make_dialect(const std::string& name) {
-  if (name == "linuxcnc") return {name, false};
-  if (name == "fanuc") return {name, true};
-  throw InputError(fmt::format("unknown post dialect '{}' (known: linuxcnc, fanuc)", name));
+  if (name == "linuxcnc") return {name, false, false};
+  if (name == "fanuc") return {name, true, false};
+  // The XMINI (PKM): joint space is the linuxcnc output with the machine's letters (legs + wrist);
+  // Cartesian mode is for a control that runs the PKM transformation itself.
+  if (name == "xmini-joint") return {name, false, false};
+  if (name == "xmini-cartesian") return {name, false, true};
+  throw InputError(fmt::format("unknown post dialect '{}' (known: linuxcnc, fanuc, xmini-joint, xmini-cartesian)", name));
 }
+
+// --- Cartesian (TCP) output --------------------------------------------------------------------
+// Rotary words of the XMINI in Cartesian mode: the tool vector u (W) as the virtual wrist angles (C, A)
+// of an untilted platform, u = (-sin A sin C, -sin A cos C, cos A) (spec/xmini.md with R_BP = I and
+// nominal wrist): the two branches (C, A) and (C + 180 deg, -A); the one nearest to the machine's own
+// wrist values q_c, q_a is taken, so branch and winding follow the chosen axis path. At A = 0, C = q_c.
+std::array<double, 2> xmini_virtual_ca(const Vec3& u_W, double q_c, double q_a) {
+  const Vec3 u = u_W.normalized();
+  const double s = std::hypot(u.x(), u.y());
+  if (s < tol::kSingularRad) return {q_c, u.z() >= 0 ? 0.0 : kPi};
+  const double a = std::atan2(s, u.z());
+  const double c = std::atan2(-u.x(), -u.y());
+  std::array<double, 2> best{};
+  double best_d = std::numeric_limits<double>::infinity();
+  for (const auto& [cb, ab] : {std::pair{c, a}, std::pair{c + kPi, -a}}) {
+    const double cw = cb + 2.0 * kPi * std::round((q_c - cb) / (2.0 * kPi));  // winding nearest to q_c
+    const double d = std::abs(cw - q_c) + std::abs(ab - q_a);
+    if (d < best_d) {
+      best_d = d;
+      best = {cw, ab};
+    }
+  }
+  return best;
+}
+
+/// A retract target counts only if the tool axis points up at least this much (cos of the tilt).
+constexpr double kMinRetractAxisZ = 0.1;
 
 std::string sanitize_comment(std::string s) {
   for (char& c : s)
@@ -84,6 +118,16 @@ class Writer {
     z_ = m_.axis_index("z");
     safe_z_ = m_.post.safe_z_mm;
     if (z_ >= 0 && std::isnan(safe_z_)) safe_z_ = m_.axes[static_cast<size_t>(z_)].max;
+    letters_ = m_.post.letters;
+    cart_ = dialect_.cartesian || m_.post.tcp;
+    if (cart_) {  // the tip's words are X Y Z, whatever the machine's linear axes are called
+      int k = 0;
+      for (size_t i = 0; i < 5; ++i)
+        if (!m_.axes[i].rotary()) letters_[i] = std::string(1, "XYZ"[k++]);
+    }
+    // Without a Z axis (a PKM), or in Cartesian mode, safe_z_mm is a plane z = const of the part frame
+    // and the retract moves the tip along the tool axis up to it.
+    axis_retract_ = (cart_ || z_ < 0) && std::isfinite(m_.post.safe_z_mm);
     buf_.reserve(1 << 16);
   }
 
@@ -96,7 +140,9 @@ class Writer {
       const cl::Move& mv = moves[i];
       ++sum_.cl_points;
       check_limits(axes[i], mv);
-      if (!have_state_ || mv.kind == cl::MotionKind::Rapid) {
+      if (cart_) {
+        cartesian(mv, axes[i]);
+      } else if (!have_state_ || mv.kind == cl::MotionKind::Rapid) {
         rapid(axes[i], mv);
       } else {
         feed(moves[i - 1], axes[i - 1], mv, axes[i]);
@@ -132,13 +178,18 @@ class Writer {
     if (!opt_.source_name.empty()) fmt::format_to(std::back_inserter(buf_), "(source: {})\n", sanitize_comment(opt_.source_name));
     fmt::format_to(std::back_inserter(buf_), "(cscam tool_length_mm={:.4f} tolerance_mm={:.4f})\n",
                    opt_.tool_length_mm, tol_mm_);
+    if (cart_)
+      fmt::format_to(std::back_inserter(buf_), "(cartesian: X Y Z = tool tip, {} {} = tool vector; the control runs the kinematics)\n",
+                     letters_[static_cast<size_t>(kin_.rotary_pair()[0])], letters_[static_cast<size_t>(kin_.rotary_pair()[1])]);
     line("G21 G90 G94 G17 G40 G49 G80");
     mode93_ = false;
   }
 
   void footer() {
-    if (z_ >= 0 && have_state_) {
-      fmt::format_to(std::back_inserter(buf_), "G0 {}{}\n", m_.post.letters[static_cast<size_t>(z_)], fmt_axis(z_, safe_z_));
+    if (!cart_ && z_ >= 0 && have_state_) {
+      fmt::format_to(std::back_inserter(buf_), "G0 {}{}\n", letters_[static_cast<size_t>(z_)], fmt_axis(z_, safe_z_));
+    } else if (have_state_) {
+      axis_retract(SourceLoc{prog_.file});
     }
     line("M5");
     line("M9");
@@ -158,8 +209,11 @@ class Writer {
                          sanitize_comment(prog_.tools[static_cast<size_t>(e.tool_index)].name),
                          prog_.tools[static_cast<size_t>(e.tool_index)].diameter_mm);
         // Retract before the change so the new tool does not come down into the part.
-        if (z_ >= 0 && have_state_) emit_safe_z();
-        fmt::format_to(std::back_inserter(buf_), "T{} M6\nG43 H{}\n", n, n);
+        if (!cart_ && z_ >= 0 && have_state_) emit_safe_z();
+        else if (have_state_) axis_retract(SourceLoc{prog_.file, e.line, 0});
+        // TCP on a serial machine: G43.4 (LinuxCNC, Fanuc). The XMINI's control runs its own transformation.
+        const bool g434 = cart_ && !dialect_.cartesian;
+        fmt::format_to(std::back_inserter(buf_), "T{} M6\n{} H{}\n", n, g434 ? "G43.4" : "G43", n);
         break;
       }
       case K::SpindleOn:
@@ -207,7 +261,7 @@ class Writer {
       const long long r = rounded(i, q[i]);
       if (!force && have_word_[static_cast<size_t>(i)] && r == last_[static_cast<size_t>(i)]) continue;
       buf_.push_back(' ');
-      buf_.append(m_.post.letters[static_cast<size_t>(i)]);
+      buf_.append(letters_[static_cast<size_t>(i)]);
       append_fixed(r, decimals_[static_cast<size_t>(i)]);
       last_[static_cast<size_t>(i)] = r;
       have_word_[static_cast<size_t>(i)] = true;
@@ -291,9 +345,10 @@ class Writer {
       buf_.push_back('\n');
       sum_.blocks += 3;
     }
+    if (rotaries_differ(q) && z_ < 0 && axis_retract_) pkm_reposition(q, mv);
     set_mode94();
     buf_.append("G0");
-    if (!append_words(q, {0, 1, 2, 3, 4})) buf_.append(fmt::format(" {}{}", m_.post.letters[static_cast<size_t>(lin[0])], fmt_axis(lin[0], q[lin[0]])));
+    if (!append_words(q, {0, 1, 2, 3, 4})) buf_.append(fmt::format(" {}{}", letters_[static_cast<size_t>(lin[0])], fmt_axis(lin[0], q[lin[0]])));
     buf_.push_back('\n');
     ++sum_.blocks;
     cur_ = q;
@@ -309,7 +364,7 @@ class Writer {
     bool bad = false;
     for (double t : {0.5, 0.25, 0.75}) {
       const kin::Posed p = kin_.forward(qa + t * (qb - qa));
-      const double dtip = point_segment_distance(p.tip_mm, P0, P1);
+      const double dtip = point_segment_distance(p.tip_mm + opt_.control_offset_mm * p.axis, P0, P1);
       sum_.max_checked_tip_deviation_mm = std::max(sum_.max_checked_tip_deviation_mm, dtip);
       if (dtip > tol_mm_ || p.axis.dot(axis(sa + t * (sb - sa))) < cos_tol_axis_) {
         bad = true;
@@ -342,7 +397,9 @@ class Writer {
       cur_ = q1;
       return;
     }
-    const Vec3 &P0 = m0.tip_in_part_mm, &P1 = m1.tip_in_part_mm;
+    // The controlled points: tips, or ball centres when the plan keeps those on the CL path.
+    const Vec3 P0 = m0.tip_in_part_mm + opt_.control_offset_mm * m0.axis_in_part.normalized();
+    const Vec3 P1 = m1.tip_in_part_mm + opt_.control_offset_mm * m1.axis_in_part.normalized();
     const Slerp axis(m0.axis_in_part.normalized(), m1.axis_in_part.normalized());
     // Explicit stack of pieces [sa, sb] with their axis values; emits pieces in order.
     stack_.clear();
@@ -353,21 +410,36 @@ class Writer {
       if (opt_.linearise && pc.depth < opt_.max_subdivision_depth &&
           exceeds(pc.qa, pc.qb, pc.sa, pc.sb, P0, P1, axis)) {
         const double sm = 0.5 * (pc.sa + pc.sb);
-        const kin::Posed target{P0 + sm * (P1 - P0), axis(sm)};
+        const Vec3 axis_m = axis(sm);
+        const kin::Posed target{P0 + sm * (P1 - P0) - opt_.control_offset_mm * axis_m, axis_m};
         const kin::Axes guess = 0.5 * (pc.qa + pc.qb);
-        kin_.inverse_branches(target, &guess, sols_);
-        ++sum_.ik_calls;
-        double best = 1e300;
+        // First keep the rotaries the machine would pass through anyway and only correct the linear axes:
+        // near the singularity a fresh IK of the interpolated axis is ill-conditioned (its azimuth is
+        // arbitrary) while the interpolated rotaries already give an axis within tolerance.
         kin::Axes qm = guess;
-        for (auto& s : sols_) {
-          kin_.nearest_winding(s.axes, guess);
-          const double d = std::abs(s.axes[rp[0]] - guess[rp[0]]) + std::abs(s.axes[rp[1]] - guess[rp[1]]);
-          if (d < best) {
-            best = d;
-            qm = s.axes;
+        {
+          // The axis the interpolated rotaries give; the controlled point (tip, or ball centre) is put exactly
+          // on the path with that axis, so only the axis error is left to judge.
+          Vec3 a_int;
+          const auto rp = kin_.rotary_pair();
+          const Vec3 ctrl = P0 + sm * (P1 - P0);
+          if (kin_.tool_axis_at(qm[rp[0]], qm[rp[1]], target.tip_mm, a_int) && a_int.dot(target.axis) >= cos_tol_axis_ &&
+              kin_.solve_for_rotaries(kin::Posed{ctrl - opt_.control_offset_mm * a_int, a_int}, qm) &&
+              kin_.forward(qm).axis.dot(target.axis) >= cos_tol_axis_) {
+            check_limits(qm, m1);
+            ++sum_.inserted_points;
+            stack_.push_back({sm, pc.sb, qm, pc.qb, pc.depth + 1});
+            stack_.push_back({pc.sa, sm, pc.qa, qm, pc.depth + 1});
+            continue;
           }
         }
-        if (sols_.empty()) {
+        // Otherwise continue the solution branch from the piece's start (no flips), as the conventional
+        // strategy does between CL points.
+        const Vec3 axis_a = axis(pc.sa);
+        const kin::Posed from{P0 + pc.sa * (P1 - P0) - opt_.control_offset_mm * axis_a, axis_a};
+        ++sum_.ik_calls;
+        const bool tracked = kin::track(kin_, pc.qa, from, target, qm);
+        if (!tracked) {
           sum_.warnings.push_back(fmt::format("{}: no IK solution while linearising", SourceLoc{prog_.file, m1.line, 0}.str()));
         } else {
           check_limits(qm, m1);
@@ -407,6 +479,143 @@ class Writer {
     ++sum_.blocks;
   }
 
+  // --- Retract along the tool axis (machines without a Z axis, e.g. the XMINI; Cartesian mode) -----
+
+  /// The point where the tip, leaving along the tool axis (or vertically when the axis is nearly
+  /// horizontal), reaches the plane z = safe_z_mm. False when the tip is already at or above it.
+  bool retract_point(const Vec3& tip, const Vec3& axis, Vec3& up) const {
+    const double safe = m_.post.safe_z_mm;
+    if (tip.z() >= safe - tol::kLimitSlackMm) return false;
+    const Vec3 dir = axis.z() >= kMinRetractAxisZ ? Vec3(axis.normalized()) : Vec3::UnitZ();
+    up = tip + (safe - tip.z()) / dir.z() * dir;
+    return true;
+  }
+
+  /// Joint values with the tip of q retracted to the safe plane, rotaries held (IK for the legs).
+  kin::Axes pkm_retracted(const kin::Axes& q, const SourceLoc& where) const {
+    const kin::Posed p = kin_.forward(q);
+    Vec3 up;
+    if (!retract_point(p.tip_mm, p.axis, up)) return q;
+    kin::Axes out = q;
+    if (!kin_.solve_for_rotaries(kin::Posed{up, p.axis}, out))
+      throw InputError(where, fmt::format("cannot retract the tool along its axis to the safe plane z = {:.3f} mm "
+                                          "(post.safe_z_mm): the machine cannot put the tip at ({:.3f}, {:.3f}, {:.3f})",
+                                          m_.post.safe_z_mm, up.x(), up.y(), up.z()));
+    const std::string v = kin_.check_limits(out);
+    if (!v.empty())
+      throw InputError(where, fmt::format("the retract to the safe plane z = {:.3f} mm (post.safe_z_mm) leaves the limits: {}",
+                                          m_.post.safe_z_mm, v));
+    return out;
+  }
+
+  /// One rapid block to q (nothing when every word is unchanged).
+  void emit_g0(const kin::Axes& q) {
+    const size_t mark = buf_.size();
+    const bool mode93 = mode93_;
+    const double last_feed = last_feed_;
+    set_mode94();
+    buf_.append("G0");
+    if (append_words(q, {0, 1, 2, 3, 4})) {
+      buf_.push_back('\n');
+      ++sum_.blocks;
+    } else {  // nothing moves: no block, and the feed mode stays as it was
+      buf_.resize(mark);
+      mode93_ = mode93;
+      last_feed_ = last_feed;
+    }
+    cur_ = q;
+  }
+
+  /// Retract before a tool change and at the end of the program.
+  void axis_retract(const SourceLoc& where) {
+    if (!axis_retract_) return;
+    if (cart_) {
+      Vec3 up;
+      if (!retract_point(cart_tip_, cart_axis_, up)) return;
+      kin::Axes v = cur_;
+      int k = 0;
+      for (int i = 0; i < 5; ++i)
+        if (!m_.axes[static_cast<size_t>(i)].rotary()) v[i] = up[k++];
+      emit_g0(v);
+      cart_tip_ = up;
+      return;
+    }
+    emit_g0(pkm_retracted(cur_, where));
+  }
+
+  /// Joint-space rapid to q with a rotary change: retract along the current tool axis, turn the wrist at
+  /// the safe plane, go above q (along q's tool axis); the caller then plunges to q.
+  void pkm_reposition(const kin::Axes& q, const cl::Move& mv) {
+    const SourceLoc where{prog_.file, mv.line, 0};
+    const kin::Axes above = pkm_retracted(q, where);
+    if (have_state_) {
+      const kin::Axes up = pkm_retracted(cur_, where);
+      kin::Axes turned = above;
+      const kin::Posed at_up = kin_.forward(up);
+      if (!kin_.solve_for_rotaries(at_up, turned) || !kin_.check_limits(turned).empty())
+        turned = up;  // cannot turn in place there: turn on the way to the point above q
+      emit_g0(up);
+      emit_g0(turned);
+    }
+    emit_g0(above);
+  }
+
+  // --- Cartesian mode: one block per CL point, the control interpolates ------------------------
+
+  /// The words of a Cartesian block in the machine's axis slots: tip in the linear slots, in the
+  /// rotary slots the machine's rotaries (serial: they alone set the tool vector) or, for the XMINI,
+  /// the virtual wrist angles of the tool vector (xmini_virtual_ca).
+  kin::Axes cartesian_words(const Vec3& tip, const Vec3& axis, const kin::Axes& q) const {
+    kin::Axes v = q;
+    int k = 0;
+    for (int i = 0; i < 5; ++i)
+      if (!m_.axes[static_cast<size_t>(i)].rotary()) v[i] = tip[k++];
+    if (m_.kind == machine::ModelKind::Xmini) {
+      const auto rp = kin_.rotary_pair();
+      const auto ca = xmini_virtual_ca(axis, q[rp[0]], q[rp[1]]);
+      v[rp[0]] = ca[0];
+      v[rp[1]] = ca[1];
+    }
+    return v;
+  }
+
+  void cartesian(const cl::Move& mv, const kin::Axes& q) {
+    const Vec3 axis = mv.axis_in_part.normalized();
+    const kin::Axes v = cartesian_words(mv.tip_in_part_mm, axis, q);
+    if (!have_state_ || mv.kind == cl::MotionKind::Rapid) {
+      if (axis_retract_ && rotaries_differ(v)) {
+        if (have_state_) axis_retract(SourceLoc{prog_.file, mv.line, 0});
+        Vec3 above;
+        if (retract_point(mv.tip_in_part_mm, axis, above)) {
+          kin::Axes va = v;
+          int k = 0;
+          for (int i = 0; i < 5; ++i)
+            if (!m_.axes[static_cast<size_t>(i)].rotary()) va[i] = above[k++];
+          emit_g0(va);
+        }
+      }
+      emit_g0(v);
+    } else {
+      const double feed_mm_min = mv.feed_mm_per_min > 0 ? mv.feed_mm_per_min : 1000.0;
+      set_mode94();
+      buf_.append("G1");
+      if (!append_words(v, {0, 1, 2, 3, 4})) {
+        buf_.resize(buf_.size() - 2);
+      } else {
+        if (std::abs(feed_mm_min - last_feed_) > 1e-9) {
+          fmt::format_to(std::back_inserter(buf_), " F{:.1f}", feed_mm_min);
+          last_feed_ = feed_mm_min;
+        }
+        buf_.push_back('\n');
+        ++sum_.blocks;
+      }
+    }
+    cur_ = v;
+    cart_tip_ = mv.tip_in_part_mm;
+    cart_axis_ = axis;
+    have_state_ = true;
+  }
+
   std::ostream& out_;
   const cl::Program& prog_;
   const machine::Machine& m_;
@@ -421,6 +630,10 @@ class Writer {
   std::array<bool, 5> have_word_{};
   int z_ = -1;
   double safe_z_ = 0.0;
+  std::array<std::string, 5> letters_;  ///< word letter per axis slot (X Y Z for the tip in Cartesian mode)
+  bool cart_ = false;          ///< Cartesian (TCP) output: slots hold tip + tool-vector rotaries
+  bool axis_retract_ = false;  ///< retract along the tool axis to z = safe_z_mm (no Z axis, or Cartesian)
+  Vec3 cart_tip_ = Vec3::Zero(), cart_axis_ = Vec3::UnitZ();  ///< last Cartesian position (part frame)
   bool have_state_ = false;
   bool mode93_ = false;
   double last_feed_ = -1.0;
@@ -432,7 +645,7 @@ class Writer {
 
 }  // namespace
 
-std::vector<std::string> dialects() { return {"linuxcnc", "fanuc"}; }
+std::vector<std::string> dialects() { return {"linuxcnc", "fanuc", "xmini-joint", "xmini-cartesian"}; }
 
 void write_nc(std::ostream& out, const cl::Program& program, const machine::Machine& machine,
               const kin::Kinematics& kinematics, const std::vector<kin::Axes>& axes, const Options& options,

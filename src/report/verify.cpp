@@ -38,12 +38,19 @@ double seg_distance(const ClSeg& s, const Vec3& p, double& t) {
 VerifyResult verify(const nc::Program& nc, const cl::Program& cl, const kin::Kinematics& kinematics,
                     const VerifyOptions& options) {
   VerifyResult r;
+  // The compared point: the tip, or the ball centre of a ball mill (what a tilted plan keeps on the path).
+  double ball_r = 0.0;
+  if (options.ball_centre)
+    for (const auto& t : cl.tools)
+      if (t.is_ball()) ball_r = 0.5 * t.diameter_mm;
+  auto point = [&](const Vec3& tip, const Vec3& axis) -> Vec3 { return tip + ball_r * axis; };
   std::vector<ClSeg> segs;
   for (size_t i = 1; i < cl.moves.size(); ++i) {
     const auto& a = cl.moves[i - 1];
     const auto& b = cl.moves[i];
     if (b.kind != cl::MotionKind::Feed) continue;
-    segs.push_back({a.tip_in_part_mm, b.tip_in_part_mm, a.axis_in_part.normalized(), b.axis_in_part.normalized(), b.line});
+    const Vec3 ua = a.axis_in_part.normalized(), ub = b.axis_in_part.normalized();
+    segs.push_back({point(a.tip_in_part_mm, ua), point(b.tip_in_part_mm, ub), ua, ub, b.line});
   }
   if (segs.empty()) {
     r.ok = true;
@@ -92,8 +99,9 @@ VerifyResult verify(const nc::Program& nc, const cl::Program& cl, const kin::Kin
     for (int k = after_rapid ? 0 : 1; k <= n; ++k) {
       const double s = static_cast<double>(k) / n;
       const kin::Posed p = kinematics.forward(qa + s * (qb - qa));
+      const Vec3 pt = point(p.tip_mm, p.axis);
       double t;
-      const double d = nearest(p.tip_mm, cursor, after_rapid && k == 0, t);
+      const double d = nearest(pt, cursor, after_rapid && k == 0, t);
       after_rapid = false;
       ++r.samples;
       if (d > r.max_tip_deviation_mm) {
@@ -108,7 +116,7 @@ VerifyResult verify(const nc::Program& nc, const cl::Program& cl, const kin::Kin
         r.max_axis_nc_line = b.line;
       }
       if (k == n || k == 0) {
-        nc_feed_points.push_back(p.tip_mm);
+        nc_feed_points.push_back(pt);
         nc_feed_lines.push_back(b.line);
       }
     }

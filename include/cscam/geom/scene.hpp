@@ -110,7 +110,10 @@ inline constexpr unsigned kAllRoles = 7u;
 /// "part", "fixture", "machine".
 [[nodiscard]] const char* to_string(ObstacleRole role);
 
-/// A set of obstacle meshes with one FCL BVH (OBBRSS) each. Immutable and thread-safe after build().
+/// A set of obstacle meshes with FCL bounding-volume hierarchies: an OBB tree per obstacle for collision
+/// and, unless disabled, an RSS tree for distance (FCL has no distance traversal on OBB trees, and OBBRSS
+/// answers collision queries 3-4x slower than OBB with cylinder tools). Immutable and thread-safe after
+/// build().
 class Scene {
  public:
   Scene();
@@ -125,9 +128,12 @@ class Scene {
   ///         std::logic_error when called after build().
   std::size_t add(std::string name, ObstacleRole role, Mesh mesh);
 
-  /// Builds the bounding-volume hierarchies. Call once; queries require it.
-  void build();
+  /// Builds the bounding-volume hierarchies. Call once; queries require it. Further calls do nothing.
+  /// @param with_distance also build the distance hierarchies (about doubles build time and memory);
+  ///        without them clearance() and CheckOptions::compute_distance are invariant violations.
+  void build(bool with_distance = true);
   [[nodiscard]] bool built() const;
+  [[nodiscard]] bool supports_distance() const;
 
   [[nodiscard]] std::size_t obstacle_count() const;
   [[nodiscard]] const std::string& obstacle_name(std::size_t i) const;
@@ -187,13 +193,19 @@ class QueryWorkspace {
 /// cutter body is the cylinder of radius D/2 (+ cutter_clearance_mm) from `corner_radius + relief`
 /// above the tip to the end of the flutes. For a ball mill this excludes the whole ball plus `relief`;
 /// for a flat mill only the bottom `relief`. Shank, holder(s) and spindle nose are checked whole,
-/// inflated by clearance_mm in radius and at both ends.
+/// inflated by clearance_mm in radius and at their exposed end faces (a conservative superset of "closer
+/// than clearance_mm": the inflated cylinder also covers the corners of the Minkowski sum).
+///
+/// Obstacles are triangle surfaces (FCL): a tool part lying entirely inside a closed obstacle without
+/// touching its surface is not detected. A tool whose spindle side is outside the part always crosses
+/// the surface, so this only matters for axes pointing into the material, which the caller should
+/// reject first (axis . surface normal <= 0).
 struct CheckOptions {
   double clearance_mm = 0.0;         ///< safety margin around shank, holder(s), spindle nose
   double cutter_clearance_mm = 0.0;  ///< margin around the checked cutter body (radius only)
   bool check_cutter_body = true;     ///< false: ignore the flutes entirely
   double relief_mm = -1.0;           ///< < 0: 0.2 x corner radius, or 0.5 mm for a flat mill
-  bool compute_distance = false;     ///< check(): also fill CollisionResult::min_distance_mm when free
+  bool compute_distance = false;     ///< check(): also fill min_distance_mm when free (needs distance support)
   unsigned roles = kAllRoles;        ///< which obstacle roles to test (bit or of ObstacleRole)
   /// Pose of the machine frame in the part frame, applied to ObstacleRole::Machine obstacles.
   Eigen::Isometry3d machine_in_part = Eigen::Isometry3d::Identity();
@@ -223,8 +235,12 @@ struct CollisionResult {
                                     const CheckOptions& options, QueryWorkspace& workspace);
 
 /// Smallest distance (mm) between the checked tool parts (as in check()) and the scene; 0 when they
-/// collide; +inf when the scene has no obstacle of the selected roles. FCL GJK distance: exact for
-/// flat-faced contacts, to ~1e-6 mm otherwise. Counts one distance query. For planner tie-breaking.
+/// collide; +inf when the scene has no obstacle of the selected roles. FCL GJK distance (its own GJK):
+/// agrees with analytic distances to < 1e-7 mm in the tests, flat and curved contacts alike.
+/// Cost: ~1 ms on the 200k-triangle benchmark part (about 70x a collision query): FCL visits every
+/// triangle within the distance. For a cheap "at least d mm of room" test use check() with
+/// CheckOptions::clearance_mm = d instead. Counts one distance query.
+/// @pre scene.built() with distance support.
 [[nodiscard]] double clearance(const Scene& scene, const ToolShape& tool, const kin::Posed& tool_pose_in_part,
                                const CheckOptions& options, QueryWorkspace& workspace);
 

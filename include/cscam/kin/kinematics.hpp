@@ -29,6 +29,11 @@ class Kinematics {
   /// Given both rotary values, the remaining (linear/leg) axes that put the tip at `tip_mm`.
   /// Returns false if no such values exist. `q` holds the rotaries on entry and all axes on exit.
   virtual bool solve_for_rotaries(const Posed& pose, Axes& q) const = 0;
+  /// The tool axis (part frame) that the two rotary values give with the tip at `tip_mm`. For a serial
+  /// machine it does not depend on the tip; on a PKM the platform attitude (parasitic motion) makes it
+  /// depend on the position. Returns false if no axis values put the tip there.
+  virtual bool tool_axis_at(double primary, double secondary, const Eigen::Vector3d& tip_mm,
+                            Eigen::Vector3d& axis) const = 0;
   /// First limit that q violates, or empty.
   [[nodiscard]] std::string check_limits(const Axes& q) const;
   /// Choose for every rotary of `s` the winding nearest to `prev` (same angle modulo 2 pi), if within limits.

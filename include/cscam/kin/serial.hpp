@@ -122,6 +122,11 @@ class SerialKinematics final : public Kinematics {
   void inverse_all(const Posed& pose, const Axes* hint, std::vector<Solution>& out) const override;
   void inverse_branches(const Posed& pose, const Axes* hint, std::vector<Solution>& out) const override;
   bool solve_for_rotaries(const Posed& pose, Axes& q) const override;
+  bool tool_axis_at(double primary, double secondary, const Eigen::Vector3d& /*tip_mm*/,
+                    Eigen::Vector3d& axis) const override {
+    axis = axis_for_rotaries(primary, secondary);
+    return true;
+  }
 
   [[nodiscard]] const SerialGeometry<double>& geometry() const { return geometry_; }
   /// The tool axis in the part frame that the two rotary values give (independent of the linear axes).

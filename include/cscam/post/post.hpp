@@ -23,6 +23,9 @@ struct Options {
   std::string source_name;          ///< shown in the header comment
   std::string strategy = "conventional";
   double tool_length_mm = 0.0;      ///< recorded in the header so that verify can rebuild the same model
+  /// The point whose path must stay within the tolerance: tip + control_offset_mm * axis. A planner that
+  /// tilts a ball mill keeps the ball centre on the CL path, so it posts with the ball radius here.
+  double control_offset_mm = 0.0;
 };
 
 /// What the post did.

@@ -14,6 +14,9 @@ struct VerifyOptions {
   double tip_tolerance_mm = 0.012;
   double axis_tolerance_deg = 0.35;
   int samples_per_block = 8;  ///< FK evaluations inside every feed block (besides its ends)
+  /// Compare ball centres (tip + r axis) instead of tips when the CL tool is a ball mill: a planner that
+  /// tilts a ball mill keeps the centre on the CL path and moves the tip.
+  bool ball_centre = false;
 };
 
 struct VerifyResult {

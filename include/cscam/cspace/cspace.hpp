@@ -1,0 +1,99 @@
+#pragma once
+/// @file
+/// The configuration space of a machine's two rotary axes at one CL point (seed 002): a grid of
+/// (primary, secondary) rotary values. A cell is feasible when (1) its tool axis lies in the allowed cone
+/// around the CL axis, (2) the linear axes it needs are inside their strokes, (3) tool and holder do not
+/// collide with the part or fixture. Cells are evaluated lazily and cached: collision queries dominate.
+#include <cstdint>
+#include <limits>
+#include <memory>
+#include <string>
+#include <unordered_map>
+#include <vector>
+
+#include "cscam/geom/scene.hpp"
+#include "cscam/kin/kinematics.hpp"
+
+namespace cscam::cspace {
+
+/// Why a cell is (in)feasible.
+enum class Status : std::uint8_t { Unknown, Feasible, Orientation, Stroke, Collision };
+const char* to_string(Status s);
+
+/// Per-operation settings of the C-space.
+struct Options {
+  double cone_rad = 0.0;        ///< allowed angle between the cell's tool axis and the CL axis; 0: exact IK
+  double min_tilt_rad = 0.0;    ///< keep at least this angle from the CL axis (ball mills off dead centre)
+  double resolution_rad = 1.0 * 3.14159265358979323846 / 180.0;
+  /// Ball-end tools keep the ball centre fixed when the orientation changes (the tip moves); others keep
+  /// the tip. Set from the CL tool.
+  double ball_radius_mm = 0.0;
+  bool check_collision = true;
+  geom::CheckOptions collision;
+  /// Range of a cyclic rotary in the grid (explicit windings), rad: [-cyclic_span, +cyclic_span].
+  double cyclic_span_rad = 2.0 * 3.14159265358979323846;
+};
+
+/// One cell: rotary values (unwrapped, rad) and its lazily computed status.
+struct Cell {
+  double r1 = 0.0, r2 = 0.0;  ///< primary, secondary rotary values
+  int i1 = 0, i2 = 0;         ///< grid indices (for exact IK cells at cone 0: branch/winding ids)
+  float orient_err = 0.0f;    ///< angle to the CL axis, rad
+  Status status = Status::Unknown;
+  float clearance_mm = std::numeric_limits<float>::quiet_NaN();
+  std::string detail;         ///< for a failed cell: the broken limit or the part that collided
+  kin::Axes axes = kin::Axes::Zero();  ///< every axis (valid once evaluated and not Orientation)
+};
+
+/// Query counters (for benchmarks and the compare report).
+struct Counters {
+  std::uint64_t cells_enumerated = 0;
+  std::uint64_t ik = 0;          ///< linear-axis solves for a cell
+  std::uint64_t stroke = 0;      ///< limit checks
+  std::uint64_t collision = 0;   ///< collision queries
+  std::uint64_t cache_hits = 0;
+  std::uint64_t certified = 0;   ///< collision queries skipped by a clearance certificate
+  Counters& operator+=(const Counters& o);
+};
+
+/// The C-space model: immutable, shared by threads. Per-thread scratch lives in Workspace.
+class Space {
+ public:
+  /// `scene` and `tool` may be null (no collision checking). They must outlive the Space.
+  Space(std::shared_ptr<const kin::Kinematics> kinematics, const geom::Scene* scene, const geom::ToolShape* tool,
+        Options options);
+
+  [[nodiscard]] const Options& options() const { return opt_; }
+  [[nodiscard]] const kin::Kinematics& kinematics() const { return *kin_; }
+  /// Grid index ranges of the two rotaries (inclusive).
+  [[nodiscard]] int i1_min() const { return i1_min_; }
+  [[nodiscard]] int i1_max() const { return i1_max_; }
+  [[nodiscard]] int i2_min() const { return i2_min_; }
+  [[nodiscard]] int i2_max() const { return i2_max_; }
+  [[nodiscard]] double r1_of(int i1) const { return i1 * opt_.resolution_rad; }
+  [[nodiscard]] double r2_of(int i2) const { return i2 * opt_.resolution_rad; }
+
+  /// The cells of a CL pose that pass the orientation test (cheap: no stroke/collision yet), at most
+  /// `cap` of them, closest to the CL axis first. At cone 0 these are the exact IK solutions.
+  void enumerate(const kin::Posed& cl_pose, std::vector<Cell>& out, std::size_t cap, Counters& c) const;
+  /// Orientation test of one grid cell (cone and minimum tilt); fills orient_err.
+  [[nodiscard]] bool in_cone(const kin::Posed& cl_pose, double r1, double r2, float* orient_err = nullptr) const;
+  /// The tool pose a cell gives at a CL pose (tip moves for a ball mill so the centre stays put).
+  [[nodiscard]] kin::Posed tool_pose(const kin::Posed& cl_pose, double r1, double r2) const;
+  /// Stroke and collision of a cell (the orientation test must have passed). Fills status, axes, detail.
+  void evaluate(const kin::Posed& cl_pose, Cell& cell, geom::QueryWorkspace& ws, Counters& c) const;
+  /// Collision of an arbitrary tool pose (for reorientation moves). Empty string if free.
+  [[nodiscard]] std::string collision_at(const kin::Posed& tool_pose, geom::QueryWorkspace& ws, Counters& c) const;
+  /// The tool axis (part frame) of rotary values.
+  [[nodiscard]] Eigen::Vector3d axis_of(double r1, double r2) const;
+
+ private:
+  std::shared_ptr<const kin::Kinematics> kin_;
+  const geom::Scene* scene_;
+  const geom::ToolShape* tool_;
+  Options opt_;
+  int rot1_ = 0, rot2_ = 0;
+  int i1_min_ = 0, i1_max_ = 0, i2_min_ = 0, i2_max_ = 0;
+};
+
+}  // namespace cscam::cspace

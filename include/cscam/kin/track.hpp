@@ -1,0 +1,23 @@
+#pragma once
+/// @file
+/// Continuous IK tracking: follow the tool pose from p0 to p1 (tip linear, axis along the great circle)
+/// starting from a known solution, choosing at every small step the solution nearest the previous one.
+/// This is how a solution branch is continued without flips; near the singularity the tilt azimuth turns
+/// fast and a single "nearest solution" jump could land on a branch the motion cannot reach.
+#include <string>
+
+#include "cscam/kin/kinematics.hpp"
+
+namespace cscam::kin {
+
+/// Tracks from `from` (a solution at p0) to p1. Returns false (and the first limit broken, if any) when
+/// no solution inside the limits continues the motion. `max_step_rad` bounds the rotary change per step.
+bool track(const Kinematics& k, const Axes& from, const Posed& p0, const Posed& p1, Axes& out,
+           std::string* violation = nullptr, bool* singular = nullptr, double max_step_rad = 0.0872664626);
+
+/// Among the IK solutions of `pose` (windings adjusted to `near`), the one nearest `near` in rotary
+/// travel that lies inside the limits.
+bool nearest_solution(const Kinematics& k, const Posed& pose, const Axes& near, Axes& out,
+                      std::string* violation = nullptr, bool* singular = nullptr);
+
+}  // namespace cscam::kin

@@ -1,0 +1,86 @@
+#pragma once
+/// @file
+/// The C-space tool-orientation planner (seed 002). For every continuous cutting segment it searches,
+/// in this order: both rotaries fixed (3+2); one fixed and the other monotonic; both monotonic; and
+/// finally the shortest path (least weighted rotary travel, bounded step per point).
+#include <memory>
+#include <string>
+#include <vector>
+
+#include "cscam/cl/program.hpp"
+#include "cscam/cspace/cspace.hpp"
+#include "cscam/machine/machine.hpp"
+
+namespace cscam::plan {
+
+enum class Tier { Fixed2 = 1, Fixed1 = 2, Monotonic = 3, Shortest = 4 };
+const char* to_string(Tier t);
+
+struct Options {
+  cspace::Options cspace;
+  std::size_t max_cells_per_point = 4096;  ///< orientation cells kept per point (closest to the CL axis)
+  double max_step_rad = 0.0;               ///< tier 4 bound on the rotary step per point; 0: 20 x resolution
+  double orientation_weight = 1e-3;        ///< tier 4: cost per rad of orientation error (tie-break only)
+  int max_fixed_candidates = 256;          ///< tier 2: fixed values tried per axis
+  /// Weights of the two rotaries' travel (tier 4 cost), per rad.
+  double weight_primary = 1.0, weight_secondary = 1.0;
+};
+
+/// Why an earlier tier failed on a segment: the first point at which it became impossible.
+struct TierFailure {
+  Tier tier = Tier::Fixed2;
+  std::size_t move = 0;  ///< index into Program::moves
+  int line = 0;          ///< CL line of that point
+  std::string reason;    ///< "orientation", "stroke", "collision" and details
+};
+
+struct SegmentReport {
+  std::size_t first_move = 0, last_move = 0;
+  int first_line = 0, last_line = 0;
+  Tier tier = Tier::Shortest;
+  std::vector<TierFailure> failures;  ///< one per tier tried before the one reached
+  std::string description;            ///< e.g. "fixed B=-22.0 C=1.0"
+};
+
+/// The plan: axis values for every CL move, and a CL program whose tips/axes are the planned ones
+/// (ball-end: the ball centre is the CL's; the tip and axis follow the chosen orientation).
+struct Plan {
+  std::vector<kin::Axes> axes;
+  cl::Program program;
+  std::vector<SegmentReport> segments;
+  cspace::Counters counters;
+  double seconds = 0.0;
+  std::string summary() const;
+};
+
+/// For the pictures: the C-space of one segment (cells feasible at every point, and why the others failed).
+struct SegmentSpace {
+  std::size_t segment = 0;
+  int i1_min = 0, i1_max = 0, i2_min = 0, i2_max = 0;
+  double resolution_rad = 0.0;
+  /// status per cell over the whole segment: Feasible only if feasible at every point; otherwise the
+  /// first reason found (Orientation < Stroke < Collision by first failing point).
+  std::vector<cspace::Status> status;  ///< (i2 - i2_min) * (i1_max - i1_min + 1) + (i1 - i1_min)
+  std::vector<std::pair<double, double>> path;  ///< chosen (r1, r2) per point
+};
+
+class Planner {
+ public:
+  /// `scene`/`tool` may be null (no collision checking); they must outlive the planner.
+  Planner(const machine::Machine& machine, std::shared_ptr<const kin::Kinematics> kinematics,
+          const geom::Scene* scene, const geom::ToolShape* tool, Options options);
+  /// Plans a whole program. Throws InputError (CL line, point, the constraint that emptied the cells and
+  /// the nearest feasible cell) when a point has no feasible cell.
+  Plan run(const cl::Program& program) const;
+  /// Samples the C-space of one planned segment on the full grid (for pictures; costs many queries).
+  SegmentSpace sample_segment(const cl::Program& program, const Plan& plan, std::size_t segment,
+                              std::size_t max_points = 24) const;
+
+ private:
+  const machine::Machine& machine_;
+  std::shared_ptr<const kin::Kinematics> kin_;
+  cspace::Space space_;
+  Options opt_;
+};
+
+}  // namespace cscam::plan

@@ -1,0 +1,216 @@
+#include "cscam/cspace/cspace.hpp"
+
+#include <fmt/format.h>
+
+#include <algorithm>
+#include <cmath>
+#include <unordered_set>
+
+#include "cscam/core/error.hpp"
+#include "cscam/core/units.hpp"
+
+namespace cscam::cspace {
+
+const char* to_string(Status s) {
+  switch (s) {
+    case Status::Unknown: return "unknown";
+    case Status::Feasible: return "feasible";
+    case Status::Orientation: return "orientation";
+    case Status::Stroke: return "stroke";
+    case Status::Collision: return "collision";
+  }
+  return "?";
+}
+
+Counters& Counters::operator+=(const Counters& o) {
+  cells_enumerated += o.cells_enumerated;
+  ik += o.ik;
+  stroke += o.stroke;
+  collision += o.collision;
+  cache_hits += o.cache_hits;
+  certified += o.certified;
+  return *this;
+}
+
+Space::Space(std::shared_ptr<const kin::Kinematics> kinematics, const geom::Scene* scene, const geom::ToolShape* tool,
+             Options options)
+    : kin_(std::move(kinematics)), scene_(scene), tool_(tool), opt_(options) {
+  if (!(opt_.resolution_rad > 0)) throw InputError("C-space resolution must be positive");
+  if (opt_.cone_rad < 0 || opt_.min_tilt_rad < 0) throw InputError("cone and minimum tilt must not be negative");
+  if (opt_.min_tilt_rad > opt_.cone_rad && opt_.cone_rad > 0)
+    throw InputError(fmt::format("minimum tilt {:.3f} deg exceeds the cone {:.3f} deg: no orientation is allowed",
+                                 rad2deg(opt_.min_tilt_rad), rad2deg(opt_.cone_rad)));
+  const auto rp = kin_->rotary_pair();
+  rot1_ = rp[0];
+  rot2_ = rp[1];
+  auto range = [&](int axis, int& lo, int& hi) {
+    const kin::AxisInfo& a = kin_->axes()[static_cast<size_t>(axis)];
+    double mn = a.min, mx = a.max;
+    // Exact cells are few, so cone 0 affords more explicit windings of a cyclic axis than the grid does.
+    const double span = opt_.cone_rad <= 0 ? 2.0 * opt_.cyclic_span_rad : opt_.cyclic_span_rad;
+    if (a.cyclic || mx - mn > 2 * span) {
+      mn = std::max(mn, -span);
+      mx = std::min(mx, span);
+    }
+    lo = static_cast<int>(std::ceil(mn / opt_.resolution_rad - 1e-9));
+    hi = static_cast<int>(std::floor(mx / opt_.resolution_rad + 1e-9));
+  };
+  range(rot1_, i1_min_, i1_max_);
+  range(rot2_, i2_min_, i2_max_);
+}
+
+Eigen::Vector3d Space::axis_of(double r1, double r2) const {
+  Eigen::Vector3d a;
+  kin_->tool_axis_at(r1, r2, Eigen::Vector3d::Zero(), a);
+  return a;
+}
+
+bool Space::in_cone(const kin::Posed& cl, double r1, double r2, float* orient_err) const {
+  Eigen::Vector3d a;
+  if (!kin_->tool_axis_at(r1, r2, cl.tip_mm, a)) return false;
+  const double err = std::acos(std::clamp(a.dot(cl.axis), -1.0, 1.0));
+  if (orient_err) *orient_err = static_cast<float>(err);
+  // A tiny floor on the cone lets exact IK cells (cone 0) pass their own test despite rounding.
+  return err <= std::max(opt_.cone_rad, 1e-7) && err >= opt_.min_tilt_rad - 1e-12;
+}
+
+kin::Posed Space::tool_pose(const kin::Posed& cl, double r1, double r2) const {
+  Eigen::Vector3d a;
+  if (!kin_->tool_axis_at(r1, r2, cl.tip_mm, a)) a = cl.axis;
+  if (opt_.ball_radius_mm > 0) {
+    // Ball-end: the ball centre is what the CL path fixes; a new orientation moves the tip.
+    const Eigen::Vector3d centre = cl.tip_mm + opt_.ball_radius_mm * cl.axis;
+    const Eigen::Vector3d tip = centre - opt_.ball_radius_mm * a;
+    if (!kin_->tool_axis_at(r1, r2, tip, a)) a = cl.axis;
+    return {centre - opt_.ball_radius_mm * a, a};
+  }
+  return {cl.tip_mm, a};
+}
+
+void Space::enumerate(const kin::Posed& cl, std::vector<Cell>& out, std::size_t cap, Counters& c) const {
+  out.clear();
+  std::vector<kin::Solution> sols;
+  kin_->inverse_all(cl, nullptr, sols);
+  const double res = opt_.resolution_rad;
+  const double lo1 = i1_min_ * res - 1e-9, hi1 = i1_max_ * res + 1e-9, lo2 = i2_min_ * res - 1e-9, hi2 = i2_max_ * res + 1e-9;
+  if (opt_.cone_rad <= 0) {
+    // Exact orientation: the cells are the IK solutions themselves (every branch and winding).
+    int id = 0;
+    for (const auto& s : sols) {
+      const double r1 = s.axes[rot1_], r2 = s.axes[rot2_];
+      if (r1 < lo1 || r1 > hi1 || r2 < lo2 || r2 > hi2) continue;
+      Cell cell;
+      cell.r1 = r1;
+      cell.r2 = r2;
+      cell.i1 = static_cast<int>(std::lround(r1 / res));
+      cell.i2 = static_cast<int>(std::lround(r2 / res));
+      cell.orient_err = 0.0f;
+      (void)id;
+      out.push_back(cell);
+    }
+    c.cells_enumerated += out.size();
+    return;
+  }
+  // Flood fill over grid cells inside the cone, seeded at the grid cells around every IK solution.
+  // The min-tilt annulus is crossed (cells inside min tilt are traversed but not output).
+  // Visited marks on the dense grid, reused between calls of this thread; only touched entries are reset.
+  thread_local std::vector<std::uint8_t> seen;
+  thread_local std::vector<std::size_t> touched;
+  const std::size_t n1 = static_cast<std::size_t>(i1_max_ - i1_min_ + 1);
+  const std::size_t ncells = n1 * static_cast<std::size_t>(i2_max_ - i2_min_ + 1);
+  if (seen.size() < ncells) seen.assign(ncells, 0);
+  touched.clear();
+  std::vector<std::pair<int, int>> stack;
+  auto push = [&](int i1, int i2) {
+    if (i1 < i1_min_ || i1 > i1_max_ || i2 < i2_min_ || i2 > i2_max_) return;
+    const std::size_t at = static_cast<std::size_t>(i2 - i2_min_) * n1 + static_cast<std::size_t>(i1 - i1_min_);
+    if (seen[at]) return;
+    seen[at] = 1;
+    touched.push_back(at);
+    stack.emplace_back(i1, i2);
+  };
+  for (const auto& s : sols) {
+    const double f1 = s.axes[rot1_] / res, f2 = s.axes[rot2_] / res;
+    for (int d1 = 0; d1 <= 1; ++d1)
+      for (int d2 = 0; d2 <= 1; ++d2) push(static_cast<int>(std::floor(f1)) + d1, static_cast<int>(std::floor(f2)) + d2);
+  }
+  Eigen::Vector3d a;
+  const double cos_cone = std::cos(opt_.cone_rad);
+  while (!stack.empty()) {
+    const auto [i1, i2] = stack.back();
+    stack.pop_back();
+    const double r1 = i1 * res, r2 = i2 * res;
+    if (!kin_->tool_axis_at(r1, r2, cl.tip_mm, a)) continue;
+    const double d = a.dot(cl.axis);
+    if (d < cos_cone - 1e-15) continue;
+    const double err = std::acos(std::clamp(d, -1.0, 1.0));
+    if (err >= opt_.min_tilt_rad) {
+      Cell cell;
+      cell.r1 = r1;
+      cell.r2 = r2;
+      cell.i1 = i1;
+      cell.i2 = i2;
+      cell.orient_err = static_cast<float>(err);
+      out.push_back(cell);
+    }
+    push(i1 + 1, i2);
+    push(i1 - 1, i2);
+    push(i1, i2 + 1);
+    push(i1, i2 - 1);
+  }
+  for (std::size_t at : touched) seen[at] = 0;
+  std::sort(out.begin(), out.end(), [](const Cell& x, const Cell& y) {
+    if (x.orient_err != y.orient_err) return x.orient_err < y.orient_err;
+    return std::tie(x.i2, x.i1) < std::tie(y.i2, y.i1);
+  });
+  if (out.size() > cap) out.resize(cap);
+  c.cells_enumerated += out.size();
+}
+
+void Space::evaluate(const kin::Posed& cl, Cell& cell, geom::QueryWorkspace& ws, Counters& c) const {
+  if (cell.status != Status::Unknown) {
+    ++c.cache_hits;
+    return;
+  }
+  const kin::Posed pose = tool_pose(cl, cell.r1, cell.r2);
+  kin::Axes q = kin::Axes::Zero();
+  q[rot1_] = cell.r1;
+  q[rot2_] = cell.r2;
+  ++c.ik;
+  if (!kin_->solve_for_rotaries(pose, q)) {
+    cell.status = Status::Stroke;
+    cell.detail = "no linear-axis solution";
+    return;
+  }
+  cell.axes = q;
+  ++c.stroke;
+  std::string v = kin_->check_limits(q);
+  if (!v.empty()) {
+    cell.status = Status::Stroke;
+    cell.detail = std::move(v);
+    return;
+  }
+  if (opt_.check_collision && scene_ && tool_) {
+    ++c.collision;
+    const geom::CollisionResult r = geom::check(*scene_, *tool_, pose, opt_.collision, ws);
+    if (r.collides) {
+      cell.status = Status::Collision;
+      cell.detail = fmt::format("{} hits {}", geom::to_string(r.part),
+                                r.obstacle >= 0 ? scene_->obstacle_name(static_cast<std::size_t>(r.obstacle)) : std::string("?"));
+      return;
+    }
+    if (!std::isnan(r.min_distance_mm)) cell.clearance_mm = static_cast<float>(r.min_distance_mm);
+  }
+  cell.status = Status::Feasible;
+}
+
+std::string Space::collision_at(const kin::Posed& pose, geom::QueryWorkspace& ws, Counters& c) const {
+  if (!opt_.check_collision || !scene_ || !tool_) return {};
+  ++c.collision;
+  const geom::CollisionResult r = geom::check(*scene_, *tool_, pose, opt_.collision, ws);
+  if (!r.collides) return {};
+  return fmt::format("{} hits {}", geom::to_string(r.part),
+                     r.obstacle >= 0 ? scene_->obstacle_name(static_cast<std::size_t>(r.obstacle)) : std::string("?"));
+}
+
+}  // namespace cscam::cspace

@@ -1,0 +1,57 @@
+#include "cscam/kin/track.hpp"
+
+#include <algorithm>
+#include <cmath>
+#include <limits>
+#include <vector>
+
+namespace cscam::kin {
+
+namespace {
+double rotary_distance(const Kinematics& k, const Axes& a, const Axes& b) {
+  const auto rp = k.rotary_pair();
+  return std::abs(a[rp[0]] - b[rp[0]]) + std::abs(a[rp[1]] - b[rp[1]]);
+}
+
+bool track_rec(const Kinematics& k, const Axes& prev, const Posed& p0, const Posed& p1, int depth, Axes& out,
+               std::string* violation, bool* singular, double max_step) {
+  if (!nearest_solution(k, p1, prev, out, violation, singular)) return false;
+  if (rotary_distance(k, out, prev) <= max_step || depth >= 20) return true;
+  const double ang = std::acos(std::clamp(p0.axis.dot(p1.axis), -1.0, 1.0));
+  if (ang < 1e-12) return true;
+  const Eigen::Vector3d mid_axis = (std::sin(0.5 * ang) / std::sin(ang) * (p0.axis + p1.axis)).normalized();
+  const Posed mid{0.5 * (p0.tip_mm + p1.tip_mm), mid_axis};
+  Axes qm;
+  if (!track_rec(k, prev, p0, mid, depth + 1, qm, violation, nullptr, max_step)) return false;
+  return track_rec(k, qm, mid, p1, depth + 1, out, violation, singular, max_step);
+}
+}  // namespace
+
+bool nearest_solution(const Kinematics& k, const Posed& pose, const Axes& near, Axes& out, std::string* violation,
+                      bool* singular) {
+  thread_local std::vector<Solution> sols;
+  k.inverse_branches(pose, &near, sols);
+  double best = std::numeric_limits<double>::infinity();
+  for (Solution& s : sols) {
+    k.nearest_winding(s.axes, near);
+    const std::string v = k.check_limits(s.axes);
+    if (!v.empty()) {
+      if (violation && violation->empty()) *violation = v;
+      continue;
+    }
+    const double d = rotary_distance(k, s.axes, near);
+    if (d < best) {
+      best = d;
+      out = s.axes;
+      if (singular) *singular = s.singular;
+    }
+  }
+  return std::isfinite(best);
+}
+
+bool track(const Kinematics& k, const Axes& from, const Posed& p0, const Posed& p1, Axes& out, std::string* violation,
+           bool* singular, double max_step_rad) {
+  return track_rec(k, from, p0, p1, 0, out, violation, singular, max_step_rad);
+}
+
+}  // namespace cscam::kin

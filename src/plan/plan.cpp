@@ -1,0 +1,801 @@
+#include "cscam/plan/plan.hpp"
+
+#include <fmt/format.h>
+
+#include <algorithm>
+#include <chrono>
+#include <cmath>
+#include <deque>
+#include <limits>
+#include <numeric>
+#include <unordered_map>
+
+#include "cscam/core/error.hpp"
+#include "cscam/core/units.hpp"
+#include "cscam/kin/track.hpp"
+
+namespace cscam::plan {
+
+const char* to_string(Tier t) {
+  switch (t) {
+    case Tier::Fixed2: return "fixed 2 axes + simultaneous 3 axes";
+    case Tier::Fixed1: return "fixed 1 axis + simultaneous 4 axes (monotonic)";
+    case Tier::Monotonic: return "simultaneous 5 axes, both rotaries monotonic";
+    case Tier::Shortest: return "simultaneous 5 axes, shortest rotary path";
+  }
+  return "?";
+}
+
+namespace {
+
+using cspace::Cell;
+using cspace::Status;
+constexpr double kInf = std::numeric_limits<double>::infinity();
+/// Exact-orientation (cone 0) cells are keyed on a 1e-6 rad lattice so that "the same cell" and
+/// "monotonic" mean the same thing as on the grid.
+constexpr double kExactKeyRad = 1e-6;
+
+std::uint64_t key(int i1, int i2) {
+  return (static_cast<std::uint64_t>(static_cast<std::uint32_t>(i1)) << 32) | static_cast<std::uint32_t>(i2);
+}
+
+struct Layer {
+  std::size_t move = 0;
+  kin::Posed cl;
+  std::vector<Cell> cells;                         ///< orientation cells, closest first (capped)
+  std::unordered_map<std::uint64_t, int> index;    ///< (i1,i2) -> position in cells
+  std::unordered_map<std::uint64_t, Cell> extra;   ///< evaluated cells outside the cap
+};
+
+/// The search over one segment's layers. Owns the per-thread query workspace.
+class Search {
+ public:
+  Search(const cspace::Space& sp, const Options& opt, std::vector<Layer>& layers, cspace::Counters& c,
+         const cl::Program& prog)
+      : sp_(sp), opt_(opt), L_(layers), c_(c), prog_(prog), exact_(sp.options().cone_rad <= 0) {}
+
+  /// The cell (i1, i2) at layer k, created (with its orientation test) if needed; null if outside the cone.
+  Cell* cell(std::size_t k, int i1, int i2) {
+    Layer& l = L_[k];
+    const auto kk = key(i1, i2);
+    if (auto it = l.index.find(kk); it != l.index.end()) return &l.cells[static_cast<size_t>(it->second)];
+    if (auto it = l.extra.find(kk); it != l.extra.end()) return it->second.status == Status::Orientation ? nullptr : &it->second;
+    if (exact_) return nullptr;  // exact cells are all enumerated
+    Cell c;
+    c.i1 = i1;
+    c.i2 = i2;
+    c.r1 = sp_.r1_of(i1);
+    c.r2 = sp_.r2_of(i2);
+    if (!sp_.in_cone(l.cl, c.r1, c.r2, &c.orient_err)) c.status = Status::Orientation;
+    auto& slot = l.extra.emplace(kk, c).first->second;
+    return slot.status == Status::Orientation ? nullptr : &slot;
+  }
+
+  bool feasible(std::size_t k, Cell& c) {
+    sp_.evaluate(L_[k].cl, c, ws_, c_);
+    return c.status == Status::Feasible;
+  }
+
+  int line(std::size_t k) const { return prog_.moves[L_[k].move].line; }
+
+  /// Exact orientations (cone 0): a layered DP over the IK cells where a transition must satisfy `allowed`
+  /// and be continuously trackable (following the CL pose from one cell reaches the other without a
+  /// flip). Least L1 rotary travel. Returns false with the first layer that no allowed path reaches.
+  template <typename Allowed>
+  bool dp_exact(Allowed&& allowed, std::vector<const Cell*>& path, std::size_t& fail_layer, std::string& why) {
+    const std::size_t n = L_.size();
+    const auto rp = sp_.kinematics().rotary_pair();
+    std::vector<std::vector<double>> cost(n);
+    std::vector<std::vector<int>> pred(n);
+    for (std::size_t k = 0; k < n; ++k) {
+      auto& cells = L_[k].cells;
+      cost[k].assign(cells.size(), kInf);
+      pred[k].assign(cells.size(), -1);
+      bool any = false;
+      for (std::size_t j = 0; j < cells.size(); ++j) {
+        if (!feasible(k, cells[j])) {
+          why = fmt::format("{}: {}", to_string(cells[j].status), cells[j].detail);
+          continue;
+        }
+        if (k == 0) {
+          cost[0][j] = 0.0;
+          any = true;
+          continue;
+        }
+        for (std::size_t i = 0; i < L_[k - 1].cells.size(); ++i) {
+          if (!std::isfinite(cost[k - 1][i])) continue;
+          const Cell& a = L_[k - 1].cells[i];
+          const Cell& b = cells[j];
+          if (!allowed(a, b)) continue;
+          const double v = cost[k - 1][i] + opt_.weight_primary * std::abs(b.r1 - a.r1) + opt_.weight_secondary * std::abs(b.r2 - a.r2);
+          if (v >= cost[k][j]) continue;
+          kin::Axes out;
+          const kin::Posed pa = sp_.tool_pose(L_[k - 1].cl, a.r1, a.r2), pb = sp_.tool_pose(L_[k].cl, b.r1, b.r2);
+          if (!kin::track(sp_.kinematics(), a.axes, pa, pb, out)) continue;
+          if (std::abs(out[rp[0]] - b.r1) + std::abs(out[rp[1]] - b.r2) > 1e-6) continue;  // would flip
+          cost[k][j] = v;
+          pred[k][j] = static_cast<int>(i);
+          any = true;
+        }
+      }
+      if (!any) {
+        fail_layer = k;
+        if (why.empty()) why = "no continuous (flip-free) transition from the previous point";
+        return false;
+      }
+    }
+    std::size_t best = 0;
+    for (std::size_t j = 1; j < cost[n - 1].size(); ++j)
+      if (cost[n - 1][j] < cost[n - 1][best]) best = j;
+    path.assign(n, nullptr);
+    int idx = static_cast<int>(best);
+    for (std::size_t k = n; k-- > 0;) {
+      path[k] = &L_[k].cells[static_cast<size_t>(idx)];
+      idx = pred[k][static_cast<size_t>(idx)];
+    }
+    return true;
+  }
+
+  // ---- tier 1: one cell feasible at every point ----
+  bool fixed2(std::vector<const Cell*>& path, TierFailure& fail, const kin::Axes* prefer) {
+    const std::size_t n = L_.size();
+    struct Cand {
+      int i1, i2;
+      double score, home;
+    };
+    std::vector<Cand> cands;
+    std::size_t furthest = 0;
+    const auto rp = sp_.kinematics().rotary_pair();
+    for (const Cell& c0 : L_[0].cells) {
+      double score = c0.orient_err;
+      bool ok = true;
+      // Orientation only (cheap): no cell is materialised until a candidate survives every point.
+      for (std::size_t k = 1; k < n && ok; ++k) {
+        float e = 0.0f;
+        const bool in = exact_ ? L_[k].index.count(key(c0.i1, c0.i2)) > 0 : sp_.in_cone(L_[k].cl, c0.r1, c0.r2, &e);
+        if (!in) {
+          furthest = std::max(furthest, k);
+          ok = false;
+        } else {
+          score = std::max(score, static_cast<double>(e));
+        }
+      }
+      // Among equally good orientations prefer the winding nearest the previous segment (or home).
+      const double home = prefer ? std::abs(c0.r1 - (*prefer)[rp[0]]) + std::abs(c0.r2 - (*prefer)[rp[1]])
+                                 : std::abs(c0.r1) + std::abs(c0.r2);
+      if (ok) cands.push_back({c0.i1, c0.i2, score, home});
+    }
+    if (cands.empty()) {
+      fail = {Tier::Fixed2, L_[furthest].move, line(furthest),
+              fmt::format("orientation: no single orientation stays within the cone from the segment start to this "
+                          "point")};
+      return false;
+    }
+    // Orientation closeness first (to 1e-6 rad: windings tie exactly), then nearness to the previous rotaries.
+    std::stable_sort(cands.begin(), cands.end(), [](const Cand& a, const Cand& b) {
+      if (std::abs(a.score - b.score) > 1e-6) return a.score < b.score;
+      return a.home < b.home;
+    });
+    std::size_t best_reach = 0;
+    std::string best_reason;
+    for (const Cand& cd : cands) {
+      path.assign(n, nullptr);
+      std::size_t k = 0;
+      for (; k < n; ++k) {
+        Cell* c = cell(k, cd.i1, cd.i2);
+        if (!c || !feasible(k, *c)) break;
+        path[k] = c;
+      }
+      if (k == n) return true;
+      if (k >= best_reach) {
+        Cell* c = cell(k, cd.i1, cd.i2);
+        best_reach = k;
+        best_reason = fmt::format("{}: {} (best fixed orientation {:.3f}, {:.3f} deg)", c ? to_string(c->status) : "orientation",
+                                  c ? c->detail : "", rad2deg(sp_.r1_of(cd.i1)), rad2deg(sp_.r2_of(cd.i2)));
+      }
+    }
+    fail = {Tier::Fixed2, L_[best_reach].move, line(best_reach), best_reason};
+    return false;
+  }
+
+  // ---- tier 2: one rotary fixed, the other monotonic ----
+  bool fixed1(std::vector<const Cell*>& path, TierFailure& fail, std::string& desc) {
+    const std::size_t n = L_.size();
+    if (exact_) {
+      std::size_t worst = 0;
+      std::string why;
+      for (int f = 1; f >= 0; --f)
+        for (int dir : {+1, -1}) {
+          std::size_t fl = 0;
+          std::string w;
+          auto allowed = [&](const Cell& a, const Cell& b) {
+            const long long fa = f == 0 ? a.i1 : a.i2, fb = f == 0 ? b.i1 : b.i2;
+            const long long ma = f == 0 ? a.i2 : a.i1, mb = f == 0 ? b.i2 : b.i1;
+            return fa == fb && dir * (mb - ma) >= 0;
+          };
+          if (dp_exact(allowed, path, fl, w)) {
+            desc = fmt::format("{} fixed at {:.3f} deg, the other {}", f == 0 ? "primary" : "secondary",
+                               rad2deg(f == 0 ? path[0]->r1 : path[0]->r2), dir > 0 ? "rising" : "falling");
+            return true;
+          }
+          if (fl >= worst) {
+            worst = fl;
+            why = w;
+          }
+        }
+      fail = {Tier::Fixed1, L_[worst].move, line(worst), why};
+      return false;
+    }
+    std::size_t furthest = 0;
+    std::string furthest_reason = "orientation";
+    double best_travel = kInf;
+    std::vector<const Cell*> best;
+    for (int f = 1; f >= 0; --f) {  // fix the secondary first (e.g. the tilt), then the primary
+      // Per layer: cells grouped by the fixed index, sorted by the moving index.
+      std::vector<std::unordered_map<int, std::vector<Cell*>>> groups(n);
+      for (std::size_t k = 0; k < n; ++k) {
+        for (Cell& c : L_[k].cells) groups[k][f == 0 ? c.i1 : c.i2].push_back(&c);
+        for (auto& [v, list] : groups[k])
+          std::sort(list.begin(), list.end(), [f](const Cell* a, const Cell* b) { return f == 0 ? a->i2 < b->i2 : a->i1 < b->i1; });
+      }
+      // Candidate fixed values: present at the first point, closest orientation first.
+      std::vector<std::pair<double, int>> vals;
+      for (auto& [v, list] : groups[0]) {
+        double e = kInf;
+        for (const Cell* c : list) e = std::min(e, static_cast<double>(c->orient_err));
+        vals.emplace_back(e, v);
+      }
+      std::sort(vals.begin(), vals.end());
+      if (vals.size() > static_cast<size_t>(opt_.max_fixed_candidates)) vals.resize(static_cast<size_t>(opt_.max_fixed_candidates));
+      for (const auto& [e0, v] : vals) {
+        for (int dir : {+1, -1}) {
+          std::vector<const Cell*> p(n, nullptr);
+          long long prev = dir > 0 ? std::numeric_limits<long long>::min() : std::numeric_limits<long long>::max();
+          std::size_t k = 0;
+          std::string why = "orientation";
+          for (; k < n; ++k) {
+            auto it = groups[k].find(v);
+            if (it == groups[k].end()) break;
+            const auto& list = it->second;
+            Cell* chosen = nullptr;
+            auto moving = [f](const Cell* c) { return static_cast<long long>(f == 0 ? c->i2 : c->i1); };
+            if (dir > 0) {
+              for (Cell* c : list)
+                if (moving(c) >= prev) {
+                  if (feasible(k, *c)) {
+                    chosen = c;
+                    break;
+                  }
+                  why = fmt::format("{}: {}", to_string(c->status), c->detail);
+                }
+            } else {
+              for (auto rit = list.rbegin(); rit != list.rend(); ++rit)
+                if (moving(*rit) <= prev) {
+                  if (feasible(k, **rit)) {
+                    chosen = *rit;
+                    break;
+                  }
+                  why = fmt::format("{}: {}", to_string((*rit)->status), (*rit)->detail);
+                }
+            }
+            if (!chosen) break;
+            p[k] = chosen;
+            prev = moving(chosen);
+          }
+          if (k < n) {
+            if (k >= furthest) {
+              furthest = k;
+              furthest_reason = why;
+            }
+            continue;
+          }
+          const double travel = std::abs((f == 0 ? p[n - 1]->r2 - p[0]->r2 : p[n - 1]->r1 - p[0]->r1));
+          if (travel < best_travel - 1e-12) {
+            best_travel = travel;
+            best = p;
+            desc = fmt::format("{} fixed at {:.3f} deg, {} {} by {:.3f} deg", f == 0 ? "primary" : "secondary",
+                               rad2deg(f == 0 ? p[0]->r1 : p[0]->r2), f == 0 ? "secondary" : "primary",
+                               dir > 0 ? "rising" : "falling", rad2deg(travel));
+          }
+        }
+        if (!best.empty()) break;  // candidates are in order of orientation closeness
+      }
+    }
+    if (!best.empty()) {
+      path = best;
+      return true;
+    }
+    fail = {Tier::Fixed1, L_[furthest].move, line(furthest), furthest_reason};
+    return false;
+  }
+
+  // ---- tier 3: both rotaries monotonic (reachability through Pareto staircases) ----
+  bool monotonic(std::vector<const Cell*>& path, TierFailure& fail, std::string& desc) {
+    const std::size_t n = L_.size();
+    if (exact_) {
+      std::size_t worst = 0;
+      std::string why;
+      for (int d1 : {+1, -1})
+        for (int d2 : {+1, -1}) {
+          std::size_t fl = 0;
+          std::string w;
+          auto allowed = [&](const Cell& a, const Cell& b) {
+            return d1 * (static_cast<long long>(b.i1) - a.i1) >= 0 && d2 * (static_cast<long long>(b.i2) - a.i2) >= 0;
+          };
+          if (dp_exact(allowed, path, fl, w)) {
+            desc = fmt::format("primary {}, secondary {}", d1 > 0 ? "rising" : "falling", d2 > 0 ? "rising" : "falling");
+            return true;
+          }
+          if (fl >= worst) {
+            worst = fl;
+            why = w;
+          }
+        }
+      fail = {Tier::Monotonic, L_[worst].move, line(worst), why};
+      return false;
+    }
+    std::size_t furthest = 0;
+    std::string furthest_reason = "orientation";
+    double best_travel = kInf;
+    for (int d1 : {+1, -1})
+      for (int d2 : {+1, -1}) {
+        struct Step {
+          long long a, b;
+          Cell* cell;
+          int pred;  // index into the previous staircase
+        };
+        std::vector<std::vector<Step>> stair(n);
+        std::size_t k = 0;
+        std::string why = "orientation";
+        for (; k < n; ++k) {
+          // Rows by b (ascending), a ascending inside a row.
+          std::vector<std::pair<std::pair<long long, long long>, Cell*>> cells;
+          cells.reserve(L_[k].cells.size());
+          for (Cell& c : L_[k].cells) cells.push_back({{static_cast<long long>(d2) * c.i2, static_cast<long long>(d1) * c.i1}, &c});
+          std::sort(cells.begin(), cells.end(), [](const auto& x, const auto& y) { return x.first < y.first; });
+          const auto& prev = k ? stair[k - 1] : std::vector<Step>{};
+          std::size_t pi = 0;
+          long long lb = std::numeric_limits<long long>::max();  // min a over prev staircase with b' <= b
+          int lb_idx = -1;
+          long long cur_min_a = std::numeric_limits<long long>::max();
+          for (std::size_t i = 0; i < cells.size();) {
+            const long long b = cells[i].first.first;
+            std::size_t j = i;
+            while (j < cells.size() && cells[j].first.first == b) ++j;
+            while (pi < prev.size() && prev[pi].b <= b) {
+              if (prev[pi].a < lb) {
+                lb = prev[pi].a;
+                lb_idx = static_cast<int>(pi);
+              }
+              ++pi;
+            }
+            if (k == 0) lb = std::numeric_limits<long long>::min();
+            if (k == 0 || lb_idx >= 0) {
+              for (std::size_t t = i; t < j; ++t) {
+                const long long a = cells[t].first.second;
+                if (a < lb) continue;
+                if (a >= cur_min_a) break;  // dominated by a reachable cell of a lower row
+                if (feasible(k, *cells[t].second)) {
+                  stair[k].push_back({a, b, cells[t].second, lb_idx});
+                  cur_min_a = a;
+                  break;
+                }
+                why = fmt::format("{}: {}", to_string(cells[t].second->status), cells[t].second->detail);
+              }
+            }
+            i = j;
+          }
+          if (stair[k].empty()) break;
+        }
+        if (k < n) {
+          if (k >= furthest) {
+            furthest = k;
+            furthest_reason = why;
+          }
+          continue;
+        }
+        // Any final staircase cell is reachable; take the one with the least travel.
+        for (std::size_t e = 0; e < stair[n - 1].size(); ++e) {
+          std::vector<const Cell*> p(n);
+          int idx = static_cast<int>(e);
+          for (std::size_t kk = n; kk-- > 0;) {
+            p[kk] = stair[kk][static_cast<size_t>(idx)].cell;
+            idx = stair[kk][static_cast<size_t>(idx)].pred;
+          }
+          const double travel = opt_.weight_primary * std::abs(p[n - 1]->r1 - p[0]->r1) +
+                                opt_.weight_secondary * std::abs(p[n - 1]->r2 - p[0]->r2);
+          if (travel < best_travel - 1e-12) {
+            best_travel = travel;
+            path = p;
+            desc = fmt::format("primary {} by {:.3f} deg, secondary {} by {:.3f} deg", d1 > 0 ? "rising" : "falling",
+                               rad2deg(std::abs(p[n - 1]->r1 - p[0]->r1)), d2 > 0 ? "rising" : "falling",
+                               rad2deg(std::abs(p[n - 1]->r2 - p[0]->r2)));
+          }
+        }
+      }
+    if (std::isfinite(best_travel)) return true;
+    fail = {Tier::Monotonic, L_[furthest].move, line(furthest), furthest_reason};
+    return false;
+  }
+
+  // ---- tier 4: least weighted rotary travel, bounded step per point ----
+  bool shortest(std::vector<const Cell*>& path, TierFailure& fail, std::string& desc) {
+    const std::size_t n = L_.size();
+    const double res = sp_.options().resolution_rad;
+    // Exact orientations (cone 0) must be free to turn fast near the singularity: no default bound there.
+    const double max_step = opt_.max_step_rad > 0 ? opt_.max_step_rad : exact_ ? kPi : 20.0 * res;
+    const std::size_t beam = 256;
+    if (exact_) {
+      std::size_t fl = 0;
+      std::string w;
+      auto allowed = [&](const Cell& a, const Cell& b) {
+        return std::abs(b.r1 - a.r1) <= max_step + 1e-12 && std::abs(b.r2 - a.r2) <= max_step + 1e-12;
+      };
+      if (!dp_exact(allowed, path, fl, w)) {
+        fail = {Tier::Shortest, L_[fl].move, line(fl), w};
+        return false;
+      }
+      double travel = 0;
+      for (std::size_t k = 1; k < n; ++k) travel += std::abs(path[k]->r1 - path[k - 1]->r1) + std::abs(path[k]->r2 - path[k - 1]->r2);
+      desc = fmt::format("rotary travel {:.3f} deg along continuous IK branches", rad2deg(travel));
+      return true;
+    }
+    struct State {
+      Cell* cell;
+      double cost;
+      int pred;
+    };
+    std::vector<std::vector<State>> S(n);
+    for (std::size_t k = 0; k < n; ++k) {
+      std::vector<std::pair<double, std::pair<Cell*, int>>> tent;  // tentative cost, cell, pred
+      tent.reserve(L_[k].cells.size());
+      if (k == 0) {
+        for (Cell& c : L_[0].cells) tent.push_back({opt_.orientation_weight * c.orient_err, {&c, -1}});
+      } else if (exact_ || S[k - 1].size() * L_[k].cells.size() <= 200000) {
+        for (Cell& c : L_[k].cells) {
+          double best = kInf;
+          int arg = -1;
+          for (std::size_t p = 0; p < S[k - 1].size(); ++p) {
+            const Cell* pc = S[k - 1][p].cell;
+            const double d1 = std::abs(c.r1 - pc->r1), d2 = std::abs(c.r2 - pc->r2);
+            if (d1 > max_step + 1e-12 || d2 > max_step + 1e-12) continue;
+            const double v = S[k - 1][p].cost + opt_.weight_primary * d1 + opt_.weight_secondary * d2;
+            if (v < best) {
+              best = v;
+              arg = static_cast<int>(p);
+            }
+          }
+          if (arg >= 0) tent.push_back({best + opt_.orientation_weight * c.orient_err, {&c, arg}});
+        }
+      } else {
+        distance_transform(S[k - 1], L_[k], max_step, res, tent);
+      }
+      std::sort(tent.begin(), tent.end(), [](const auto& x, const auto& y) { return x.first < y.first; });
+      for (const auto& t : tent) {
+        if (S[k].size() >= beam) break;
+        if (feasible(k, *t.second.first)) S[k].push_back({t.second.first, t.first, t.second.second});
+      }
+      if (S[k].empty()) {
+        fail = {Tier::Shortest, L_[k].move, line(k),
+                fmt::format("no feasible cell within a rotary step of {:.2f} deg of the previous point", rad2deg(max_step))};
+        return false;
+      }
+    }
+    int idx = 0;
+    for (std::size_t e = 1; e < S[n - 1].size(); ++e)
+      if (S[n - 1][e].cost < S[n - 1][static_cast<size_t>(idx)].cost) idx = static_cast<int>(e);
+    path.assign(n, nullptr);
+    for (std::size_t k = n; k-- > 0;) {
+      path[k] = S[k][static_cast<size_t>(idx)].cell;
+      idx = S[k][static_cast<size_t>(idx)].pred;
+    }
+    desc = fmt::format("weighted rotary travel {:.3f} deg", rad2deg(S[n - 1].empty() ? 0.0 : path.back() ? 0.0 : 0.0));
+    double travel = 0;
+    for (std::size_t k = 1; k < n; ++k) travel += std::abs(path[k]->r1 - path[k - 1]->r1) + std::abs(path[k]->r2 - path[k - 1]->r2);
+    desc = fmt::format("rotary travel {:.3f} deg (steps bounded by {:.2f} deg)", rad2deg(travel), rad2deg(max_step));
+    return true;
+  }
+
+ private:
+  /// Windowed L1 distance transform of the previous states' costs onto the grid, separable in the two
+  /// rotaries: D(c) = min over |di1|,|di2| <= W of cost(p) + w1 |dr1| + w2 |dr2|.
+  template <typename PrevStates>
+  void distance_transform(const PrevStates& prev, Layer& cur, double max_step, double res,
+                          std::vector<std::pair<double, std::pair<Cell*, int>>>& tent) {
+    int lo1 = std::numeric_limits<int>::max(), hi1 = std::numeric_limits<int>::min();
+    int lo2 = lo1, hi2 = hi1;
+    for (const Cell& c : cur.cells) {
+      lo1 = std::min(lo1, c.i1);
+      hi1 = std::max(hi1, c.i1);
+      lo2 = std::min(lo2, c.i2);
+      hi2 = std::max(hi2, c.i2);
+    }
+    const int W = static_cast<int>(std::floor(max_step / res + 1e-9));
+    lo1 -= W;
+    hi1 += W;
+    lo2 -= W;
+    hi2 += W;
+    const int n1 = hi1 - lo1 + 1, n2 = hi2 - lo2 + 1;
+    std::vector<double> f(static_cast<size_t>(n1) * n2, kInf);
+    std::vector<int> src(static_cast<size_t>(n1) * n2, -1);
+    auto at = [&](int a, int b) { return static_cast<size_t>(b) * n1 + a; };
+    for (std::size_t p = 0; p < prev.size(); ++p) {
+      const Cell* c = prev[p].cell;
+      const int a = c->i1 - lo1, b = c->i2 - lo2;
+      if (a < 0 || a >= n1 || b < 0 || b >= n2) continue;
+      if (prev[p].cost < f[at(a, b)]) {
+        f[at(a, b)] = prev[p].cost;
+        src[at(a, b)] = static_cast<int>(p);
+      }
+    }
+    // 1-D windowed min of g(j) + w |i - j| along a line, via two monotone deques.
+    auto pass = [&](int len, auto&& get, auto&& get_src, auto&& put, double w) {
+      std::vector<double> out(static_cast<size_t>(len), kInf);
+      std::vector<int> arg(static_cast<size_t>(len), -1);
+      std::deque<int> dq;
+      for (int i = 0; i < len; ++i) {  // from the left: min_{i-W<=j<=i} g(j) - w j, + w i
+        const double gi = get(i) - w * i;
+        while (!dq.empty() && get(dq.back()) - w * dq.back() >= gi) dq.pop_back();
+        dq.push_back(i);
+        while (dq.front() < i - W) dq.pop_front();
+        const double v = get(dq.front()) - w * dq.front() + w * i;
+        if (v < out[static_cast<size_t>(i)]) {
+          out[static_cast<size_t>(i)] = v;
+          arg[static_cast<size_t>(i)] = dq.front();
+        }
+      }
+      dq.clear();
+      for (int i = len - 1; i >= 0; --i) {  // from the right: min_{i<=j<=i+W} g(j) + w j, - w i
+        const double gi = get(i) + w * i;
+        while (!dq.empty() && get(dq.back()) + w * dq.back() >= gi) dq.pop_back();
+        dq.push_back(i);
+        while (dq.front() > i + W) dq.pop_front();
+        const double v = get(dq.front()) + w * dq.front() - w * i;
+        if (v < out[static_cast<size_t>(i)]) {
+          out[static_cast<size_t>(i)] = v;
+          arg[static_cast<size_t>(i)] = dq.front();
+        }
+      }
+      for (int i = 0; i < len; ++i) put(i, out[static_cast<size_t>(i)], arg[static_cast<size_t>(i)] >= 0 ? get_src(arg[static_cast<size_t>(i)]) : -1);
+    };
+    const double w1 = opt_.weight_primary * res, w2 = opt_.weight_secondary * res;
+    std::vector<double> g(f.size(), kInf);
+    std::vector<int> gsrc(f.size(), -1);
+    for (int b = 0; b < n2; ++b)
+      pass(n1, [&](int a) { return f[at(a, b)]; }, [&](int a) { return src[at(a, b)]; },
+           [&](int a, double v, int s) {
+             g[at(a, b)] = v;
+             gsrc[at(a, b)] = s;
+           },
+           w1);
+    std::vector<double> D(f.size(), kInf);
+    std::vector<int> dsrc(f.size(), -1);
+    for (int a = 0; a < n1; ++a)
+      pass(n2, [&](int b) { return g[at(a, b)]; }, [&](int b) { return gsrc[at(a, b)]; },
+           [&](int b, double v, int s) {
+             D[at(a, b)] = v;
+             dsrc[at(a, b)] = s;
+           },
+           w2);
+    for (Cell& c : cur.cells) {
+      const size_t i = at(c.i1 - lo1, c.i2 - lo2);
+      if (std::isfinite(D[i]) && dsrc[i] >= 0) tent.push_back({D[i] + opt_.orientation_weight * c.orient_err, {&c, dsrc[i]}});
+    }
+  }
+
+  const cspace::Space& sp_;
+  const Options& opt_;
+  std::vector<Layer>& L_;
+  cspace::Counters& c_;
+  const cl::Program& prog_;
+  bool exact_;
+  geom::QueryWorkspace ws_;
+};
+
+}  // namespace
+
+std::string Plan::summary() const {
+  std::string s;
+  for (std::size_t i = 0; i < segments.size(); ++i) {
+    const auto& g = segments[i];
+    s += fmt::format("segment {} (CL lines {}-{}): {} — {}\n", i + 1, g.first_line, g.last_line, to_string(g.tier),
+                     g.description);
+    for (const auto& f : g.failures)
+      s += fmt::format("    tier {} failed at CL line {}: {}\n", static_cast<int>(f.tier), f.line, f.reason);
+  }
+  return s;
+}
+
+Planner::Planner(const machine::Machine& machine, std::shared_ptr<const kin::Kinematics> kinematics,
+                 const geom::Scene* scene, const geom::ToolShape* tool, Options options)
+    : machine_(machine), kin_(kinematics), space_(kinematics, scene, tool, options.cspace), opt_(options) {}
+
+Plan Planner::run(const cl::Program& program) const {
+  const auto t0 = std::chrono::steady_clock::now();
+  Plan plan;
+  plan.program = program;
+  plan.axes.assign(program.moves.size(), kin::Axes::Zero());
+  const auto& moves = program.moves;
+  const bool exact = space_.options().cone_rad <= 0;
+  // Segments: a rapid (or the first move) starts one; the feed moves after it continue it.
+  std::vector<std::pair<std::size_t, std::size_t>> segs;
+  for (std::size_t i = 0; i < moves.size(); ++i) {
+    if (i == 0 || moves[i].kind == cl::MotionKind::Rapid)
+      segs.emplace_back(i, i);
+    else
+      segs.back().second = i;
+  }
+  for (const auto& [s, e] : segs) {
+    std::vector<Layer> layers(e - s + 1);
+    for (std::size_t k = 0; k < layers.size(); ++k) {
+      Layer& l = layers[k];
+      l.move = s + k;
+      l.cl = {moves[s + k].tip_in_part_mm, moves[s + k].axis_in_part.normalized()};
+      space_.enumerate(l.cl, l.cells, k == 0 ? std::numeric_limits<std::size_t>::max() : opt_.max_cells_per_point,
+                       plan.counters);
+      if (exact)
+        for (Cell& c : l.cells) {
+          c.i1 = static_cast<int>(std::lround(c.r1 / kExactKeyRad));
+          c.i2 = static_cast<int>(std::lround(c.r2 / kExactKeyRad));
+        }
+      for (std::size_t j = 0; j < l.cells.size(); ++j) l.index.emplace(key(l.cells[j].i1, l.cells[j].i2), static_cast<int>(j));
+    }
+    Search search(space_, opt_, layers, plan.counters, program);
+    // Every point needs at least one feasible cell; otherwise say which constraint emptied it.
+    for (std::size_t k = 0; k < layers.size(); ++k) {
+      bool any = false;
+      int n_stroke = 0, n_coll = 0;
+      std::string example;
+      for (Cell& c : layers[k].cells) {
+        if (search.feasible(k, c)) {
+          any = true;
+          break;
+        }
+        (c.status == Status::Stroke ? n_stroke : n_coll)++;
+        if (example.empty()) example = c.detail;
+      }
+      if (any) continue;
+      const cl::Move& mv = moves[layers[k].move];
+      std::string why;
+      if (layers[k].cells.empty())
+        why = "orientation: no rotary cell gives a tool axis within the cone (the machine cannot reach this axis" +
+              std::string(exact ? ")" : "; try a finer --resolution or a larger --cone)");
+      else if (n_coll == 0)
+        why = fmt::format("stroke: all {} cells in the cone break a limit (e.g. {})", n_stroke, example);
+      else if (n_stroke == 0)
+        why = fmt::format("collision: all {} cells in the cone collide (e.g. {})", n_coll, example);
+      else
+        why = fmt::format("stroke ({} cells) and collision ({} cells), e.g. {}", n_stroke, n_coll, example);
+      // The nearest feasible cell beyond the cone, for the user to decide.
+      std::string nearest = "none found within 90 deg";
+      for (double cone_deg : {5.0, 15.0, 45.0, 90.0}) {
+        cspace::Options wider = space_.options();
+        if (wider.cone_rad >= deg2rad(cone_deg)) continue;
+        wider.cone_rad = deg2rad(cone_deg);
+        wider.min_tilt_rad = 0;
+        wider.resolution_rad = std::max(wider.resolution_rad, deg2rad(1.0));
+        const cspace::Space wide(kin_, nullptr, nullptr, wider);
+        std::vector<Cell> cells;
+        cspace::Counters dummy;
+        wide.enumerate(layers[k].cl, cells, 20000, dummy);
+        geom::QueryWorkspace ws;
+        bool found = false;
+        for (Cell& c : cells) {
+          // Re-check with the real space (collision included) on the wider grid.
+          space_.evaluate(layers[k].cl, c, ws, plan.counters);
+          if (c.status == Status::Feasible) {
+            nearest = fmt::format("({:.3f}, {:.3f}) deg, {:.2f} deg from the CL axis", rad2deg(c.r1), rad2deg(c.r2),
+                                  rad2deg(c.orient_err));
+            found = true;
+            break;
+          }
+        }
+        if (found) break;
+      }
+      throw InputError(SourceLoc{program.file, mv.line, 0},
+                       fmt::format("no feasible orientation at CL point ({:.4f}, {:.4f}, {:.4f}) axis ({:.5f}, {:.5f}, "
+                                   "{:.5f}): {}; nearest feasible cell: {}",
+                                   mv.tip_in_part_mm.x(), mv.tip_in_part_mm.y(), mv.tip_in_part_mm.z(),
+                                   mv.axis_in_part.x(), mv.axis_in_part.y(), mv.axis_in_part.z(), why, nearest));
+    }
+    SegmentReport rep;
+    rep.first_move = s;
+    rep.last_move = e;
+    rep.first_line = moves[s].line;
+    rep.last_line = moves[e].line;
+    std::vector<const Cell*> path;
+    TierFailure f;
+    std::string desc;
+    const kin::Axes* prefer = plan.segments.empty() ? nullptr : &plan.axes[segs[plan.segments.size() - 1].second];
+    if (search.fixed2(path, f, prefer)) {
+      rep.tier = Tier::Fixed2;
+      desc = fmt::format("rotaries fixed at ({:.3f}, {:.3f}) deg", rad2deg(path[0]->r1), rad2deg(path[0]->r2));
+    } else {
+      rep.failures.push_back(f);
+      if (search.fixed1(path, f, desc)) {
+        rep.tier = Tier::Fixed1;
+      } else {
+        rep.failures.push_back(f);
+        if (search.monotonic(path, f, desc)) {
+          rep.tier = Tier::Monotonic;
+        } else {
+          rep.failures.push_back(f);
+          if (!search.shortest(path, f, desc)) {
+            throw InputError(SourceLoc{program.file, f.line, 0},
+                             fmt::format("no rotary path through the feasible cells of segment CL lines {}-{}: {}",
+                                         rep.first_line, rep.last_line, f.reason));
+          }
+          rep.tier = Tier::Shortest;
+        }
+      }
+    }
+    rep.description = desc;
+    for (std::size_t k = 0; k < layers.size(); ++k) {
+      const Cell* c = path[k];
+      const std::size_t m = layers[k].move;
+      plan.axes[m] = c->axes;
+      const kin::Posed tp = space_.tool_pose(layers[k].cl, c->r1, c->r2);
+      plan.program.moves[m].tip_in_part_mm = tp.tip_mm;
+      plan.program.moves[m].axis_in_part = tp.axis;
+    }
+    plan.segments.push_back(std::move(rep));
+  }
+  plan.seconds = std::chrono::duration<double>(std::chrono::steady_clock::now() - t0).count();
+  return plan;
+}
+
+SegmentSpace Planner::sample_segment(const cl::Program& program, const Plan& plan, std::size_t segment,
+                                     std::size_t max_points) const {
+  CSCAM_CHECK(segment < plan.segments.size(), "segment index in range");
+  const SegmentReport& rep = plan.segments[segment];
+  SegmentSpace out;
+  out.segment = segment;
+  out.resolution_rad = space_.options().resolution_rad;
+  const auto rp = kin_->rotary_pair();
+  // The window: the planned path's bounding box, padded, clipped to the grid.
+  double lo1 = kInf, hi1 = -kInf, lo2 = kInf, hi2 = -kInf;
+  for (std::size_t m = rep.first_move; m <= rep.last_move; ++m) {
+    lo1 = std::min(lo1, plan.axes[m][rp[0]]);
+    hi1 = std::max(hi1, plan.axes[m][rp[0]]);
+    lo2 = std::min(lo2, plan.axes[m][rp[1]]);
+    hi2 = std::max(hi2, plan.axes[m][rp[1]]);
+    out.path.emplace_back(plan.axes[m][rp[0]], plan.axes[m][rp[1]]);
+  }
+  const double res = std::max(out.resolution_rad, deg2rad(0.5));
+  out.resolution_rad = res;
+  const double pad = deg2rad(40.0);
+  out.i1_min = std::max(static_cast<int>(std::floor((lo1 - pad) / res)), static_cast<int>(std::ceil(space_.i1_min() * space_.options().resolution_rad / res)));
+  out.i1_max = std::min(static_cast<int>(std::ceil((hi1 + pad) / res)), static_cast<int>(std::floor(space_.i1_max() * space_.options().resolution_rad / res)));
+  out.i2_min = std::max(static_cast<int>(std::floor((lo2 - pad) / res)), static_cast<int>(std::ceil(space_.i2_min() * space_.options().resolution_rad / res)));
+  out.i2_max = std::min(static_cast<int>(std::ceil((hi2 + pad) / res)), static_cast<int>(std::floor(space_.i2_max() * space_.options().resolution_rad / res)));
+  const int n1 = out.i1_max - out.i1_min + 1, n2 = out.i2_max - out.i2_min + 1;
+  out.status.assign(static_cast<size_t>(std::max(0, n1 * n2)), Status::Feasible);
+  // Orientation is judged with at least half a picture cell of slack so the picture is readable at cone 0.
+  cspace::Options o = space_.options();
+  o.cone_rad = std::max(o.cone_rad, 0.75 * res);
+  const cspace::Space pic(kin_, nullptr, nullptr, o);
+  geom::QueryWorkspace ws;
+  cspace::Counters dummy;
+  const std::size_t npts = rep.last_move - rep.first_move + 1;
+  const std::size_t step = std::max<std::size_t>(1, npts / std::max<std::size_t>(1, max_points));
+  for (std::size_t m = rep.first_move; m <= rep.last_move; m += step) {
+    const kin::Posed cl{program.moves[m].tip_in_part_mm, program.moves[m].axis_in_part.normalized()};
+    for (int b = 0; b < n2; ++b)
+      for (int a = 0; a < n1; ++a) {
+        auto& st = out.status[static_cast<size_t>(b * n1 + a)];
+        if (st != Status::Feasible) continue;
+        Cell c;
+        c.r1 = (out.i1_min + a) * res;
+        c.r2 = (out.i2_min + b) * res;
+        if (!pic.in_cone(cl, c.r1, c.r2, &c.orient_err)) {
+          st = Status::Orientation;
+          continue;
+        }
+        space_.evaluate(cl, c, ws, dummy);
+        st = c.status;
+      }
+  }
+  return out;
+}
+
+}  // namespace cscam::plan
