@@ -95,7 +95,7 @@ int cmd_post(const PostArgs& a) {
   po.source_name = fs::path(a.cl).filename().string();
   po.tool_length_mm = L;
   post::Summary sum;
-  const std::string out = a.out.empty() ? fs::path(a.cl).replace_extension(".ngc").string() : a.out;
+  const std::string out = a.out.empty() ? fs::path(a.cl).stem().string() + ".ngc" : a.out;  // in the working dir
   write_file_atomically(out, [&](std::ostream& os) { post::write_nc(os, prog, m, *kin, axes, po, sum); });
   const double secs = std::chrono::duration<double>(std::chrono::steady_clock::now() - t0).count();
   for (const auto& w : sum.warnings) std::cerr << "warning: " << w << "\n";
@@ -238,7 +238,7 @@ int main(int argc, char** argv) {
   auto* post_cmd = app.add_subcommand("post", "Convert a CL file to NC with the conventional (nearest-solution) strategy");
   post_cmd->add_option("cl", pa.cl, "CL file (APT/CLDATA, NX CLSF, CSV)")->required();
   post_cmd->add_option("-m,--machine", pa.machine, "machine file or bundled machine name")->required();
-  post_cmd->add_option("-o,--output", pa.out, "NC file to write (default: CL name with .ngc)");
+  post_cmd->add_option("-o,--output", pa.out, "NC file to write (default: CL name with .ngc, in the working directory)");
   post_cmd->add_option("--dialect", pa.dialect, "override the machine's dialect (linuxcnc, fanuc)");
   post_cmd->add_option("--units", pa.units, "force the CL units (mm or inch)");
   post_cmd->add_option("--tolerance", pa.tolerance, "linearisation tolerance of the tip, mm");

@@ -167,7 +167,7 @@ int run_plan(const PlanArgs& a) {
   const std::string text = post_to_string(*s, p.program, p.axes, a, "cspace-planner", sum);
   const auto v = verify_text(*s, text, a.cone_deg);
   if (!v.ok) throw std::runtime_error("planned program failed its own verification: " + v.message);
-  const std::string out = a.out.empty() ? fs::path(a.cl).replace_extension(".planned.ngc").string() : a.out;
+  const std::string out = a.out.empty() ? fs::path(a.cl).stem().string() + ".planned.ngc" : a.out;
   write_file_atomically(out, [&](std::ostream& os) { os << text; });
   if (!a.svg_dir.empty()) write_svgs(*s, planner, p, post::conventional_axes(s->prog, s->m, *s->kin), a.svg_dir);
   std::cout << p.summary();
@@ -250,7 +250,9 @@ int run_compare(const PlanArgs& a) {
         return t;
       }(),
       p.counters.cells_enumerated, p.counters.ik, p.counters.stroke, p.counters.collision);
-  const std::string json_path = a.json_out.empty() ? fs::path(a.cl).replace_extension(".compare.json").string() : a.json_out;
+  // Default: beside the working directory, never next to the (possibly read-only) input.
+  const std::string json_path =
+      a.json_out.empty() ? fs::path(a.cl).stem().string() + ".compare.json" : a.json_out;
   write_file_atomically(json_path, [&](std::ostream& os) { os << json; });
   std::cout << "JSON: " << json_path << "\n";
   if (!a.out.empty()) write_file_atomically(a.out, [&](std::ostream& os) { os << plan_text; });

@@ -176,23 +176,38 @@ class Search {
       if (std::abs(a.score - b.score) > 1e-6) return a.score < b.score;
       return a.home < b.home;
     });
+    // Feasibility along the segment, candidates in order. The point that rejected the last candidate is
+    // tried first for the next one (move-to-front): neighbouring candidates tend to fail at the same place,
+    // so most rejections cost one query instead of a walk along the segment.
+    std::vector<std::size_t> order(n);
+    std::iota(order.begin(), order.end(), std::size_t{0});
     std::size_t best_reach = 0;
     std::string best_reason;
     for (const Cand& cd : cands) {
       path.assign(n, nullptr);
-      std::size_t k = 0;
-      for (; k < n; ++k) {
+      std::size_t checked = 0, failed_at = n;
+      for (std::size_t oi = 0; oi < n; ++oi) {
+        const std::size_t k = order[oi];
         Cell* c = cell(k, cd.i1, cd.i2);
-        if (!c || !feasible(k, *c)) break;
+        if (!c || !feasible(k, *c)) {
+          failed_at = k;
+          std::rotate(order.begin(), order.begin() + static_cast<std::ptrdiff_t>(oi), order.begin() + static_cast<std::ptrdiff_t>(oi) + 1);
+          break;
+        }
         path[k] = c;
+        ++checked;
       }
-      if (k == n) return true;
-      if (k >= best_reach) {
-        Cell* c = cell(k, cd.i1, cd.i2);
-        best_reach = k;
+      if (failed_at == n) return true;
+      // Report the failure of the candidate that got furthest from the segment start (in point order).
+      std::size_t reach = 0;
+      while (reach < n && path[reach]) ++reach;
+      if (reach >= best_reach) {
+        Cell* c = cell(failed_at, cd.i1, cd.i2);
+        best_reach = failed_at;
         best_reason = fmt::format("{}: {} (best fixed orientation {:.3f}, {:.3f} deg)", c ? to_string(c->status) : "orientation",
                                   c ? c->detail : "", rad2deg(sp_.r1_of(cd.i1)), rad2deg(sp_.r2_of(cd.i2)));
       }
+      (void)checked;
     }
     fail = {Tier::Fixed2, L_[best_reach].move, line(best_reach), best_reason};
     return false;
@@ -627,10 +642,10 @@ Plan Planner::run(const cl::Program& program) const {
   }
   for (const auto& [s, e] : segs) {
     std::vector<Layer> layers(e - s + 1);
-    for (std::size_t k = 0; k < layers.size(); ++k) {
+    // Only the first point's cells are needed by tier 1 (the others are tested cell by cell); the rest
+    // are enumerated when a later tier needs them, or for the per-point feasibility check in exact mode.
+    auto enumerate_layer = [&](std::size_t k) {
       Layer& l = layers[k];
-      l.move = s + k;
-      l.cl = {moves[s + k].tip_in_part_mm, moves[s + k].axis_in_part.normalized()};
       space_.enumerate(l.cl, l.cells, k == 0 ? std::numeric_limits<std::size_t>::max() : opt_.max_cells_per_point,
                        plan.counters);
       if (exact)
@@ -639,65 +654,72 @@ Plan Planner::run(const cl::Program& program) const {
           c.i2 = static_cast<int>(std::lround(c.r2 / kExactKeyRad));
         }
       for (std::size_t j = 0; j < l.cells.size(); ++j) l.index.emplace(key(l.cells[j].i1, l.cells[j].i2), static_cast<int>(j));
+    };
+    for (std::size_t k = 0; k < layers.size(); ++k) {
+      layers[k].move = s + k;
+      layers[k].cl = {moves[s + k].tip_in_part_mm, moves[s + k].axis_in_part.normalized()};
+      if (k == 0 || exact) enumerate_layer(k);
     }
     Search search(space_, opt_, layers, plan.counters, program);
+    auto check_points = [&]() {
     // Every point needs at least one feasible cell; otherwise say which constraint emptied it.
-    for (std::size_t k = 0; k < layers.size(); ++k) {
-      bool any = false;
-      int n_stroke = 0, n_coll = 0;
-      std::string example;
-      for (Cell& c : layers[k].cells) {
-        if (search.feasible(k, c)) {
-          any = true;
-          break;
-        }
-        (c.status == Status::Stroke ? n_stroke : n_coll)++;
-        if (example.empty()) example = c.detail;
-      }
-      if (any) continue;
-      const cl::Move& mv = moves[layers[k].move];
-      std::string why;
-      if (layers[k].cells.empty())
-        why = "orientation: no rotary cell gives a tool axis within the cone (the machine cannot reach this axis" +
-              std::string(exact ? ")" : "; try a finer --resolution or a larger --cone)");
-      else if (n_coll == 0)
-        why = fmt::format("stroke: all {} cells in the cone break a limit (e.g. {})", n_stroke, example);
-      else if (n_stroke == 0)
-        why = fmt::format("collision: all {} cells in the cone collide (e.g. {})", n_coll, example);
-      else
-        why = fmt::format("stroke ({} cells) and collision ({} cells), e.g. {}", n_stroke, n_coll, example);
-      // The nearest feasible cell beyond the cone, for the user to decide.
-      std::string nearest = "none found within 90 deg";
-      for (double cone_deg : {5.0, 15.0, 45.0, 90.0}) {
-        cspace::Options wider = space_.options();
-        if (wider.cone_rad >= deg2rad(cone_deg)) continue;
-        wider.cone_rad = deg2rad(cone_deg);
-        wider.min_tilt_rad = 0;
-        wider.resolution_rad = std::max(wider.resolution_rad, deg2rad(1.0));
-        const cspace::Space wide(kin_, nullptr, nullptr, wider);
-        std::vector<Cell> cells;
-        cspace::Counters dummy;
-        wide.enumerate(layers[k].cl, cells, 20000, dummy);
-        geom::QueryWorkspace ws;
-        bool found = false;
-        for (Cell& c : cells) {
-          // Re-check with the real space (collision included) on the wider grid.
-          space_.evaluate(layers[k].cl, c, ws, plan.counters);
-          if (c.status == Status::Feasible) {
-            nearest = fmt::format("({:.3f}, {:.3f}) deg, {:.2f} deg from the CL axis", rad2deg(c.r1), rad2deg(c.r2),
-                                  rad2deg(c.orient_err));
-            found = true;
+      for (std::size_t k = 0; k < layers.size(); ++k) {
+        bool any = false;
+        int n_stroke = 0, n_coll = 0;
+        std::string example;
+        for (Cell& c : layers[k].cells) {
+          if (search.feasible(k, c)) {
+            any = true;
             break;
           }
+          (c.status == Status::Stroke ? n_stroke : n_coll)++;
+          if (example.empty()) example = c.detail;
         }
-        if (found) break;
+        if (any) continue;
+        const cl::Move& mv = moves[layers[k].move];
+        std::string why;
+        if (layers[k].cells.empty())
+          why = "orientation: no rotary cell gives a tool axis within the cone (the machine cannot reach this axis" +
+                std::string(exact ? ")" : "; try a finer --resolution or a larger --cone)");
+        else if (n_coll == 0)
+          why = fmt::format("stroke: all {} cells in the cone break a limit (e.g. {})", n_stroke, example);
+        else if (n_stroke == 0)
+          why = fmt::format("collision: all {} cells in the cone collide (e.g. {})", n_coll, example);
+        else
+          why = fmt::format("stroke ({} cells) and collision ({} cells), e.g. {}", n_stroke, n_coll, example);
+        // The nearest feasible cell beyond the cone, for the user to decide.
+        std::string nearest = "none found within 90 deg";
+        for (double cone_deg : {5.0, 15.0, 45.0, 90.0}) {
+          cspace::Options wider = space_.options();
+          if (wider.cone_rad >= deg2rad(cone_deg)) continue;
+          wider.cone_rad = deg2rad(cone_deg);
+          wider.min_tilt_rad = 0;
+          wider.resolution_rad = std::max(wider.resolution_rad, deg2rad(1.0));
+          const cspace::Space wide(kin_, nullptr, nullptr, wider);
+          std::vector<Cell> cells;
+          cspace::Counters dummy;
+          wide.enumerate(layers[k].cl, cells, 20000, dummy);
+          geom::QueryWorkspace ws;
+          bool found = false;
+          for (Cell& c : cells) {
+            // Re-check with the real space (collision included) on the wider grid.
+            space_.evaluate(layers[k].cl, c, ws, plan.counters);
+            if (c.status == Status::Feasible) {
+              nearest = fmt::format("({:.3f}, {:.3f}) deg, {:.2f} deg from the CL axis", rad2deg(c.r1), rad2deg(c.r2),
+                                    rad2deg(c.orient_err));
+              found = true;
+              break;
+            }
+          }
+          if (found) break;
+        }
+        throw InputError(SourceLoc{program.file, mv.line, 0},
+                         fmt::format("no feasible orientation at CL point ({:.4f}, {:.4f}, {:.4f}) axis ({:.5f}, {:.5f}, "
+                                     "{:.5f}): {}; nearest feasible cell: {}",
+                                     mv.tip_in_part_mm.x(), mv.tip_in_part_mm.y(), mv.tip_in_part_mm.z(),
+                                     mv.axis_in_part.x(), mv.axis_in_part.y(), mv.axis_in_part.z(), why, nearest));
       }
-      throw InputError(SourceLoc{program.file, mv.line, 0},
-                       fmt::format("no feasible orientation at CL point ({:.4f}, {:.4f}, {:.4f}) axis ({:.5f}, {:.5f}, "
-                                   "{:.5f}): {}; nearest feasible cell: {}",
-                                   mv.tip_in_part_mm.x(), mv.tip_in_part_mm.y(), mv.tip_in_part_mm.z(),
-                                   mv.axis_in_part.x(), mv.axis_in_part.y(), mv.axis_in_part.z(), why, nearest));
-    }
+    };
     SegmentReport rep;
     rep.first_move = s;
     rep.last_move = e;
@@ -712,6 +734,21 @@ Plan Planner::run(const cl::Program& program) const {
       desc = fmt::format("rotaries fixed at ({:.3f}, {:.3f}) deg", rad2deg(path[0]->r1), rad2deg(path[0]->r2));
     } else {
       rep.failures.push_back(f);
+      if (!exact)
+        for (std::size_t k = 1; k < layers.size(); ++k) {
+          // Keep what tier 1 already evaluated (the cache) when the full cell list arrives.
+          std::unordered_map<std::uint64_t, Cell> keep;
+          keep.swap(layers[k].extra);
+          enumerate_layer(k);
+          for (auto& [kk, c] : keep) {
+            if (auto it = layers[k].index.find(kk); it != layers[k].index.end()) {
+              if (c.status != Status::Orientation) layers[k].cells[static_cast<size_t>(it->second)] = c;
+            } else {
+              layers[k].extra.emplace(kk, std::move(c));
+            }
+          }
+        }
+      check_points();
       if (search.fixed1(path, f, desc)) {
         rep.tier = Tier::Fixed1;
       } else {

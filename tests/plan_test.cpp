@@ -1,0 +1,180 @@
+// The C-space planner: the tier reached on paths whose answer is known in closed form, the seed-002 groove
+// (collision pruning decides the orientation), ball-centre preservation, errors, and laziness.
+#include <gtest/gtest.h>
+
+#include <cmath>
+#include <sstream>
+
+#include "cscam/cl/program.hpp"
+#include "cscam/core/error.hpp"
+#include "cscam/core/units.hpp"
+#include "cscam/geom/mesh.hpp"
+#include "cscam/geom/scene.hpp"
+#include "cscam/machine/machine.hpp"
+#include "cscam/nc/reader.hpp"
+#include "cscam/plan/plan.hpp"
+#include "cscam/post/post.hpp"
+#include "cscam/report/verify.hpp"
+#include "test_support.hpp"
+
+using namespace cscam;
+using Vec3 = Eigen::Vector3d;
+
+namespace {
+
+machine::Machine trunnion() { return machine::load(test::source_path("machines/trunnion-ac.yaml")); }
+
+/// A CL program: points along X at y = 0, z = 0 with tool axes given by tilt(s) and azimuth(s), s in [0,1].
+template <typename Tilt, typename Azimuth>
+cl::Program sweep(int n, Tilt tilt_deg, Azimuth az_deg, const char* cutter = "CUTTER/10,0") {
+  std::ostringstream o;
+  o.precision(15);
+  o << "UNITS/MM\nMULTAX\n" << cutter << "\nFEDRAT/MMPM,1000\n";
+  for (int i = 0; i < n; ++i) {
+    const double s = double(i) / (n - 1);
+    const double t = deg2rad(tilt_deg(s)), a = deg2rad(az_deg(s));
+    o << "GOTO/" << -20 + 40 * s << ",0,0," << std::sin(t) * std::cos(a) << "," << std::sin(t) * std::sin(a) << ","
+      << std::cos(t) << "\n";
+  }
+  return cl::read_text(o.str(), "sweep.cls");
+}
+
+plan::Plan run(const cl::Program& prog, double cone_deg, const geom::Scene* scene = nullptr,
+               const geom::ToolShape* tool = nullptr, double ball_r = 0) {
+  static const machine::Machine m = trunnion();
+  plan::Options o;
+  o.cspace.cone_rad = deg2rad(cone_deg);
+  o.cspace.ball_radius_mm = ball_r;
+  o.cspace.check_collision = scene != nullptr;
+  const plan::Planner p(m, m.kinematics(), scene, tool, o);
+  return p.run(prog);
+}
+
+bool monotone(const std::vector<double>& v) {
+  bool up = true, down = true;
+  for (size_t i = 1; i < v.size(); ++i) {
+    up &= v[i] >= v[i - 1] - 1e-9;
+    down &= v[i] <= v[i - 1] + 1e-9;
+  }
+  return up || down;
+}
+
+std::vector<double> column(const plan::Plan& p, int axis) {
+  std::vector<double> v;
+  for (const auto& q : p.axes) v.push_back(q[axis]);
+  return v;
+}
+
+}  // namespace
+
+TEST(Planner, ConstantAxisIsThreePlusTwo) {
+  const auto p = run(sweep(30, [](double) { return 25.0; }, [](double) { return 40.0; }), 0.0);
+  ASSERT_EQ(p.segments.size(), 1u);
+  EXPECT_EQ(p.segments[0].tier, plan::Tier::Fixed2);
+  EXPECT_TRUE(p.segments[0].failures.empty());
+}
+
+TEST(Planner, AzimuthSweepAtFixedTiltFixesTheTiltAxis) {
+  // Tilt 30 deg constant, azimuth 0 -> 90: on an A/C trunnion A = -/+30 fixed, C monotonic.
+  const auto p = run(sweep(40, [](double) { return 30.0; }, [](double s) { return 90.0 * s; }), 0.0);
+  ASSERT_EQ(p.segments.size(), 1u);
+  EXPECT_EQ(p.segments[0].tier, plan::Tier::Fixed1);
+  ASSERT_EQ(p.segments[0].failures.size(), 1u);
+  EXPECT_EQ(p.segments[0].failures[0].line, 6) << p.segments[0].failures[0].reason;  // 2nd point: the axis changed
+  const auto a = column(p, 3), c = column(p, 4);
+  for (double v : a) EXPECT_NEAR(std::abs(rad2deg(v)), 30.0, 1e-9);
+  EXPECT_TRUE(monotone(c));
+  EXPECT_NEAR(std::abs(rad2deg(c.back() - c.front())), 90.0, 1e-6);
+}
+
+TEST(Planner, TiltAndAzimuthBothRisingIsMonotonic) {
+  const auto p = run(sweep(40, [](double s) { return 10.0 + 30.0 * s; }, [](double s) { return 60.0 * s; }), 0.0);
+  EXPECT_EQ(p.segments[0].tier, plan::Tier::Monotonic);
+  EXPECT_EQ(p.segments[0].failures.size(), 2u);
+  EXPECT_TRUE(monotone(column(p, 3)));
+  EXPECT_TRUE(monotone(column(p, 4)));
+}
+
+TEST(Planner, ThereAndBackNeedsTheShortestPathTier) {
+  // Azimuth 0 -> 60 -> 0 at rising tilt: a C reversal is unavoidable at cone 0.
+  const auto p = run(sweep(41, [](double s) { return 10.0 + 30.0 * s; }, [](double s) { return 60.0 * (1 - std::abs(2 * s - 1)); }), 0.0);
+  EXPECT_EQ(p.segments[0].tier, plan::Tier::Shortest);
+  EXPECT_EQ(p.segments[0].failures.size(), 3u);
+  // Reached at the turning point (the 21st point = CL line 5 + 20), not before.
+  EXPECT_EQ(p.segments[0].failures[2].line, 5 + 21) << p.segments[0].failures[2].reason;
+}
+
+TEST(Planner, AConeTurnsAVaryingAxisIntoThreePlusTwoAndKeepsTheBallCentre) {
+  // Axis wobbles 4 deg around 20 deg tilt: a 5 deg cone admits one fixed orientation.
+  const auto prog = sweep(50, [](double s) { return 20.0 + 4.0 * std::sin(6.28 * s); }, [](double s) { return 30.0 + 8.0 * s; },
+                          "CUTTER/10,5");
+  const double r = 5.0;
+  const auto p = run(prog, 5.0, nullptr, nullptr, r);
+  EXPECT_EQ(p.segments[0].tier, plan::Tier::Fixed2);
+  const auto m = trunnion();
+  const auto k = m.kinematics();
+  for (size_t i = 0; i < prog.moves.size(); ++i) {
+    const kin::Posed fk = k->forward(p.axes[i]);
+    const Vec3 centre_cl = prog.moves[i].tip_in_part_mm + r * prog.moves[i].axis_in_part.normalized();
+    EXPECT_LT((fk.tip_mm + r * fk.axis - centre_cl).norm(), tol::kRoundTripMm);
+    EXPECT_LE(std::acos(std::min(1.0, fk.axis.dot(prog.moves[i].axis_in_part.normalized()))), deg2rad(5.0) + 1e-9);
+  }
+}
+
+TEST(Planner, SeedGrooveCollisionPruningDecidesTheOrientation) {
+  geom::Scene scene;
+  scene.add("groove", geom::ObstacleRole::Part, geom::load_mesh(test::source_path("examples/groove/groove.stl")));
+  scene.build(false);
+  const cl::Program prog = cl::read_file(test::source_path("examples/groove/groove.cls"));
+  const auto tool = geom::ToolShape::from_cutter(10, 5, 30);
+  const auto with = run(prog, 25.0, &scene, &tool, 5.0);
+  const auto without = run(prog, 25.0, nullptr, nullptr, 5.0);
+  ASSERT_EQ(with.segments.size(), 1u);  // the approach rapid starts the cut's segment
+  EXPECT_EQ(with.segments[0].tier, plan::Tier::Fixed2);
+  EXPECT_EQ(without.segments[0].tier, plan::Tier::Fixed2);
+  const auto m = trunnion();
+  const auto k = m.kinematics();
+  geom::QueryWorkspace ws;
+  geom::CheckOptions co;
+  int hits_with = 0, hits_without = 0, hits_conv = 0;
+  const auto conv = post::conventional_axes(prog, m, *k);
+  for (size_t i = 0; i < prog.moves.size(); ++i) {
+    hits_with += geom::check(scene, tool, k->forward(with.axes[i]), co, ws).collides;
+    hits_without += geom::check(scene, tool, k->forward(without.axes[i]), co, ws).collides;
+    hits_conv += geom::check(scene, tool, k->forward(conv[i]), co, ws).collides;
+  }
+  EXPECT_EQ(hits_with, 0);
+  EXPECT_GT(hits_without, 100) << "without pruning the orientation closest to the normals hits the overhang";
+  EXPECT_GT(hits_conv, 100) << "the conventional post follows the normals into the overhang";
+  // Lazy: far fewer collision queries than grid cells in the cone.
+  EXPECT_LT(with.counters.collision, with.counters.cells_enumerated / 10);
+  // And the planned program posts and verifies (ball centre on the CL path).
+  std::ostringstream os;
+  post::Options po;
+  po.control_offset_mm = 5.0;
+  post::Summary sum;
+  post::write_nc(os, with.program, m, *k, with.axes, po, sum);
+  nc::AxisLetters l;
+  l.letter = {'X', 'Y', 'Z', 'A', 'C'};
+  l.rotary = {false, false, false, true, true};
+  report::VerifyOptions vo;
+  vo.ball_centre = true;
+  vo.axis_tolerance_deg = 25.5;
+  const auto v = report::verify(nc::read_text(os.str(), "g.ngc", l), prog, *k, vo);
+  EXPECT_TRUE(v.ok) << v.message;
+}
+
+TEST(Planner, UnreachablePointNamesLineConstraintAndNearestCell) {
+  // A 70 deg tilt toward +Y needs A = -70 or +70: the trunnion allows -100..50, so only one branch, and
+  // X beyond its stroke kills that one too.
+  const cl::Program prog = cl::read_text("UNITS/MM\nMULTAX\nGOTO/0,0,0,0,0,1\nGOTO/450,0,0,0,0.9396926,0.3420201\n", "u.cls");
+  try {
+    run(prog, 0.0);
+    FAIL() << "expected an InputError";
+  } catch (const InputError& e) {
+    const std::string msg = e.what();
+    EXPECT_NE(msg.find("u.cls:4"), std::string::npos) << msg;
+    EXPECT_NE(msg.find("stroke"), std::string::npos) << msg;
+    EXPECT_NE(msg.find("nearest feasible cell"), std::string::npos) << msg;
+  }
+}
