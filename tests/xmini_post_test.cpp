@@ -309,10 +309,13 @@ TEST(XminiKinematics, SolveForRotariesPlacesTheTipAndTheAxisFollowsTheParasiticT
     ASSERT_TRUE(k.tool_axis_at(q2[3], q2[4], rp.tip, axis));
     EXPECT_LT(angle_between(axis, f.axis), tol::kRoundTripRad);
   }
-  // Parasitic motion: away from the centre, a = 0 does not give a vertical tool (spec/xmini.md).
+  // Parasitic motion: away from the centre, a = 0 does not give a vertical tool (spec/xmini.md). With
+  // a = c = 0 the tool lies along the platform's z axis, which passes through the wrist centre; both lie
+  // in the plane of legs 1 and 3, which contains x_B. So the tool line meets the base axis x_B, 900 mm
+  // above the tip: the tilt is atan(100 / 900) at y = 100.
   Vec3 axis;
   ASSERT_TRUE(k.tool_axis_at(0.0, 0.0, Vec3(0, 100, 0), axis));
-  EXPECT_NEAR(rad2deg(angle_between(axis, Vec3::UnitZ())), rad2deg(std::atan2(100.0, 750.0)), 1e-6);
+  EXPECT_NEAR(rad2deg(angle_between(axis, Vec3::UnitZ())), rad2deg(std::atan2(100.0, 900.0)), 1e-9);
 }
 
 TEST(XminiKinematics, ForwardIsThreadSafeWithItsWarmStart) {
@@ -485,6 +488,7 @@ TEST(XminiPost, CartesianModeWritesTheTipAndTheToolVector) {
     std::string log;
     const auto moves = rs274_moves(text, "cart", log);
     EXPECT_EQ(log.find("rror"), std::string::npos) << log.substr(0, 2000);
+    EXPECT_EQ(log.find("Unknown"), std::string::npos) << log.substr(0, 2000);
     // Every feed point of the CL appears as a block: tip = X Y Z, u from the virtual (C, A).
     size_t matched = 0;
     for (const auto& mv : prog.moves) {
@@ -526,8 +530,10 @@ TEST(XminiPost, RetractsAlongTheToolAxisToTheSafePlane) {
   EXPECT_NEAR((rapid_tips[1].tip_mm - Vec3(-30, 20, -40)).norm(), 0.0, kPrintedRoundingMm);
   // Up along the vertical tool from (30, 20, -40).
   EXPECT_NEAR((rapid_tips[2].tip_mm - Vec3(30, 20, safe)).norm(), 0.0, kPrintedRoundingMm);
+  EXPECT_NEAR(rad2deg(angle_between(rapid_tips[2].axis, Vec3::UnitZ())), 0.0, 1e-3);
   // Turned in place at the safe plane: same tip, the new tool axis.
   EXPECT_NEAR((rapid_tips[3].tip_mm - rapid_tips[2].tip_mm).norm(), 0.0, kPrintedRoundingMm);
+  EXPECT_NEAR(rad2deg(angle_between(rapid_tips[3].axis, u2)), 0.0, 1e-3);
   // Above the next point along its tool axis.
   const Vec3 above = Vec3(30, -20, -40) + (safe + 40) / u2.z() * u2;
   EXPECT_NEAR((rapid_tips[4].tip_mm - above).norm(), 0.0, kPrintedRoundingMm);

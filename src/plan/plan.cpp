@@ -146,16 +146,22 @@ class Search {
     std::vector<Cand> cands;
     std::size_t furthest = 0;
     const auto rp = sp_.kinematics().rotary_pair();
+    // Orientation only (cheap): no cell is materialised until a candidate survives every point. The point
+    // that rejected the previous candidate is tested first (move-to-front), so most candidates cost O(1).
+    std::vector<std::size_t> oorder;
+    for (std::size_t k = 1; k < n; ++k) oorder.push_back(k);
     for (const Cell& c0 : L_[0].cells) {
       double score = c0.orient_err;
       bool ok = true;
-      // Orientation only (cheap): no cell is materialised until a candidate survives every point.
-      for (std::size_t k = 1; k < n && ok; ++k) {
+      for (std::size_t oi = 0; oi < oorder.size() && ok; ++oi) {
+        const std::size_t k = oorder[oi];
         float e = 0.0f;
         const bool in = exact_ ? L_[k].index.count(key(c0.i1, c0.i2)) > 0 : sp_.in_cone(L_[k].cl, c0.r1, c0.r2, &e);
         if (!in) {
           furthest = std::max(furthest, k);
           ok = false;
+          std::rotate(oorder.begin(), oorder.begin() + static_cast<std::ptrdiff_t>(oi),
+                      oorder.begin() + static_cast<std::ptrdiff_t>(oi) + 1);
         } else {
           score = std::max(score, static_cast<double>(e));
         }

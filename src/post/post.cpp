@@ -212,7 +212,7 @@ class Writer {
         if (!cart_ && z_ >= 0 && have_state_) emit_safe_z();
         else if (have_state_) axis_retract(SourceLoc{prog_.file, e.line, 0});
         // TCP on a serial machine: G43.4 (LinuxCNC, Fanuc). The XMINI's control runs its own transformation.
-        const bool g434 = cart_ && !dialect_.cartesian;
+        const bool g434 = cart_ && m_.kind != machine::ModelKind::Xmini;
         fmt::format_to(std::back_inserter(buf_), "T{} M6\n{} H{}\n", n, g434 ? "G43.4" : "G43", n);
         break;
       }
@@ -491,20 +491,37 @@ class Writer {
     return true;
   }
 
-  /// Joint values with the tip of q retracted to the safe plane, rotaries held (IK for the legs).
-  kin::Axes pkm_retracted(const kin::Axes& q, const SourceLoc& where) const {
+  /// IK for `pose`: the solution nearest to `near` (rotary travel, windings included) inside every limit,
+  /// the passive joints of a PKM included (Solution::violation). False when there is none.
+  bool try_solve_near(const kin::Posed& pose, const kin::Axes& near, kin::Axes& out) {
+    kin_.inverse_branches(pose, &near, sols_);
+    const auto rp = kin_.rotary_pair();
+    double best = std::numeric_limits<double>::infinity();
+    for (kin::Solution& s : sols_) {
+      // A violation that the axis values do not show is a hidden limit (a PKM's passive joints).
+      if (!s.violation.empty() && kin_.check_limits(s.axes).empty()) continue;
+      kin_.nearest_winding(s.axes, near);
+      if (!kin_.check_limits(s.axes).empty()) continue;
+      const double d = std::abs(s.axes[rp[0]] - near[rp[0]]) + std::abs(s.axes[rp[1]] - near[rp[1]]);
+      if (d < best) {
+        best = d;
+        out = s.axes;
+      }
+    }
+    return std::isfinite(best);
+  }
+
+  /// Joint values with the tip of q moved along its tool axis to the safe plane, the axis kept (by IK).
+  kin::Axes pkm_retracted(const kin::Axes& q, const SourceLoc& where) {
     const kin::Posed p = kin_.forward(q);
     Vec3 up;
     if (!retract_point(p.tip_mm, p.axis, up)) return q;
-    kin::Axes out = q;
-    if (!kin_.solve_for_rotaries(kin::Posed{up, p.axis}, out))
+    kin::Axes out;
+    if (!try_solve_near(kin::Posed{up, p.axis}, q, out))
       throw InputError(where, fmt::format("cannot retract the tool along its axis to the safe plane z = {:.3f} mm "
-                                          "(post.safe_z_mm): the machine cannot put the tip at ({:.3f}, {:.3f}, {:.3f})",
+                                          "(post.safe_z_mm): no axis values inside the limits put the tip at "
+                                          "({:.3f}, {:.3f}, {:.3f}) with this tool axis",
                                           m_.post.safe_z_mm, up.x(), up.y(), up.z()));
-    const std::string v = kin_.check_limits(out);
-    if (!v.empty())
-      throw InputError(where, fmt::format("the retract to the safe plane z = {:.3f} mm (post.safe_z_mm) leaves the limits: {}",
-                                          m_.post.safe_z_mm, v));
     return out;
   }
 
@@ -543,17 +560,16 @@ class Writer {
     emit_g0(pkm_retracted(cur_, where));
   }
 
-  /// Joint-space rapid to q with a rotary change: retract along the current tool axis, turn the wrist at
-  /// the safe plane, go above q (along q's tool axis); the caller then plunges to q.
+  /// Joint-space rapid to q with a rotary change: retract along the current tool axis, turn to q's tool
+  /// axis at the safe plane, go above q (along its axis); the caller then plunges to q.
   void pkm_reposition(const kin::Axes& q, const cl::Move& mv) {
     const SourceLoc where{prog_.file, mv.line, 0};
     const kin::Axes above = pkm_retracted(q, where);
     if (have_state_) {
       const kin::Axes up = pkm_retracted(cur_, where);
-      kin::Axes turned = above;
-      const kin::Posed at_up = kin_.forward(up);
-      if (!kin_.solve_for_rotaries(at_up, turned) || !kin_.check_limits(turned).empty())
-        turned = up;  // cannot turn in place there: turn on the way to the point above q
+      const kin::Posed at_up = kin_.forward(up), target = kin_.forward(q);
+      kin::Axes turned = up;  // if the new axis cannot be had there, turn on the way to the point above q
+      if (!try_solve_near(kin::Posed{at_up.tip_mm, target.axis}, above, turned)) turned = up;
       emit_g0(up);
       emit_g0(turned);
     }

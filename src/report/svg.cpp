@@ -24,7 +24,7 @@ const char* colour(cspace::Status s) {
 std::string cspace_svg(const plan::SegmentSpace& sp, const std::string& n1, const std::string& n2,
                        const std::string& title) {
   const int c1 = sp.i1_max - sp.i1_min + 1, c2 = sp.i2_max - sp.i2_min + 1;
-  const double W = 760, H = 520, ml = 70, mb = 60, mt = 50, mr = 170;
+  const double W = 820, H = 520, ml = 70, mb = 60, mt = 50, mr = 230;
   const double cw = (W - ml - mr) / std::max(1, c1), ch = (H - mt - mb) / std::max(1, c2);
   std::string s = fmt::format(
       "<svg xmlns=\"http://www.w3.org/2000/svg\" width=\"{}\" height=\"{}\" font-family=\"sans-serif\" font-size=\"12\">\n"

@@ -1,0 +1,81 @@
+// The C-space planner on the workload: a 10,000-point path, 1 deg grid over the full rotary ranges,
+// against a part of about 200,000 triangles (the seed-002 groove, finely tessellated), A/C trunnion.
+// Also the two scaling curves: time vs number of points (expected linear) and time vs number of grid cells
+// (expected far below linear: cells are evaluated lazily).
+#include <benchmark/benchmark.h>
+
+#include <cmath>
+#include <sstream>
+
+#include "cscam/cl/program.hpp"
+#include "cscam/core/units.hpp"
+#include "cscam/geom/groove.hpp"
+#include "cscam/geom/scene.hpp"
+#include "cscam/machine/machine.hpp"
+#include "cscam/plan/plan.hpp"
+
+namespace {
+
+struct Fixture {
+  cscam::machine::Machine m = cscam::machine::load(std::string(CSCAM_SOURCE_DIR) + "/machines/trunnion-ac.yaml");
+  cscam::geom::Scene scene;
+  cscam::geom::ToolShape tool = cscam::geom::ToolShape::from_cutter(10, 5, 30);
+  size_t triangles = 0;
+  Fixture() {
+    auto mesh = cscam::geom::make_benchmark_part(200000);
+    triangles = mesh.triangle_count();
+    scene.add("groove", cscam::geom::ObstacleRole::Part, std::move(mesh));
+    scene.build(false);
+  }
+};
+
+Fixture& fixture() {
+  static Fixture f;
+  return f;
+}
+
+/// A finishing pass along the groove floor whose CL axes wobble +-4 deg around the normal (a curved floor).
+cscam::cl::Program path(int n) {
+  std::ostringstream o;
+  o.precision(10);
+  o << "UNITS/MM\nMULTAX\nCUTTER/10,5\nFEDRAT/MMPM,1000\n";
+  for (int i = 0; i < n; ++i) {
+    const double s = double(i) / (n - 1), x = -45 + 90 * s;
+    const double tx = cscam::deg2rad(4.0) * std::sin(2 * M_PI * 3 * s), ty = cscam::deg2rad(3.0) * std::cos(2 * M_PI * 2 * s);
+    const Eigen::Vector3d u = Eigen::Vector3d(std::tan(tx), std::tan(ty), 1).normalized();
+    o << "GOTO/" << x << ",0,0," << u.x() << "," << u.y() << "," << u.z() << "\n";
+  }
+  return cscam::cl::read_text(o.str(), "bench.cls");
+}
+
+void run(benchmark::State& state, int n, double res_deg, double cone_deg) {
+  auto& f = fixture();
+  const auto prog = path(n);
+  cscam::plan::Options o;
+  o.cspace.cone_rad = cscam::deg2rad(cone_deg);
+  o.cspace.resolution_rad = cscam::deg2rad(res_deg);
+  o.cspace.ball_radius_mm = 5;
+  o.cspace.check_collision = true;
+  const cscam::plan::Planner planner(f.m, f.m.kinematics(), &f.scene, &f.tool, o);
+  cscam::plan::Plan p;
+  for (auto _ : state) p = planner.run(prog);
+  state.counters["points"] = n;
+  state.counters["grid_cells_full"] = (360.0 * 2 / res_deg) * (150.0 / res_deg);
+  state.counters["cells_enumerated"] = static_cast<double>(p.counters.cells_enumerated);
+  state.counters["collision_queries"] = static_cast<double>(p.counters.collision);
+  state.counters["tier"] = p.segments.empty() ? 0 : static_cast<int>(p.segments[0].tier);
+  state.counters["triangles"] = static_cast<double>(f.triangles);
+}
+
+void BM_Plan10k(benchmark::State& s) { run(s, 10000, 1.0, 5.0); }
+void BM_PlanPoints(benchmark::State& s) { run(s, static_cast<int>(s.range(0)), 1.0, 5.0); }
+void BM_PlanResolution(benchmark::State& s) { run(s, 2000, 4.0 / static_cast<double>(s.range(0)), 5.0); }
+
+BENCHMARK(BM_Plan10k)->Unit(benchmark::kMillisecond)->Iterations(1);
+BENCHMARK(BM_PlanPoints)->Arg(1250)->Arg(2500)->Arg(5000)->Arg(10000)->Unit(benchmark::kMillisecond)->Iterations(1);
+// resolution 4, 2, 1, 0.5 deg: 16x more grid cells from first to last
+BENCHMARK(BM_PlanResolution)->Arg(1)->Arg(2)->Arg(4)->Arg(8)->Unit(benchmark::kMillisecond)->Iterations(1);
+
+}  // namespace
+
+BENCHMARK_MAIN();
