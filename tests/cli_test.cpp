@@ -98,3 +98,45 @@ TEST(Cli, BadMachineAndBadArguments) {
   r = run_command(kCli + " post");
   EXPECT_NE(r.status, 0);
 }
+
+TEST(Cli, PlanAndCompareOnTheSeedGroove) {
+  TempDir d;
+  const std::string cl = cscam::test::source_path("examples/groove/groove.cls");
+  const std::string stl = cscam::test::source_path("examples/groove/groove.stl");
+  const std::string out = d.file("g.ngc"), json = d.file("g.json");
+  auto r = run_command(kCli + " compare " + cl + " --machine trunnion-ac --part " + stl + " --cone 25 -o " + out +
+                       " --json-out " + json + " --svg " + (d.path / "svg").string());
+  ASSERT_EQ(r.status, 0) << r.output;
+  EXPECT_NE(r.output.find("fixed 2 axes + simultaneous 3 axes"), std::string::npos) << r.output;
+  EXPECT_NE(r.output.find("the conventional program collides"), std::string::npos) << r.output;
+  EXPECT_TRUE(fs::exists(d.path / "svg" / "segment1_cspace.svg"));
+  std::ifstream j(json);
+  std::string js((std::istreambuf_iterator<char>(j)), {});
+  EXPECT_NE(js.find("\"tiers\": [1]"), std::string::npos) << js;
+  r = run_command(kCli + " verify " + out + " --machine trunnion-ac --cl " + cl + " --cone 25");
+  EXPECT_EQ(r.status, 0) << r.output;
+}
+
+TEST(Cli, PlanRejectsAnOpenMeshNamingTheFile) {
+  TempDir d;
+  const std::string stl = d.file("open.stl",
+                                 "solid t\nfacet normal 0 0 1\nouter loop\nvertex 0 0 0\nvertex 1 0 0\nvertex 0 1 0\n"
+                                 "endloop\nendfacet\nendsolid t\n");
+  const std::string cl = d.file("p.cls", "UNITS/MM\nMULTAX\nCUTTER/6,3\nGOTO/0,0,0,0,0,1\nGOTO/1,0,0,0,0,1\n");
+  const std::string out = d.file("p.ngc");
+  const auto r = run_command(kCli + " plan " + cl + " --machine trunnion-ac --part " + stl + " -o " + out);
+  EXPECT_EQ(r.status, 2) << r.output;
+  EXPECT_NE(r.output.find("open.stl"), std::string::npos) << r.output;
+  EXPECT_FALSE(fs::exists(out));
+}
+
+TEST(Cli, PlanWithNoFeasibleCellWritesNothing) {
+  TempDir d;
+  const std::string cl = d.file("u.cls", "UNITS/MM\nMULTAX\nGOTO/0,0,0,0,0,1\nGOTO/450,0,0,0,0.9396926,0.3420201\n");
+  const std::string out = d.file("u.ngc");
+  const auto r = run_command(kCli + " plan " + cl + " --machine trunnion-ac -o " + out);
+  EXPECT_EQ(r.status, 2) << r.output;
+  EXPECT_NE(r.output.find("u.cls:4"), std::string::npos) << r.output;
+  EXPECT_NE(r.output.find("nearest feasible cell"), std::string::npos) << r.output;
+  EXPECT_FALSE(fs::exists(out));
+}

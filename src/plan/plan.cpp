@@ -619,11 +619,12 @@ std::string Plan::summary() const {
   std::string s;
   for (std::size_t i = 0; i < segments.size(); ++i) {
     const auto& g = segments[i];
-    s += fmt::format("segment {} (CL lines {}-{}): {} — {}\n", i + 1, g.first_line, g.last_line, to_string(g.tier),
-                     g.description);
+    s += fmt::format("segment {} (CL lines {}-{}): {} — {}{}\n", i + 1, g.first_line, g.last_line, to_string(g.tier),
+                     g.description, g.reorientation == "none" ? "" : "; reorientation into it: " + g.reorientation);
     for (const auto& f : g.failures)
       s += fmt::format("    tier {} failed at CL line {}: {}\n", static_cast<int>(f.tier), f.line, f.reason);
   }
+  for (const auto& w : warnings) s += "warning: " + w + "\n";
   return s;
 }
 
@@ -782,6 +783,40 @@ Plan Planner::run(const cl::Program& program) const {
       plan.program.moves[m].axis_in_part = tp.axis;
     }
     plan.segments.push_back(std::move(rep));
+  }
+  // Reorientation between segments happens at the safe retract plane (the post's rapid sequence): check it.
+  const int z = machine_.axis_index("z");
+  if (z >= 0 && space_.options().check_collision) {
+    const auto rp = kin_->rotary_pair();
+    const double safe_z = std::isnan(machine_.post.safe_z_mm) ? machine_.axes[static_cast<size_t>(z)].max : machine_.post.safe_z_mm;
+    geom::QueryWorkspace ws;
+    for (std::size_t g = 1; g < plan.segments.size(); ++g) {
+      auto& rep = plan.segments[g];
+      const kin::Axes from = plan.axes[plan.segments[g - 1].last_move], to = plan.axes[rep.first_move];
+      if (std::abs(from[rp[0]] - to[rp[0]]) < 1e-9 && std::abs(from[rp[1]] - to[rp[1]]) < 1e-9) continue;
+      // retract, rotate (sampled every degree), position, plunge: each leg sampled along its straight joint move
+      kin::Axes up = from, turned = from, above = to;
+      up[z] = turned[z] = above[z] = safe_z;
+      turned[rp[0]] = to[rp[0]];
+      turned[rp[1]] = to[rp[1]];
+      rep.reorientation = "clear";
+      const std::array<std::pair<kin::Axes, kin::Axes>, 4> legs = {{{from, up}, {up, turned}, {turned, above}, {above, to}}};
+      for (const auto& [qa, qb] : legs) {
+        const double span = std::max({std::abs(qb[rp[0]] - qa[rp[0]]), std::abs(qb[rp[1]] - qa[rp[1]]), deg2rad(1.0)});
+        const int n = std::min(720, static_cast<int>(std::ceil(span / deg2rad(1.0))) + 8);
+        for (int i = 0; i <= n; ++i) {
+          const kin::Axes q = qa + (qb - qa) * (double(i) / n);
+          const std::string hit = space_.collision_at(kin_->forward(q), ws, plan.counters);
+          if (!hit.empty()) {
+            rep.reorientation = "collides: " + hit;
+            plan.warnings.push_back(fmt::format("{}: the reorientation into the segment starting here collides ({})",
+                                                SourceLoc{program.file, rep.first_line, 0}.str(), hit));
+            break;
+          }
+        }
+        if (rep.reorientation != "clear") break;
+      }
+    }
   }
   plan.seconds = std::chrono::duration<double>(std::chrono::steady_clock::now() - t0).count();
   return plan;

@@ -40,6 +40,9 @@ struct SegmentReport {
   Tier tier = Tier::Shortest;
   std::vector<TierFailure> failures;  ///< one per tier tried before the one reached
   std::string description;            ///< e.g. "fixed B=-22.0 C=1.0"
+  /// The reorientation into this segment (retract to the safe plane, rotate, position, plunge), as the post
+  /// performs it: "none" (no rotary change), "clear", or what collides.
+  std::string reorientation = "none";
 };
 
 /// The plan: axis values for every CL move, and a CL program whose tips/axes are the planned ones
@@ -50,6 +53,7 @@ struct Plan {
   std::vector<SegmentReport> segments;
   cspace::Counters counters;
   double seconds = 0.0;
+  std::vector<std::string> warnings;
   std::string summary() const;
 };
 
