@@ -203,12 +203,14 @@ int cmd_backlash(const BacklashArgs& a) {
   }
   for (size_t i = 0; i < results.size(); ++i) std::cout << fs::path(a.nc[i]).filename().string() << ": " << results[i].text();
   if (results.size() > 1) {  // side by side: the step at feed reversals is what marks the surface
+    size_t w = 14;
+    for (const auto& f : a.nc) w = std::max(w, fs::path(f).filename().string().size() + 2);
     std::cout << fmt::format("\n{:<36}", "");
-    for (const auto& f : a.nc) std::cout << fmt::format("{:>18}", fs::path(f).filename().string());
+    for (const auto& f : a.nc) std::cout << fmt::format("{:>{}}", fs::path(f).filename().string(), w);
     std::cout << "\n";
     auto row = [&](const std::string& label, auto&& cell) {
       std::cout << fmt::format("{:<36}", label);
-      for (const auto& r : results) std::cout << fmt::format("{:>18}", cell(r));
+      for (const auto& r : results) std::cout << fmt::format("{:>{}}", cell(r), w);
       std::cout << "\n";
     };
     row(a.axis + " reversals while cutting", [](const report::BacklashResult& r) {

@@ -4,8 +4,10 @@
 #include <fmt/format.h>
 #include <yaml-cpp/yaml.h>
 
+#include <array>
 #include <cmath>
 #include <initializer_list>
+#include <optional>
 #include <set>
 
 #include "cscam/core/error.hpp"
