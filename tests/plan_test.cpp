@@ -178,3 +178,65 @@ TEST(Planner, UnreachablePointNamesLineConstraintAndNearestCell) {
     EXPECT_NE(msg.find("nearest feasible cell"), std::string::npos) << msg;
   }
 }
+
+namespace {
+plan::Plan plan_xmini(double cone_deg, double res_deg, double tilt_deg) {
+  static const machine::Machine m = machine::load(test::source_path("machines/xmini.yaml"));
+  const cl::Program prog = cl::read_file(test::source_path("examples/xmini/seed000_x_cut.cls"));
+  plan::Options o;
+  o.cspace.cone_rad = deg2rad(cone_deg);
+  o.cspace.resolution_rad = deg2rad(res_deg);
+  o.tilt_step_rad = deg2rad(tilt_deg);
+  for (int i = 0; i < 3; ++i) o.monotone_axes.push_back(i);  // the actuated legs
+  const plan::Planner p(m, m.kinematics(), nullptr, nullptr, o);
+  return p.run(prog);
+}
+
+/// Reversals of one axis over the cutting moves of a plan (hysteresis far below a lost motion).
+int reversals(const plan::Plan& p, int axis, std::size_t first, std::size_t last) {
+  int n = 0, d = 0;
+  double ext = p.axes[first][axis];
+  for (std::size_t i = first + 1; i <= last; ++i) {
+    const double v = p.axes[i][axis];
+    if (d == 0) {
+      if (std::abs(v - ext) > 1e-4) d = v > ext ? 1 : -1, ext = v;
+    } else if (d * (v - ext) > 0) {
+      ext = v;
+    } else if (std::abs(v - ext) > 1e-4) {
+      ++n;
+      d = -d;
+      ext = v;
+    }
+  }
+  return n;
+}
+}  // namespace
+
+TEST(PlannerXmini, ExactOrientationCrossesTheSingularityKeepingC) {
+  const auto p = plan_xmini(0.0, 1.0, 0.0);
+  ASSERT_EQ(p.segments.size(), 1u);
+  const auto& g = p.segments[0];
+  EXPECT_EQ(g.tier, plan::Tier::Fixed1) << g.description;
+  const std::size_t a = g.first_move + 1, b = g.last_move;  // the cut (after the approach point)
+  for (std::size_t i = a; i <= b; ++i) EXPECT_NEAR(p.axes[i][3], p.axes[a][3], 1e-9) << "C constant";
+  EXPECT_EQ(reversals(p, 4, a, b), 0) << "A monotonic";
+  EXPECT_EQ(reversals(p, 1, a, b), 1) << "q2 keeps its reversal at cone 0";
+  EXPECT_NE(g.legs.find("q2 reverses"), std::string::npos) << g.legs;
+  EXPECT_NE(g.legs.find("cannot be avoided"), std::string::npos) << g.legs;
+}
+
+TEST(PlannerXmini, ASmallConeRemovesTheQ2Reversal) {
+  const auto p = plan_xmini(1.0, 0.25, 0.05);
+  const auto& g = p.segments[0];
+  EXPECT_NE(g.legs.find("monotonic"), std::string::npos) << g.legs;
+  EXPECT_EQ(reversals(p, 1, g.first_move + 1, g.last_move), 0);
+  // Within the cone, the tip where the CL says (end mill: tip controlled).
+  const auto m = machine::load(test::source_path("machines/xmini.yaml"));
+  const cl::Program prog = cl::read_file(test::source_path("examples/xmini/seed000_x_cut.cls"));
+  const auto k = m.kinematics();
+  for (std::size_t i = g.first_move; i <= g.last_move; ++i) {
+    const kin::Posed fk = k->forward(p.axes[i]);
+    EXPECT_LT((fk.tip_mm - prog.moves[i].tip_in_part_mm).norm(), 1e-6);
+    EXPECT_LE(std::acos(std::min(1.0, fk.axis.dot(prog.moves[i].axis_in_part.normalized()))), deg2rad(1.0) + 1e-6);
+  }
+}

@@ -33,7 +33,7 @@ struct PlanArgs {
   std::string cl, machine, out, dialect, units, svg_dir, json_out;
   std::vector<std::string> parts, fixtures;
   double cone_deg = 0, min_tilt_deg = 0, resolution_deg = 1.0, clearance_mm = 0.5, tool_length = 0, tolerance = 0;
-  double max_step_deg = 0, mesh_scale = 1.0;
+  double max_step_deg = 0, mesh_scale = 1.0, tilt_step_deg = 0;
   bool no_collision = false, json = false;
 };
 
@@ -76,7 +76,12 @@ std::unique_ptr<Setup> setup(const PlanArgs& a) {
   o.cspace.min_tilt_rad = deg2rad(a.min_tilt_deg);
   o.cspace.resolution_rad = deg2rad(a.resolution_deg);
   o.max_step_rad = deg2rad(a.max_step_deg);
+  o.tilt_step_rad = deg2rad(a.tilt_step_deg);
   o.cspace.collision.clearance_mm = a.clearance_mm;
+  // On a parallel machine the actuated legs' reversals count too (every Cartesian move moves every leg).
+  if (s->m.kind == machine::ModelKind::Xmini)
+    for (int i = 0; i < 5; ++i)
+      if (!s->m.axes[static_cast<size_t>(i)].rotary()) o.monotone_axes.push_back(i);
   const bool meshes = !a.parts.empty() || !a.fixtures.empty();
   s->has_meshes = meshes;
   o.cspace.check_collision = meshes && !a.no_collision;
@@ -269,6 +274,7 @@ void common_options(CLI::App* c, PlanArgs& a) {
   c->add_option("--cone", a.cone_deg, "allowed tool-axis deviation from the CL axis, deg (0: exact)");
   c->add_option("--min-tilt", a.min_tilt_deg, "minimum tilt from the CL axis (ball mills), deg");
   c->add_option("--resolution", a.resolution_deg, "C-space grid resolution, deg")->check(CLI::PositiveNumber);
+  c->add_option("--tilt-step", a.tilt_step_deg, "tilt grid inside the cone for the leg (PKM) re-plan, deg (default: resolution)");
   c->add_option("--max-step", a.max_step_deg, "shortest-path tier: largest rotary step per point, deg");
   c->add_option("--clearance", a.clearance_mm, "collision clearance of shank, holder and spindle, mm");
   c->add_option("--tool-length", a.tool_length, "gauge-to-tip tool length, mm");

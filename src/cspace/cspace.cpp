@@ -4,7 +4,7 @@
 
 #include <algorithm>
 #include <cmath>
-#include <unordered_set>
+#include <queue>
 
 #include "cscam/core/error.hpp"
 #include "cscam/core/units.hpp"
@@ -105,6 +105,7 @@ void Space::enumerate(const kin::Posed& cl, std::vector<Cell>& out, std::size_t 
       cell.i1 = static_cast<int>(std::lround(r1 / res));
       cell.i2 = static_cast<int>(std::lround(r2 / res));
       cell.orient_err = 0.0f;
+      cell.singular = s.singular;
       (void)id;
       out.push_back(cell);
     }
@@ -120,43 +121,48 @@ void Space::enumerate(const kin::Posed& cl, std::vector<Cell>& out, std::size_t 
   const std::size_t ncells = n1 * static_cast<std::size_t>(i2_max_ - i2_min_ + 1);
   if (seen.size() < ncells) seen.assign(ncells, 0);
   touched.clear();
-  std::vector<std::pair<int, int>> stack;
+  // Best-first: cells come out closest to the CL axis first, so the cap bounds the work as well as the
+  // output (near the singularity the cone covers every primary angle: far too many cells to visit all).
+  struct Item {
+    double err;
+    int i1, i2;
+    bool operator<(const Item& o) const { return err > o.err; }
+  };
+  std::priority_queue<Item> heap;
+  Eigen::Vector3d a;
+  const double cos_cone = std::cos(opt_.cone_rad);
   auto push = [&](int i1, int i2) {
     if (i1 < i1_min_ || i1 > i1_max_ || i2 < i2_min_ || i2 > i2_max_) return;
     const std::size_t at = static_cast<std::size_t>(i2 - i2_min_) * n1 + static_cast<std::size_t>(i1 - i1_min_);
     if (seen[at]) return;
     seen[at] = 1;
     touched.push_back(at);
-    stack.emplace_back(i1, i2);
+    if (!kin_->tool_axis_at(i1 * res, i2 * res, cl.tip_mm, a)) return;
+    const double d = a.dot(cl.axis);
+    if (d < cos_cone - 1e-15) return;
+    heap.push({std::acos(std::clamp(d, -1.0, 1.0)), i1, i2});
   };
   for (const auto& s : sols) {
     const double f1 = s.axes[rot1_] / res, f2 = s.axes[rot2_] / res;
     for (int d1 = 0; d1 <= 1; ++d1)
       for (int d2 = 0; d2 <= 1; ++d2) push(static_cast<int>(std::floor(f1)) + d1, static_cast<int>(std::floor(f2)) + d2);
   }
-  Eigen::Vector3d a;
-  const double cos_cone = std::cos(opt_.cone_rad);
-  while (!stack.empty()) {
-    const auto [i1, i2] = stack.back();
-    stack.pop_back();
-    const double r1 = i1 * res, r2 = i2 * res;
-    if (!kin_->tool_axis_at(r1, r2, cl.tip_mm, a)) continue;
-    const double d = a.dot(cl.axis);
-    if (d < cos_cone - 1e-15) continue;
-    const double err = std::acos(std::clamp(d, -1.0, 1.0));
-    if (err >= opt_.min_tilt_rad) {
+  while (!heap.empty() && out.size() < cap) {
+    const Item it = heap.top();
+    heap.pop();
+    if (it.err >= opt_.min_tilt_rad) {
       Cell cell;
-      cell.r1 = r1;
-      cell.r2 = r2;
-      cell.i1 = i1;
-      cell.i2 = i2;
-      cell.orient_err = static_cast<float>(err);
+      cell.r1 = it.i1 * res;
+      cell.r2 = it.i2 * res;
+      cell.i1 = it.i1;
+      cell.i2 = it.i2;
+      cell.orient_err = static_cast<float>(it.err);
       out.push_back(cell);
     }
-    push(i1 + 1, i2);
-    push(i1 - 1, i2);
-    push(i1, i2 + 1);
-    push(i1, i2 - 1);
+    push(it.i1 + 1, it.i2);
+    push(it.i1 - 1, it.i2);
+    push(it.i1, it.i2 + 1);
+    push(it.i1, it.i2 - 1);
   }
   for (std::size_t at : touched) seen[at] = 0;
   std::sort(out.begin(), out.end(), [](const Cell& x, const Cell& y) {
@@ -185,6 +191,7 @@ void Space::evaluate(const kin::Posed& cl, Cell& cell, geom::QueryWorkspace& ws,
   cell.axes = q;
   ++c.stroke;
   std::string v = kin_->check_limits(q);
+  if (v.empty()) v = kin_->passive_violation(q);
   if (!v.empty()) {
     cell.status = Status::Stroke;
     cell.detail = std::move(v);

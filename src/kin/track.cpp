@@ -34,7 +34,9 @@ bool nearest_solution(const Kinematics& k, const Posed& pose, const Axes& near, 
   double best = std::numeric_limits<double>::infinity();
   for (Solution& s : sols) {
     k.nearest_winding(s.axes, near);
-    const std::string v = k.check_limits(s.axes);
+    // Axis limits after the winding choice, then the limits the axis values do not show (a PKM's passive joints).
+    std::string v = k.check_limits(s.axes);
+    if (v.empty()) v = k.passive_violation(s.axes);
     if (!v.empty()) {
       if (violation && violation->empty()) *violation = v;
       continue;

@@ -109,7 +109,7 @@ std::map<std::string, ModelLoader>& registry() {
 void load_post(const Reader& r, const YAML::Node& n, Machine& m) {
   r.only_keys(n, "post",
               {"dialect", "tcp", "letters", "decimals_linear", "decimals_rotary", "tolerance_mm", "axis_tolerance_deg",
-               "safe_z_mm", "start_branch", "program_name"});
+               "safe_z_mm", "start_branch", "branch_rule", "program_name"});
   PostSettings& p = m.post;
   if (n["dialect"]) p.dialect = r.string(n["dialect"], "post.dialect");
   if (n["tcp"]) p.tcp = r.boolean(n["tcp"], "post.tcp");
@@ -122,6 +122,11 @@ void load_post(const Reader& r, const YAML::Node& n, Machine& m) {
   if (n["axis_tolerance_deg"]) p.axis_tolerance_deg = r.number(n["axis_tolerance_deg"], "post.axis_tolerance_deg");
   if (n["safe_z_mm"]) p.safe_z_mm = r.number(n["safe_z_mm"], "post.safe_z_mm");
   if (n["program_name"]) p.program_name = r.string(n["program_name"], "post.program_name");
+  if (n["branch_rule"]) {
+    p.branch_rule = r.string(n["branch_rule"], "post.branch_rule");
+    if (p.branch_rule != "start" && p.branch_rule != "always")
+      r.fail(n["branch_rule"], "post.branch_rule", fmt::format("expected start or always, got '{}'", p.branch_rule));
+  }
   if (n["start_branch"]) {
     p.start_branch = r.string(n["start_branch"], "post.start_branch");
     const auto& s = p.start_branch;

@@ -136,6 +136,203 @@ class Search {
     return true;
   }
 
+  /// Re-plans so that the axes in `axes` never reverse (beyond `hyst`): a DP over the feasible cells whose
+  /// transitions keep every such axis moving in its chosen direction (all direction combinations tried).
+  bool legs_monotone(const std::vector<int>& axes, double hyst, std::vector<const Cell*>& path, std::size_t& fail_layer,
+                     std::string& why) {
+    const std::size_t n = L_.size();
+    const std::size_t combos = std::size_t{1} << axes.size();
+    std::size_t worst = 0;
+    for (std::size_t m = 0; m < combos; ++m) {
+      auto dir = [&](std::size_t j) { return (m >> j) & 1u ? -1.0 : 1.0; };
+      auto mono = [&](const Cell& a, const Cell& b) {
+        for (std::size_t j = 0; j < axes.size(); ++j)
+          if (dir(j) * (b.axes[axes[j]] - a.axes[axes[j]]) < -hyst) return false;
+        return true;
+      };
+      std::size_t fl = 0;
+      std::string w;
+      bool ok;
+      if (exact_) {
+        ok = dp_exact(mono, path, fl, w);
+      } else {
+        ok = grid_dp(mono, path, fl, w);
+      }
+      if (ok) return true;
+      if (fl >= worst) {
+        worst = fl;
+        why = w;
+      }
+    }
+    fail_layer = worst;
+    return false;
+  }
+
+  /// Continuous refinement inside the cone for the counted axes: instead of the rotary grid (degenerate near
+  /// the singularity, where the cone covers every primary angle), grid the tool tilt itself around each CL
+  /// axis (a disc of radius cone, step `tilt_step`), solve the IK nearest the current path there, and run a
+  /// DP whose transitions keep the counted axes monotonic. The new cells are stored in the layers.
+  bool legs_tilt(const std::vector<int>& axes, double hyst, double tilt_step, const std::vector<const Cell*>& current,
+                 std::vector<const Cell*>& path, std::size_t& fail_layer, std::string& why) {
+    const std::size_t n = L_.size();
+    const double cone = sp_.options().cone_rad;
+    if (cone <= 0 || tilt_step <= 0) return false;
+    const int R = static_cast<int>(std::floor(cone / tilt_step + 1e-9));
+    const auto& k = sp_.kinematics();
+    const auto rp = k.rotary_pair();
+    const double rb = sp_.options().ball_radius_mm;
+    // Per layer: states on the tilt disc (index (ti, tj) -> cell in a per-layer store).
+    std::vector<std::vector<Cell>> S(n);
+    std::vector<std::unordered_map<std::uint64_t, int>> at(n);
+    for (std::size_t l = 0; l < n; ++l) {
+      const Eigen::Vector3d u = L_[l].cl.axis;
+      const Eigen::Vector3d e1 = u.unitOrthogonal(), e2 = u.cross(e1);
+      const Eigen::Vector3d centre = L_[l].cl.tip_mm + rb * u;
+      for (int tj = -R; tj <= R; ++tj)
+        for (int ti = -R; ti <= R; ++ti) {
+          const double tx = ti * tilt_step, ty = tj * tilt_step, t = std::hypot(tx, ty);
+          if (t > cone + 1e-12 || t < sp_.options().min_tilt_rad - 1e-12) continue;
+          const Eigen::Vector3d a = (u + std::tan(tx) * e1 + std::tan(ty) * e2).normalized();
+          const kin::Posed pose{rb > 0 ? Eigen::Vector3d(centre - rb * a) : L_[l].cl.tip_mm, a};
+          kin::Axes q;
+          ++c_.ik;
+          if (!kin::nearest_solution(k, pose, current[l]->axes, q)) continue;
+          ++c_.stroke;
+          Cell c;
+          c.r1 = q[rp[0]];
+          c.r2 = q[rp[1]];
+          c.i1 = ti;
+          c.i2 = tj;
+          c.orient_err = static_cast<float>(t);
+          c.axes = q;
+          if (!sp_.collision_at(pose, ws_, c_).empty()) continue;
+          c.status = Status::Feasible;
+          at[l].emplace(key(ti, tj), static_cast<int>(S[l].size()));
+          S[l].push_back(c);
+        }
+    }
+    const std::size_t combos = std::size_t{1} << axes.size();
+    const int W = std::max(1, static_cast<int>(opt_.leg_step_cells));
+    std::size_t worst = 0;
+    for (std::size_t m = 0; m < combos; ++m) {
+      auto dir = [&](std::size_t j) { return (m >> j) & 1u ? -1.0 : 1.0; };
+      std::vector<std::vector<double>> cost(n);
+      std::vector<std::vector<int>> pred(n);
+      std::size_t l = 0;
+      for (; l < n; ++l) {
+        cost[l].assign(S[l].size(), kInf);
+        pred[l].assign(S[l].size(), -1);
+        bool any = false;
+        for (std::size_t j = 0; j < S[l].size(); ++j) {
+          const Cell& b = S[l][j];
+          if (l == 0) {
+            cost[0][j] = opt_.orientation_weight * b.orient_err;
+            any = true;
+            continue;
+          }
+          for (int d2 = -W; d2 <= W; ++d2)
+            for (int d1 = -W; d1 <= W; ++d1) {
+              auto it = at[l - 1].find(key(b.i1 + d1, b.i2 + d2));
+              if (it == at[l - 1].end()) continue;
+              const std::size_t i = static_cast<std::size_t>(it->second);
+              if (!std::isfinite(cost[l - 1][i])) continue;
+              const Cell& a = S[l - 1][i];
+              bool ok = true;
+              for (std::size_t x = 0; x < axes.size() && ok; ++x) ok = dir(x) * (b.axes[axes[x]] - a.axes[axes[x]]) >= -hyst;
+              if (!ok) continue;
+              // Rotary travel, plus the change of tilt and the tilt itself: the smallest, smoothest deviation
+              // from the CL axis that keeps the legs monotonic.
+              const double v = cost[l - 1][i] + opt_.weight_primary * std::abs(b.r1 - a.r1) +
+                               opt_.weight_secondary * std::abs(b.r2 - a.r2) +
+                               tilt_step * (std::hypot(b.i1 - a.i1, b.i2 - a.i2) + 0.05 * std::hypot(b.i1, b.i2));
+              if (v < cost[l][j]) {
+                cost[l][j] = v;
+                pred[l][j] = static_cast<int>(i);
+                any = true;
+              }
+            }
+        }
+        if (!any) break;
+      }
+      if (l < n) {
+        if (l >= worst) worst = l;
+        continue;
+      }
+      std::size_t best = 0;
+      for (std::size_t j = 1; j < cost[n - 1].size(); ++j)
+        if (cost[n - 1][j] < cost[n - 1][best]) best = j;
+      // Keep the chosen cells alive in the layers (their `extra` store) and return pointers to them.
+      path.assign(n, nullptr);
+      int idx = static_cast<int>(best);
+      for (std::size_t kk = n; kk-- > 0;) {
+        Cell c = S[kk][static_cast<size_t>(idx)];
+        const std::uint64_t slot = key(std::numeric_limits<int>::min() + static_cast<int>(kk), idx);
+        path[kk] = &L_[kk].extra.insert_or_assign(slot, c).first->second;
+        idx = pred[kk][static_cast<size_t>(idx)];
+      }
+      return true;
+    }
+    fail_layer = worst;
+    why = fmt::format("no tilt within the cone (step {:.3f} deg) keeps it monotonic", rad2deg(tilt_step));
+    return false;
+  }
+
+  /// Layered DP on grid cells with a transition predicate: neighbours within leg_step_cells, least rotary
+  /// travel (plus the orientation tie-break). Every cell of every layer is evaluated.
+  template <typename Allowed>
+  bool grid_dp(Allowed&& allowed, std::vector<const Cell*>& path, std::size_t& fail_layer, std::string& why) {
+    const std::size_t n = L_.size();
+    const int W = std::max(1, static_cast<int>(opt_.leg_step_cells));
+    std::vector<std::vector<double>> cost(n);
+    std::vector<std::vector<int>> pred(n);
+    for (std::size_t k = 0; k < n; ++k) {
+      auto& cells = L_[k].cells;
+      cost[k].assign(cells.size(), kInf);
+      pred[k].assign(cells.size(), -1);
+      bool any = false;
+      for (std::size_t j = 0; j < cells.size(); ++j) {
+        Cell& b = cells[j];
+        if (!feasible(k, b)) continue;
+        if (k == 0) {
+          cost[0][j] = opt_.orientation_weight * b.orient_err;
+          any = true;
+          continue;
+        }
+        for (int d2 = -W; d2 <= W; ++d2)
+          for (int d1 = -W; d1 <= W; ++d1) {
+            auto it = L_[k - 1].index.find(key(b.i1 + d1, b.i2 + d2));
+            if (it == L_[k - 1].index.end()) continue;
+            const std::size_t i = static_cast<std::size_t>(it->second);
+            if (!std::isfinite(cost[k - 1][i])) continue;
+            const Cell& a = L_[k - 1].cells[i];
+            if (!allowed(a, b)) continue;
+            const double v = cost[k - 1][i] + opt_.weight_primary * std::abs(b.r1 - a.r1) +
+                             opt_.weight_secondary * std::abs(b.r2 - a.r2) + opt_.orientation_weight * b.orient_err;
+            if (v < cost[k][j]) {
+              cost[k][j] = v;
+              pred[k][j] = static_cast<int>(i);
+              any = true;
+            }
+          }
+      }
+      if (!any) {
+        fail_layer = k;
+        why = fmt::format("no feasible cell continues a monotonic motion (rotary step <= {} cells)", W);
+        return false;
+      }
+    }
+    std::size_t best = 0;
+    for (std::size_t j = 1; j < cost[n - 1].size(); ++j)
+      if (cost[n - 1][j] < cost[n - 1][best]) best = j;
+    path.assign(n, nullptr);
+    int idx = static_cast<int>(best);
+    for (std::size_t k = n; k-- > 0;) {
+      path[k] = &L_[k].cells[static_cast<size_t>(idx)];
+      idx = pred[k][static_cast<size_t>(idx)];
+    }
+    return true;
+  }
+
   // ---- tier 1: one cell feasible at every point ----
   bool fixed2(std::vector<const Cell*>& path, TierFailure& fail, const kin::Axes* prefer) {
     const std::size_t n = L_.size();
@@ -252,56 +449,48 @@ class Search {
     double best_travel = kInf;
     std::vector<const Cell*> best;
     for (int f = 1; f >= 0; --f) {  // fix the secondary first (e.g. the tilt), then the primary
-      // Per layer: cells grouped by the fixed index, sorted by the moving index.
-      std::vector<std::unordered_map<int, std::vector<Cell*>>> groups(n);
-      for (std::size_t k = 0; k < n; ++k) {
-        for (Cell& c : L_[k].cells) groups[k][f == 0 ? c.i1 : c.i2].push_back(&c);
-        for (auto& [v, list] : groups[k])
-          std::sort(list.begin(), list.end(), [f](const Cell* a, const Cell* b) { return f == 0 ? a->i2 < b->i2 : a->i1 < b->i1; });
+      // Candidate fixed values: present at the first point, closest orientation first. Later points are
+      // scanned lazily along the moving axis (no per-point cell lists, so no cap can hide a cell).
+      std::unordered_map<int, double> first_err;
+      for (const Cell& c : L_[0].cells) {
+        const int v = f == 0 ? c.i1 : c.i2;
+        auto it = first_err.find(v);
+        if (it == first_err.end() || c.orient_err < it->second) first_err[v] = c.orient_err;
       }
-      // Candidate fixed values: present at the first point, closest orientation first.
       std::vector<std::pair<double, int>> vals;
-      for (auto& [v, list] : groups[0]) {
-        double e = kInf;
-        for (const Cell* c : list) e = std::min(e, static_cast<double>(c->orient_err));
-        vals.emplace_back(e, v);
-      }
+      for (const auto& [v, e] : first_err) vals.emplace_back(e, v);
       std::sort(vals.begin(), vals.end());
       if (vals.size() > static_cast<size_t>(opt_.max_fixed_candidates)) vals.resize(static_cast<size_t>(opt_.max_fixed_candidates));
+      const int mlo = f == 0 ? sp_.i2_min() : sp_.i1_min(), mhi = f == 0 ? sp_.i2_max() : sp_.i1_max();
       for (const auto& [e0, v] : vals) {
         for (int dir : {+1, -1}) {
           std::vector<const Cell*> p(n, nullptr);
-          long long prev = dir > 0 ? std::numeric_limits<long long>::min() : std::numeric_limits<long long>::max();
+          int prev = dir > 0 ? mlo : mhi;
           std::size_t k = 0;
           std::string why = "orientation";
           for (; k < n; ++k) {
-            auto it = groups[k].find(v);
-            if (it == groups[k].end()) break;
-            const auto& list = it->second;
             Cell* chosen = nullptr;
-            auto moving = [f](const Cell* c) { return static_cast<long long>(f == 0 ? c->i2 : c->i1); };
-            if (dir > 0) {
-              for (Cell* c : list)
-                if (moving(c) >= prev) {
-                  if (feasible(k, *c)) {
-                    chosen = c;
-                    break;
-                  }
-                  why = fmt::format("{}: {}", to_string(c->status), c->detail);
+            bool entered = false;
+            for (int m = prev; m >= mlo && m <= mhi; m += dir) {
+              Cell* c = f == 0 ? cell(k, v, m) : cell(k, m, v);
+              if (!c) {
+                if (entered || k > 0) {
+                  if (entered) break;  // left the cone's run along the moving axis
+                  // before entering: keep scanning, but only within a turn of the previous value
+                  if (std::abs(m - prev) * sp_.options().resolution_rad > 2 * kPi) break;
                 }
-            } else {
-              for (auto rit = list.rbegin(); rit != list.rend(); ++rit)
-                if (moving(*rit) <= prev) {
-                  if (feasible(k, **rit)) {
-                    chosen = *rit;
-                    break;
-                  }
-                  why = fmt::format("{}: {}", to_string((*rit)->status), (*rit)->detail);
-                }
+                continue;
+              }
+              entered = true;
+              if (feasible(k, *c)) {
+                chosen = c;
+                break;
+              }
+              why = fmt::format("{}: {}", to_string(c->status), c->detail);
             }
             if (!chosen) break;
             p[k] = chosen;
-            prev = moving(chosen);
+            prev = f == 0 ? chosen->i2 : chosen->i1;
           }
           if (k < n) {
             if (k >= furthest) {
@@ -623,6 +812,7 @@ std::string Plan::summary() const {
                      g.description, g.reorientation == "none" ? "" : "; reorientation into it: " + g.reorientation);
     for (const auto& f : g.failures)
       s += fmt::format("    tier {} failed at CL line {}: {}\n", static_cast<int>(f.tier), f.line, f.reason);
+    if (!g.legs.empty()) s += "    legs: " + g.legs + "\n";
   }
   for (const auto& w : warnings) s += "warning: " + w + "\n";
   return s;
@@ -653,8 +843,8 @@ Plan Planner::run(const cl::Program& program) const {
     // are enumerated when a later tier needs them, or for the per-point feasibility check in exact mode.
     auto enumerate_layer = [&](std::size_t k) {
       Layer& l = layers[k];
-      space_.enumerate(l.cl, l.cells, k == 0 ? std::numeric_limits<std::size_t>::max() : opt_.max_cells_per_point,
-                       plan.counters);
+      // Tier 1 takes its candidates from the first point: give it a much larger share.
+      space_.enumerate(l.cl, l.cells, k == 0 ? 64 * opt_.max_cells_per_point : opt_.max_cells_per_point, plan.counters);
       if (exact)
         for (Cell& c : l.cells) {
           c.i1 = static_cast<int>(std::lround(c.r1 / kExactKeyRad));
@@ -666,6 +856,44 @@ Plan Planner::run(const cl::Program& program) const {
       layers[k].move = s + k;
       layers[k].cl = {moves[s + k].tip_in_part_mm, moves[s + k].axis_in_part.normalized()};
       if (k == 0 || exact) enumerate_layer(k);
+    }
+    if (exact) {
+      // At a singular point the primary rotary is free: offer every primary that a neighbouring regular
+      // point uses, so that continuous (flip-free) paths can pass straight through the singularity.
+      for (std::size_t k = 0; k < layers.size(); ++k) {
+        auto& cells = layers[k].cells;
+        if (std::none_of(cells.begin(), cells.end(), [](const Cell& c) { return c.singular; })) continue;
+        std::vector<double> primaries;
+        for (long d = 1; d < static_cast<long>(layers.size()) && primaries.size() < 64; ++d)
+          for (long kk : {static_cast<long>(k) - d, static_cast<long>(k) + d}) {
+            if (kk < 0 || kk >= static_cast<long>(layers.size())) continue;
+            bool regular = false;
+            for (const Cell& c : layers[static_cast<size_t>(kk)].cells)
+              if (!c.singular) {
+                primaries.push_back(c.r1);
+                regular = true;
+              }
+            if (regular && d > 1) d = static_cast<long>(layers.size());  // nearest regular layers on each side only
+          }
+        std::vector<Cell> out;
+        for (const Cell& c : cells) {
+          if (!c.singular) {
+            out.push_back(c);
+            continue;
+          }
+          for (double r1 : primaries) {
+            Cell n = c;
+            n.r1 = r1;
+            n.i1 = static_cast<int>(std::lround(r1 / kExactKeyRad));
+            n.status = Status::Unknown;
+            if (std::none_of(out.begin(), out.end(), [&](const Cell& o) { return o.i1 == n.i1 && o.i2 == n.i2; }))
+              out.push_back(n);
+          }
+        }
+        cells = std::move(out);
+        layers[k].index.clear();
+        for (std::size_t j = 0; j < cells.size(); ++j) layers[k].index.emplace(key(cells[j].i1, cells[j].i2), static_cast<int>(j));
+      }
     }
     Search search(space_, opt_, layers, plan.counters, program);
     auto check_points = [&]() {
@@ -774,11 +1002,65 @@ Plan Planner::run(const cl::Program& program) const {
       }
     }
     rep.description = desc;
+    if (!opt_.monotone_axes.empty() && layers.size() > 2) {
+      // Which of the counted axes reverse along the chosen path, and where first?
+      constexpr double kLegHyst = 1e-4;  // mm: far below a lost motion, far above round-off
+      auto reversals = [&](const std::vector<const Cell*>& pth, std::vector<int>& which, std::size_t& where) {
+        which.clear();
+        where = pth.size();
+        for (int ax : opt_.monotone_axes) {
+          int d = 0;
+          double ext = pth[0]->axes[ax];
+          for (std::size_t k = 1; k < pth.size(); ++k) {
+            const double v = pth[k]->axes[ax];
+            if (d == 0) {
+              if (std::abs(v - ext) > kLegHyst) d = v > ext ? 1 : -1, ext = v;
+            } else if (d * (v - ext) > 0) {
+              ext = v;
+            } else if (std::abs(v - ext) > kLegHyst) {
+              which.push_back(ax);
+              where = std::min(where, k - 1);
+              break;
+            }
+          }
+        }
+      };
+      std::vector<int> rev;
+      std::size_t where = 0;
+      reversals(path, rev, where);
+      if (rev.empty()) {
+        rep.legs = "monotonic";
+      } else {
+        std::vector<const Cell*> mono;
+        std::size_t fl = 0;
+        std::string why;
+        std::string names;
+        for (int ax : rev) names += (names.empty() ? "" : ", ") + kin_->axes()[static_cast<size_t>(ax)].name;
+        const cl::Move& at = moves[layers[where].move];
+        if (!exact && search.legs_tilt(rev, kLegHyst, opt_.tilt_step_rad > 0 ? opt_.tilt_step_rad : space_.options().resolution_rad, path, mono, fl, why)) {
+          path = mono;
+          double max_tilt = 0;
+          for (const Cell* c : mono) max_tilt = std::max(max_tilt, static_cast<double>(c->orient_err));
+          rep.legs = fmt::format("monotonic: the reversal of {} at CL line {} removed by tilting at most {:.3f} deg",
+                                 names, at.line, rad2deg(max_tilt));
+          rep.tier = Tier::Shortest;  // the rotaries now follow the tilt refinement
+          rep.description = "re-planned inside the cone for monotonic legs (" + rep.description + " before)";
+        } else if (exact && search.legs_monotone(rev, kLegHyst, mono, fl, why)) {
+          path = mono;
+          rep.legs = fmt::format("monotonic: the reversal of {} at CL line {} removed", names, at.line);
+        } else {
+          rep.legs = fmt::format("{} reverses at CL line {} ({:.4f}, {:.4f}, {:.4f}); it cannot be avoided at this cone "
+                                 "(no monotonic path beyond CL line {}: {})",
+                                 names, at.line, at.tip_in_part_mm.x(), at.tip_in_part_mm.y(), at.tip_in_part_mm.z(),
+                                 moves[layers[fl].move].line, why);
+        }
+      }
+    }
     for (std::size_t k = 0; k < layers.size(); ++k) {
       const Cell* c = path[k];
       const std::size_t m = layers[k].move;
       plan.axes[m] = c->axes;
-      const kin::Posed tp = space_.tool_pose(layers[k].cl, c->r1, c->r2);
+      const kin::Posed tp = kin_->forward(c->axes);
       plan.program.moves[m].tip_in_part_mm = tp.tip_mm;
       plan.program.moves[m].axis_in_part = tp.axis;
     }

@@ -72,12 +72,41 @@ std::vector<kin::Axes> conventional_axes(const cl::Program& program, const machi
   kin::Axes prev = kin::Axes::Zero();
   bool have_prev = false;
   kin::Posed prev_pose;
+  int always_axis = -1;
+  double always_sign = 0.0;
+  if (machine.post.branch_rule == "always")
+    for (const char* pre : {"positive:", "negative:"})
+      if (machine.post.start_branch.rfind(pre, 0) == 0) {
+        always_axis = machine.axis_index(machine.post.start_branch.substr(std::string(pre).size()));
+        always_sign = always_axis >= 0 ? (pre[0] == 'p' ? 1.0 : -1.0) : 0.0;
+      }
   for (const cl::Move& mv : program.moves) {
     const kin::Posed pose{mv.tip_in_part_mm, mv.axis_in_part.normalized()};
     kin::Axes chosen = kin::Axes::Zero();
     std::string first_violation;
     bool ok = false, singular = false;
-    if (have_prev) {
+    if (have_prev && always_sign != 0) {
+      // A simple post: the preferred sign of one rotary at every point, else the nearest solution.
+      kinematics.inverse_branches(pose, &prev, sols);
+      double best = std::numeric_limits<double>::infinity();
+      for (kin::Solution& s : sols) {
+        kinematics.nearest_winding(s.axes, prev);
+        std::string v = kinematics.check_limits(s.axes);
+        if (v.empty()) v = kinematics.passive_violation(s.axes);
+        if (!v.empty()) {
+          if (first_violation.empty()) first_violation = v;
+          continue;
+        }
+        const bool wrong_side = always_sign * s.axes[always_axis] < -1e-12;
+        const double score = rotary_distance(kinematics, s.axes, prev) + (wrong_side ? 1e6 : 0.0);
+        if (score < best) {
+          best = score;
+          chosen = s.axes;
+          singular = s.singular;
+        }
+      }
+      ok = std::isfinite(best);
+    } else if (have_prev) {
       ok = kin::track(kinematics, prev, prev_pose, pose, chosen, &first_violation, &singular);
     } else {
       kinematics.inverse_branches(pose, nullptr, sols);
@@ -108,7 +137,7 @@ std::vector<kin::Axes> conventional_axes(const cl::Program& program, const machi
                                    first_violation.empty() ? std::string("no inverse-kinematics solution for this tool axis")
                                                            : first_violation));
     }
-    if (singular) resolve_singular(kinematics, program, static_cast<size_t>(&mv - program.moves.data()), chosen, sols);
+    if (singular && always_sign == 0) resolve_singular(kinematics, program, static_cast<size_t>(&mv - program.moves.data()), chosen, sols);
     prev_pose = pose;
     out.push_back(chosen);
     prev = chosen;

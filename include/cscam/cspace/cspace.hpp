@@ -40,6 +40,7 @@ struct Cell {
   int i1 = 0, i2 = 0;         ///< grid indices (for exact IK cells at cone 0: branch/winding ids)
   float orient_err = 0.0f;    ///< angle to the CL axis, rad
   Status status = Status::Unknown;
+  bool singular = false;      ///< exact IK cell whose primary rotary is free (tool axis along it)
   float clearance_mm = std::numeric_limits<float>::quiet_NaN();
   std::string detail;         ///< for a failed cell: the broken limit or the part that collided
   kin::Axes axes = kin::Axes::Zero();  ///< every axis (valid once evaluated and not Orientation)

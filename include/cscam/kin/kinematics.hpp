@@ -34,6 +34,8 @@ class Kinematics {
   /// depend on the position. Returns false if no axis values put the tip there.
   virtual bool tool_axis_at(double primary, double secondary, const Eigen::Vector3d& tip_mm,
                             Eigen::Vector3d& axis) const = 0;
+  /// Limits that the axis values alone do not show, e.g. a PKM's passive joint angles; empty if none broken.
+  [[nodiscard]] virtual std::string passive_violation(const Axes& /*q*/) const { return {}; }
   /// First limit that q violates, or empty.
   [[nodiscard]] std::string check_limits(const Axes& q) const;
   /// Choose for every rotary of `s` the winding nearest to `prev` (same angle modulo 2 pi), if within limits.

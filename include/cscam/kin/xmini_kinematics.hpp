@@ -61,7 +61,7 @@ class XminiKinematics final : public Kinematics {
                     Eigen::Vector3d& axis) const override;
 
   /// The first broken passive-joint limit (alpha, beta) at joints q, or empty. Runs FK.
-  [[nodiscard]] std::string passive_violation(const Axes& q) const;
+  [[nodiscard]] std::string passive_violation(const Axes& q) const override;
   /// Every limit at q (strokes, C, A and the passive joints), the first broken one, or empty.
   [[nodiscard]] std::string all_violations(const Axes& q) const;
 

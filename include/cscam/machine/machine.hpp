@@ -26,6 +26,9 @@ struct PostSettings {
   double axis_tolerance_deg = 0.3;           ///< linearisation tolerance of the tool axis
   double safe_z_mm = std::numeric_limits<double>::quiet_NaN();  ///< machine Z of the safe retract plane; NaN: the Z limit
   std::string start_branch = "nearest_home";  ///< nearest_home | positive:<axis> | negative:<axis>
+  /// start: the start_branch preference picks the first solution, then the nearest one is followed;
+  /// always: the preference applies at every point (what simple posts do: they flip at the singularity).
+  std::string branch_rule = "start";
   std::string program_name = "CSCAM";
 };
 

@@ -24,6 +24,12 @@ struct Options {
   int max_fixed_candidates = 256;          ///< tier 2: fixed values tried per axis
   /// Weights of the two rotaries' travel (tier 4 cost), per rad.
   double weight_primary = 1.0, weight_secondary = 1.0;
+  /// Further axes whose reversals count (e.g. a PKM's actuated legs: on a parallel machine every Cartesian
+  /// move moves every leg, and a leg reversal leaves a mark). After the tier search, a segment whose path
+  /// reverses one of these is re-planned, if the cone allows, so that they move monotonically.
+  std::vector<int> monotone_axes;
+  double leg_step_cells = 4;  ///< largest per-point change of tilt (in tilt steps) of that re-plan
+  double tilt_step_rad = 0.0; ///< tilt grid of that re-plan (a disc of radius cone around the CL axis); 0: resolution
 };
 
 /// Why an earlier tier failed on a segment: the first point at which it became impossible.
@@ -43,6 +49,8 @@ struct SegmentReport {
   /// The reorientation into this segment (retract to the safe plane, rotate, position, plunge), as the post
   /// performs it: "none" (no rotary change), "clear", or what collides.
   std::string reorientation = "none";
+  /// With Options::monotone_axes: "monotonic", or which axis still reverses, where, and why it cannot be avoided.
+  std::string legs;
 };
 
 /// The plan: axis values for every CL move, and a CL program whose tips/axes are the planned ones
