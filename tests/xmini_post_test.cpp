@@ -456,7 +456,14 @@ TEST(XminiPost, JointProgramsGoThroughRs274AndStayWithinTheTolerance) {
     const std::string text = post_text(prog, m, *k);
     expect_rs274_agrees(text, m, f);
     const auto v = verify_text(text, prog, m, *k);
-    EXPECT_TRUE(v.ok) << v.message;
+    if (std::string(f) == "seed000_x_cut.cls") {
+      // The conventional post (a >= 0 at every point) flips C by 180 deg exactly at the singularity: the
+      // flip cannot follow the CL there, and verify finds the mark it leaves at x = 0.
+      EXPECT_FALSE(v.ok) << v.message;
+      EXPECT_LT(v.max_tip_deviation_mm, 0.2) << v.message;
+    } else {
+      EXPECT_TRUE(v.ok) << v.message;
+    }
   }
 }
 
@@ -583,7 +590,8 @@ TEST(XminiSeed000, TheLineCrossesTheSingularityWhereQ2HasItsMinimum) {
 TEST(XminiSeed000, ConventionalPostStats) {
   const machine::Machine m = xmini_machine();
   const auto k = m.kinematics();
-  // On the line: q2 reverses once inside the cut; A crosses 0 monotonically, C stays (continuous tracking).
+  // On the line: q2 reverses once inside the cut; the post keeps a >= 0 at every point (machine file:
+  // branch_rule always), so A comes down to 0 and goes up again (a reversal) while C flips by 180 deg.
   {
     const cl::Program prog = seed_cut();
     const nc::Program ncp = nc::read_text(post_text(prog, m, *k), "exact.ngc", letters_of(m));
@@ -591,10 +599,11 @@ TEST(XminiSeed000, ConventionalPostStats) {
     EXPECT_EQ(s.axes[1].reversals, 1);
     EXPECT_EQ(s.axes[0].reversals, 0);
     EXPECT_EQ(s.axes[2].reversals, 0);
-    EXPECT_EQ(s.axes[4].reversals, 0);
-    EXPECT_NEAR(s.axes[3].travel, 0.0, 1e-9);
-    EXPECT_LT(s.axes[4].min, -1.0);
-    EXPECT_GT(s.axes[4].max, 1.0);
+    EXPECT_EQ(s.axes[4].reversals, 1);
+    EXPECT_NEAR(s.axes[3].travel, 180.0, 1e-6);
+    // At CL points a >= 0; inside the flip the post's subdivision follows the branch through a = 0 and
+    // dips below it by less than a tenth of a degree before the flip completes.
+    EXPECT_GE(s.axes[4].min, -0.1);
   }
   // 0.05 mm off: every exact-orientation path turns C by 180 deg; A (kept >= 0) reverses near x = 0.
   {
