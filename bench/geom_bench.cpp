@@ -102,13 +102,14 @@ void BM_CollisionQuery(benchmark::State& state) {
     benchmark::DoNotOptimize(r.collides);
   }
   state.SetItemsProcessed(state.iterations());
-  state.counters["queries/s"] = benchmark::Counter(static_cast<double>(ws.stats.collision_queries), benchmark::Counter::kIsRate);
+  state.counters["queries/s"] =
+      benchmark::Counter(static_cast<double>(ws.stats.collision_queries), benchmark::Counter::kIsRate);
   // Per-thread ratios: averaged over threads (the benchmark sums counters over threads by default).
   state.counters["colliding"] = benchmark::Counter(static_cast<double>(hits) / static_cast<double>(state.iterations()),
                                                    benchmark::Counter::kAvgThreads);
-  state.counters["fcl_calls/query"] =
-      benchmark::Counter(static_cast<double>(ws.stats.fcl_collide_calls) / static_cast<double>(ws.stats.collision_queries),
-                         benchmark::Counter::kAvgThreads);
+  state.counters["fcl_calls/query"] = benchmark::Counter(
+      static_cast<double>(ws.stats.fcl_collide_calls) / static_cast<double>(ws.stats.collision_queries),
+      benchmark::Counter::kAvgThreads);
 }
 BENCHMARK(BM_CollisionQuery);
 BENCHMARK(BM_CollisionQuery)->Threads(2)->UseRealTime();
@@ -120,7 +121,8 @@ void BM_ClearanceQuery(benchmark::State& state) {
   std::size_t i = 0;
   for (auto _ : state) benchmark::DoNotOptimize(clearance(s, tool(), ps[i++ & (ps.size() - 1)], {}, ws));
   state.SetItemsProcessed(state.iterations());
-  state.counters["queries/s"] = benchmark::Counter(static_cast<double>(ws.stats.distance_queries), benchmark::Counter::kIsRate);
+  state.counters["queries/s"] =
+      benchmark::Counter(static_cast<double>(ws.stats.distance_queries), benchmark::Counter::kIsRate);
   state.counters["fcl_calls/query"] =
       static_cast<double>(ws.stats.fcl_distance_calls) / static_cast<double>(ws.stats.distance_queries);
 }

@@ -41,7 +41,8 @@ cscam::cl::Program path(int n) {
   o << "UNITS/MM\nMULTAX\nCUTTER/10,5\nFEDRAT/MMPM,1000\n";
   for (int i = 0; i < n; ++i) {
     const double s = double(i) / (n - 1), x = -45 + 90 * s;
-    const double tx = cscam::deg2rad(4.0) * std::sin(2 * M_PI * 3 * s), ty = cscam::deg2rad(3.0) * std::cos(2 * M_PI * 2 * s);
+    const double tx = cscam::deg2rad(4.0) * std::sin(2 * M_PI * 3 * s),
+                 ty = cscam::deg2rad(3.0) * std::cos(2 * M_PI * 2 * s);
     const Eigen::Vector3d u = Eigen::Vector3d(std::tan(tx), std::tan(ty), 1).normalized();
     o << "GOTO/" << x << ",0,0," << u.x() << "," << u.y() << "," << u.z() << "\n";
   }

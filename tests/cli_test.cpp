@@ -40,7 +40,8 @@ TEST(Cli, PostVerifyStatsOnRealNxFile) {
   r = run_command(kCli + " verify " + out + " --machine haas-umc750 --cl " + cl);
   EXPECT_EQ(r.status, 0) << r.output;
   EXPECT_NE(r.output.find("OK"), std::string::npos) << r.output;
-  r = run_command(kCli + " stats " + out + " " + cscam::test::shared_path("data/real/nx-haas-umc750/variable_axis.nx-post.nc") +
+  r = run_command(kCli + " stats " + out + " " +
+                  cscam::test::shared_path("data/real/nx-haas-umc750/variable_axis.nx-post.nc") +
                   " --machine haas-umc750");
   EXPECT_EQ(r.status, 0) << r.output;
   EXPECT_NE(r.output.find("C reversals"), std::string::npos) << r.output;

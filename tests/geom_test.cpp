@@ -134,8 +134,9 @@ TEST(GeomMesh, ObjQuadsAreTriangulatedAndMultipleObjectsMerged) {
     for (int i = 0; i < 8; ++i)
       out << "v " << ((i & 1) + 3 * c) << " " << ((i >> 1) & 1) << " " << ((i >> 2) & 1) << "\n";
     const int q[6][4] = {{0, 2, 3, 1}, {4, 5, 7, 6}, {0, 1, 5, 4}, {2, 6, 7, 3}, {0, 4, 6, 2}, {1, 3, 7, 5}};
-    for (const auto& f : q) out << "f " << f[0] + 1 + 8 * c << " " << f[1] + 1 + 8 * c << " " << f[2] + 1 + 8 * c << " "
-                                << f[3] + 1 + 8 * c << "\n";
+    for (const auto& f : q)
+      out << "f " << f[0] + 1 + 8 * c << " " << f[1] + 1 + 8 * c << " " << f[2] + 1 + 8 * c << " " << f[3] + 1 + 8 * c
+          << "\n";
   }
   out.close();
   const Mesh m = load_mesh(path);
@@ -285,8 +286,8 @@ TEST(GeomTool, CheckedSegmentsExcludeTheCuttingEndAndInflate) {
   ASSERT_EQ(s.size(), 4u);
   EXPECT_EQ(s[0].part, ToolPart::CutterBody);
   EXPECT_DOUBLE_EQ(s[0].z0_mm, 3.0 + 0.6);  // ball radius + 0.2 r relief
-  EXPECT_DOUBLE_EQ(s[0].radius_mm, 3.0);     // cutter clearance 0
-  EXPECT_DOUBLE_EQ(s[1].z0_mm, 18.0);        // shank not extended into the flutes
+  EXPECT_DOUBLE_EQ(s[0].radius_mm, 3.0);    // cutter clearance 0
+  EXPECT_DOUBLE_EQ(s[1].z0_mm, 18.0);       // shank not extended into the flutes
   EXPECT_DOUBLE_EQ(s[1].radius_mm, 4.0);
   EXPECT_DOUBLE_EQ(s[2].z0_mm, 30.0 - 1.0);  // holder bottom face is exposed
   EXPECT_DOUBLE_EQ(s[2].z1_mm, 70.0);        // covered by the wider spindle above

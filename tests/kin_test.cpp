@@ -163,8 +163,8 @@ TEST(SerialKinematics, NonOrthogonalHeadRoundTrip) {
   g.head_chain = {0, 1, 2, 3};
   g.gauge_home_mm = Vec3(0, 0, 300);
   g.tool_length_mm = 100;
-  const SerialKinematics k(g, {lin("x", -1e4, 1e4), lin("y", -1e4, 1e4), lin("z", -1e4, 1e4), rot("b", -5, 185),
-                               rot("c", -1e5, 1e5, true)});
+  const SerialKinematics k(
+      g, {lin("x", -1e4, 1e4), lin("y", -1e4, 1e4), lin("z", -1e4, 1e4), rot("b", -5, 185), rot("c", -1e5, 1e5, true)});
   auto rng = test::rng(4);
   std::uniform_real_distribution<double> U(-100, 100);
   std::vector<Solution> sols;

@@ -1,12 +1,13 @@
 // Machine definition files: every bundled machine loads and round-trips IK -> FK; bad files give
 // errors that name the file, the line and the key.
+#include "cscam/machine/machine.hpp"
+
 #include <gtest/gtest.h>
 
 #include <filesystem>
 
 #include "cscam/core/error.hpp"
 #include "cscam/core/units.hpp"
-#include "cscam/machine/machine.hpp"
 #include "test_support.hpp"
 
 using namespace cscam;
@@ -61,7 +62,8 @@ TEST(Machine, BundledMachinesLoadAndRoundTrip) {
       kin::Axes q;
       for (int a = 0; a < 5; ++a) {
         const auto& ax = m.axes[static_cast<size_t>(a)];
-        const double lo = std::max(ax.min, ax.rotary() ? -4 * kPi : -1e9), hi = std::min(ax.max, ax.rotary() ? 4 * kPi : 1e9);
+        const double lo = std::max(ax.min, ax.rotary() ? -4 * kPi : -1e9),
+                     hi = std::min(ax.max, ax.rotary() ? 4 * kPi : 1e9);
         q[a] = lo + (hi - lo) * U(rng);
       }
       const kin::Posed target = kin->forward(q);
@@ -112,6 +114,4 @@ TEST(Machine, BadInputNamesLineAndKey) {
   expect_error(std::string(kGood) + "kinematics: delta\n", {"unknown kinematics 'delta'"});
 }
 
-TEST(Machine, MissingFileIsAnInputError) {
-  EXPECT_THROW(machine::load("/nonexistent/m.yaml"), InputError);
-}
+TEST(Machine, MissingFileIsAnInputError) { EXPECT_THROW(machine::load("/nonexistent/m.yaml"), InputError); }

@@ -1,5 +1,7 @@
 // The C-space planner: the tier reached on paths whose answer is known in closed form, the seed-002 groove
 // (collision pruning decides the orientation), ball-centre preservation, errors, and laziness.
+#include "cscam/plan/plan.hpp"
+
 #include <gtest/gtest.h>
 
 #include <cmath>
@@ -12,7 +14,6 @@
 #include "cscam/geom/scene.hpp"
 #include "cscam/machine/machine.hpp"
 #include "cscam/nc/reader.hpp"
-#include "cscam/plan/plan.hpp"
 #include "cscam/post/post.hpp"
 #include "cscam/report/verify.hpp"
 #include "test_support.hpp"
@@ -68,7 +69,9 @@ std::vector<double> column(const plan::Plan& p, int axis) {
 }  // namespace
 
 TEST(Planner, ConstantAxisIsThreePlusTwo) {
-  const auto p = run(sweep(30, [](double) { return 25.0; }, [](double) { return 40.0; }), 0.0);
+  const auto p = run(sweep(
+                         30, [](double) { return 25.0; }, [](double) { return 40.0; }),
+                     0.0);
   ASSERT_EQ(p.segments.size(), 1u);
   EXPECT_EQ(p.segments[0].tier, plan::Tier::Fixed2);
   EXPECT_TRUE(p.segments[0].failures.empty());
@@ -76,7 +79,9 @@ TEST(Planner, ConstantAxisIsThreePlusTwo) {
 
 TEST(Planner, AzimuthSweepAtFixedTiltFixesTheTiltAxis) {
   // Tilt 30 deg constant, azimuth 0 -> 90: on an A/C trunnion A = -/+30 fixed, C monotonic.
-  const auto p = run(sweep(40, [](double) { return 30.0; }, [](double s) { return 90.0 * s; }), 0.0);
+  const auto p = run(sweep(
+                         40, [](double) { return 30.0; }, [](double s) { return 90.0 * s; }),
+                     0.0);
   ASSERT_EQ(p.segments.size(), 1u);
   EXPECT_EQ(p.segments[0].tier, plan::Tier::Fixed1);
   ASSERT_EQ(p.segments[0].failures.size(), 1u);
@@ -88,7 +93,9 @@ TEST(Planner, AzimuthSweepAtFixedTiltFixesTheTiltAxis) {
 }
 
 TEST(Planner, TiltAndAzimuthBothRisingIsMonotonic) {
-  const auto p = run(sweep(40, [](double s) { return 10.0 + 30.0 * s; }, [](double s) { return 60.0 * s; }), 0.0);
+  const auto p = run(sweep(
+                         40, [](double s) { return 10.0 + 30.0 * s; }, [](double s) { return 60.0 * s; }),
+                     0.0);
   EXPECT_EQ(p.segments[0].tier, plan::Tier::Monotonic);
   EXPECT_EQ(p.segments[0].failures.size(), 2u);
   EXPECT_TRUE(monotone(column(p, 3)));
@@ -97,7 +104,10 @@ TEST(Planner, TiltAndAzimuthBothRisingIsMonotonic) {
 
 TEST(Planner, ThereAndBackNeedsTheShortestPathTier) {
   // Azimuth 0 -> 60 -> 0 at rising tilt: a C reversal is unavoidable at cone 0.
-  const auto p = run(sweep(41, [](double s) { return 10.0 + 30.0 * s; }, [](double s) { return 60.0 * (1 - std::abs(2 * s - 1)); }), 0.0);
+  const auto p =
+      run(sweep(
+              41, [](double s) { return 10.0 + 30.0 * s; }, [](double s) { return 60.0 * (1 - std::abs(2 * s - 1)); }),
+          0.0);
   EXPECT_EQ(p.segments[0].tier, plan::Tier::Shortest);
   EXPECT_EQ(p.segments[0].failures.size(), 3u);
   // Reached at the turning point (the 21st point = CL line 5 + 20), not before.
@@ -106,8 +116,9 @@ TEST(Planner, ThereAndBackNeedsTheShortestPathTier) {
 
 TEST(Planner, AConeTurnsAVaryingAxisIntoThreePlusTwoAndKeepsTheBallCentre) {
   // Axis wobbles 4 deg around 20 deg tilt: a 5 deg cone admits one fixed orientation.
-  const auto prog = sweep(50, [](double s) { return 20.0 + 4.0 * std::sin(6.28 * s); }, [](double s) { return 30.0 + 8.0 * s; },
-                          "CUTTER/10,5");
+  const auto prog = sweep(
+      50, [](double s) { return 20.0 + 4.0 * std::sin(6.28 * s); }, [](double s) { return 30.0 + 8.0 * s; },
+      "CUTTER/10,5");
   const double r = 5.0;
   const auto p = run(prog, 5.0, nullptr, nullptr, r);
   EXPECT_EQ(p.segments[0].tier, plan::Tier::Fixed2);
@@ -167,7 +178,8 @@ TEST(Planner, SeedGrooveCollisionPruningDecidesTheOrientation) {
 TEST(Planner, UnreachablePointNamesLineConstraintAndNearestCell) {
   // A 70 deg tilt toward +Y needs A = -70 or +70: the trunnion allows -100..50, so only one branch, and
   // X beyond its stroke kills that one too.
-  const cl::Program prog = cl::read_text("UNITS/MM\nMULTAX\nGOTO/0,0,0,0,0,1\nGOTO/450,0,0,0,0.9396926,0.3420201\n", "u.cls");
+  const cl::Program prog =
+      cl::read_text("UNITS/MM\nMULTAX\nGOTO/0,0,0,0,0,1\nGOTO/450,0,0,0,0.9396926,0.3420201\n", "u.cls");
   try {
     run(prog, 0.0);
     FAIL() << "expected an InputError";

@@ -2,6 +2,8 @@
 //  1. LinuxCNC's own interpreter (rs274 -g) accepts the program and moves exactly to the axis values we meant;
 //  2. back-simulation by FK inside every block stays within the tolerance of the CL path;
 //  3. against NX's post for the same CL (the B/C angles NX chose are IK solutions of ours).
+#include "cscam/post/post.hpp"
+
 #include <gtest/gtest.h>
 
 #include <filesystem>
@@ -14,7 +16,6 @@
 #include "cscam/core/units.hpp"
 #include "cscam/machine/machine.hpp"
 #include "cscam/nc/reader.hpp"
-#include "cscam/post/post.hpp"
 #include "cscam/report/verify.hpp"
 #include "test_support.hpp"
 
@@ -42,7 +43,8 @@ struct Posted {
   post::Summary summary;
 };
 
-Posted post_program(const cl::Program& prog, const machine::Machine& m, const kin::Kinematics& k, bool linearise = true) {
+Posted post_program(const cl::Program& prog, const machine::Machine& m, const kin::Kinematics& k,
+                    bool linearise = true) {
   const auto axes = post::conventional_axes(prog, m, k);
   std::ostringstream os;
   post::Options o;
@@ -182,7 +184,8 @@ TEST(Post, HaasAxisSensesReproduceNxPostAngles) {
   const auto m = load_machine("haas-umc750");
   const auto k = m.kinematics();
   const cl::Program prog = cl::read_file(test::shared_path("data/real/nx-haas-umc750/variable_axis.cls"));
-  const nc::Program nx = nc::read_file(test::shared_path("data/real/nx-haas-umc750/variable_axis.nx-post.nc"), letters_of(m));
+  const nc::Program nx =
+      nc::read_file(test::shared_path("data/real/nx-haas-umc750/variable_axis.nx-post.nc"), letters_of(m));
   // Pair CL points and NX blocks by their (part-frame, TCPC) tip positions.
   int matched = 0;
   std::vector<kin::Solution> sols;

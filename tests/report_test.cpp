@@ -8,7 +8,8 @@
 using namespace cscam;
 
 TEST(Stats, TravelReversalsStepsAndSimultaneity) {
-  // X: 0 -> 10 -> 5 -> 5.001 (noise) -> 8 : travel 10+5+0.001+2.999 = 18, one reversal (10 -> 5, then 5 -> 8 is a second).
+  // X: 0 -> 10 -> 5 -> 5.001 (noise) -> 8 : travel 10+5+0.001+2.999 = 18, one reversal (10 -> 5, then 5 -> 8 is a
+  // second).
   std::vector<kin::Axes> path;
   auto P = [&](double x, double b_deg) {
     kin::Axes q = kin::Axes::Zero();

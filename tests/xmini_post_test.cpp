@@ -336,7 +336,8 @@ TEST(XminiKinematics, ForwardIsThreadSafeWithItsWarmStart) {
         for (size_t i = 0; i < qs.size(); ++i) {
           const size_t j = (i * (2 * static_cast<size_t>(t) + 1) + static_cast<size_t>(rep)) % qs.size();
           const kin::Posed p = k.forward(qs[j]);
-          worst[static_cast<size_t>(t)] = std::max(worst[static_cast<size_t>(t)], (p.tip_mm - expected[j].tip_mm).norm());
+          worst[static_cast<size_t>(t)] =
+              std::max(worst[static_cast<size_t>(t)], (p.tip_mm - expected[j].tip_mm).norm());
         }
     });
   for (auto& th : threads) th.join();
@@ -420,7 +421,8 @@ TEST(XminiMachine, BadInputNamesTheKeyAndTheLine) {
     }
   };
   const std::string head = "name: x\nkinematics: xmini\n";
-  expect_error(head + "xmini:\n  parameters:\n    A1x: -150\n    A9x: 3\n", {"bad.yaml:6", "xmini.parameters.A9x", "unknown XMINI parameter"});
+  expect_error(head + "xmini:\n  parameters:\n    A1x: -150\n    A9x: 3\n",
+               {"bad.yaml:6", "xmini.parameters.A9x", "unknown XMINI parameter"});
   expect_error(head + "xmini:\n  parameters: {L01: abc}\n", {"bad.yaml:4", "xmini.parameters.L01", "number"});
   expect_error(head + "xmini:\n  limits:\n    strokes_mm: [350, 0]\n", {"bad.yaml:5", "strokes_mm", "min < max"});
   expect_error(head + "xmini:\n  limits:\n    gamma_deg: 3\n", {"bad.yaml:5", "xmini.limits.gamma_deg", "unknown key"});
@@ -487,7 +489,8 @@ TEST(XminiPost, CartesianModeWritesTheTipAndTheToolVector) {
   const machine::Machine m = xmini_machine();
   const auto k = m.kinematics();
   const cl::Program prog = cl::read_text(raster_cl(20.0, 3, 12, -30.0), "cart.cls");
-  for (const machine::Machine& mm : {m, xmini_variant("  dialect: xmini-joint\n", "  dialect: xmini-joint\n  tcp: true\n")}) {
+  for (const machine::Machine& mm :
+       {m, xmini_variant("  dialect: xmini-joint\n", "  dialect: xmini-joint\n  tcp: true\n")}) {
     post::Summary sum;
     const std::string text = post_text(prog, mm, *k, mm.post.tcp ? "" : "xmini-cartesian", &sum);
     EXPECT_EQ(sum.inserted_points, 0u) << "the control interpolates: no subdivision";
@@ -519,8 +522,10 @@ TEST(XminiPost, RetractsAlongTheToolAxisToTheSafePlane) {
   const auto k = m.kinematics();
   const Vec3 u2 = Vec3(0.3, -0.2, 1.0).normalized();
   std::ostringstream cl;
-  cl << "UNITS/MM\nMULTAX/ON\nFEDRAT/MMPM,500\nRAPID\nGOTO/-30,20,-40,0,0,1\nGOTO/30,20,-40,0,0,1\nRAPID\nGOTO/30,-20,-40,"
-     << u2.x() << "," << u2.y() << "," << u2.z() << "\nGOTO/-30,-20,-40," << u2.x() << "," << u2.y() << "," << u2.z() << "\n";
+  cl << "UNITS/MM\nMULTAX/ON\nFEDRAT/MMPM,500\nRAPID\nGOTO/-30,20,-40,0,0,1\nGOTO/30,20,-40,0,0,1\nRAPID\nGOTO/"
+        "30,-20,-40,"
+     << u2.x() << "," << u2.y() << "," << u2.z() << "\nGOTO/-30,-20,-40," << u2.x() << "," << u2.y() << "," << u2.z()
+     << "\n";
   const cl::Program prog = cl::read_text(cl.str(), "two_cuts.cls");
   const std::string text = post_text(prog, m, *k);
   const nc::Program ncp = nc::read_text(text, "two_cuts.ngc", letters_of(m));
@@ -547,7 +552,8 @@ TEST(XminiPost, RetractsAlongTheToolAxisToTheSafePlane) {
   EXPECT_NEAR(rad2deg(angle_between(rapid_tips[4].axis, u2)), 0.0, 1e-3);
   EXPECT_NEAR((rapid_tips[5].tip_mm - Vec3(30, -20, -40)).norm(), 0.0, kPrintedRoundingMm);
   // The end: up along u2 from (-30, -20, -40).
-  EXPECT_NEAR((rapid_tips[6].tip_mm - (Vec3(-30, -20, -40) + (safe + 40) / u2.z() * u2)).norm(), 0.0, kPrintedRoundingMm);
+  EXPECT_NEAR((rapid_tips[6].tip_mm - (Vec3(-30, -20, -40) + (safe + 40) / u2.z() * u2)).norm(), 0.0,
+              kPrintedRoundingMm);
   const machine::Machine mx = xmini_xyz();
   expect_rs274_agrees(post_text(prog, mx, *mx.kinematics()), mx, "two_cuts");
 }
@@ -642,8 +648,8 @@ TEST(Backlash, OnALinearAxisTheTipStepEqualsTheWidth) {
   // trunnion-ac with A = C = 0: the tip is x, y, z plus a constant, so the step is exactly the play.
   const machine::Machine m = machine::load(test::source_path("machines/trunnion-ac.yaml"));
   const auto k = m.kinematics();
-  const nc::Program ncp = nc::read_text(
-      "G0 X0 Y5 Z3 A0 C0\nG1 X10 F100\nG1 X4\nG1 X6\nG0 X50\n", "lin.ngc", letters_of(m));
+  const nc::Program ncp =
+      nc::read_text("G0 X0 Y5 Z3 A0 C0\nG1 X10 F100\nG1 X4\nG1 X6\nG0 X50\n", "lin.ngc", letters_of(m));
   const report::SampledPath path = report::sample_nc(ncp, 0, 0.001);
   const report::BacklashResult r = report::simulate_backlash(path, *k, 0, 0.01);
   ASSERT_EQ(r.reversals.size(), 2u);

@@ -1,6 +1,8 @@
 // XMINI kinematics: the reference vectors of shared/spec/xmini-vectors.csv (nominal and perturbed),
 // home, IK -> FK round trips over the working volume, the analytic Jacobian against finite differences,
 // parameter derivatives through ceres::Jet, limits, the singular wrist and parasitic motion.
+#include "cscam/kin/xmini.hpp"
+
 #include <ceres/jet.h>
 #include <gtest/gtest.h>
 
@@ -13,7 +15,6 @@
 
 #include "cscam/core/error.hpp"
 #include "cscam/core/units.hpp"
-#include "cscam/kin/xmini.hpp"
 #include "test_support.hpp"
 
 using namespace cscam;
@@ -465,7 +466,8 @@ TEST(XminiJet, LegLengthsDifferentiateToo) {
   const XminiState<J> x(J(0.05), J(-0.03), J(4.0), J(610.0));
   const Eigen::Matrix<J, 4, 1> rho = leg_lengths(p, x);
   // rho2 = |E + R c2 - A2|: d rho2 / d A2y = -(leg_2 . e_y) / rho2.
-  const XminiPlatform<double> P = platform_from_state(XminiParams<double>::nominal(), XminiState<double>(0.05, -0.03, 4.0, 610.0));
+  const XminiPlatform<double> P =
+      platform_from_state(XminiParams<double>::nominal(), XminiState<double>(0.05, -0.03, 4.0, 610.0));
   EXPECT_NEAR(rho[1].v[0], -P.leg_B_mm[1].y() / P.rho_mm[1], 1e-14);
   EXPECT_EQ(rho[0].v[0], 0.0);
 }

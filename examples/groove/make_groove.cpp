@@ -1,6 +1,7 @@
 // Seed 002's experiment, reproducibly: a groove whose curved side walls overhang its floor, with a floor
-// that slopes 20 deg across the groove (so its normals lean toward one overhang) and waves along it, and a ball-mill finishing pass along the floor whose CL tool axes are the
-// floor's surface normals (what a conventional CAM main processor writes).
+// that slopes 20 deg across the groove (so its normals lean toward one overhang) and waves along it, and a ball-mill
+// finishing pass along the floor whose CL tool axes are the floor's surface normals (what a conventional CAM main
+// processor writes).
 //
 //   make_groove OUTDIR   ->  OUTDIR/groove.stl (part mesh, mm) and OUTDIR/groove.cls (APT CL, mm)
 #include <fmt/format.h>
@@ -15,8 +16,8 @@
 #include "cscam/geom/mesh.hpp"
 
 namespace {
-constexpr double kSlopeDeg = 20.0;    // the floor rises toward +Y: its normal leans toward the -Y overhang
-constexpr double kWaveAmpMm = 0.9;    // floor waviness along X: z += A sin(2 pi x / L)
+constexpr double kSlopeDeg = 20.0;  // the floor rises toward +Y: its normal leans toward the -Y overhang
+constexpr double kWaveAmpMm = 0.9;  // floor waviness along X: z += A sin(2 pi x / L)
 constexpr double kWaveLenMm = 40.0;
 constexpr double kBallDiaMm = 10.0;
 constexpr double kStepMm = 0.5;
@@ -59,8 +60,8 @@ int main(int argc, char** argv) {
       const Eigen::Vector3d n = Eigen::Vector3d(-kWaveAmpMm * k * std::cos(k * x), -s, 1).normalized();
       if (first) {
         const Eigen::Vector3d above = p + 30 * n;
-        os << fmt::format("RAPID\nGOTO/{:.4f},{:.4f},{:.4f},{:.7f},{:.7f},{:.7f}\n", above.x(), above.y(), above.z(), n.x(),
-                          n.y(), n.z());
+        os << fmt::format("RAPID\nGOTO/{:.4f},{:.4f},{:.4f},{:.7f},{:.7f},{:.7f}\n", above.x(), above.y(), above.z(),
+                          n.x(), n.y(), n.z());
         os << "FEDRAT/MMPM,800\n";
         first = false;
       }

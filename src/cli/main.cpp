@@ -1,7 +1,7 @@
 // The cscam command-line program: batch CL-to-NC conversion, verification and statistics.
-#include <CLI/CLI.hpp>
 #include <fmt/format.h>
 
+#include <CLI/CLI.hpp>
 #include <algorithm>
 #include <chrono>
 #include <filesystem>
@@ -32,12 +32,12 @@ namespace cscam::cli {
 /// A machine may be named by path or by its name in the bundled machines/ folder.
 std::string resolve_machine(const std::string& arg) {
   if (fs::exists(arg)) return arg;
-  for (const std::string dir : {std::string(CSCAM_MACHINES_DIR), std::string(CSCAM_INSTALLED_MACHINES_DIR)}) {
+  for (const std::string& dir : {std::string(CSCAM_MACHINES_DIR), std::string(CSCAM_INSTALLED_MACHINES_DIR)}) {
     const fs::path p = fs::path(dir) / (arg + ".yaml");
     if (fs::exists(p)) return p.string();
   }
   throw InputError(SourceLoc{arg}, fmt::format("machine file not found (neither a path nor a bundled machine in {})",
-                                              CSCAM_MACHINES_DIR));
+                                               CSCAM_MACHINES_DIR));
 }
 }  // namespace cscam::cli
 
@@ -105,8 +105,9 @@ int cmd_post(const PostArgs& a) {
         "\"seconds\": {:.4f}}}\n",
         out, m.name, sum.cl_points, sum.blocks, sum.inserted_points, secs);
   } else {
-    std::cout << fmt::format("wrote {} ({} CL points -> {} blocks, {} points inserted by linearisation) for machine {} in {:.3f} s\n",
-                             out, sum.cl_points, sum.blocks, sum.inserted_points, m.name, secs);
+    std::cout << fmt::format(
+        "wrote {} ({} CL points -> {} blocks, {} points inserted by linearisation) for machine {} in {:.3f} s\n", out,
+        sum.cl_points, sum.blocks, sum.inserted_points, m.name, secs);
   }
   return 0;
 }
@@ -125,8 +126,9 @@ int cmd_verify(const VerifyArgs& a) {
   const cl::Program prog = cl::read_file(a.cl, ro);
   const nc::Program ncp = nc::read_file(a.nc, letters_of(m));
   if (ncp.tcp)
-    throw InputError(SourceLoc{a.nc}, "this program uses TCP (G43.4/G234): its axis values are not machine coordinates, "
-                                      "verify needs a machine-coordinate program");
+    throw InputError(SourceLoc{a.nc},
+                     "this program uses TCP (G43.4/G234): its axis values are not machine coordinates, "
+                     "verify needs a machine-coordinate program");
   const double L = a.tool_length >= 0 ? a.tool_length : ncp.tool_length_mm.value_or(m.default_tool_length_mm);
   const auto kin = m.make_kinematics(L);
   report::VerifyOptions vo;
@@ -178,10 +180,11 @@ int cmd_backlash(const BacklashArgs& a) {
   const int axis = m.axis_index(a.axis);
   if (axis < 0) throw InputError(fmt::format("--axis: machine {} has no axis '{}'", m.name, a.axis));
   const bool rotary = m.axes[static_cast<size_t>(axis)].rotary();
-  if ((a.width_mm >= 0) == (a.width_deg >= 0)) throw InputError("backlash: give exactly one of --width-mm and --width-deg");
+  if ((a.width_mm >= 0) == (a.width_deg >= 0))
+    throw InputError("backlash: give exactly one of --width-mm and --width-deg");
   if (rotary != (a.width_deg >= 0))
-    throw InputError(fmt::format("backlash: axis '{}' is {}: give its width with {}", a.axis, rotary ? "rotary" : "linear",
-                                 rotary ? "--width-deg" : "--width-mm"));
+    throw InputError(fmt::format("backlash: axis '{}' is {}: give its width with {}", a.axis,
+                                 rotary ? "rotary" : "linear", rotary ? "--width-deg" : "--width-mm"));
   const double width = rotary ? deg2rad(a.width_deg) : a.width_mm;
   // Fine enough that the play acts within a tenth of its width (default), whatever the block lengths.
   const double step = a.max_step > 0 ? (rotary ? deg2rad(a.max_step) : a.max_step) : (width > 0 ? width / 10 : 0.001);
@@ -197,11 +200,13 @@ int cmd_backlash(const BacklashArgs& a) {
   if (a.json) {
     std::cout << "[";
     for (size_t i = 0; i < results.size(); ++i)
-      std::cout << (i ? ",\n " : "") << fmt::format("{{\"nc\": \"{}\", \"result\": {}}}", a.nc[i], results[i].to_json());
+      std::cout << (i ? ",\n " : "")
+                << fmt::format("{{\"nc\": \"{}\", \"result\": {}}}", a.nc[i], results[i].to_json());
     std::cout << "]\n";
     return 0;
   }
-  for (size_t i = 0; i < results.size(); ++i) std::cout << fs::path(a.nc[i]).filename().string() << ": " << results[i].text();
+  for (size_t i = 0; i < results.size(); ++i)
+    std::cout << fs::path(a.nc[i]).filename().string() << ": " << results[i].text();
   if (results.size() > 1) {  // side by side: the step at feed reversals is what marks the surface
     size_t w = 14;
     for (const auto& f : a.nc) w = std::max(w, fs::path(f).filename().string().size() + 2);
@@ -214,7 +219,8 @@ int cmd_backlash(const BacklashArgs& a) {
       std::cout << "\n";
     };
     row(a.axis + " reversals while cutting", [](const report::BacklashResult& r) {
-      return fmt::format("{}", std::count_if(r.reversals.begin(), r.reversals.end(), [](const auto& v) { return v.in_feed; }));
+      return fmt::format(
+          "{}", std::count_if(r.reversals.begin(), r.reversals.end(), [](const auto& v) { return v.in_feed; }));
     });
     for (int c = 0; c < 3; ++c) {
       const char comp = "xyz"[c];
@@ -237,11 +243,14 @@ int main(int argc, char** argv) {
   app.require_subcommand(1);
 
   PostArgs pa;
-  auto* post_cmd = app.add_subcommand("post", "Convert a CL file to NC with the conventional (nearest-solution) strategy");
+  auto* post_cmd =
+      app.add_subcommand("post", "Convert a CL file to NC with the conventional (nearest-solution) strategy");
   post_cmd->add_option("cl", pa.cl, "CL file (APT/CLDATA, NX CLSF, CSV)")->required();
   post_cmd->add_option("-m,--machine", pa.machine, "machine file or bundled machine name")->required();
-  post_cmd->add_option("-o,--output", pa.out, "NC file to write (default: CL name with .ngc, in the working directory)");
-  post_cmd->add_option("--dialect", pa.dialect, "override the machine's dialect (linuxcnc, fanuc)");
+  post_cmd->add_option("-o,--output", pa.out,
+                       "NC file to write (default: CL name with .ngc, in the working directory)");
+  post_cmd->add_option("--dialect", pa.dialect,
+                       "override the machine's dialect (linuxcnc, fanuc, xmini-joint, xmini-cartesian)");
   post_cmd->add_option("--units", pa.units, "force the CL units (mm or inch)");
   post_cmd->add_option("--tolerance", pa.tolerance, "linearisation tolerance of the tip, mm");
   post_cmd->add_option("--axis-tolerance", pa.axis_tolerance, "linearisation tolerance of the tool axis, deg");
@@ -258,7 +267,8 @@ int main(int argc, char** argv) {
   verify_cmd->add_option("--tolerance", va.tolerance, "allowed tip deviation, mm");
   verify_cmd->add_option("--axis-tolerance", va.axis_tolerance, "allowed tool-axis deviation, deg");
   verify_cmd->add_option("--tool-length", va.tool_length, "tool length, mm (default: from the NC header)");
-  verify_cmd->add_option("--cone", va.cone, "the program was planned with this cone, deg: compare ball centres, allow the cone");
+  verify_cmd->add_option("--cone", va.cone,
+                         "the program was planned with this cone, deg: compare ball centres, allow the cone");
   verify_cmd->add_option("--samples", va.samples, "FK samples inside every block")->check(CLI::Range(1, 10000));
   verify_cmd->add_flag("--json", va.json, "print the result as JSON");
 
@@ -271,14 +281,16 @@ int main(int argc, char** argv) {
   stats_cmd->add_flag("--json", stat_json, "print JSON");
 
   BacklashArgs ba;
-  auto* backlash_cmd = app.add_subcommand("backlash", "Simulate a lost motion (backlash) on one axis of NC files and report the tip deviation");
+  auto* backlash_cmd = app.add_subcommand(
+      "backlash", "Simulate a lost motion (backlash) on one axis of NC files and report the tip deviation");
   backlash_cmd->add_option("nc", ba.nc, "one or more NC files (compared side by side)")->required();
   backlash_cmd->add_option("-m,--machine", ba.machine, "machine file or bundled machine name")->required();
   backlash_cmd->add_option("--axis", ba.axis, "axis with the play, by its machine-file name (e.g. q2)")->required();
   backlash_cmd->add_option("--width-mm", ba.width_mm, "full lost-motion width of a linear axis, mm");
   backlash_cmd->add_option("--width-deg", ba.width_deg, "full lost-motion width of a rotary axis, deg");
   backlash_cmd->add_option("--tool-length", ba.tool_length, "tool length, mm (default: from the NC header)");
-  backlash_cmd->add_option("--max-step", ba.max_step, "largest axis step between samples, mm or deg (default: width/10)");
+  backlash_cmd->add_option("--max-step", ba.max_step,
+                           "largest axis step between samples, mm or deg (default: width/10)");
   backlash_cmd->add_flag("--json", ba.json, "print JSON");
 
   auto run_plan_commands = cli::add_plan_commands(app);

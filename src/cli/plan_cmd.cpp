@@ -53,14 +53,18 @@ std::unique_ptr<Setup> setup(const PlanArgs& a) {
   auto s = std::make_unique<Setup>();
   s->m = machine::load(resolve_machine(a.machine));
   cl::ReadOptions ro;
-  if (a.units == "inch" || a.units == "in") ro.units = LengthUnit::Inch;
-  else if (a.units == "mm") ro.units = LengthUnit::Millimetre;
-  else if (!a.units.empty()) throw InputError(fmt::format("--units: expected mm or inch, got '{}'", a.units));
+  if (a.units == "inch" || a.units == "in")
+    ro.units = LengthUnit::Inch;
+  else if (a.units == "mm")
+    ro.units = LengthUnit::Millimetre;
+  else if (!a.units.empty())
+    throw InputError(fmt::format("--units: expected mm or inch, got '{}'", a.units));
   s->prog = cl::read_file(a.cl, ro);
   for (const auto& w : s->prog.warnings) std::cerr << "warning: " << w.where.str() << ": " << w.message << "\n";
   s->tool_length = post::tool_length_for(s->m, a.tool_length);
   s->kin = s->m.make_kinematics(s->tool_length);
-  for (const auto& p : a.parts) s->scene.add(fs::path(p).filename().string(), geom::ObstacleRole::Part, geom::load_mesh(p, a.mesh_scale));
+  for (const auto& p : a.parts)
+    s->scene.add(fs::path(p).filename().string(), geom::ObstacleRole::Part, geom::load_mesh(p, a.mesh_scale));
   for (const auto& p : a.fixtures)
     s->scene.add(fs::path(p).filename().string(), geom::ObstacleRole::Fixture, geom::load_mesh(p, a.mesh_scale));
   s->scene.build(false);  // collision only: nothing asks for distances
@@ -85,7 +89,9 @@ std::unique_ptr<Setup> setup(const PlanArgs& a) {
   const bool meshes = !a.parts.empty() || !a.fixtures.empty();
   s->has_meshes = meshes;
   o.cspace.check_collision = meshes && !a.no_collision;
-  if (meshes && !t) throw InputError(SourceLoc{a.cl}, "collision checking needs the cutter size: the CL file has no CUTTER/ or TLDATA/");
+  if (meshes && !t)
+    throw InputError(SourceLoc{a.cl},
+                     "collision checking needs the cutter size: the CL file has no CUTTER/ or TLDATA/");
   if (t) {
     geom::ToolDefaults d;
     if (s->m.geometry.holder_diameter_mm > 0) d.holder_diameter_mm = s->m.geometry.holder_diameter_mm;
@@ -93,7 +99,8 @@ std::unique_ptr<Setup> setup(const PlanArgs& a) {
     if (s->m.geometry.spindle_diameter_mm > 0)
       d.spindle = {s->m.geometry.spindle_diameter_mm, s->m.geometry.spindle_length_mm};
     const double flute = t->length_mm > 0 ? t->length_mm : 3.0 * t->diameter_mm;
-    s->tool = std::make_unique<geom::ToolShape>(geom::ToolShape::from_cutter(t->diameter_mm, t->corner_radius_mm, flute, d));
+    s->tool =
+        std::make_unique<geom::ToolShape>(geom::ToolShape::from_cutter(t->diameter_mm, t->corner_radius_mm, flute, d));
     if (t->is_ball()) o.cspace.ball_radius_mm = 0.5 * t->diameter_mm;
   }
   return s;
@@ -148,7 +155,8 @@ void write_svgs(const Setup& s, const plan::Planner& planner, const plan::Plan& 
                 const std::string& dir) {
   fs::create_directories(dir);
   const auto rp = s.kin->rotary_pair();
-  const std::string n1 = s.m.post.letters[static_cast<size_t>(rp[0])], n2 = s.m.post.letters[static_cast<size_t>(rp[1])];
+  const std::string n1 = s.m.post.letters[static_cast<size_t>(rp[0])],
+                    n2 = s.m.post.letters[static_cast<size_t>(rp[1])];
   for (std::size_t g = 0; g < p.segments.size(); ++g) {
     const auto& seg = p.segments[g];
     if (seg.last_move == seg.first_move) continue;
@@ -177,8 +185,9 @@ int run_plan(const PlanArgs& a) {
   if (!a.svg_dir.empty()) write_svgs(*s, planner, p, post::conventional_axes(s->prog, s->m, *s->kin), a.svg_dir);
   std::cout << p.summary();
   std::cout << fmt::format("wrote {} ({} blocks); verify: {}\n", out, sum.blocks, v.message);
-  std::cout << fmt::format("planner: {:.3f} s, {} cells enumerated, {} IK, {} stroke and {} collision queries\n", p.seconds,
-                           p.counters.cells_enumerated, p.counters.ik, p.counters.stroke, p.counters.collision);
+  std::cout << fmt::format("planner: {:.3f} s, {} cells enumerated, {} IK, {} stroke and {} collision queries\n",
+                           p.seconds, p.counters.cells_enumerated, p.counters.ik, p.counters.stroke,
+                           p.counters.collision);
   return 0;
 }
 
@@ -229,8 +238,7 @@ int run_compare(const PlanArgs& a) {
   std::cout << report::table({stc, stp}, {"conventional", "planner"});
   std::cout << fmt::format("{:<28}{:>22}{:>22}\n", "NC blocks", sc.blocks, sp.blocks);
   std::cout << fmt::format("{:<28}{:>22}{:>22}\n", "verify", vc.ok ? "ok" : "FAILED", vp.ok ? "ok" : "FAILED");
-  if (s->has_meshes)
-    std::cout << fmt::format("{:<28}{:>22}{:>22}\n", "colliding CL points", hc.n, hp.n);
+  if (s->has_meshes) std::cout << fmt::format("{:<28}{:>22}{:>22}\n", "colliding CL points", hc.n, hp.n);
   std::cout << fmt::format("{:<28}{:>22}{:>22}\n", "segment tiers 1/2/3/4", "-", tiers);
   std::cout << fmt::format("{:<28}{:>22.3f}{:>22.3f}\n", "time (s)", conv_s, p.seconds);
   std::cout << fmt::format("planner queries: {} cells, {} IK, {} stroke, {} collision\n", p.counters.cells_enumerated,
@@ -240,24 +248,26 @@ int run_compare(const PlanArgs& a) {
     std::cout << fmt::format("the conventional program collides at {} CL points (first at CL line {})\n", hc.n,
                              hc.first_line);
   if (hp.n)
-    std::cout << fmt::format("the planned program collides at {} CL points (first at CL line {}){}\n", hp.n, hp.first_line,
-                             s->opt.cspace.check_collision ? "" : ": collision pruning was off");
+    std::cout << fmt::format("the planned program collides at {} CL points (first at CL line {}){}\n", hp.n,
+                             hp.first_line, s->opt.cspace.check_collision ? "" : ": collision pruning was off");
   const std::string json = fmt::format(
       "{{\"cl\": \"{}\", \"machine\": \"{}\", \"cone_deg\": {}, \"resolution_deg\": {}, \"collision\": {},\n"
-      " \"conventional\": {{\"stats\": {}, \"blocks\": {}, \"verify_ok\": {}, \"colliding_points\": {}, \"seconds\": {:.4f}}},\n"
-      " \"planner\": {{\"stats\": {}, \"blocks\": {}, \"verify_ok\": {}, \"colliding_points\": {}, \"seconds\": {:.4f}, \"tiers\": [{}],\n"
+      " \"conventional\": {{\"stats\": {}, \"blocks\": {}, \"verify_ok\": {}, \"colliding_points\": {}, \"seconds\": "
+      "{:.4f}}},\n"
+      " \"planner\": {{\"stats\": {}, \"blocks\": {}, \"verify_ok\": {}, \"colliding_points\": {}, \"seconds\": "
+      "{:.4f}, \"tiers\": [{}],\n"
       "  \"queries\": {{\"cells\": {}, \"ik\": {}, \"stroke\": {}, \"collision\": {}}}}}}}\n",
       a.cl, s->m.name, a.cone_deg, a.resolution_deg, s->opt.cspace.check_collision, stc.to_json(), sc.blocks, vc.ok,
       conv_collisions, conv_s, stp.to_json(), sp.blocks, vp.ok, hp.n, p.seconds,
       [&] {
         std::string t;
-        for (std::size_t i = 0; i < p.segments.size(); ++i) t += fmt::format("{}{}", i ? ", " : "", static_cast<int>(p.segments[i].tier));
+        for (std::size_t i = 0; i < p.segments.size(); ++i)
+          t += fmt::format("{}{}", i ? ", " : "", static_cast<int>(p.segments[i].tier));
         return t;
       }(),
       p.counters.cells_enumerated, p.counters.ik, p.counters.stroke, p.counters.collision);
   // Default: beside the working directory, never next to the (possibly read-only) input.
-  const std::string json_path =
-      a.json_out.empty() ? fs::path(a.cl).stem().string() + ".compare.json" : a.json_out;
+  const std::string json_path = a.json_out.empty() ? fs::path(a.cl).stem().string() + ".compare.json" : a.json_out;
   write_file_atomically(json_path, [&](std::ostream& os) { os << json; });
   std::cout << "JSON: " << json_path << "\n";
   if (!a.out.empty()) write_file_atomically(a.out, [&](std::ostream& os) { os << plan_text; });
@@ -274,7 +284,8 @@ void common_options(CLI::App* c, PlanArgs& a) {
   c->add_option("--cone", a.cone_deg, "allowed tool-axis deviation from the CL axis, deg (0: exact)");
   c->add_option("--min-tilt", a.min_tilt_deg, "minimum tilt from the CL axis (ball mills), deg");
   c->add_option("--resolution", a.resolution_deg, "C-space grid resolution, deg")->check(CLI::PositiveNumber);
-  c->add_option("--tilt-step", a.tilt_step_deg, "tilt grid inside the cone for the leg (PKM) re-plan, deg (default: resolution)");
+  c->add_option("--tilt-step", a.tilt_step_deg,
+                "tilt grid inside the cone for the leg (PKM) re-plan, deg (default: resolution)");
   c->add_option("--max-step", a.max_step_deg, "shortest-path tier: largest rotary step per point, deg");
   c->add_option("--clearance", a.clearance_mm, "collision clearance of shank, holder and spindle, mm");
   c->add_option("--tool-length", a.tool_length, "gauge-to-tip tool length, mm");

@@ -1,7 +1,6 @@
 #pragma once
 // The planner's subcommands: `cscam plan` and `cscam compare`.
 #include <CLI/CLI.hpp>
-
 #include <functional>
 #include <string>
 #include <vector>

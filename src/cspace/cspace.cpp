@@ -13,11 +13,16 @@ namespace cscam::cspace {
 
 const char* to_string(Status s) {
   switch (s) {
-    case Status::Unknown: return "unknown";
-    case Status::Feasible: return "feasible";
-    case Status::Orientation: return "orientation";
-    case Status::Stroke: return "stroke";
-    case Status::Collision: return "collision";
+    case Status::Unknown:
+      return "unknown";
+    case Status::Feasible:
+      return "feasible";
+    case Status::Orientation:
+      return "orientation";
+    case Status::Stroke:
+      return "stroke";
+    case Status::Collision:
+      return "collision";
   }
   return "?";
 }
@@ -92,7 +97,8 @@ void Space::enumerate(const kin::Posed& cl, std::vector<Cell>& out, std::size_t 
   std::vector<kin::Solution> sols;
   kin_->inverse_all(cl, nullptr, sols);
   const double res = opt_.resolution_rad;
-  const double lo1 = i1_min_ * res - 1e-9, hi1 = i1_max_ * res + 1e-9, lo2 = i2_min_ * res - 1e-9, hi2 = i2_max_ * res + 1e-9;
+  const double lo1 = i1_min_ * res - 1e-9, hi1 = i1_max_ * res + 1e-9, lo2 = i2_min_ * res - 1e-9,
+               hi2 = i2_max_ * res + 1e-9;
   if (opt_.cone_rad <= 0) {
     // Exact orientation: the cells are the IK solutions themselves (every branch and winding).
     int id = 0;
@@ -145,7 +151,8 @@ void Space::enumerate(const kin::Posed& cl, std::vector<Cell>& out, std::size_t 
   for (const auto& s : sols) {
     const double f1 = s.axes[rot1_] / res, f2 = s.axes[rot2_] / res;
     for (int d1 = 0; d1 <= 1; ++d1)
-      for (int d2 = 0; d2 <= 1; ++d2) push(static_cast<int>(std::floor(f1)) + d1, static_cast<int>(std::floor(f2)) + d2);
+      for (int d2 = 0; d2 <= 1; ++d2)
+        push(static_cast<int>(std::floor(f1)) + d1, static_cast<int>(std::floor(f2)) + d2);
   }
   while (!heap.empty() && out.size() < cap) {
     const Item it = heap.top();
@@ -202,8 +209,9 @@ void Space::evaluate(const kin::Posed& cl, Cell& cell, geom::QueryWorkspace& ws,
     const geom::CollisionResult r = geom::check(*scene_, *tool_, pose, opt_.collision, ws);
     if (r.collides) {
       cell.status = Status::Collision;
-      cell.detail = fmt::format("{} hits {}", geom::to_string(r.part),
-                                r.obstacle >= 0 ? scene_->obstacle_name(static_cast<std::size_t>(r.obstacle)) : std::string("?"));
+      cell.detail =
+          fmt::format("{} hits {}", geom::to_string(r.part),
+                      r.obstacle >= 0 ? scene_->obstacle_name(static_cast<std::size_t>(r.obstacle)) : std::string("?"));
       return;
     }
     if (!std::isnan(r.min_distance_mm)) cell.clearance_mm = static_cast<float>(r.min_distance_mm);

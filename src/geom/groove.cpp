@@ -31,7 +31,8 @@ std::vector<Pt2> wall_points(const GrooveParams& p, const GrooveProfile& g) {
     const double a1 = std::atan2(g.lip_z_mm - g.centre_z_mm, g.lip_y_mm - g.centre_y_mm);
     for (int k = 0; k <= n; ++k) {
       const double a = a0 + (a1 - a0) * static_cast<double>(k) / n;
-      w[static_cast<std::size_t>(k)] = {g.centre_y_mm + g.radius_mm * std::cos(a), g.centre_z_mm + g.radius_mm * std::sin(a)};
+      w[static_cast<std::size_t>(k)] = {g.centre_y_mm + g.radius_mm * std::cos(a),
+                                        g.centre_z_mm + g.radius_mm * std::sin(a)};
     }
   }
   // End points exactly as specified (no trigonometric round-off at the lip and the floor corner).
@@ -129,7 +130,8 @@ Mesh make_groove(const GrooveParams& p) {
   for (int j = m; j >= 0; --j) poly.push_back({slab_y[static_cast<std::size_t>(j + 1)], 0.0});
   // Left wall, upward: W_1 .. W_n mirrored.
   const int i_wall_l = static_cast<int>(poly.size());  // holds W_1 left
-  for (int k = 1; k <= n; ++k) poly.push_back({-wall[static_cast<std::size_t>(k)].y, wall[static_cast<std::size_t>(k)].z});
+  for (int k = 1; k <= n; ++k)
+    poly.push_back({-wall[static_cast<std::size_t>(k)].y, wall[static_cast<std::size_t>(k)].z});
   // Left outer side, downward: O_n .. O_0 mirrored.
   const int i_outer_l = static_cast<int>(poly.size());  // holds O_n left
   for (int k = n; k >= 0; --k) poly.push_back({-W2, k == 0 ? 0.0 : wall[static_cast<std::size_t>(k)].z});
@@ -137,8 +139,8 @@ Mesh make_groove(const GrooveParams& p) {
   CSCAM_CHECK(K == 2 * m + 4 * n + 6, "groove cross-section vertex count");
 
   // Index helpers into poly for the named points.
-  auto bottom = [&](int j) { return i_bottom + j; };                  // j = 0..S-1
-  auto outer_r = [&](int k) { return i_outer_r + k; };                // k = 0..n
+  auto bottom = [&](int j) { return i_bottom + j; };    // j = 0..S-1
+  auto outer_r = [&](int k) { return i_outer_r + k; };  // k = 0..n
   auto wall_r = [&](int k) { return k == 0 ? i_floor : i_wall_r + (n - k); };
   auto wall_l = [&](int k) { return k == 0 ? i_floor + m : i_wall_l + (k - 1); };
   auto outer_l = [&](int k) { return i_outer_l + (n - k); };
@@ -196,7 +198,8 @@ Mesh make_benchmark_part(std::size_t target_triangles, GrooveParams p) {
   p.floor_segments = 32;
   const auto K = static_cast<double>(2 * p.floor_segments + 4 * p.wall_segments + 6);
   const double caps = 8.0 * p.wall_segments + 4.0 * p.floor_segments + 8.0;
-  p.length_segments = std::max(1, static_cast<int>(std::lround((static_cast<double>(target_triangles) - caps) / (2.0 * K))));
+  p.length_segments =
+      std::max(1, static_cast<int>(std::lround((static_cast<double>(target_triangles) - caps) / (2.0 * K))));
   Mesh mesh = make_groove(p);
   mesh.source = fmt::format("groove benchmark part ({} triangles)", mesh.triangles.size());
   return mesh;

@@ -1,12 +1,12 @@
 #include "cscam/geom/mesh.hpp"
 
-#include <assimp/Importer.hpp>
 #include <assimp/postprocess.h>
 #include <assimp/scene.h>
 #include <fmt/format.h>
 
 #include <algorithm>
 #include <array>
+#include <assimp/Importer.hpp>
 #include <bit>
 #include <cmath>
 #include <cstdint>
@@ -182,7 +182,8 @@ double Mesh::area_mm2() const {
   double a2 = 0.0;
   for (const auto& t : triangles) {
     const Eigen::Vector3d& a = vertices_mm[static_cast<std::size_t>(t[0])];
-    a2 += (vertices_mm[static_cast<std::size_t>(t[1])] - a).cross(vertices_mm[static_cast<std::size_t>(t[2])] - a).norm();
+    a2 +=
+        (vertices_mm[static_cast<std::size_t>(t[1])] - a).cross(vertices_mm[static_cast<std::size_t>(t[2])] - a).norm();
   }
   return 0.5 * a2;
 }

@@ -65,20 +65,28 @@ Eigen::AlignedBox3d transformed_box(const Eigen::AlignedBox3d& box, const Eigen:
 
 const char* to_string(ToolPart part) {
   switch (part) {
-    case ToolPart::CutterBody: return "cutter_body";
-    case ToolPart::Shank: return "shank";
-    case ToolPart::Holder: return "holder";
-    case ToolPart::Holder2: return "holder2";
-    case ToolPart::Spindle: return "spindle";
+    case ToolPart::CutterBody:
+      return "cutter_body";
+    case ToolPart::Shank:
+      return "shank";
+    case ToolPart::Holder:
+      return "holder";
+    case ToolPart::Holder2:
+      return "holder2";
+    case ToolPart::Spindle:
+      return "spindle";
   }
   return "?";
 }
 
 const char* to_string(ObstacleRole role) {
   switch (role) {
-    case ObstacleRole::Part: return "part";
-    case ObstacleRole::Fixture: return "fixture";
-    case ObstacleRole::Machine: return "machine";
+    case ObstacleRole::Part:
+      return "part";
+    case ObstacleRole::Fixture:
+      return "fixture";
+    case ObstacleRole::Machine:
+      return "machine";
   }
   return "?";
 }
@@ -99,7 +107,8 @@ ToolShape ToolShape::from_cutter(double diameter_mm, double corner_radius_mm, do
 void ToolShape::validate() const {
   const SourceLoc where{"tool"};
   const double D = cutter.diameter_mm, r = cutter.corner_radius_mm;
-  if (!(D > 0.0) || !std::isfinite(D)) throw InputError(where, fmt::format("cutter diameter must be positive, got {}", D));
+  if (!(D > 0.0) || !std::isfinite(D))
+    throw InputError(where, fmt::format("cutter diameter must be positive, got {}", D));
   if (!(r >= 0.0 && r <= 0.5 * D + 1e-9))
     throw InputError(where, fmt::format("corner radius must be in [0, D/2 = {}], got {}", 0.5 * D, r));
   if (!(cutter.flute_length_mm > 0.0) || !std::isfinite(cutter.flute_length_mm))
@@ -107,9 +116,10 @@ void ToolShape::validate() const {
   const std::pair<const char*, const CylinderStage*> stages[] = {
       {"shank", &shank}, {"holder", &holder}, {"holder2", &holder2}, {"spindle", &spindle}};
   for (const auto& [name, s] : stages)
-    if (!(s->diameter_mm >= 0.0 && s->length_mm >= 0.0) || !std::isfinite(s->diameter_mm) || !std::isfinite(s->length_mm))
-      throw InputError(where, fmt::format("{} diameter and length must be >= 0, got {} and {}", name, s->diameter_mm,
-                                          s->length_mm));
+    if (!(s->diameter_mm >= 0.0 && s->length_mm >= 0.0) || !std::isfinite(s->diameter_mm) ||
+        !std::isfinite(s->length_mm))
+      throw InputError(
+          where, fmt::format("{} diameter and length must be >= 0, got {} and {}", name, s->diameter_mm, s->length_mm));
 }
 
 bool ToolShape::is_ball() const { return std::abs(cutter.corner_radius_mm - 0.5 * cutter.diameter_mm) <= 1e-9; }
@@ -125,8 +135,10 @@ std::vector<ToolSegment> ToolShape::segments() const {
   std::vector<ToolSegment> out;
   out.push_back({ToolPart::CutterBody, 0.0, cutter.flute_length_mm, 0.5 * cutter.diameter_mm});
   double z = cutter.flute_length_mm;
-  const std::pair<ToolPart, const CylinderStage*> stages[] = {
-      {ToolPart::Shank, &shank}, {ToolPart::Holder, &holder}, {ToolPart::Holder2, &holder2}, {ToolPart::Spindle, &spindle}};
+  const std::pair<ToolPart, const CylinderStage*> stages[] = {{ToolPart::Shank, &shank},
+                                                              {ToolPart::Holder, &holder},
+                                                              {ToolPart::Holder2, &holder2},
+                                                              {ToolPart::Spindle, &spindle}};
   for (const auto& [part, s] : stages) {
     if (!s->present()) continue;
     out.push_back({part, z, z + s->length_mm, 0.5 * s->diameter_mm});
@@ -305,7 +317,8 @@ struct QueryWorkspace::Impl {
   /// Places the segments and the obstacles for one query.
   void place(const Scene::Impl& scene, const kin::Posed& pose, const CheckOptions& o) {
     const double n = pose.axis.norm();
-    CSCAM_CHECK(n > 0.0 && std::isfinite(n) && pose.tip_mm.allFinite(), "tool pose must be finite with a non-zero axis");
+    CSCAM_CHECK(n > 0.0 && std::isfinite(n) && pose.tip_mm.allFinite(),
+                "tool pose must be finite with a non-zero axis");
     const Eigen::Vector3d a = pose.axis / n;
     const Eigen::Matrix3d R = Eigen::Quaterniond::FromTwoVectors(Eigen::Vector3d::UnitZ(), a).toRotationMatrix();
     const Eigen::Vector3d abs_a = a.cwiseAbs();
@@ -370,7 +383,8 @@ Nearest nearest(const Scene::Impl& scene, const CheckOptions& o, QueryWorkspace&
       }
       w.dres.clear();
       ++ws.stats.fcl_distance_calls;
-      const double d = fcl::distance(ob.distance_bvh.get(), w.obstacle_tf[j], w.segs[i].shape.get(), w.seg_tf[i], w.dreq, w.dres);
+      const double d =
+          fcl::distance(ob.distance_bvh.get(), w.obstacle_tf[j], w.segs[i].shape.get(), w.seg_tf[i], w.dreq, w.dres);
       if (d < best.d) best = {std::max(d, 0.0), w.segs[i].seg.part, static_cast<int>(j)};
       if (best.d <= 0.0) return best;
     }

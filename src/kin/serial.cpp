@@ -110,7 +110,8 @@ SerialKinematics::SerialKinematics(SerialGeometry<double> geometry, std::vector<
   std::vector<std::pair<int, double>> order;
   for (auto it = rot_table.rbegin(); it != rot_table.rend(); ++it) order.emplace_back(*it, -1.0);
   for (int idx : rot_head) order.emplace_back(idx, 1.0);
-  if (order.size() != 2) throw std::invalid_argument(fmt::format("a 5-axis machine needs 2 rotary axes, got {}", order.size()));
+  if (order.size() != 2)
+    throw std::invalid_argument(fmt::format("a 5-axis machine needs 2 rotary axes, got {}", order.size()));
   rot_ = {order[0].first, order[1].first};
   sign_ = {order[0].second, order[1].second};
   const Vec3 w1 = geometry_.joints[static_cast<size_t>(rot_[0])].direction;

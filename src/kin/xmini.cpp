@@ -21,16 +21,16 @@ namespace cscam::kin {
 
 const std::array<XminiParamInfo, kXminiParamCount>& xmini_param_info() {
   static constexpr std::array<XminiParamInfo, kXminiParamCount> kInfo{{
-      {"pWB_x", "mm", 0.0},   {"pWB_y", "mm", 0.0},  {"pWB_z", "mm", 900.0}, {"theta0", "deg", 0.0},
-      {"eps_y", "deg", 0.0},  {"eps_z", "deg", 0.0}, {"A1x", "mm", -150.0},  {"A3x", "mm", 150.0},
-      {"l1", "mm", 0.0},      {"l3", "mm", 0.0},     {"A2x", "mm", 0.0},     {"A2y", "mm", 200.0},
-      {"A2z", "mm", 0.0},     {"b1x", "mm", -75.0},  {"b1z", "mm", 0.0},     {"b3x", "mm", 75.0},
-      {"b3z", "mm", 0.0},     {"c2x", "mm", 0.0},    {"c2y", "mm", 100.0},   {"c2z", "mm", 0.0},
-      {"phi", "deg", 0.0},    {"chi", "deg", 0.0},   {"L01", "mm", 450.0},   {"L02", "mm", 450.0},
-      {"L03", "mm", 450.0},   {"sCx", "mm", 0.0},    {"sCy", "mm", 0.0},     {"sCz", "mm", 150.0},
-      {"gC1", "deg", 0.0},    {"gC2", "deg", 0.0},   {"c0", "deg", 0.0},     {"e", "mm", 0.0},
-      {"f", "mm", 0.0},       {"psi", "deg", 0.0},   {"a0", "deg", 0.0},     {"gx", "mm", 0.0},
-      {"gy", "mm", 0.0},      {"gz", "mm", 100.0},
+      {"pWB_x", "mm", 0.0},  {"pWB_y", "mm", 0.0},  {"pWB_z", "mm", 900.0}, {"theta0", "deg", 0.0},
+      {"eps_y", "deg", 0.0}, {"eps_z", "deg", 0.0}, {"A1x", "mm", -150.0},  {"A3x", "mm", 150.0},
+      {"l1", "mm", 0.0},     {"l3", "mm", 0.0},     {"A2x", "mm", 0.0},     {"A2y", "mm", 200.0},
+      {"A2z", "mm", 0.0},    {"b1x", "mm", -75.0},  {"b1z", "mm", 0.0},     {"b3x", "mm", 75.0},
+      {"b3z", "mm", 0.0},    {"c2x", "mm", 0.0},    {"c2y", "mm", 100.0},   {"c2z", "mm", 0.0},
+      {"phi", "deg", 0.0},   {"chi", "deg", 0.0},   {"L01", "mm", 450.0},   {"L02", "mm", 450.0},
+      {"L03", "mm", 450.0},  {"sCx", "mm", 0.0},    {"sCy", "mm", 0.0},     {"sCz", "mm", 150.0},
+      {"gC1", "deg", 0.0},   {"gC2", "deg", 0.0},   {"c0", "deg", 0.0},     {"e", "mm", 0.0},
+      {"f", "mm", 0.0},      {"psi", "deg", 0.0},   {"a0", "deg", 0.0},     {"gx", "mm", 0.0},
+      {"gy", "mm", 0.0},     {"gz", "mm", 100.0},
   }};
   return kInfo;
 }
@@ -53,13 +53,27 @@ std::string XminiLimitViolation::describe() const {
   const char* kind = "?";
   bool angle = true;
   switch (joint) {
-    case XminiJoint::Q1: name = "q1", kind = "stroke", angle = false; break;
-    case XminiJoint::Q2: name = "q2", kind = "stroke", angle = false; break;
-    case XminiJoint::Q3: name = "q3", kind = "stroke", angle = false; break;
-    case XminiJoint::C: name = "c", kind = "C-axis"; break;
-    case XminiJoint::A: name = "a", kind = "A-axis"; break;
-    case XminiJoint::Alpha: name = "alpha", kind = "passive-joint"; break;
-    case XminiJoint::Beta: name = "beta", kind = "passive-joint"; break;
+    case XminiJoint::Q1:
+      name = "q1", kind = "stroke", angle = false;
+      break;
+    case XminiJoint::Q2:
+      name = "q2", kind = "stroke", angle = false;
+      break;
+    case XminiJoint::Q3:
+      name = "q3", kind = "stroke", angle = false;
+      break;
+    case XminiJoint::C:
+      name = "c", kind = "C-axis";
+      break;
+    case XminiJoint::A:
+      name = "a", kind = "A-axis";
+      break;
+    case XminiJoint::Alpha:
+      name = "alpha", kind = "passive-joint";
+      break;
+    case XminiJoint::Beta:
+      name = "beta", kind = "passive-joint";
+      break;
   }
   const double v = angle ? rad2deg(value) : value;
   const double l = angle ? rad2deg(limit) : limit;
@@ -98,8 +112,7 @@ XminiSolveSummary solve_platform(const XminiGeometry<double>& g, const Eigen::Ve
   XminiSolveSummary s;
   for (int it = 0;; ++it) {
     const XminiPlatform<double> P = platform_from_state(g, x);
-    Eigen::Vector4d F(P.rho_mm[0] - rho_mm[0], P.rho_mm[1] - rho_mm[1], P.rho_mm[2] - rho_mm[2],
-                      P.leg2_constraint_mm);
+    Eigen::Vector4d F(P.rho_mm[0] - rho_mm[0], P.rho_mm[1] - rho_mm[1], P.rho_mm[2] - rho_mm[2], P.leg2_constraint_mm);
     s.residual_norm = F.cwiseAbs().maxCoeff();
     s.iterations = it;
     if (!std::isfinite(s.residual_norm)) return s;
@@ -113,8 +126,8 @@ XminiSolveSummary solve_platform(const XminiGeometry<double>& g, const Eigen::Ve
   }
 }
 
-XminiFkResult<double> xmini_forward(const XminiGeometry<double>& g, const XminiJoints<double>& q,
-                                    double tool_length_mm, XminiWorkspace& ws) {
+XminiFkResult<double> xmini_forward(const XminiGeometry<double>& g, const XminiJoints<double>& q, double tool_length_mm,
+                                    XminiWorkspace& ws) {
   const Eigen::Vector3d rho = q.head<3>() + g.L0_mm;
   XminiFkResult<double> r;
   r.state = ws.has_last ? ws.last_state : xmini_home_state();
@@ -216,8 +229,7 @@ struct Reduced {
 /// (any gC1, gC2, psi, c0, a0), then E from the tip, then the two equations not yet used: E in the
 /// plane of legs 1 and 3, and the leg-2 revolute constraint.
 template <typename S>
-Reduced<S> eval_reduced(const XminiGeometry<double>& g, const IkTarget& t, const S& alpha, const S& beta,
-                        int branch) {
+Reduced<S> eval_reduced(const XminiGeometry<double>& g, const IkTarget& t, const S& alpha, const S& beta, int branch) {
   using std::cos;
   using std::sin;
   using std::sqrt;
@@ -264,7 +276,8 @@ Reduced<S> eval_reduced(const XminiGeometry<double>& g, const IkTarget& t, const
   V rxa;  // Rx(a') tip_A
   rxa << S(tA[0]), out.cos_a * tA[1] - out.sin_a * tA[2], out.sin_a * tA[1] + out.cos_a * tA[2];
   V h;
-  for (int i = 0; i < 3; ++i) h[i] = g.ef_mm[i] + g.R_psi(i, 0) * rxa[0] + g.R_psi(i, 1) * rxa[1] + g.R_psi(i, 2) * rxa[2];
+  for (int i = 0; i < 3; ++i)
+    h[i] = g.ef_mm[i] + g.R_psi(i, 0) * rxa[0] + g.R_psi(i, 1) * rxa[1] + g.R_psi(i, 2) * rxa[2];
   const V rzh(out.cos_c * h[0] - out.sin_c * h[1], out.sin_c * h[0] + out.cos_c * h[1], h[2]);
   V tip_P;
   for (int i = 0; i < 3; ++i)
@@ -329,8 +342,8 @@ BranchSolution solve_branch(const XminiGeometry<double>& g, const IkTarget& t, d
 }
 
 /// Adds one solution per C winding inside the limits (or the principal one, flagged, if none is).
-void emit(const XminiGeometry<double>& g, const XminiLimits& lim, const BranchSolution& b, int branch,
-          int iterations, std::vector<XminiIkSolution>& out) {
+void emit(const XminiGeometry<double>& g, const XminiLimits& lim, const BranchSolution& b, int branch, int iterations,
+          std::vector<XminiIkSolution>& out) {
   XminiIkSolution s;
   const double sa = std::sin(b.alpha), ca = std::cos(b.alpha);
   s.alpha_rad = b.alpha;

@@ -74,9 +74,11 @@ XminiKinematics::XminiKinematics(XminiModel model, std::vector<AxisInfo> axes)
   if (axes_.size() != 5) throw std::invalid_argument("the XMINI has exactly 5 axes (q1 q2 q3 c a)");
   for (std::size_t i = 0; i < 5; ++i) {
     if (axes_[i].name != kXminiAxisNames[i])
-      throw std::invalid_argument(fmt::format("XMINI axis {} must be named '{}', got '{}'", i, kXminiAxisNames[i], axes_[i].name));
+      throw std::invalid_argument(
+          fmt::format("XMINI axis {} must be named '{}', got '{}'", i, kXminiAxisNames[i], axes_[i].name));
     if (axes_[i].rotary() != (i >= 3))
-      throw std::invalid_argument(fmt::format("XMINI axis '{}' must be {}", axes_[i].name, i >= 3 ? "rotary" : "linear"));
+      throw std::invalid_argument(
+          fmt::format("XMINI axis '{}' must be {}", axes_[i].name, i >= 3 ? "rotary" : "linear"));
   }
 }
 

@@ -113,10 +113,14 @@ void load_post(const Reader& r, const YAML::Node& n, Machine& m) {
   PostSettings& p = m.post;
   if (n["dialect"]) p.dialect = r.string(n["dialect"], "post.dialect");
   if (n["tcp"]) p.tcp = r.boolean(n["tcp"], "post.tcp");
-  if (n["decimals_linear"]) p.decimals_linear = static_cast<int>(r.number(n["decimals_linear"], "post.decimals_linear"));
-  if (n["decimals_rotary"]) p.decimals_rotary = static_cast<int>(r.number(n["decimals_rotary"], "post.decimals_rotary"));
-  if (p.decimals_linear < 0 || p.decimals_linear > 9) r.fail(n["decimals_linear"], "post.decimals_linear", "must be 0..9");
-  if (p.decimals_rotary < 0 || p.decimals_rotary > 9) r.fail(n["decimals_rotary"], "post.decimals_rotary", "must be 0..9");
+  if (n["decimals_linear"])
+    p.decimals_linear = static_cast<int>(r.number(n["decimals_linear"], "post.decimals_linear"));
+  if (n["decimals_rotary"])
+    p.decimals_rotary = static_cast<int>(r.number(n["decimals_rotary"], "post.decimals_rotary"));
+  if (p.decimals_linear < 0 || p.decimals_linear > 9)
+    r.fail(n["decimals_linear"], "post.decimals_linear", "must be 0..9");
+  if (p.decimals_rotary < 0 || p.decimals_rotary > 9)
+    r.fail(n["decimals_rotary"], "post.decimals_rotary", "must be 0..9");
   if (n["tolerance_mm"]) p.tolerance_mm = r.number(n["tolerance_mm"], "post.tolerance_mm");
   if (p.tolerance_mm <= 0) r.fail(n["tolerance_mm"], "post.tolerance_mm", "must be positive");
   if (n["axis_tolerance_deg"]) p.axis_tolerance_deg = r.number(n["axis_tolerance_deg"], "post.axis_tolerance_deg");
@@ -140,7 +144,8 @@ void load_post(const Reader& r, const YAML::Node& n, Machine& m) {
         ok = true;
       }
     }
-    if (!ok) r.fail(n["start_branch"], "post.start_branch", "expected nearest_home, positive:<axis> or negative:<axis>");
+    if (!ok)
+      r.fail(n["start_branch"], "post.start_branch", "expected nearest_home, positive:<axis> or negative:<axis>");
   }
   if (n["letters"]) {
     const YAML::Node l = n["letters"];
@@ -166,7 +171,8 @@ void load_geometry(const Reader& r, const YAML::Node& n, Machine& m) {
     if (!n[key]) return;
     std::filesystem::path p = r.string(n[key], std::string("geometry.") + key);
     if (p.is_relative()) p = dir / p;
-    if (!std::filesystem::exists(p)) r.fail(n[key], std::string("geometry.") + key, fmt::format("mesh file '{}' not found", p.string()));
+    if (!std::filesystem::exists(p))
+      r.fail(n[key], std::string("geometry.") + key, fmt::format("mesh file '{}' not found", p.string()));
     out = p.string();
   };
   mesh("head_mesh", m.geometry.head_mesh);
@@ -189,11 +195,13 @@ void load_serial(const Reader& r, const YAML::Node& root, Machine& m) {
   for (size_t i = 0; i < 5; ++i) {
     const YAML::Node a = axes[i];
     const std::string path = fmt::format("axes[{}]", i);
-    r.only_keys(a, path, {"name", "type", "side", "direction", "pivot_mm", "limits", "max_feed", "cyclic", "prefer", "offset"});
+    r.only_keys(a, path,
+                {"name", "type", "side", "direction", "pivot_mm", "limits", "max_feed", "cyclic", "prefer", "offset"});
     kin::AxisInfo info;
     info.name = r.string(r.required(a, "name", path), path + ".name");
     for (auto& ch : info.name) ch = static_cast<char>(std::tolower(static_cast<unsigned char>(ch)));
-    if (m.axis_index(info.name) >= 0) r.fail(a["name"], path + ".name", fmt::format("axis '{}' is defined twice", info.name));
+    if (m.axis_index(info.name) >= 0)
+      r.fail(a["name"], path + ".name", fmt::format("axis '{}' is defined twice", info.name));
     const std::string type = r.string(r.required(a, "type", path), path + ".type");
     if (type == "linear")
       info.type = kin::AxisType::Linear;
@@ -227,7 +235,8 @@ void load_serial(const Reader& r, const YAML::Node& root, Machine& m) {
       r.fail(a["side"], path + ".side", fmt::format("expected table or head, got '{}'", side));
     if (a["prefer"]) {
       const std::string pref = r.string(a["prefer"], path + ".prefer");
-      if (pref != "positive" && pref != "negative") r.fail(a["prefer"], path + ".prefer", "expected positive or negative");
+      if (pref != "positive" && pref != "negative")
+        r.fail(a["prefer"], path + ".prefer", "expected positive or negative");
       m.preferred_sign[info.name] = pref == "positive" ? 1 : -1;
     }
     m.axes.push_back(info);
@@ -286,7 +295,8 @@ Machine load_node(const YAML::Node& root, const std::string& name) {
   const std::string kind = root["kinematics"] ? r.string(root["kinematics"], "kinematics") : "serial";
   if (root["default_tool_length_mm"]) {
     m.default_tool_length_mm = r.number(root["default_tool_length_mm"], "default_tool_length_mm");
-    if (m.default_tool_length_mm < 0) r.fail(root["default_tool_length_mm"], "default_tool_length_mm", "must not be negative");
+    if (m.default_tool_length_mm < 0)
+      r.fail(root["default_tool_length_mm"], "default_tool_length_mm", "must not be negative");
   }
   if (kind == "serial") {
     m.kind = ModelKind::Serial;
@@ -301,7 +311,9 @@ Machine load_node(const YAML::Node& root, const std::string& name) {
       auto it = registry().find(kind);
       if (it != registry().end()) loader = it->second;
     }
-    if (!loader) r.fail(root["kinematics"], "kinematics", fmt::format("unknown kinematics '{}' (expected serial, xmini or a registered kind)", kind));
+    if (!loader)
+      r.fail(root["kinematics"], "kinematics",
+             fmt::format("unknown kinematics '{}' (expected serial, xmini or a registered kind)", kind));
     try {
       loader(&root, m);
     } catch (const InputError& e) {

@@ -104,7 +104,8 @@ void read_limits(const XminiReader& r, const YAML::Node& n, kin::XminiLimits& li
   auto half_range = [&](const char* key, double& out_rad) {
     if (!n[key]) return;
     const double v = r.number(n[key], std::string("xmini.limits.") + key);
-    if (!(v > 0 && v < 90)) r.fail(n[key], std::string("xmini.limits.") + key, "expected the largest |angle| in deg, 0 < v < 90");
+    if (!(v > 0 && v < 90))
+      r.fail(n[key], std::string("xmini.limits.") + key, "expected the largest |angle| in deg, 0 < v < 90");
     out_rad = deg2rad(v);
   };
   half_range("alpha_deg", lim.alpha_max_rad);
@@ -151,7 +152,8 @@ void load_xmini(const YAML::Node& root, const std::string& file, Machine& m) {
     if (x["max_feed"]) read_max_feed(r, x["max_feed"], max_feed);
     if (x["tool_length_mm"]) {
       if (root["default_tool_length_mm"])
-        r.fail(x["tool_length_mm"], "xmini.tool_length_mm", "the tool length is also given by default_tool_length_mm: give it once");
+        r.fail(x["tool_length_mm"], "xmini.tool_length_mm",
+               "the tool length is also given by default_tool_length_mm: give it once");
       tool_length_mm = r.number(x["tool_length_mm"], "xmini.tool_length_mm");
       if (tool_length_mm < 0) r.fail(x["tool_length_mm"], "xmini.tool_length_mm", "must not be negative");
     }

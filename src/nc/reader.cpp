@@ -111,19 +111,53 @@ Program read_text(const std::string& text, const std::string& name, const AxisLe
       if (L == 'G') {
         const int g10 = static_cast<int>(std::lround(v * 10));
         switch (g10) {
-          case 0: motion = Motion::Rapid; has_motion_word = true; break;
-          case 10: motion = Motion::Linear; has_motion_word = true; break;
-          case 20: motion = Motion::ArcCW; has_motion_word = true; break;
-          case 30: motion = Motion::ArcCCW; has_motion_word = true; break;
-          case 200: inch = true; break;
-          case 210: inch = false; break;
-          case 900: absolute = true; break;
-          case 910: absolute = false; break;
-          case 930: g93 = true; break;
-          case 940: g93 = false; break;
-          case 280: case 300: case 530: case 100: case 920: non_modal_skip = true; break;
-          case 434: case 2340: tcp_word = true; break;
-          default: break;
+          case 0:
+            motion = Motion::Rapid;
+            has_motion_word = true;
+            break;
+          case 10:
+            motion = Motion::Linear;
+            has_motion_word = true;
+            break;
+          case 20:
+            motion = Motion::ArcCW;
+            has_motion_word = true;
+            break;
+          case 30:
+            motion = Motion::ArcCCW;
+            has_motion_word = true;
+            break;
+          case 200:
+            inch = true;
+            break;
+          case 210:
+            inch = false;
+            break;
+          case 900:
+            absolute = true;
+            break;
+          case 910:
+            absolute = false;
+            break;
+          case 930:
+            g93 = true;
+            break;
+          case 940:
+            g93 = false;
+            break;
+          case 280:
+          case 300:
+          case 530:
+          case 100:
+          case 920:
+            non_modal_skip = true;
+            break;
+          case 434:
+          case 2340:
+            tcp_word = true;
+            break;
+          default:
+            break;
         }
         continue;
       }
@@ -141,7 +175,8 @@ Program read_text(const std::string& text, const std::string& name, const AxisLe
     bool any_axis = false;
     for (bool w : b.words) any_axis |= w;
     if (non_modal_skip) {
-      if (any_axis) prog.notes.push_back(fmt::format("{}:{}: G28/G30/G53/G10/G92 block not taken as a position", name, lineno));
+      if (any_axis)
+        prog.notes.push_back(fmt::format("{}:{}: G28/G30/G53/G10/G92 block not taken as a position", name, lineno));
       continue;
     }
     (void)has_motion_word;

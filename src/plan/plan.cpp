@@ -18,10 +18,14 @@ namespace cscam::plan {
 
 const char* to_string(Tier t) {
   switch (t) {
-    case Tier::Fixed2: return "fixed 2 axes + simultaneous 3 axes";
-    case Tier::Fixed1: return "fixed 1 axis + simultaneous 4 axes (monotonic)";
-    case Tier::Monotonic: return "simultaneous 5 axes, both rotaries monotonic";
-    case Tier::Shortest: return "simultaneous 5 axes, shortest rotary path";
+    case Tier::Fixed2:
+      return "fixed 2 axes + simultaneous 3 axes";
+    case Tier::Fixed1:
+      return "fixed 1 axis + simultaneous 4 axes (monotonic)";
+    case Tier::Monotonic:
+      return "simultaneous 5 axes, both rotaries monotonic";
+    case Tier::Shortest:
+      return "simultaneous 5 axes, shortest rotary path";
   }
   return "?";
 }
@@ -42,9 +46,9 @@ std::uint64_t key(int i1, int i2) {
 struct Layer {
   std::size_t move = 0;
   kin::Posed cl;
-  std::vector<Cell> cells;                         ///< orientation cells, closest first (capped)
-  std::unordered_map<std::uint64_t, int> index;    ///< (i1,i2) -> position in cells
-  std::unordered_map<std::uint64_t, Cell> extra;   ///< evaluated cells outside the cap
+  std::vector<Cell> cells;                        ///< orientation cells, closest first (capped)
+  std::unordered_map<std::uint64_t, int> index;   ///< (i1,i2) -> position in cells
+  std::unordered_map<std::uint64_t, Cell> extra;  ///< evaluated cells outside the cap
 };
 
 /// The search over one segment's layers. Owns the per-thread query workspace.
@@ -59,7 +63,8 @@ class Search {
     Layer& l = L_[k];
     const auto kk = key(i1, i2);
     if (auto it = l.index.find(kk); it != l.index.end()) return &l.cells[static_cast<size_t>(it->second)];
-    if (auto it = l.extra.find(kk); it != l.extra.end()) return it->second.status == Status::Orientation ? nullptr : &it->second;
+    if (auto it = l.extra.find(kk); it != l.extra.end())
+      return it->second.status == Status::Orientation ? nullptr : &it->second;
     if (exact_) return nullptr;  // exact cells are all enumerated
     Cell c;
     c.i1 = i1;
@@ -107,7 +112,8 @@ class Search {
           const Cell& a = L_[k - 1].cells[i];
           const Cell& b = cells[j];
           if (!allowed(a, b)) continue;
-          const double v = cost[k - 1][i] + opt_.weight_primary * std::abs(b.r1 - a.r1) + opt_.weight_secondary * std::abs(b.r2 - a.r2);
+          const double v = cost[k - 1][i] + opt_.weight_primary * std::abs(b.r1 - a.r1) +
+                           opt_.weight_secondary * std::abs(b.r2 - a.r2);
           if (v >= cost[k][j]) continue;
           kin::Axes out;
           const kin::Posed pa = sp_.tool_pose(L_[k - 1].cl, a.r1, a.r2), pb = sp_.tool_pose(L_[k].cl, b.r1, b.r2);
@@ -136,11 +142,11 @@ class Search {
     return true;
   }
 
-  /// Re-plans so that the axes in `axes` never reverse (beyond `hyst`): a DP over the feasible cells whose
-  /// transitions keep every such axis moving in its chosen direction (all direction combinations tried).
+  /// Exact orientation (cone 0): re-plans so that the axes in `axes` never reverse (beyond `hyst`): a DP over the IK
+  /// cells whose transitions keep every such axis moving in its chosen direction (all direction combinations tried).
   bool legs_monotone(const std::vector<int>& axes, double hyst, std::vector<const Cell*>& path, std::size_t& fail_layer,
                      std::string& why) {
-    const std::size_t n = L_.size();
+    CSCAM_CHECK(exact_, "the exact-orientation leg re-plan runs on IK cells (grid cells use legs_tilt)");
     const std::size_t combos = std::size_t{1} << axes.size();
     std::size_t worst = 0;
     for (std::size_t m = 0; m < combos; ++m) {
@@ -152,12 +158,7 @@ class Search {
       };
       std::size_t fl = 0;
       std::string w;
-      bool ok;
-      if (exact_) {
-        ok = dp_exact(mono, path, fl, w);
-      } else {
-        ok = grid_dp(mono, path, fl, w);
-      }
+      const bool ok = dp_exact(mono, path, fl, w);
       if (ok) return true;
       if (fl >= worst) {
         worst = fl;
@@ -238,7 +239,8 @@ class Search {
               if (!std::isfinite(cost[l - 1][i])) continue;
               const Cell& a = S[l - 1][i];
               bool ok = true;
-              for (std::size_t x = 0; x < axes.size() && ok; ++x) ok = dir(x) * (b.axes[axes[x]] - a.axes[axes[x]]) >= -hyst;
+              for (std::size_t x = 0; x < axes.size() && ok; ++x)
+                ok = dir(x) * (b.axes[axes[x]] - a.axes[axes[x]]) >= -hyst;
               if (!ok) continue;
               // Rotary travel, plus the change of tilt and the tilt itself: the smallest, smoothest deviation
               // from the CL axis that keeps the legs monotonic.
@@ -275,62 +277,6 @@ class Search {
     fail_layer = worst;
     why = fmt::format("no tilt within the cone (step {:.3f} deg) keeps it monotonic", rad2deg(tilt_step));
     return false;
-  }
-
-  /// Layered DP on grid cells with a transition predicate: neighbours within leg_step_cells, least rotary
-  /// travel (plus the orientation tie-break). Every cell of every layer is evaluated.
-  template <typename Allowed>
-  bool grid_dp(Allowed&& allowed, std::vector<const Cell*>& path, std::size_t& fail_layer, std::string& why) {
-    const std::size_t n = L_.size();
-    const int W = std::max(1, static_cast<int>(opt_.leg_step_cells));
-    std::vector<std::vector<double>> cost(n);
-    std::vector<std::vector<int>> pred(n);
-    for (std::size_t k = 0; k < n; ++k) {
-      auto& cells = L_[k].cells;
-      cost[k].assign(cells.size(), kInf);
-      pred[k].assign(cells.size(), -1);
-      bool any = false;
-      for (std::size_t j = 0; j < cells.size(); ++j) {
-        Cell& b = cells[j];
-        if (!feasible(k, b)) continue;
-        if (k == 0) {
-          cost[0][j] = opt_.orientation_weight * b.orient_err;
-          any = true;
-          continue;
-        }
-        for (int d2 = -W; d2 <= W; ++d2)
-          for (int d1 = -W; d1 <= W; ++d1) {
-            auto it = L_[k - 1].index.find(key(b.i1 + d1, b.i2 + d2));
-            if (it == L_[k - 1].index.end()) continue;
-            const std::size_t i = static_cast<std::size_t>(it->second);
-            if (!std::isfinite(cost[k - 1][i])) continue;
-            const Cell& a = L_[k - 1].cells[i];
-            if (!allowed(a, b)) continue;
-            const double v = cost[k - 1][i] + opt_.weight_primary * std::abs(b.r1 - a.r1) +
-                             opt_.weight_secondary * std::abs(b.r2 - a.r2) + opt_.orientation_weight * b.orient_err;
-            if (v < cost[k][j]) {
-              cost[k][j] = v;
-              pred[k][j] = static_cast<int>(i);
-              any = true;
-            }
-          }
-      }
-      if (!any) {
-        fail_layer = k;
-        why = fmt::format("no feasible cell continues a monotonic motion (rotary step <= {} cells)", W);
-        return false;
-      }
-    }
-    std::size_t best = 0;
-    for (std::size_t j = 1; j < cost[n - 1].size(); ++j)
-      if (cost[n - 1][j] < cost[n - 1][best]) best = j;
-    path.assign(n, nullptr);
-    int idx = static_cast<int>(best);
-    for (std::size_t k = n; k-- > 0;) {
-      path[k] = &L_[k].cells[static_cast<size_t>(idx)];
-      idx = pred[k][static_cast<size_t>(idx)];
-    }
-    return true;
   }
 
   // ---- tier 1: one cell feasible at every point ----
@@ -394,7 +340,8 @@ class Search {
         Cell* c = cell(k, cd.i1, cd.i2);
         if (!c || !feasible(k, *c)) {
           failed_at = k;
-          std::rotate(order.begin(), order.begin() + static_cast<std::ptrdiff_t>(oi), order.begin() + static_cast<std::ptrdiff_t>(oi) + 1);
+          std::rotate(order.begin(), order.begin() + static_cast<std::ptrdiff_t>(oi),
+                      order.begin() + static_cast<std::ptrdiff_t>(oi) + 1);
           break;
         }
         path[k] = c;
@@ -407,8 +354,9 @@ class Search {
       if (reach >= best_reach) {
         Cell* c = cell(failed_at, cd.i1, cd.i2);
         best_reach = failed_at;
-        best_reason = fmt::format("{}: {} (best fixed orientation {:.3f}, {:.3f} deg)", c ? to_string(c->status) : "orientation",
-                                  c ? c->detail : "", rad2deg(sp_.r1_of(cd.i1)), rad2deg(sp_.r2_of(cd.i2)));
+        best_reason =
+            fmt::format("{}: {} (best fixed orientation {:.3f}, {:.3f} deg)", c ? to_string(c->status) : "orientation",
+                        c ? c->detail : "", rad2deg(sp_.r1_of(cd.i1)), rad2deg(sp_.r2_of(cd.i2)));
       }
       (void)checked;
     }
@@ -460,7 +408,8 @@ class Search {
       std::vector<std::pair<double, int>> vals;
       for (const auto& [v, e] : first_err) vals.emplace_back(e, v);
       std::sort(vals.begin(), vals.end());
-      if (vals.size() > static_cast<size_t>(opt_.max_fixed_candidates)) vals.resize(static_cast<size_t>(opt_.max_fixed_candidates));
+      if (vals.size() > static_cast<size_t>(opt_.max_fixed_candidates))
+        vals.resize(static_cast<size_t>(opt_.max_fixed_candidates));
       const int mlo = f == 0 ? sp_.i2_min() : sp_.i1_min(), mhi = f == 0 ? sp_.i2_max() : sp_.i1_max();
       for (const auto& [e0, v] : vals) {
         for (int dir : {+1, -1}) {
@@ -533,7 +482,8 @@ class Search {
             return d1 * (static_cast<long long>(b.i1) - a.i1) >= 0 && d2 * (static_cast<long long>(b.i2) - a.i2) >= 0;
           };
           if (dp_exact(allowed, path, fl, w)) {
-            desc = fmt::format("primary {}, secondary {}", d1 > 0 ? "rising" : "falling", d2 > 0 ? "rising" : "falling");
+            desc =
+                fmt::format("primary {}, secondary {}", d1 > 0 ? "rising" : "falling", d2 > 0 ? "rising" : "falling");
             return true;
           }
           if (fl >= worst) {
@@ -561,7 +511,8 @@ class Search {
           // Rows by b (ascending), a ascending inside a row.
           std::vector<std::pair<std::pair<long long, long long>, Cell*>> cells;
           cells.reserve(L_[k].cells.size());
-          for (Cell& c : L_[k].cells) cells.push_back({{static_cast<long long>(d2) * c.i2, static_cast<long long>(d1) * c.i1}, &c});
+          for (Cell& c : L_[k].cells)
+            cells.push_back({{static_cast<long long>(d2) * c.i2, static_cast<long long>(d1) * c.i1}, &c});
           std::sort(cells.begin(), cells.end(), [](const auto& x, const auto& y) { return x.first < y.first; });
           const auto& prev = k ? stair[k - 1] : std::vector<Step>{};
           std::size_t pi = 0;
@@ -646,7 +597,8 @@ class Search {
         return false;
       }
       double travel = 0;
-      for (std::size_t k = 1; k < n; ++k) travel += std::abs(path[k]->r1 - path[k - 1]->r1) + std::abs(path[k]->r2 - path[k - 1]->r2);
+      for (std::size_t k = 1; k < n; ++k)
+        travel += std::abs(path[k]->r1 - path[k - 1]->r1) + std::abs(path[k]->r2 - path[k - 1]->r2);
       desc = fmt::format("rotary travel {:.3f} deg along continuous IK branches", rad2deg(travel));
       return true;
     }
@@ -687,7 +639,8 @@ class Search {
       }
       if (S[k].empty()) {
         fail = {Tier::Shortest, L_[k].move, line(k),
-                fmt::format("no feasible cell within a rotary step of {:.2f} deg of the previous point", rad2deg(max_step))};
+                fmt::format("no feasible cell within a rotary step of {:.2f} deg of the previous point",
+                            rad2deg(max_step))};
         return false;
       }
     }
@@ -701,7 +654,8 @@ class Search {
     }
     desc = fmt::format("weighted rotary travel {:.3f} deg", rad2deg(S[n - 1].empty() ? 0.0 : path.back() ? 0.0 : 0.0));
     double travel = 0;
-    for (std::size_t k = 1; k < n; ++k) travel += std::abs(path[k]->r1 - path[k - 1]->r1) + std::abs(path[k]->r2 - path[k - 1]->r2);
+    for (std::size_t k = 1; k < n; ++k)
+      travel += std::abs(path[k]->r1 - path[k - 1]->r1) + std::abs(path[k]->r2 - path[k - 1]->r2);
     desc = fmt::format("rotary travel {:.3f} deg (steps bounded by {:.2f} deg)", rad2deg(travel), rad2deg(max_step));
     return true;
   }
@@ -766,30 +720,35 @@ class Search {
           arg[static_cast<size_t>(i)] = dq.front();
         }
       }
-      for (int i = 0; i < len; ++i) put(i, out[static_cast<size_t>(i)], arg[static_cast<size_t>(i)] >= 0 ? get_src(arg[static_cast<size_t>(i)]) : -1);
+      for (int i = 0; i < len; ++i)
+        put(i, out[static_cast<size_t>(i)],
+            arg[static_cast<size_t>(i)] >= 0 ? get_src(arg[static_cast<size_t>(i)]) : -1);
     };
     const double w1 = opt_.weight_primary * res, w2 = opt_.weight_secondary * res;
     std::vector<double> g(f.size(), kInf);
     std::vector<int> gsrc(f.size(), -1);
     for (int b = 0; b < n2; ++b)
-      pass(n1, [&](int a) { return f[at(a, b)]; }, [&](int a) { return src[at(a, b)]; },
-           [&](int a, double v, int s) {
-             g[at(a, b)] = v;
-             gsrc[at(a, b)] = s;
-           },
-           w1);
+      pass(
+          n1, [&](int a) { return f[at(a, b)]; }, [&](int a) { return src[at(a, b)]; },
+          [&](int a, double v, int s) {
+            g[at(a, b)] = v;
+            gsrc[at(a, b)] = s;
+          },
+          w1);
     std::vector<double> D(f.size(), kInf);
     std::vector<int> dsrc(f.size(), -1);
     for (int a = 0; a < n1; ++a)
-      pass(n2, [&](int b) { return g[at(a, b)]; }, [&](int b) { return gsrc[at(a, b)]; },
-           [&](int b, double v, int s) {
-             D[at(a, b)] = v;
-             dsrc[at(a, b)] = s;
-           },
-           w2);
+      pass(
+          n2, [&](int b) { return g[at(a, b)]; }, [&](int b) { return gsrc[at(a, b)]; },
+          [&](int b, double v, int s) {
+            D[at(a, b)] = v;
+            dsrc[at(a, b)] = s;
+          },
+          w2);
     for (Cell& c : cur.cells) {
       const size_t i = at(c.i1 - lo1, c.i2 - lo2);
-      if (std::isfinite(D[i]) && dsrc[i] >= 0) tent.push_back({D[i] + opt_.orientation_weight * c.orient_err, {&c, dsrc[i]}});
+      if (std::isfinite(D[i]) && dsrc[i] >= 0)
+        tent.push_back({D[i] + opt_.orientation_weight * c.orient_err, {&c, dsrc[i]}});
     }
   }
 
@@ -850,7 +809,8 @@ Plan Planner::run(const cl::Program& program) const {
           c.i1 = static_cast<int>(std::lround(c.r1 / kExactKeyRad));
           c.i2 = static_cast<int>(std::lround(c.r2 / kExactKeyRad));
         }
-      for (std::size_t j = 0; j < l.cells.size(); ++j) l.index.emplace(key(l.cells[j].i1, l.cells[j].i2), static_cast<int>(j));
+      for (std::size_t j = 0; j < l.cells.size(); ++j)
+        l.index.emplace(key(l.cells[j].i1, l.cells[j].i2), static_cast<int>(j));
     };
     for (std::size_t k = 0; k < layers.size(); ++k) {
       layers[k].move = s + k;
@@ -892,12 +852,13 @@ Plan Planner::run(const cl::Program& program) const {
         }
         cells = std::move(out);
         layers[k].index.clear();
-        for (std::size_t j = 0; j < cells.size(); ++j) layers[k].index.emplace(key(cells[j].i1, cells[j].i2), static_cast<int>(j));
+        for (std::size_t j = 0; j < cells.size(); ++j)
+          layers[k].index.emplace(key(cells[j].i1, cells[j].i2), static_cast<int>(j));
       }
     }
     Search search(space_, opt_, layers, plan.counters, program);
     auto check_points = [&]() {
-    // Every point needs at least one feasible cell; otherwise say which constraint emptied it.
+      // Every point needs at least one feasible cell; otherwise say which constraint emptied it.
       for (std::size_t k = 0; k < layers.size(); ++k) {
         bool any = false;
         int n_stroke = 0, n_coll = 0;
@@ -948,11 +909,12 @@ Plan Planner::run(const cl::Program& program) const {
           }
           if (found) break;
         }
-        throw InputError(SourceLoc{program.file, mv.line, 0},
-                         fmt::format("no feasible orientation at CL point ({:.4f}, {:.4f}, {:.4f}) axis ({:.5f}, {:.5f}, "
-                                     "{:.5f}): {}; nearest feasible cell: {}",
-                                     mv.tip_in_part_mm.x(), mv.tip_in_part_mm.y(), mv.tip_in_part_mm.z(),
-                                     mv.axis_in_part.x(), mv.axis_in_part.y(), mv.axis_in_part.z(), why, nearest));
+        throw InputError(
+            SourceLoc{program.file, mv.line, 0},
+            fmt::format("no feasible orientation at CL point ({:.4f}, {:.4f}, {:.4f}) axis ({:.5f}, {:.5f}, "
+                        "{:.5f}): {}; nearest feasible cell: {}",
+                        mv.tip_in_part_mm.x(), mv.tip_in_part_mm.y(), mv.tip_in_part_mm.z(), mv.axis_in_part.x(),
+                        mv.axis_in_part.y(), mv.axis_in_part.z(), why, nearest));
       }
     };
     SegmentReport rep;
@@ -1037,7 +999,9 @@ Plan Planner::run(const cl::Program& program) const {
         std::string names;
         for (int ax : rev) names += (names.empty() ? "" : ", ") + kin_->axes()[static_cast<size_t>(ax)].name;
         const cl::Move& at = moves[layers[where].move];
-        if (!exact && search.legs_tilt(rev, kLegHyst, opt_.tilt_step_rad > 0 ? opt_.tilt_step_rad : space_.options().resolution_rad, path, mono, fl, why)) {
+        if (!exact && search.legs_tilt(rev, kLegHyst,
+                                       opt_.tilt_step_rad > 0 ? opt_.tilt_step_rad : space_.options().resolution_rad,
+                                       path, mono, fl, why)) {
           path = mono;
           double max_tilt = 0;
           for (const Cell* c : mono) max_tilt = std::max(max_tilt, static_cast<double>(c->orient_err));
@@ -1049,10 +1013,11 @@ Plan Planner::run(const cl::Program& program) const {
           path = mono;
           rep.legs = fmt::format("monotonic: the reversal of {} at CL line {} removed", names, at.line);
         } else {
-          rep.legs = fmt::format("{} reverses at CL line {} ({:.4f}, {:.4f}, {:.4f}); it cannot be avoided at this cone "
-                                 "(no monotonic path beyond CL line {}: {})",
-                                 names, at.line, at.tip_in_part_mm.x(), at.tip_in_part_mm.y(), at.tip_in_part_mm.z(),
-                                 moves[layers[fl].move].line, why);
+          rep.legs = fmt::format(
+              "{} reverses at CL line {} ({:.4f}, {:.4f}, {:.4f}); it cannot be avoided at this cone "
+              "(no monotonic path beyond CL line {}: {})",
+              names, at.line, at.tip_in_part_mm.x(), at.tip_in_part_mm.y(), at.tip_in_part_mm.z(),
+              moves[layers[fl].move].line, why);
         }
       }
     }
@@ -1070,7 +1035,8 @@ Plan Planner::run(const cl::Program& program) const {
   const int z = machine_.axis_index("z");
   if (z >= 0 && space_.options().check_collision) {
     const auto rp = kin_->rotary_pair();
-    const double safe_z = std::isnan(machine_.post.safe_z_mm) ? machine_.axes[static_cast<size_t>(z)].max : machine_.post.safe_z_mm;
+    const double safe_z =
+        std::isnan(machine_.post.safe_z_mm) ? machine_.axes[static_cast<size_t>(z)].max : machine_.post.safe_z_mm;
     geom::QueryWorkspace ws;
     for (std::size_t g = 1; g < plan.segments.size(); ++g) {
       auto& rep = plan.segments[g];
@@ -1082,7 +1048,8 @@ Plan Planner::run(const cl::Program& program) const {
       turned[rp[0]] = to[rp[0]];
       turned[rp[1]] = to[rp[1]];
       rep.reorientation = "clear";
-      const std::array<std::pair<kin::Axes, kin::Axes>, 4> legs = {{{from, up}, {up, turned}, {turned, above}, {above, to}}};
+      const std::array<std::pair<kin::Axes, kin::Axes>, 4> legs = {
+          {{from, up}, {up, turned}, {turned, above}, {above, to}}};
       for (const auto& [qa, qb] : legs) {
         const double span = std::max({std::abs(qb[rp[0]] - qa[rp[0]]), std::abs(qb[rp[1]] - qa[rp[1]]), deg2rad(1.0)});
         const int n = std::min(720, static_cast<int>(std::ceil(span / deg2rad(1.0))) + 8);
@@ -1124,10 +1091,14 @@ SegmentSpace Planner::sample_segment(const cl::Program& program, const Plan& pla
   const double res = std::max(out.resolution_rad, deg2rad(0.5));
   out.resolution_rad = res;
   const double pad = deg2rad(40.0);
-  out.i1_min = std::max(static_cast<int>(std::floor((lo1 - pad) / res)), static_cast<int>(std::ceil(space_.i1_min() * space_.options().resolution_rad / res)));
-  out.i1_max = std::min(static_cast<int>(std::ceil((hi1 + pad) / res)), static_cast<int>(std::floor(space_.i1_max() * space_.options().resolution_rad / res)));
-  out.i2_min = std::max(static_cast<int>(std::floor((lo2 - pad) / res)), static_cast<int>(std::ceil(space_.i2_min() * space_.options().resolution_rad / res)));
-  out.i2_max = std::min(static_cast<int>(std::ceil((hi2 + pad) / res)), static_cast<int>(std::floor(space_.i2_max() * space_.options().resolution_rad / res)));
+  out.i1_min = std::max(static_cast<int>(std::floor((lo1 - pad) / res)),
+                        static_cast<int>(std::ceil(space_.i1_min() * space_.options().resolution_rad / res)));
+  out.i1_max = std::min(static_cast<int>(std::ceil((hi1 + pad) / res)),
+                        static_cast<int>(std::floor(space_.i1_max() * space_.options().resolution_rad / res)));
+  out.i2_min = std::max(static_cast<int>(std::floor((lo2 - pad) / res)),
+                        static_cast<int>(std::ceil(space_.i2_min() * space_.options().resolution_rad / res)));
+  out.i2_max = std::min(static_cast<int>(std::ceil((hi2 + pad) / res)),
+                        static_cast<int>(std::floor(space_.i2_max() * space_.options().resolution_rad / res)));
   const int n1 = out.i1_max - out.i1_min + 1, n2 = out.i2_max - out.i2_min + 1;
   out.status.assign(static_cast<size_t>(std::max(0, n1 * n2)), Status::Feasible);
   // Orientation is judged with at least half a picture cell of slack so the picture is readable at cone 0.

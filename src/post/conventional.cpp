@@ -130,14 +130,16 @@ std::vector<kin::Axes> conventional_axes(const cl::Program& program, const machi
     if (!ok) {
       const auto& t = mv.tip_in_part_mm;
       const auto& u = mv.axis_in_part;
-      throw InputError(SourceLoc{program.file, mv.line, 0},
-                       fmt::format("CL point ({:.4f}, {:.4f}, {:.4f}) axis ({:.5f}, {:.5f}, {:.5f}) cannot be reached "
-                                   "on machine '{}': {}",
-                                   t.x(), t.y(), t.z(), u.x(), u.y(), u.z(), machine.name,
-                                   first_violation.empty() ? std::string("no inverse-kinematics solution for this tool axis")
-                                                           : first_violation));
+      throw InputError(
+          SourceLoc{program.file, mv.line, 0},
+          fmt::format("CL point ({:.4f}, {:.4f}, {:.4f}) axis ({:.5f}, {:.5f}, {:.5f}) cannot be reached "
+                      "on machine '{}': {}",
+                      t.x(), t.y(), t.z(), u.x(), u.y(), u.z(), machine.name,
+                      first_violation.empty() ? std::string("no inverse-kinematics solution for this tool axis")
+                                              : first_violation));
     }
-    if (singular && always_sign == 0) resolve_singular(kinematics, program, static_cast<size_t>(&mv - program.moves.data()), chosen, sols);
+    if (singular && always_sign == 0)
+      resolve_singular(kinematics, program, static_cast<size_t>(&mv - program.moves.data()), chosen, sols);
     prev_pose = pose;
     out.push_back(chosen);
     prev = chosen;

@@ -62,7 +62,8 @@ Dialect make_dialect(const std::string& name) {
   // Cartesian mode is for a control that runs the PKM transformation itself.
   if (name == "xmini-joint") return {name, false, false};
   if (name == "xmini-cartesian") return {name, false, true};
-  throw InputError(fmt::format("unknown post dialect '{}' (known: linuxcnc, fanuc, xmini-joint, xmini-cartesian)", name));
+  throw InputError(
+      fmt::format("unknown post dialect '{}' (known: linuxcnc, fanuc, xmini-joint, xmini-cartesian)", name));
 }
 
 // --- Cartesian (TCP) output --------------------------------------------------------------------
@@ -101,8 +102,8 @@ std::string sanitize_comment(std::string s) {
 /// Writes blocks with modal suppression of unchanged axis words.
 class Writer {
  public:
-  Writer(std::ostream& out, const cl::Program& program, const machine::Machine& machine,
-         const kin::Kinematics& kin, const Options& opt, Summary& summary)
+  Writer(std::ostream& out, const cl::Program& program, const machine::Machine& machine, const kin::Kinematics& kin,
+         const Options& opt, Summary& summary)
       : out_(out), prog_(program), m_(machine), kin_(kin), opt_(opt), sum_(summary) {
     dialect_ = make_dialect(opt.dialect.empty() ? machine.post.dialect : opt.dialect);
     tol_mm_ = opt.tolerance_mm > 0 ? opt.tolerance_mm : machine.post.tolerance_mm;
@@ -173,14 +174,17 @@ class Writer {
       line("%");
       fmt::format_to(std::back_inserter(buf_), "({})\n", sanitize_comment(m_.post.program_name));
     }
-    fmt::format_to(std::back_inserter(buf_), "(cscam post: machine {} dialect {} strategy {})\n", sanitize_comment(m_.name),
-                   dialect_.name, sanitize_comment(opt_.strategy));
-    if (!opt_.source_name.empty()) fmt::format_to(std::back_inserter(buf_), "(source: {})\n", sanitize_comment(opt_.source_name));
-    fmt::format_to(std::back_inserter(buf_), "(cscam tool_length_mm={:.4f} tolerance_mm={:.4f})\n",
-                   opt_.tool_length_mm, tol_mm_);
+    fmt::format_to(std::back_inserter(buf_), "(cscam post: machine {} dialect {} strategy {})\n",
+                   sanitize_comment(m_.name), dialect_.name, sanitize_comment(opt_.strategy));
+    if (!opt_.source_name.empty())
+      fmt::format_to(std::back_inserter(buf_), "(source: {})\n", sanitize_comment(opt_.source_name));
+    fmt::format_to(std::back_inserter(buf_), "(cscam tool_length_mm={:.4f} tolerance_mm={:.4f})\n", opt_.tool_length_mm,
+                   tol_mm_);
     if (cart_)
-      fmt::format_to(std::back_inserter(buf_), "(cartesian: X Y Z = tool tip, {} {} = tool vector; the control runs the kinematics)\n",
-                     letters_[static_cast<size_t>(kin_.rotary_pair()[0])], letters_[static_cast<size_t>(kin_.rotary_pair()[1])]);
+      fmt::format_to(std::back_inserter(buf_),
+                     "(cartesian: X Y Z = tool tip, {} {} = tool vector; the control runs the kinematics)\n",
+                     letters_[static_cast<size_t>(kin_.rotary_pair()[0])],
+                     letters_[static_cast<size_t>(kin_.rotary_pair()[1])]);
     line("G21 G90 G94 G17 G40 G49 G80");
     mode93_ = false;
   }
@@ -209,8 +213,10 @@ class Writer {
                          sanitize_comment(prog_.tools[static_cast<size_t>(e.tool_index)].name),
                          prog_.tools[static_cast<size_t>(e.tool_index)].diameter_mm);
         // Retract before the change so the new tool does not come down into the part.
-        if (!cart_ && z_ >= 0 && have_state_) emit_safe_z();
-        else if (have_state_) axis_retract(SourceLoc{prog_.file, e.line, 0});
+        if (!cart_ && z_ >= 0 && have_state_)
+          emit_safe_z();
+        else if (have_state_)
+          axis_retract(SourceLoc{prog_.file, e.line, 0});
         // TCP on a serial machine: G43.4 (LinuxCNC, Fanuc). The XMINI's control runs its own transformation.
         const bool g434 = cart_ && m_.kind != machine::ModelKind::Xmini;
         fmt::format_to(std::back_inserter(buf_), "T{} M6\n{} H{}\n", n, g434 ? "G43.4" : "G43", n);
@@ -251,7 +257,8 @@ class Writer {
   void check_limits(const kin::Axes& q, const cl::Move& mv) const {
     const std::string v = kin_.check_limits(q);
     if (!v.empty())
-      throw InputError(SourceLoc{prog_.file, mv.line, 0}, fmt::format("the post refuses a block outside the limits: {}", v));
+      throw InputError(SourceLoc{prog_.file, mv.line, 0},
+                       fmt::format("the post refuses a block outside the limits: {}", v));
   }
 
   /// Appends the axis words of q that differ from the last written values.
@@ -348,7 +355,8 @@ class Writer {
     if (rotaries_differ(q) && z_ < 0 && axis_retract_) pkm_reposition(q, mv);
     set_mode94();
     buf_.append("G0");
-    if (!append_words(q, {0, 1, 2, 3, 4})) buf_.append(fmt::format(" {}{}", letters_[static_cast<size_t>(lin[0])], fmt_axis(lin[0], q[lin[0]])));
+    if (!append_words(q, {0, 1, 2, 3, 4}))
+      buf_.append(fmt::format(" {}{}", letters_[static_cast<size_t>(lin[0])], fmt_axis(lin[0], q[lin[0]])));
     buf_.push_back('\n');
     ++sum_.blocks;
     cur_ = q;
@@ -375,7 +383,6 @@ class Writer {
   }
 
   void feed(const cl::Move& m0, const kin::Axes& q0, const cl::Move& m1, const kin::Axes& q1) {
-    const auto rp = kin_.rotary_pair();
     const bool rot_moves = rotaries_differ(q1);
     const double feed_mm_min = m1.feed_mm_per_min > 0 ? m1.feed_mm_per_min : 1000.0;
     if (!rot_moves) {
@@ -423,7 +430,8 @@ class Writer {
           Vec3 a_int;
           const auto rp = kin_.rotary_pair();
           const Vec3 ctrl = P0 + sm * (P1 - P0);
-          if (kin_.tool_axis_at(qm[rp[0]], qm[rp[1]], target.tip_mm, a_int) && a_int.dot(target.axis) >= cos_tol_axis_ &&
+          if (kin_.tool_axis_at(qm[rp[0]], qm[rp[1]], target.tip_mm, a_int) &&
+              a_int.dot(target.axis) >= cos_tol_axis_ &&
               kin_.solve_for_rotaries(kin::Posed{ctrl - opt_.control_offset_mm * a_int, a_int}, qm) &&
               kin_.forward(qm).axis.dot(target.axis) >= cos_tol_axis_) {
             check_limits(qm, m1);
@@ -440,7 +448,8 @@ class Writer {
         ++sum_.ik_calls;
         const bool tracked = kin::track(kin_, pc.qa, from, target, qm);
         if (!tracked) {
-          sum_.warnings.push_back(fmt::format("{}: no IK solution while linearising", SourceLoc{prog_.file, m1.line, 0}.str()));
+          sum_.warnings.push_back(
+              fmt::format("{}: no IK solution while linearising", SourceLoc{prog_.file, m1.line, 0}.str()));
         } else {
           check_limits(qm, m1);
           ++sum_.inserted_points;
@@ -647,8 +656,8 @@ class Writer {
   int z_ = -1;
   double safe_z_ = 0.0;
   std::array<std::string, 5> letters_;  ///< word letter per axis slot (X Y Z for the tip in Cartesian mode)
-  bool cart_ = false;          ///< Cartesian (TCP) output: slots hold tip + tool-vector rotaries
-  bool axis_retract_ = false;  ///< retract along the tool axis to z = safe_z_mm (no Z axis, or Cartesian)
+  bool cart_ = false;                   ///< Cartesian (TCP) output: slots hold tip + tool-vector rotaries
+  bool axis_retract_ = false;           ///< retract along the tool axis to z = safe_z_mm (no Z axis, or Cartesian)
   Vec3 cart_tip_ = Vec3::Zero(), cart_axis_ = Vec3::UnitZ();  ///< last Cartesian position (part frame)
   bool have_state_ = false;
   bool mode93_ = false;

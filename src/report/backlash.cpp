@@ -31,7 +31,8 @@ std::vector<double> apply_play(const std::vector<double>& x, double width) {
       c = v > x.front() ? 0.5 * width : -0.5 * width;
       break;
     }
-  for (std::size_t i = 1; i < x.size(); ++i) y[i] = std::clamp(y[i - 1], x[i] + c - 0.5 * width, x[i] + c + 0.5 * width);
+  for (std::size_t i = 1; i < x.size(); ++i)
+    y[i] = std::clamp(y[i - 1], x[i] + c - 0.5 * width, x[i] + c + 0.5 * width);
   return y;
 }
 
@@ -141,10 +142,11 @@ BacklashResult simulate_backlash(const SampledPath& path, const kin::Kinematics&
 
 std::string BacklashResult::text() const {
   const double w_file = rotary ? rad2deg(width) : width;
-  std::string t = fmt::format("backlash {:.4f} {} on {}: {} reversals of {} ({} while cutting), {} feed samples\n",
-                              w_file, rotary ? "deg" : "mm", axis_name, reversals.size(), axis_name,
-                              std::count_if(reversals.begin(), reversals.end(), [](const BacklashReversal& v) { return v.in_feed; }),
-                              feed_samples);
+  std::string t = fmt::format(
+      "backlash {:.4f} {} on {}: {} reversals of {} ({} while cutting), {} feed samples\n", w_file,
+      rotary ? "deg" : "mm", axis_name, reversals.size(), axis_name,
+      std::count_if(reversals.begin(), reversals.end(), [](const BacklashReversal& v) { return v.in_feed; }),
+      feed_samples);
   t += "  tip deviation over feed blocks (actual - commanded):\n";
   for (std::size_t c = 0; c < 3; ++c) {
     if (feed_samples == 0) break;
@@ -161,13 +163,15 @@ std::string BacklashResult::text() const {
       continue;
     }
     const BacklashReversal& v = reversals[static_cast<std::size_t>(k)];
-    t += fmt::format("    max |step {}| = {:8.4f} um at NC line {} (tip {:.3f}, {:.3f}, {:.3f})\n", kComponent[c],
-                     1000.0 * max_abs_step_mm[static_cast<int>(c)], v.nc_line, v.tip_mm.x(), v.tip_mm.y(), v.tip_mm.z());
+    t +=
+        fmt::format("    max |step {}| = {:8.4f} um at NC line {} (tip {:.3f}, {:.3f}, {:.3f})\n", kComponent[c],
+                    1000.0 * max_abs_step_mm[static_cast<int>(c)], v.nc_line, v.tip_mm.x(), v.tip_mm.y(), v.tip_mm.z());
   }
   for (const BacklashReversal& v : reversals)
-    t += fmt::format("  reversal at NC line {} ({}): tip ({:.3f}, {:.3f}, {:.3f}), step ({:+.4f}, {:+.4f}, {:+.4f}) um\n",
-                     v.nc_line, v.in_feed ? "while cutting" : "at a rapid", v.tip_mm.x(), v.tip_mm.y(), v.tip_mm.z(),
-                     1000.0 * v.step_mm.x(), 1000.0 * v.step_mm.y(), 1000.0 * v.step_mm.z());
+    t += fmt::format(
+        "  reversal at NC line {} ({}): tip ({:.3f}, {:.3f}, {:.3f}), step ({:+.4f}, {:+.4f}, {:+.4f}) um\n", v.nc_line,
+        v.in_feed ? "while cutting" : "at a rapid", v.tip_mm.x(), v.tip_mm.y(), v.tip_mm.z(), 1000.0 * v.step_mm.x(),
+        1000.0 * v.step_mm.y(), 1000.0 * v.step_mm.z());
   return t;
 }
 
@@ -180,8 +184,8 @@ std::string BacklashResult::to_json() const {
   j += fmt::format("\"max_abs_step_mm\": {}, \"reversals\": [", vec(max_abs_step_mm));
   for (std::size_t k = 0; k < reversals.size(); ++k) {
     const BacklashReversal& v = reversals[k];
-    j += fmt::format("{}{{\"nc_line\": {}, \"in_feed\": {}, \"tip_mm\": {}, \"step_mm\": {}}}", k ? ", " : "", v.nc_line,
-                     v.in_feed ? "true" : "false", vec(v.tip_mm), vec(v.step_mm));
+    j += fmt::format("{}{{\"nc_line\": {}, \"in_feed\": {}, \"tip_mm\": {}, \"step_mm\": {}}}", k ? ", " : "",
+                     v.nc_line, v.in_feed ? "true" : "false", vec(v.tip_mm), vec(v.step_mm));
   }
   j += "]}";
   return j;

@@ -27,14 +27,16 @@ class ReversalCounter {
         extreme_ = v;
       }
     } else if (dir_ > 0) {
-      if (v > extreme_) extreme_ = v;
+      if (v > extreme_)
+        extreme_ = v;
       else if (extreme_ - v > h_) {
         ++count_;
         dir_ = -1;
         extreme_ = v;
       }
     } else {
-      if (v < extreme_) extreme_ = v;
+      if (v < extreme_)
+        extreme_ = v;
       else if (v - extreme_ > h_) {
         ++count_;
         dir_ = 1;
@@ -61,8 +63,8 @@ struct Sample {
 Stats compute_samples(const std::vector<Sample>& s, const std::array<std::string, 5>& names,
                       const std::array<bool, 5>& rotary) {
   Stats st;
-  std::array<ReversalCounter, 5> rev = {ReversalCounter(0), ReversalCounter(0), ReversalCounter(0),
-                                        ReversalCounter(0), ReversalCounter(0)};
+  std::array<ReversalCounter, 5> rev = {ReversalCounter(0), ReversalCounter(0), ReversalCounter(0), ReversalCounter(0),
+                                        ReversalCounter(0)};
   for (size_t a = 0; a < 5; ++a) {
     st.axes[a].name = names[a];
     st.axes[a].rotary = rotary[a];
@@ -148,7 +150,8 @@ Stats compute(const std::vector<kin::Axes>& path, const std::vector<bool>& rapid
   s.reserve(path.size());
   for (size_t i = 0; i < path.size(); ++i) {
     Sample x{};
-    for (size_t a = 0; a < 5; ++a) x.v[a] = rotary[a] ? rad2deg(path[i][static_cast<int>(a)]) : path[i][static_cast<int>(a)];
+    for (size_t a = 0; a < 5; ++a)
+      x.v[a] = rotary[a] ? rad2deg(path[i][static_cast<int>(a)]) : path[i][static_cast<int>(a)];
     x.rapid = i < rapid.size() && rapid[i];
     x.line = static_cast<int>(i) + 1;
     s.push_back(x);
@@ -197,7 +200,8 @@ std::string table(const std::vector<Stats>& cols, const std::vector<std::string>
   for (size_t a = 0; a < 5; ++a) {
     const std::string nm = cols.empty() ? "" : cols[0].axes[a].name;
     const std::string unit = cols.empty() || !cols[0].axes[a].rotary ? "mm" : "deg";
-    row(fmt::format("{} travel ({})", nm, unit), [a](const Stats& s) { return fmt::format("{:.3f}", s.axes[a].travel); });
+    row(fmt::format("{} travel ({})", nm, unit),
+        [a](const Stats& s) { return fmt::format("{:.3f}", s.axes[a].travel); });
     row(fmt::format("{} reversals", nm), [a](const Stats& s) { return fmt::format("{}", s.axes[a].reversals); });
     if (!cols.empty() && cols[0].axes[a].rotary)
       row(fmt::format("{} largest step (deg)", nm),

@@ -12,11 +12,16 @@ namespace cscam::report {
 namespace {
 const char* colour(cspace::Status s) {
   switch (s) {
-    case cspace::Status::Feasible: return "#5cb85c";
-    case cspace::Status::Orientation: return "#e6e6e6";
-    case cspace::Status::Stroke: return "#f0ad4e";
-    case cspace::Status::Collision: return "#d9534f";
-    default: return "#ffffff";
+    case cspace::Status::Feasible:
+      return "#5cb85c";
+    case cspace::Status::Orientation:
+      return "#e6e6e6";
+    case cspace::Status::Stroke:
+      return "#f0ad4e";
+    case cspace::Status::Collision:
+      return "#d9534f";
+    default:
+      return "#ffffff";
   }
 }
 }  // namespace
@@ -27,15 +32,17 @@ std::string cspace_svg(const plan::SegmentSpace& sp, const std::string& n1, cons
   const double W = 820, H = 520, ml = 70, mb = 60, mt = 50, mr = 230;
   const double cw = (W - ml - mr) / std::max(1, c1), ch = (H - mt - mb) / std::max(1, c2);
   std::string s = fmt::format(
-      "<svg xmlns=\"http://www.w3.org/2000/svg\" width=\"{}\" height=\"{}\" font-family=\"sans-serif\" font-size=\"12\">\n"
+      "<svg xmlns=\"http://www.w3.org/2000/svg\" width=\"{}\" height=\"{}\" font-family=\"sans-serif\" "
+      "font-size=\"12\">\n"
       "<rect width=\"100%\" height=\"100%\" fill=\"white\"/>\n<text x=\"{}\" y=\"25\" font-size=\"15\">{}</text>\n",
       W, H, ml, title);
   auto X = [&](double r1) { return ml + (r1 / sp.resolution_rad - sp.i1_min + 0.5) * cw; };
   auto Y = [&](double r2) { return H - mb - (r2 / sp.resolution_rad - sp.i2_min + 0.5) * ch; };
   for (int b = 0; b < c2; ++b)
     for (int a = 0; a < c1; ++a)
-      s += fmt::format("<rect x=\"{:.2f}\" y=\"{:.2f}\" width=\"{:.2f}\" height=\"{:.2f}\" fill=\"{}\"/>\n", ml + a * cw,
-                       H - mb - (b + 1) * ch, cw + 0.05, ch + 0.05, colour(sp.status[static_cast<size_t>(b * c1 + a)]));
+      s +=
+          fmt::format("<rect x=\"{:.2f}\" y=\"{:.2f}\" width=\"{:.2f}\" height=\"{:.2f}\" fill=\"{}\"/>\n", ml + a * cw,
+                      H - mb - (b + 1) * ch, cw + 0.05, ch + 0.05, colour(sp.status[static_cast<size_t>(b * c1 + a)]));
   if (!sp.path.empty()) {
     s += "<polyline fill=\"none\" stroke=\"#1f3a93\" stroke-width=\"2\" points=\"";
     for (const auto& [r1, r2] : sp.path) s += fmt::format("{:.2f},{:.2f} ", X(r1), Y(r2));
@@ -49,7 +56,8 @@ std::string cspace_svg(const plan::SegmentSpace& sp, const std::string& n1, cons
   for (int t = 0; t <= 4; ++t) {
     const double r1 = (sp.i1_min + (c1 - 1) * t / 4.0) * sp.resolution_rad;
     const double r2 = (sp.i2_min + (c2 - 1) * t / 4.0) * sp.resolution_rad;
-    s += fmt::format("<text x=\"{:.1f}\" y=\"{}\" text-anchor=\"middle\">{:.1f}</text>\n", X(r1), H - mb + 18, rad2deg(r1));
+    s += fmt::format("<text x=\"{:.1f}\" y=\"{}\" text-anchor=\"middle\">{:.1f}</text>\n", X(r1), H - mb + 18,
+                     rad2deg(r1));
     s += fmt::format("<text x=\"{}\" y=\"{:.1f}\" text-anchor=\"end\">{:.1f}</text>\n", ml - 6, Y(r2) + 4, rad2deg(r2));
   }
   s += fmt::format("<text x=\"{}\" y=\"{}\" text-anchor=\"middle\">{} (deg)</text>\n", (ml + W - mr) / 2, H - 15, n1);
@@ -62,8 +70,8 @@ std::string cspace_svg(const plan::SegmentSpace& sp, const std::string& n1, cons
   for (int i = 0; i < 5; ++i) {
     const double y = mt + 10 + i * 22;
     if (i < 4)
-      s += fmt::format("<rect x=\"{}\" y=\"{}\" width=\"14\" height=\"14\" fill=\"{}\" stroke=\"#999\"/>\n", W - mr + 12, y,
-                       colour(sts[i]));
+      s += fmt::format("<rect x=\"{}\" y=\"{}\" width=\"14\" height=\"14\" fill=\"{}\" stroke=\"#999\"/>\n",
+                       W - mr + 12, y, colour(sts[i]));
     else
       s += fmt::format("<line x1=\"{}\" y1=\"{}\" x2=\"{}\" y2=\"{}\" stroke=\"#1f3a93\" stroke-width=\"2\"/>\n",
                        W - mr + 12, y + 7, W - mr + 26, y + 7);
@@ -80,7 +88,8 @@ std::string axis_plot_svg(const std::vector<std::vector<kin::Axes>>& paths, cons
   const double H = mt + 2 * Hp + 20;
   const char* cols[] = {"#d9534f", "#1f3a93", "#5cb85c", "#f0ad4e"};
   std::string s = fmt::format(
-      "<svg xmlns=\"http://www.w3.org/2000/svg\" width=\"{}\" height=\"{}\" font-family=\"sans-serif\" font-size=\"12\">\n"
+      "<svg xmlns=\"http://www.w3.org/2000/svg\" width=\"{}\" height=\"{}\" font-family=\"sans-serif\" "
+      "font-size=\"12\">\n"
       "<rect width=\"100%\" height=\"100%\" fill=\"white\"/>\n<text x=\"{}\" y=\"25\" font-size=\"15\">{}</text>\n",
       W, H, ml, title);
   const std::size_t n = last >= first ? last - first + 1 : 0;
@@ -111,9 +120,11 @@ std::string axis_plot_svg(const std::vector<std::vector<kin::Axes>>& paths, cons
     }
   }
   for (std::size_t k = 0; k < labels.size(); ++k)
-    s += fmt::format("<line x1=\"{}\" y1=\"{}\" x2=\"{}\" y2=\"{}\" stroke=\"{}\" stroke-width=\"2\"/><text x=\"{}\" y=\"{}\">{}</text>\n",
-                     W - mr + 10, mt + 10 + 20 * k, W - mr + 30, mt + 10 + 20 * k, cols[k % 4], W - mr + 36,
-                     mt + 14 + 20 * k, labels[k]);
+    s += fmt::format(
+        "<line x1=\"{}\" y1=\"{}\" x2=\"{}\" y2=\"{}\" stroke=\"{}\" stroke-width=\"2\"/><text x=\"{}\" "
+        "y=\"{}\">{}</text>\n",
+        W - mr + 10, mt + 10 + 20 * k, W - mr + 30, mt + 10 + 20 * k, cols[k % 4], W - mr + 36, mt + 14 + 20 * k,
+        labels[k]);
   s += fmt::format("<text x=\"{}\" y=\"{}\" text-anchor=\"middle\">CL point</text>\n", (ml + W - mr) / 2, H - 8);
   s += "</svg>\n";
   return s;

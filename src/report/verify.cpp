@@ -160,13 +160,14 @@ VerifyResult verify(const nc::Program& nc, const cl::Program& cl, const kin::Kin
   const bool cover_ok = r.max_uncovered_cl_mm <= options.tip_tolerance_mm;
   r.ok = tip_ok && axis_ok && cover_ok;
   if (r.ok) {
-    r.message = fmt::format("OK: max tip deviation {:.5f} mm, max axis deviation {:.4f} deg over {} samples in {} feed blocks",
-                            r.max_tip_deviation_mm, r.max_axis_deviation_deg, r.samples, r.feed_blocks);
+    r.message =
+        fmt::format("OK: max tip deviation {:.5f} mm, max axis deviation {:.4f} deg over {} samples in {} feed blocks",
+                    r.max_tip_deviation_mm, r.max_axis_deviation_deg, r.samples, r.feed_blocks);
   } else {
     r.message = "FAILED:";
     if (!tip_ok)
-      r.message += fmt::format(" tip deviation {:.5f} mm > {:.5f} mm at NC line {} (CL line {});", r.max_tip_deviation_mm,
-                               options.tip_tolerance_mm, r.max_tip_nc_line, r.max_tip_cl_line);
+      r.message += fmt::format(" tip deviation {:.5f} mm > {:.5f} mm at NC line {} (CL line {});",
+                               r.max_tip_deviation_mm, options.tip_tolerance_mm, r.max_tip_nc_line, r.max_tip_cl_line);
     if (!axis_ok)
       r.message += fmt::format(" axis deviation {:.4f} deg > {:.4f} deg at NC line {};", r.max_axis_deviation_deg,
                                options.axis_tolerance_deg, r.max_axis_nc_line);

@@ -45,10 +45,10 @@ struct Event {
   Kind kind = Kind::Comment;
   std::size_t before_move = 0;  ///< index of the first move after the event
   int line = 0;
-  int tool_index = -1;         ///< ToolChange
-  double spindle_rpm = 0.0;    ///< SpindleOn
-  bool clockwise = true;       ///< SpindleOn
-  std::string text;            ///< Comment / OperationStart name / coolant mode (FLOOD, MIST, ...)
+  int tool_index = -1;       ///< ToolChange
+  double spindle_rpm = 0.0;  ///< SpindleOn
+  bool clockwise = true;     ///< SpindleOn
+  std::string text;          ///< Comment / OperationStart name / coolant mode (FLOOD, MIST, ...)
 };
 
 struct Warning {
@@ -59,13 +59,13 @@ struct Warning {
 /// A whole CL file.
 struct Program {
   std::string file;
-  std::string part_name;             ///< PARTNO / TOOL PATH name
+  std::string part_name;  ///< PARTNO / TOOL PATH name
   LengthUnit source_units = LengthUnit::Millimetre;
-  bool multax = false;               ///< the file declared MULTAX or gave i,j,k on a GOTO
+  bool multax = false;                              ///< the file declared MULTAX or gave i,j,k on a GOTO
   std::optional<Eigen::Matrix<double, 3, 4>> msys;  ///< NX MSYS (origin, x axis, y axis), mm
   std::vector<Tool> tools;
   std::vector<Move> moves;
-  std::vector<Event> events;         ///< ordered by before_move, then by line
+  std::vector<Event> events;  ///< ordered by before_move, then by line
   std::vector<Warning> warnings;
 };
 

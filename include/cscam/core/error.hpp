@@ -36,7 +36,7 @@ class InputError : public std::runtime_error {
 
 }  // namespace cscam
 
-#define CSCAM_CHECK(cond, msg)                                        \
-  do {                                                                \
+#define CSCAM_CHECK(cond, msg)                                                \
+  do {                                                                        \
     if (!(cond)) ::cscam::invariant_failed(#cond, __FILE__, __LINE__, (msg)); \
   } while (0)

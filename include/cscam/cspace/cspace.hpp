@@ -22,8 +22,8 @@ const char* to_string(Status s);
 
 /// Per-operation settings of the C-space.
 struct Options {
-  double cone_rad = 0.0;        ///< allowed angle between the cell's tool axis and the CL axis; 0: exact IK
-  double min_tilt_rad = 0.0;    ///< keep at least this angle from the CL axis (ball mills off dead centre)
+  double cone_rad = 0.0;      ///< allowed angle between the cell's tool axis and the CL axis; 0: exact IK
+  double min_tilt_rad = 0.0;  ///< keep at least this angle from the CL axis (ball mills off dead centre)
   double resolution_rad = 1.0 * 3.14159265358979323846 / 180.0;
   /// Ball-end tools keep the ball centre fixed when the orientation changes (the tip moves); others keep
   /// the tip. Set from the CL tool.
@@ -40,20 +40,20 @@ struct Cell {
   int i1 = 0, i2 = 0;         ///< grid indices (for exact IK cells at cone 0: branch/winding ids)
   float orient_err = 0.0f;    ///< angle to the CL axis, rad
   Status status = Status::Unknown;
-  bool singular = false;      ///< exact IK cell whose primary rotary is free (tool axis along it)
+  bool singular = false;  ///< exact IK cell whose primary rotary is free (tool axis along it)
   float clearance_mm = std::numeric_limits<float>::quiet_NaN();
-  std::string detail;         ///< for a failed cell: the broken limit or the part that collided
+  std::string detail;                  ///< for a failed cell: the broken limit or the part that collided
   kin::Axes axes = kin::Axes::Zero();  ///< every axis (valid once evaluated and not Orientation)
 };
 
 /// Query counters (for benchmarks and the compare report).
 struct Counters {
   std::uint64_t cells_enumerated = 0;
-  std::uint64_t ik = 0;          ///< linear-axis solves for a cell
-  std::uint64_t stroke = 0;      ///< limit checks
-  std::uint64_t collision = 0;   ///< collision queries
+  std::uint64_t ik = 0;         ///< linear-axis solves for a cell
+  std::uint64_t stroke = 0;     ///< limit checks
+  std::uint64_t collision = 0;  ///< collision queries
   std::uint64_t cache_hits = 0;
-  std::uint64_t certified = 0;   ///< collision queries skipped by a clearance certificate
+  std::uint64_t certified = 0;  ///< collision queries skipped by a clearance certificate
   Counters& operator+=(const Counters& o);
 };
 

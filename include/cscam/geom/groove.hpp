@@ -32,25 +32,25 @@ namespace cscam::geom {
 
 /// Dimensions of the groove block (mm) and its tessellation.
 struct GrooveParams {
-  double length_mm = 100.0;         ///< along X (groove and block)
-  double floor_width_mm = 30.0;     ///< groove width at the floor (z = 0)
-  double mouth_width_mm = 20.0;     ///< groove width at the top surface (z = depth); < floor width: overhang
-  double depth_mm = 20.0;           ///< floor to top surface
-  double wall_radius_mm = 25.0;     ///< radius of the wall arcs; 0 = straight (planar) walls
-  double block_width_mm = 60.0;     ///< along Y
-  double floor_thickness_mm = 10.0; ///< material below the floor
-  int wall_segments = 24;           ///< chords per wall arc
-  int floor_segments = 8;           ///< segments across the floor
-  int length_segments = 8;          ///< segments along X
+  double length_mm = 100.0;          ///< along X (groove and block)
+  double floor_width_mm = 30.0;      ///< groove width at the floor (z = 0)
+  double mouth_width_mm = 20.0;      ///< groove width at the top surface (z = depth); < floor width: overhang
+  double depth_mm = 20.0;            ///< floor to top surface
+  double wall_radius_mm = 25.0;      ///< radius of the wall arcs; 0 = straight (planar) walls
+  double block_width_mm = 60.0;      ///< along Y
+  double floor_thickness_mm = 10.0;  ///< material below the floor
+  int wall_segments = 24;            ///< chords per wall arc
+  int floor_segments = 8;            ///< segments across the floor
+  int length_segments = 8;           ///< segments along X
 };
 
 /// The analytic right wall (the left is mirrored, y -> -y): a circular arc from the floor corner to the lip.
 struct GrooveProfile {
   double centre_y_mm = 0.0, centre_z_mm = 0.0;  ///< arc centre (on the cavity side); meaningless for straight walls
-  double radius_mm = 0.0;                        ///< 0 for straight walls
-  double floor_corner_y_mm = 0.0;                ///< = floor_width/2 (z = 0)
-  double lip_y_mm = 0.0, lip_z_mm = 0.0;         ///< = (mouth_width/2, depth)
-  double max_half_width_mm = 0.0;                ///< widest point of the cavity (the bulge), >= floor/mouth half widths
+  double radius_mm = 0.0;                       ///< 0 for straight walls
+  double floor_corner_y_mm = 0.0;               ///< = floor_width/2 (z = 0)
+  double lip_y_mm = 0.0, lip_z_mm = 0.0;        ///< = (mouth_width/2, depth)
+  double max_half_width_mm = 0.0;               ///< widest point of the cavity (the bulge), >= floor/mouth half widths
 };
 
 /// Validates the parameters and computes the analytic right-wall profile.

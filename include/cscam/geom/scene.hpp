@@ -61,12 +61,12 @@ struct ToolSegment {
 /// Defaults used by ToolShape::from_cutter for what the CL file does not say (typically supplied by the
 /// machine file). A negative value means "derive from the cutter diameter D" as documented per field.
 struct ToolDefaults {
-  double shank_diameter_mm = -1.0;  ///< < 0: D
-  double shank_length_mm = -1.0;    ///< stick-out between flutes and holder; < 0: 2 D
-  double holder_diameter_mm = -1.0; ///< < 0: 2.5 D
+  double shank_diameter_mm = -1.0;   ///< < 0: D
+  double shank_length_mm = -1.0;     ///< stick-out between flutes and holder; < 0: 2 D
+  double holder_diameter_mm = -1.0;  ///< < 0: 2.5 D
   double holder_length_mm = 40.0;
-  CylinderStage holder2{};          ///< optional second holder stage (absent by default)
-  CylinderStage spindle{};          ///< spindle nose (absent by default: the machine file should give it)
+  CylinderStage holder2{};  ///< optional second holder stage (absent by default)
+  CylinderStage spindle{};  ///< spindle nose (absent by default: the machine file should give it)
 };
 
 /// A tool assembly described along its axis from the tip upward, stacked without gaps:

@@ -21,7 +21,7 @@ struct JointGeometry {
   AxisType type = AxisType::Linear;
   Side side = Side::Head;
   Eigen::Matrix<T, 3, 1> direction = Eigen::Matrix<T, 3, 1>::UnitX();  ///< unit
-  Eigen::Matrix<T, 3, 1> pivot_mm = Eigen::Matrix<T, 3, 1>::Zero();     ///< a point on a rotary axis
+  Eigen::Matrix<T, 3, 1> pivot_mm = Eigen::Matrix<T, 3, 1>::Zero();    ///< a point on a rotary axis
   T offset = T(0);  ///< added to the commanded value (zero-point error; rad or mm)
 
   template <typename U>
@@ -40,11 +40,11 @@ struct JointGeometry {
 template <typename T>
 struct SerialGeometry {
   std::array<JointGeometry<T>, 5> joints;  ///< in axis order (the order of Axes)
-  std::vector<int> table_chain;           ///< joint indices from the base outward to the part
-  std::vector<int> head_chain;            ///< joint indices from the base outward to the tool
+  std::vector<int> table_chain;            ///< joint indices from the base outward to the part
+  std::vector<int> head_chain;             ///< joint indices from the base outward to the tool
   Eigen::Matrix<T, 3, 1> tool_direction_home = Eigen::Matrix<T, 3, 1>::UnitZ();  ///< tip -> spindle
-  Eigen::Matrix<T, 3, 1> gauge_home_mm = Eigen::Matrix<T, 3, 1>::Zero();  ///< spindle gauge point at home
-  Eigen::Matrix<T, 3, 1> part_origin_home_mm = Eigen::Matrix<T, 3, 1>::Zero();  ///< CL origin at home
+  Eigen::Matrix<T, 3, 1> gauge_home_mm = Eigen::Matrix<T, 3, 1>::Zero();         ///< spindle gauge point at home
+  Eigen::Matrix<T, 3, 1> part_origin_home_mm = Eigen::Matrix<T, 3, 1>::Zero();   ///< CL origin at home
   T tool_length_mm = T(0);  ///< gauge point to tip, along the tool axis
 
   template <typename U>
@@ -69,7 +69,7 @@ Eigen::Matrix<T, 3, 3> axis_angle(const Eigen::Matrix<T, 3, 1>& w, const T& angl
   const T c = cos(angle), s = sin(angle), v = T(1) - c;
   Eigen::Matrix<T, 3, 3> R;
   R << c + w.x() * w.x() * v, w.x() * w.y() * v - w.z() * s, w.x() * w.z() * v + w.y() * s,  //
-      w.y() * w.x() * v + w.z() * s, c + w.y() * w.y() * v, w.y() * w.z() * v - w.x() * s,    //
+      w.y() * w.x() * v + w.z() * s, c + w.y() * w.y() * v, w.y() * w.z() * v - w.x() * s,   //
       w.z() * w.x() * v - w.y() * s, w.z() * w.y() * v + w.x() * s, c + w.z() * w.z() * v;
   return R;
 }
@@ -135,7 +135,7 @@ class SerialKinematics final : public Kinematics {
  private:
   SerialGeometry<double> geometry_;
   std::vector<AxisInfo> axes_;
-  std::array<int, 2> rot_{};    ///< rotary joints in Paden-Kahan order: u = Rot(w1, s1 q1) Rot(w2, s2 q2) d0
+  std::array<int, 2> rot_{};      ///< rotary joints in Paden-Kahan order: u = Rot(w1, s1 q1) Rot(w2, s2 q2) d0
   std::array<double, 2> sign_{};  ///< -1 for a table rotary (its inverse enters), +1 for a head rotary
   std::array<int, 3> lin_{};
 };

@@ -18,8 +18,8 @@ struct AxisInfo {
   AxisType type = AxisType::Linear;
   double min = 0.0;  ///< mm or rad
   double max = 0.0;
-  bool cyclic = false;           ///< a rotary that may turn without end (limits then only bound the output)
-  double max_feed = 0.0;         ///< mm/min or rad/min; 0 = unknown
+  bool cyclic = false;    ///< a rotary that may turn without end (limits then only bound the output)
+  double max_feed = 0.0;  ///< mm/min or rad/min; 0 = unknown
   [[nodiscard]] bool rotary() const { return type == AxisType::Rotary; }
 };
 
@@ -34,7 +34,7 @@ using Posed = Pose<double>;
 /// One inverse-kinematics solution.
 struct Solution {
   Axes axes = Axes::Zero();
-  int branch = 0;      ///< which closed-form root (0/1; meaning is model specific)
+  int branch = 0;         ///< which closed-form root (0/1; meaning is model specific)
   bool singular = false;  ///< the primary rotary was undetermined and taken from the hint
   std::string violation;  ///< empty when every axis is inside its limits, else the first broken limit
   [[nodiscard]] bool feasible() const { return violation.empty(); }

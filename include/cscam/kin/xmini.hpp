@@ -40,10 +40,8 @@ namespace xmini_detail {
 /// Jet of Jets works too). Found without including Ceres: any type with a member `a` is a Jet.
 inline double value_of(double x) { return x; }
 template <typename J>
-  requires requires(const J& j) { j.a; }
-double value_of(const J& j) {
-  return value_of(j.a);
-}
+requires requires(const J& j) { j.a; }
+double value_of(const J& j) { return value_of(j.a); }
 
 /// Converts between scalar types: double -> Jet by the Jet's constructor, Jet -> double by value_of.
 template <typename U, typename T>
@@ -157,16 +155,14 @@ struct XminiParams {
   /// Pointers to the members, in the spec's order.
   static const std::array<T XminiParams::*, kCount>& members() {
     static const std::array<T XminiParams::*, kCount> m{
-        &XminiParams::pWB_x, &XminiParams::pWB_y, &XminiParams::pWB_z, &XminiParams::theta0,
-        &XminiParams::eps_y, &XminiParams::eps_z, &XminiParams::A1x,   &XminiParams::A3x,
-        &XminiParams::l1,    &XminiParams::l3,    &XminiParams::A2x,   &XminiParams::A2y,
-        &XminiParams::A2z,   &XminiParams::b1x,   &XminiParams::b1z,   &XminiParams::b3x,
-        &XminiParams::b3z,   &XminiParams::c2x,   &XminiParams::c2y,   &XminiParams::c2z,
-        &XminiParams::phi,   &XminiParams::chi,   &XminiParams::L01,   &XminiParams::L02,
-        &XminiParams::L03,   &XminiParams::sCx,   &XminiParams::sCy,   &XminiParams::sCz,
-        &XminiParams::gC1,   &XminiParams::gC2,   &XminiParams::c0,    &XminiParams::e,
-        &XminiParams::f,     &XminiParams::psi,   &XminiParams::a0,    &XminiParams::gx,
-        &XminiParams::gy,    &XminiParams::gz};
+        &XminiParams::pWB_x, &XminiParams::pWB_y, &XminiParams::pWB_z, &XminiParams::theta0, &XminiParams::eps_y,
+        &XminiParams::eps_z, &XminiParams::A1x,   &XminiParams::A3x,   &XminiParams::l1,     &XminiParams::l3,
+        &XminiParams::A2x,   &XminiParams::A2y,   &XminiParams::A2z,   &XminiParams::b1x,    &XminiParams::b1z,
+        &XminiParams::b3x,   &XminiParams::b3z,   &XminiParams::c2x,   &XminiParams::c2y,    &XminiParams::c2z,
+        &XminiParams::phi,   &XminiParams::chi,   &XminiParams::L01,   &XminiParams::L02,    &XminiParams::L03,
+        &XminiParams::sCx,   &XminiParams::sCy,   &XminiParams::sCz,   &XminiParams::gC1,    &XminiParams::gC2,
+        &XminiParams::c0,    &XminiParams::e,     &XminiParams::f,     &XminiParams::psi,    &XminiParams::a0,
+        &XminiParams::gx,    &XminiParams::gy,    &XminiParams::gz};
     return m;
   }
 
@@ -236,31 +232,31 @@ struct XminiGeometry {
   using Vec3 = Eigen::Matrix<T, 3, 1>;
   using Mat3 = Eigen::Matrix<T, 3, 3>;
 
-  Mat3 R_WB;                            ///< base orientation in W
-  Vec3 p_WB_mm;                         ///< base origin in W
+  Mat3 R_WB;                               ///< base orientation in W
+  Vec3 p_WB_mm;                            ///< base origin in W
   T A1x_mm{}, A3x_mm{}, l1_mm{}, l3_mm{};  ///< legs 1/3 base joints: A_i = A_ix e_x + l_i w(alpha)
-  Vec3 A2_B_mm;                         ///< leg-2 spherical joint in B
-  Vec3 b1_P_mm, b3_P_mm, c2_P_mm;       ///< platform joints in P
-  Vec3 u2_P;                            ///< leg-2 revolute axis in P (unit)
-  Vec3 L0_mm;                           ///< leg offsets
-  Vec3 sC_P_mm;                         ///< C-axis origin in P
-  Mat3 R_PC0;                           ///< Rx(gC1) Ry(gC2): C-axis orientation in P
-  T c0_rad{}, a0_rad{};                 ///< rotary zero offsets
-  Vec3 ef_mm;                           ///< (0, e, f): C frame to A frame offset
-  Mat3 R_psi;                           ///< Ry(psi)
+  Vec3 A2_B_mm;                            ///< leg-2 spherical joint in B
+  Vec3 b1_P_mm, b3_P_mm, c2_P_mm;          ///< platform joints in P
+  Vec3 u2_P;                               ///< leg-2 revolute axis in P (unit)
+  Vec3 L0_mm;                              ///< leg offsets
+  Vec3 sC_P_mm;                            ///< C-axis origin in P
+  Mat3 R_PC0;                              ///< Rx(gC1) Ry(gC2): C-axis orientation in P
+  T c0_rad{}, a0_rad{};                    ///< rotary zero offsets
+  Vec3 ef_mm;                              ///< (0, e, f): C frame to A frame offset
+  Mat3 R_psi;                              ///< Ry(psi)
   T sin_psi{}, cos_psi{};
-  Vec3 gauge_A_mm;                      ///< spindle gauge point in A
+  Vec3 gauge_A_mm;  ///< spindle gauge point in A
   /// psi = gx = gy = e = 0 exactly: then the two wrist branches (a, c) and (-a, c + 180 deg) give the
   /// same tool pose for the same platform state, so IK solves the platform once for both.
   bool wrist_branches_share_platform = false;
 
   XminiGeometry() = default;
   explicit XminiGeometry(const XminiParams<T>& p) {
+    using std::cos;
+    using std::sin;
     using xmini_detail::rot_x;
     using xmini_detail::rot_y;
     using xmini_detail::rot_z;
-    using std::cos;
-    using std::sin;
     // Rx(180 deg) is applied exactly rather than through cos(pi + theta0).
     const Mat3 flip = Eigen::DiagonalMatrix<T, 3>(T(1), T(-1), T(-1)).toDenseMatrix();
     R_WB = flip * rot_x(p.theta0) * rot_y(p.eps_y) * rot_z(p.eps_z);
@@ -336,12 +332,12 @@ inline XminiState<double> xmini_home_state() { return XminiState<double>(0.0, 0.
 /// Everything that follows from a platform state, in frame B.
 template <typename T>
 struct XminiPlatform {
-  Eigen::Matrix<T, 3, 3> R_BP;               ///< Rx(alpha) Ry(beta)
-  Eigen::Matrix<T, 3, 1> E_B_mm;             ///< platform origin
+  Eigen::Matrix<T, 3, 3> R_BP;                     ///< Rx(alpha) Ry(beta)
+  Eigen::Matrix<T, 3, 1> E_B_mm;                   ///< platform origin
   std::array<Eigen::Matrix<T, 3, 1>, 3> leg_B_mm;  ///< base joint centre -> platform joint, legs 1..3
-  Eigen::Matrix<T, 3, 1> rho_mm;             ///< leg lengths |leg_i|
-  Eigen::Matrix<T, 3, 1> u2_B;               ///< leg-2 revolute axis R_BP u2
-  T leg2_constraint_mm{};                    ///< leg_2 . u2_B; zero on the machine
+  Eigen::Matrix<T, 3, 1> rho_mm;                   ///< leg lengths |leg_i|
+  Eigen::Matrix<T, 3, 1> u2_B;                     ///< leg-2 revolute axis R_BP u2
+  T leg2_constraint_mm{};                          ///< leg_2 . u2_B; zero on the machine
 };
 
 /// Legs, leg lengths and the leg-2 constraint for platform state x.
@@ -517,14 +513,14 @@ struct XminiFkResult {
 
 /// Solves the four platform equations for x given leg lengths rho (mm), by Newton with the analytic
 /// Jacobian, starting from `x` (in/out). Stops at residual <= kXminiFkResidualMm.
-XminiSolveSummary solve_platform(const XminiGeometry<double>& g, const Eigen::Vector3d& rho_mm,
-                                 XminiState<double>& x, int max_iterations = 30);
+XminiSolveSummary solve_platform(const XminiGeometry<double>& g, const Eigen::Vector3d& rho_mm, XminiState<double>& x,
+                                 int max_iterations = 30);
 
 /// Forward kinematics in double: joints (q1, q2, q3 mm; c, a rad) -> platform state and tool pose.
 /// Warm-started from ws.last_state if ws.has_last (falls back to home if that does not converge);
 /// on success the solution is stored back in ws.
-XminiFkResult<double> xmini_forward(const XminiGeometry<double>& g, const XminiJoints<double>& q,
-                                    double tool_length_mm, XminiWorkspace& ws);
+XminiFkResult<double> xmini_forward(const XminiGeometry<double>& g, const XminiJoints<double>& q, double tool_length_mm,
+                                    XminiWorkspace& ws);
 
 /// Forward kinematics for any scalar (double, ceres::Jet).
 ///
@@ -567,8 +563,8 @@ Eigen::Matrix<double, 6, 5> xmini_jacobian(const XminiGeometry<double>& g, const
 
 /// One inverse-kinematics solution (one wrist branch, one C winding).
 struct XminiIkSolution {
-  double q1_mm = 0, q2_mm = 0, q3_mm = 0;  ///< leg strokes q_i = rho_i - L0_i
-  double c_rad = 0, a_rad = 0;             ///< wrist commands
+  double q1_mm = 0, q2_mm = 0, q3_mm = 0;                    ///< leg strokes q_i = rho_i - L0_i
+  double c_rad = 0, a_rad = 0;                               ///< wrist commands
   double alpha_rad = 0, beta_rad = 0, Eu_mm = 0, Ev_mm = 0;  ///< platform state
   /// +1: the closed form's '+' root, a + a0 = +acos(...) >= 0 (so a >= 0 whenever |a| > |a0|);
   /// -1: the other wrist branch, (-a, c + 180 deg) exactly when psi = gx = gy = e = 0 and nearly
@@ -609,8 +605,8 @@ std::vector<XminiLimitViolation> check_limits(const XminiLimits& limits, const X
 /// closed form (exact for the nominal parameters), solves the full system for any parameters.
 /// Throws InputError if u has zero length.
 void xmini_inverse(const XminiGeometry<double>& g, const XminiLimits& limits, double tool_length_mm,
-                   const Eigen::Vector3d& tip_in_W_mm, const Eigen::Vector3d& u_in_W,
-                   std::optional<double> c_hint_rad, std::vector<XminiIkSolution>& out);
+                   const Eigen::Vector3d& tip_in_W_mm, const Eigen::Vector3d& u_in_W, std::optional<double> c_hint_rad,
+                   std::vector<XminiIkSolution>& out);
 
 /// The feasible solutions only (exact and inside every limit).
 std::vector<XminiIkSolution> feasible_solutions(const std::vector<XminiIkSolution>& all);

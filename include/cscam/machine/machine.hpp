@@ -17,15 +17,16 @@ namespace cscam::machine {
 
 /// How the post writes programs for this machine.
 struct PostSettings {
-  std::string dialect = "linuxcnc";          ///< linuxcnc | fanuc | xmini-joint | ...
-  bool tcp = false;                          ///< true: the control does the kinematics (G43.4 / TCPM)
-  std::array<std::string, 5> letters;        ///< G-code word letter of each axis
+  std::string dialect = "linuxcnc";    ///< linuxcnc | fanuc | xmini-joint | ...
+  bool tcp = false;                    ///< true: the control does the kinematics (G43.4 / TCPM)
+  std::array<std::string, 5> letters;  ///< G-code word letter of each axis
   int decimals_linear = 4;
   int decimals_rotary = 4;
-  double tolerance_mm = 0.01;                ///< linearisation chord tolerance of the tip
-  double axis_tolerance_deg = 0.3;           ///< linearisation tolerance of the tool axis
-  double safe_z_mm = std::numeric_limits<double>::quiet_NaN();  ///< machine Z of the safe retract plane; NaN: the Z limit
-  std::string start_branch = "nearest_home";  ///< nearest_home | positive:<axis> | negative:<axis>
+  double tolerance_mm = 0.01;       ///< linearisation chord tolerance of the tip
+  double axis_tolerance_deg = 0.3;  ///< linearisation tolerance of the tool axis
+  double safe_z_mm =
+      std::numeric_limits<double>::quiet_NaN();  ///< machine Z of the safe retract plane; NaN: the Z limit
+  std::string start_branch = "nearest_home";     ///< nearest_home | positive:<axis> | negative:<axis>
   /// start: the start_branch preference picks the first solution, then the nearest one is followed;
   /// always: the preference applies at every point (what simple posts do: they flip at the singularity).
   std::string branch_rule = "start";
@@ -34,7 +35,7 @@ struct PostSettings {
 
 /// Optional meshes and tool-holder shapes used by collision checking.
 struct GeometrySettings {
-  std::string head_mesh;   ///< absolute path (resolved against the machine file)
+  std::string head_mesh;  ///< absolute path (resolved against the machine file)
   std::string table_mesh;
   double holder_diameter_mm = 0.0;
   double holder_length_mm = 0.0;
@@ -55,7 +56,7 @@ struct Machine {
   PostSettings post;
   GeometrySettings geometry;
   double default_tool_length_mm = 0.0;
-  std::map<std::string, int> preferred_sign;  ///< per rotary axis name: +1 / -1 branch preference
+  std::map<std::string, int> preferred_sign;          ///< per rotary axis name: +1 / -1 branch preference
   std::optional<kin::SerialGeometry<double>> serial;  ///< the serial model's parameters (kind Serial)
   /// Builds the model for a given tool length (gauge point to tip, mm). Other kinds plug in here.
   std::function<std::shared_ptr<const kin::Kinematics>(double)> make_kinematics;

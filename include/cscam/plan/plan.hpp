@@ -28,8 +28,8 @@ struct Options {
   /// move moves every leg, and a leg reversal leaves a mark). After the tier search, a segment whose path
   /// reverses one of these is re-planned, if the cone allows, so that they move monotonically.
   std::vector<int> monotone_axes;
-  double leg_step_cells = 4;  ///< largest per-point change of tilt (in tilt steps) of that re-plan
-  double tilt_step_rad = 0.0; ///< tilt grid of that re-plan (a disc of radius cone around the CL axis); 0: resolution
+  double leg_step_cells = 4;   ///< largest per-point change of tilt (in tilt steps) of that re-plan
+  double tilt_step_rad = 0.0;  ///< tilt grid of that re-plan (a disc of radius cone around the CL axis); 0: resolution
 };
 
 /// Why an earlier tier failed on a segment: the first point at which it became impossible.
@@ -72,15 +72,15 @@ struct SegmentSpace {
   double resolution_rad = 0.0;
   /// status per cell over the whole segment: Feasible only if feasible at every point; otherwise the
   /// first reason found (Orientation < Stroke < Collision by first failing point).
-  std::vector<cspace::Status> status;  ///< (i2 - i2_min) * (i1_max - i1_min + 1) + (i1 - i1_min)
+  std::vector<cspace::Status> status;           ///< (i2 - i2_min) * (i1_max - i1_min + 1) + (i1 - i1_min)
   std::vector<std::pair<double, double>> path;  ///< chosen (r1, r2) per point
 };
 
 class Planner {
  public:
   /// `scene`/`tool` may be null (no collision checking); they must outlive the planner.
-  Planner(const machine::Machine& machine, std::shared_ptr<const kin::Kinematics> kinematics,
-          const geom::Scene* scene, const geom::ToolShape* tool, Options options);
+  Planner(const machine::Machine& machine, std::shared_ptr<const kin::Kinematics> kinematics, const geom::Scene* scene,
+          const geom::ToolShape* tool, Options options);
   /// Plans a whole program. Throws InputError (CL line, point, the constraint that emptied the cells and
   /// the nearest feasible cell) when a point has no feasible cell.
   Plan run(const cl::Program& program) const;

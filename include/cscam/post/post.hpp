@@ -19,10 +19,10 @@ struct Options {
   double tolerance_mm = 0.0;        ///< 0: the machine's
   double axis_tolerance_deg = 0.0;  ///< 0: the machine's
   bool linearise = true;
-  int max_subdivision_depth = 14;   ///< at most 2^depth pieces per CL segment
-  std::string source_name;          ///< shown in the header comment
+  int max_subdivision_depth = 14;  ///< at most 2^depth pieces per CL segment
+  std::string source_name;         ///< shown in the header comment
   std::string strategy = "conventional";
-  double tool_length_mm = 0.0;      ///< recorded in the header so that verify can rebuild the same model
+  double tool_length_mm = 0.0;  ///< recorded in the header so that verify can rebuild the same model
   /// The point whose path must stay within the tolerance: tip + control_offset_mm * axis. A planner that
   /// tilts a ball mill keeps the ball centre on the CL path, so it posts with the ball radius here.
   double control_offset_mm = 0.0;
@@ -30,9 +30,9 @@ struct Options {
 
 /// What the post did.
 struct Summary {
-  size_t blocks = 0;             ///< motion blocks written
+  size_t blocks = 0;  ///< motion blocks written
   size_t cl_points = 0;
-  size_t inserted_points = 0;    ///< points added by linearisation
+  size_t inserted_points = 0;  ///< points added by linearisation
   size_t ik_calls = 0;
   double max_checked_tip_deviation_mm = 0.0;
   std::vector<std::string> warnings;

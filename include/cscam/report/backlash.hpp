@@ -25,9 +25,9 @@ std::vector<double> apply_play(const std::vector<double>& commanded, double widt
 
 /// A commanded axis path, sampled densely enough for the play to act (see sample_nc).
 struct SampledPath {
-  std::vector<kin::Axes> q;   ///< commanded axis values (mm, rad)
-  std::vector<int> nc_line;   ///< NC line of the block each sample belongs to
-  std::vector<bool> feed;     ///< sample lies in a feed block (rapids are simulated but not reported)
+  std::vector<kin::Axes> q;  ///< commanded axis values (mm, rad)
+  std::vector<int> nc_line;  ///< NC line of the block each sample belongs to
+  std::vector<bool> feed;    ///< sample lies in a feed block (rapids are simulated but not reported)
 };
 
 /// Samples every motion block of an NC program as a straight line in axis space (what a joint-space
@@ -49,7 +49,7 @@ struct BacklashReversal {
 struct BacklashResult {
   std::string axis_name;
   bool rotary = false;
-  double width = 0.0;  ///< mm or rad
+  double width = 0.0;                             ///< mm or rad
   std::vector<Eigen::Vector3d> tip_commanded_mm;  ///< FK of the commanded samples
   std::vector<Eigen::Vector3d> tip_actual_mm;     ///< FK of the samples with play
   std::vector<BacklashReversal> reversals;        ///< every completed reversal of the axis

@@ -13,8 +13,8 @@ namespace cscam::report {
 struct AxisStat {
   std::string name;
   bool rotary = false;
-  double travel = 0.0;    ///< mm or deg
-  int reversals = 0;      ///< direction changes larger than the hysteresis
+  double travel = 0.0;        ///< mm or deg
+  int reversals = 0;          ///< direction changes larger than the hysteresis
   double largest_step = 0.0;  ///< largest change in one feed block (mm or deg); rapids only reposition
   double min = 0.0, max = 0.0;
 };
@@ -23,9 +23,9 @@ struct AxisStat {
 struct SegmentStat {
   int first_line = 0, last_line = 0;
   int blocks = 0;
-  int moving_axes = 0;          ///< axes that move anywhere in the segment
-  int moving_rotaries = 0;      ///< 0: 3+2 (fixed 2 axes), 1: fixed 1 axis + 4-axis, 2: simultaneous 5-axis
-  int max_simultaneous = 0;     ///< most axes moving together in one block
+  int moving_axes = 0;       ///< axes that move anywhere in the segment
+  int moving_rotaries = 0;   ///< 0: 3+2 (fixed 2 axes), 1: fixed 1 axis + 4-axis, 2: simultaneous 5-axis
+  int max_simultaneous = 0;  ///< most axes moving together in one block
 };
 
 struct Stats {
