@@ -1,6 +1,6 @@
 #!/usr/bin/env bash
 # The main job on a bundled example: NX's real CL file -> G-code for the Haas UMC-750 -> verified by FK,
-# checked by LinuxCNC's rs274, and compared with NX's own post output.
+# checked by LinuxCNC's rs274, compared with NX's own post output, then planned in the rotary C-space.
 set -euo pipefail
 cd "$(dirname "$0")/.."
 mkdir -p out
@@ -12,4 +12,10 @@ if command -v rs274 >/dev/null; then
     && echo "rs274 (LinuxCNC's interpreter) accepted out/variable_axis.ngc: $(grep -c STRAIGHT_ out/variable_axis.rs274.txt) moves"
 fi
 ./build/cscam stats out/variable_axis.ngc examples/nx-haas-umc750/variable_axis.nx-post.nc --machine haas-umc750 | tee out/variable_axis.stats.txt
-echo "NC file: out/variable_axis.ngc   report: out/variable_axis.stats.txt"
+echo
+echo "== the C-space planner on the same file, tool axis free within a 25 deg cone (ball mill: centre kept)"
+./build/cscam compare "$CL" --machine haas-umc750 --cone 25 -o out/variable_axis.planned.ngc \
+  --json-out out/variable_axis.compare.json --svg out/svg | tee out/variable_axis.compare.txt
+echo
+echo "NC files: out/variable_axis.ngc (conventional), out/variable_axis.planned.ngc (planner)"
+echo "reports:  out/variable_axis.stats.txt, out/variable_axis.compare.txt, out/variable_axis.compare.json, out/svg/*.svg"

@@ -82,6 +82,13 @@ class Search {
   }
 
   int line(std::size_t k) const { return prog_.moves[L_[k].move].line; }
+  /// Names of the primary and secondary rotaries, for reports.
+  std::string n1() const {
+    return sp_.kinematics().axes()[static_cast<size_t>(sp_.kinematics().rotary_pair()[0])].name;
+  }
+  std::string n2() const {
+    return sp_.kinematics().axes()[static_cast<size_t>(sp_.kinematics().rotary_pair()[1])].name;
+  }
 
   /// Exact orientations (cone 0): a layered DP over the IK cells where a transition must satisfy `allowed`
   /// and be continuously trackable (following the CL pose from one cell reaches the other without a
@@ -380,7 +387,7 @@ class Search {
             return fa == fb && dir * (mb - ma) >= 0;
           };
           if (dp_exact(allowed, path, fl, w)) {
-            desc = fmt::format("{} fixed at {:.3f} deg, the other {}", f == 0 ? "primary" : "secondary",
+            desc = fmt::format("{} fixed at {:.3f} deg, the other {}", f == 0 ? n1() : n2(),
                                rad2deg(f == 0 ? path[0]->r1 : path[0]->r2), dir > 0 ? "rising" : "falling");
             return true;
           }
@@ -452,8 +459,8 @@ class Search {
           if (travel < best_travel - 1e-12) {
             best_travel = travel;
             best = p;
-            desc = fmt::format("{} fixed at {:.3f} deg, {} {} by {:.3f} deg", f == 0 ? "primary" : "secondary",
-                               rad2deg(f == 0 ? p[0]->r1 : p[0]->r2), f == 0 ? "secondary" : "primary",
+            desc = fmt::format("{} fixed at {:.3f} deg, {} {} by {:.3f} deg", f == 0 ? n1() : n2(),
+                               rad2deg(f == 0 ? p[0]->r1 : p[0]->r2), f == 0 ? n2() : n1(),
                                dir > 0 ? "rising" : "falling", rad2deg(travel));
           }
         }
@@ -483,7 +490,7 @@ class Search {
           };
           if (dp_exact(allowed, path, fl, w)) {
             desc =
-                fmt::format("primary {}, secondary {}", d1 > 0 ? "rising" : "falling", d2 > 0 ? "rising" : "falling");
+                fmt::format("{} {}, {} {}", n1(), d1 > 0 ? "rising" : "falling", n2(), d2 > 0 ? "rising" : "falling");
             return true;
           }
           if (fl >= worst) {
@@ -568,8 +575,8 @@ class Search {
           if (travel < best_travel - 1e-12) {
             best_travel = travel;
             path = p;
-            desc = fmt::format("primary {} by {:.3f} deg, secondary {} by {:.3f} deg", d1 > 0 ? "rising" : "falling",
-                               rad2deg(std::abs(p[n - 1]->r1 - p[0]->r1)), d2 > 0 ? "rising" : "falling",
+            desc = fmt::format("{} {} by {:.3f} deg, {} {} by {:.3f} deg", n1(), d1 > 0 ? "rising" : "falling",
+                               rad2deg(std::abs(p[n - 1]->r1 - p[0]->r1)), n2(), d2 > 0 ? "rising" : "falling",
                                rad2deg(std::abs(p[n - 1]->r2 - p[0]->r2)));
           }
         }
@@ -928,7 +935,8 @@ Plan Planner::run(const cl::Program& program) const {
     const kin::Axes* prefer = plan.segments.empty() ? nullptr : &plan.axes[segs[plan.segments.size() - 1].second];
     if (search.fixed2(path, f, prefer)) {
       rep.tier = Tier::Fixed2;
-      desc = fmt::format("rotaries fixed at ({:.3f}, {:.3f}) deg", rad2deg(path[0]->r1), rad2deg(path[0]->r2));
+      desc = fmt::format("rotaries fixed at {} = {:.3f} deg, {} = {:.3f} deg", search.n1(), rad2deg(path[0]->r1),
+                         search.n2(), rad2deg(path[0]->r2));
     } else {
       rep.failures.push_back(f);
       if (!exact)
