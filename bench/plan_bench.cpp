@@ -72,6 +72,24 @@ void BM_Plan10k(benchmark::State& s) { run(s, 10000, 1.0, 5.0); }
 void BM_PlanPoints(benchmark::State& s) { run(s, static_cast<int>(s.range(0)), 1.0, 5.0); }
 void BM_PlanResolution(benchmark::State& s) { run(s, 2000, 4.0 / static_cast<double>(s.range(0)), 5.0); }
 
+/// Issue 4: the XMINI planner on the seed-000 cut (+-20 mm along X, vertical tool) with a 1 deg cone,
+/// 0.05 deg tilt refinement for the leg-monotonic re-plan (rotary grid 0.25 deg).
+void BM_XminiSeed000(benchmark::State& state) {
+  const auto m = cscam::machine::load(std::string(CSCAM_SOURCE_DIR) + "/machines/xmini.yaml");
+  const auto prog = cscam::cl::read_file(std::string(CSCAM_SOURCE_DIR) + "/examples/xmini/seed000_x_cut.cls");
+  cscam::plan::Options o;
+  o.cspace.cone_rad = cscam::deg2rad(1.0);
+  o.cspace.resolution_rad = cscam::deg2rad(static_cast<double>(state.range(0)) / 100.0);
+  o.tilt_step_rad = cscam::deg2rad(0.05);
+  o.monotone_axes = {0, 1, 2};
+  const cscam::plan::Planner planner(m, m.kinematics(), nullptr, nullptr, o);
+  cscam::plan::Plan p;
+  for (auto _ : state) p = planner.run(prog);
+  state.counters["grid_deg"] = static_cast<double>(state.range(0)) / 100.0;
+  state.counters["legs_monotonic"] = p.segments.empty() ? 0 : p.segments[0].legs.rfind("monotonic", 0) == 0;
+}
+BENCHMARK(BM_XminiSeed000)->Arg(25)->Arg(5)->Unit(benchmark::kMillisecond)->Iterations(1);
+
 BENCHMARK(BM_Plan10k)->Unit(benchmark::kMillisecond)->Iterations(1);
 BENCHMARK(BM_PlanPoints)->Arg(1250)->Arg(2500)->Arg(5000)->Arg(10000)->Unit(benchmark::kMillisecond)->Iterations(1);
 // resolution 4, 2, 1, 0.5 deg: 16x more grid cells from first to last
