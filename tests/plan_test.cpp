@@ -252,3 +252,50 @@ TEST(PlannerXmini, ASmallConeRemovesTheQ2Reversal) {
     EXPECT_LE(std::acos(std::min(1.0, fk.axis.dot(prog.moves[i].axis_in_part.normalized()))), deg2rad(1.0) + 1e-6);
   }
 }
+
+namespace {
+/// An axis-aligned box as a closed, outward-oriented triangle mesh.
+geom::Mesh box_mesh(const Vec3& lo, const Vec3& hi) {
+  geom::Mesh m;
+  for (int i = 0; i < 8; ++i) m.vertices_mm.emplace_back(i & 1 ? hi.x() : lo.x(), i & 2 ? hi.y() : lo.y(), i & 4 ? hi.z() : lo.z());
+  const int f[12][3] = {{0, 2, 1}, {1, 2, 3}, {4, 5, 6}, {5, 7, 6}, {0, 1, 4}, {1, 5, 4},
+                        {2, 6, 3}, {3, 6, 7}, {0, 4, 2}, {2, 4, 6}, {1, 3, 5}, {3, 7, 5}};
+  for (const auto& t : f) m.triangles.emplace_back(t[0], t[1], t[2]);
+  m.source = "box";
+  return m;
+}
+}  // namespace
+
+TEST(Planner, MachineHeadAgainstTheTableRulesOutSteepTilts) {
+  // Trunnion A/C: the spindle housing is a box 60..200 mm above the tip (machine frame at home); the table a
+  // slab whose top is 5 mm below the part origin. A 30 deg tilt keeps the housing clear of the table; a 65 deg
+  // tilt brings its lower edge (60 cos - 40 sin = -10.9 mm) into the table while the holder stays 19 mm above.
+  const auto m = trunnion();
+  const auto k = m.kinematics();
+  ASSERT_TRUE(box_mesh(Vec3(-1, -1, -1), Vec3(1, 1, 1)).is_closed());
+  geom::Scene scene, head;
+  scene.add("machine table", geom::ObstacleRole::Fixture, box_mesh(Vec3(-100, -100, -30), Vec3(100, 100, -5)));
+  scene.build(false);
+  head.add("machine head", geom::ObstacleRole::Machine, box_mesh(Vec3(-40, -40, 60), Vec3(40, 40, 200)));
+  head.build(false);
+  const auto tool = geom::ToolShape::from_cutter(6, 3, 10);
+  plan::Options o;
+  o.cspace.check_collision = true;
+  auto at_tilt = [](double deg) {
+    std::ostringstream s;
+    s.precision(12);
+    s << "UNITS/MM\nMULTAX\nCUTTER/6,3\nGOTO/0,0,0,0," << std::sin(deg2rad(deg)) << "," << std::cos(deg2rad(deg)) << "\n";
+    return cl::read_text(s.str(), "tilt.cls");
+  };
+  const plan::Planner with_head(m, k, &scene, &tool, o, &head);
+  EXPECT_NO_THROW(with_head.run(at_tilt(30)));
+  try {
+    with_head.run(at_tilt(65));
+    FAIL() << "the head must hit the table";
+  } catch (const InputError& e) {
+    EXPECT_NE(std::string(e.what()).find("machine head hits machine table"), std::string::npos) << e.what();
+  }
+  // Without the head mesh the same point is fine: the pruning above is the head's.
+  const plan::Planner no_head(m, k, &scene, &tool, o);
+  EXPECT_NO_THROW(no_head.run(at_tilt(65)));
+}

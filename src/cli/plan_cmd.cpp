@@ -43,6 +43,8 @@ struct Setup {
   cl::Program prog;
   std::shared_ptr<const kin::Kinematics> kin;
   geom::Scene scene;
+  geom::Scene head;  ///< machine meshes that move with the spindle
+  bool has_head = false;
   std::unique_ptr<geom::ToolShape> tool;
   plan::Options opt;
   double tool_length = 0;
@@ -67,6 +69,20 @@ std::unique_ptr<Setup> setup(const PlanArgs& a) {
     s->scene.add(fs::path(p).filename().string(), geom::ObstacleRole::Part, geom::load_mesh(p, a.mesh_scale));
   for (const auto& p : a.fixtures)
     s->scene.add(fs::path(p).filename().string(), geom::ObstacleRole::Fixture, geom::load_mesh(p, a.mesh_scale));
+  // Machine meshes from the machine file: the table moves with the part (fixed in the part frame), the head
+  // moves with the spindle. Both are given in the machine frame at home.
+  if (!s->m.geometry.table_mesh.empty()) {
+    geom::Mesh table = geom::load_mesh(s->m.geometry.table_mesh);
+    Eigen::Isometry3d T = Eigen::Isometry3d::Identity();
+    if (s->m.serial) T.translation() = -s->m.serial->part_origin_home_mm;
+    table.transform(T);
+    s->scene.add("machine table", geom::ObstacleRole::Fixture, std::move(table));
+  }
+  if (!s->m.geometry.head_mesh.empty()) {
+    s->head.add("machine head", geom::ObstacleRole::Machine, geom::load_mesh(s->m.geometry.head_mesh));
+    s->head.build(false);
+    s->has_head = true;
+  }
   s->scene.build(false);  // collision only: nothing asks for distances
   // The tool: from the CL (first tool), the rest from the machine file's holder settings.
   const cl::Tool* t = nullptr;
@@ -86,7 +102,7 @@ std::unique_ptr<Setup> setup(const PlanArgs& a) {
   if (s->m.kind == machine::ModelKind::Xmini)
     for (int i = 0; i < 5; ++i)
       if (!s->m.axes[static_cast<size_t>(i)].rotary()) o.monotone_axes.push_back(i);
-  const bool meshes = !a.parts.empty() || !a.fixtures.empty();
+  const bool meshes = !a.parts.empty() || !a.fixtures.empty() || !s->m.geometry.table_mesh.empty() || s->has_head;
   s->has_meshes = meshes;
   o.cspace.check_collision = meshes && !a.no_collision;
   if (meshes && !t)
@@ -174,7 +190,7 @@ void write_svgs(const Setup& s, const plan::Planner& planner, const plan::Plan& 
 
 int run_plan(const PlanArgs& a) {
   auto s = setup(a);
-  const plan::Planner planner(s->m, s->kin, &s->scene, s->tool.get(), s->opt);
+  const plan::Planner planner(s->m, s->kin, &s->scene, s->tool.get(), s->opt, s->has_head ? &s->head : nullptr);
   const plan::Plan p = planner.run(s->prog);
   post::Summary sum;
   const std::string text = post_to_string(*s, p.program, p.axes, a, "cspace-planner", sum);
@@ -198,7 +214,7 @@ int run_compare(const PlanArgs& a) {
   post::Summary sc;
   const std::string conv_text = post_to_string(*s, s->prog, conv, a, "conventional", sc);
   const double conv_s = std::chrono::duration<double>(std::chrono::steady_clock::now() - t0).count();
-  const plan::Planner planner(s->m, s->kin, &s->scene, s->tool.get(), s->opt);
+  const plan::Planner planner(s->m, s->kin, &s->scene, s->tool.get(), s->opt, s->has_head ? &s->head : nullptr);
   const plan::Plan p = planner.run(s->prog);
   post::Summary sp;
   const std::string plan_text = post_to_string(*s, p.program, p.axes, a, "cspace-planner", sp);
@@ -220,8 +236,10 @@ int run_compare(const PlanArgs& a) {
     const cspace::Space space(s->kin, &s->scene, s->tool.get(), co);
     geom::QueryWorkspace ws;
     cspace::Counters cc;
+    const cspace::Space space_h(s->kin, &s->scene, s->tool.get(), co, s->has_head ? &s->head : nullptr);
+    (void)space;
     for (std::size_t i = 0; i < s->prog.moves.size(); ++i)
-      if (!space.collision_at(s->kin->forward(axes[i]), ws, cc).empty()) {
+      if (!space_h.collision_at_axes(axes[i], ws, cc).empty()) {
         if (!h.n) h.first_line = s->prog.moves[i].line;
         ++h.n;
       }

@@ -38,8 +38,8 @@ Counters& Counters::operator+=(const Counters& o) {
 }
 
 Space::Space(std::shared_ptr<const kin::Kinematics> kinematics, const geom::Scene* scene, const geom::ToolShape* tool,
-             Options options)
-    : kin_(std::move(kinematics)), scene_(scene), tool_(tool), opt_(options) {
+             Options options, const geom::Scene* head)
+    : kin_(std::move(kinematics)), scene_(scene), tool_(tool), opt_(options), head_(head) {
   if (!(opt_.resolution_rad > 0)) throw InputError("C-space resolution must be positive");
   if (opt_.cone_rad < 0 || opt_.min_tilt_rad < 0) throw InputError("cone and minimum tilt must not be negative");
   if (opt_.min_tilt_rad > opt_.cone_rad && opt_.cone_rad > 0)
@@ -215,6 +215,17 @@ void Space::evaluate(const kin::Posed& cl, Cell& cell, geom::QueryWorkspace& ws,
       return;
     }
     if (!std::isnan(r.min_distance_mm)) cell.clearance_mm = static_cast<float>(r.min_distance_mm);
+    if (head_) {
+      Eigen::Isometry3d T;
+      if (kin_->head_in_part(q, T)) {
+        const geom::CollisionResult h = geom::check_meshes(*head_, T, *scene_, opt_.collision, ws);
+        if (h.collides) {
+          cell.status = Status::Collision;
+          cell.detail = fmt::format("machine head hits {}", scene_->obstacle_name(static_cast<std::size_t>(h.obstacle)));
+          return;
+        }
+      }
+    }
   }
   cell.status = Status::Feasible;
 }
@@ -226,6 +237,16 @@ std::string Space::collision_at(const kin::Posed& pose, geom::QueryWorkspace& ws
   if (!r.collides) return {};
   return fmt::format("{} hits {}", geom::to_string(r.part),
                      r.obstacle >= 0 ? scene_->obstacle_name(static_cast<std::size_t>(r.obstacle)) : std::string("?"));
+}
+
+std::string Space::collision_at_axes(const kin::Axes& q, geom::QueryWorkspace& ws, Counters& c) const {
+  std::string hit = collision_at(kin_->forward(q), ws, c);
+  if (!hit.empty() || !head_ || !opt_.check_collision || !scene_) return hit;
+  Eigen::Isometry3d T;
+  if (!kin_->head_in_part(q, T)) return {};
+  const geom::CollisionResult h = geom::check_meshes(*head_, T, *scene_, opt_.collision, ws);
+  if (!h.collides) return {};
+  return fmt::format("machine head hits {}", scene_->obstacle_name(static_cast<std::size_t>(h.obstacle)));
 }
 
 }  // namespace cscam::cspace

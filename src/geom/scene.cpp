@@ -452,4 +452,38 @@ double clearance(const Scene& scene, const ToolShape& tool, const kin::Posed& po
   return nearest(sc, o, ws).d;
 }
 
+CollisionResult check_meshes(const Scene& moving, const Eigen::Isometry3d& moving_in_part, const Scene& fixed,
+                             const CheckOptions& o, QueryWorkspace& ws) {
+  const Scene::Impl& mv = moving.impl();
+  const Scene::Impl& fx = fixed.impl();
+  CSCAM_CHECK(mv.built && fx.built, "geom::check_meshes() before Scene::build()");
+  ++ws.stats.collision_queries;
+  CollisionResult out;
+  fcl::CollisionRequestd req(1, false);
+  fcl::CollisionResultd res;
+  const fcl::Transform3d Tm(moving_in_part.matrix());
+  for (const Obstacle& m : mv.obstacles) {
+    const Eigen::AlignedBox3d mbox = transformed_box(m.box, moving_in_part);
+    for (std::size_t j = 0; j < fx.obstacles.size(); ++j) {
+      const Obstacle& f = fx.obstacles[j];
+      if (!selected(f, o.roles)) continue;
+      const Eigen::Isometry3d Tf = f.role == ObstacleRole::Machine ? o.machine_in_part : Eigen::Isometry3d::Identity();
+      if (!mbox.intersects(transformed_box(f.box, Tf))) {
+        ++ws.stats.aabb_rejects;
+        continue;
+      }
+      res.clear();
+      ++ws.stats.fcl_collide_calls;
+      fcl::collide(m.collide_bvh.get(), Tm, f.collide_bvh.get(), fcl::Transform3d(Tf.matrix()), req, res);
+      if (res.isCollision()) {
+        out.collides = true;
+        out.part = ToolPart::Spindle;
+        out.obstacle = static_cast<int>(j);
+        return out;
+      }
+    }
+  }
+  return out;
+}
+
 }  // namespace cscam::geom

@@ -230,4 +230,33 @@ bool SerialKinematics::solve_for_rotaries(const Posed& pose, Axes& q) const {
   return true;
 }
 
+bool SerialKinematics::head_in_part(const Axes& q, Eigen::Isometry3d& T) const {
+  const auto& g = geometry_;
+  // The same chains as serial_forward, applied to a point carried by the outermost head link.
+  auto map = [&](Vec3 p) {
+    for (auto it = g.head_chain.rbegin(); it != g.head_chain.rend(); ++it) {
+      const auto& j = g.joints[static_cast<size_t>(*it)];
+      const double v = q[*it] + j.offset;
+      if (j.type == AxisType::Linear)
+        p += j.direction * v;
+      else
+        p = detail::axis_angle<double>(j.direction, v) * (p - j.pivot_mm) + j.pivot_mm;
+    }
+    for (int idx : g.table_chain) {
+      const auto& j = g.joints[static_cast<size_t>(idx)];
+      const double v = q[idx] + j.offset;
+      if (j.type == AxisType::Linear)
+        p -= j.direction * v;
+      else
+        p = detail::axis_angle<double>(j.direction, v).transpose() * (p - j.pivot_mm) + j.pivot_mm;
+    }
+    return Vec3(p - g.part_origin_home_mm);
+  };
+  const Vec3 o = map(Vec3::Zero());
+  T.setIdentity();
+  for (int c = 0; c < 3; ++c) T.linear().col(c) = map(Vec3::Unit(c)) - o;
+  T.translation() = o;
+  return true;
+}
+
 }  // namespace cscam::kin

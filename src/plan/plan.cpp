@@ -785,8 +785,8 @@ std::string Plan::summary() const {
 }
 
 Planner::Planner(const machine::Machine& machine, std::shared_ptr<const kin::Kinematics> kinematics,
-                 const geom::Scene* scene, const geom::ToolShape* tool, Options options)
-    : machine_(machine), kin_(kinematics), space_(kinematics, scene, tool, options.cspace), opt_(options) {}
+                 const geom::Scene* scene, const geom::ToolShape* tool, Options options, const geom::Scene* head)
+    : machine_(machine), kin_(kinematics), space_(kinematics, scene, tool, options.cspace, head), opt_(options) {}
 
 Plan Planner::run(const cl::Program& program) const {
   const auto t0 = std::chrono::steady_clock::now();
@@ -1063,7 +1063,7 @@ Plan Planner::run(const cl::Program& program) const {
         const int n = std::min(720, static_cast<int>(std::ceil(span / deg2rad(1.0))) + 8);
         for (int i = 0; i <= n; ++i) {
           const kin::Axes q = qa + (qb - qa) * (double(i) / n);
-          const std::string hit = space_.collision_at(kin_->forward(q), ws, plan.counters);
+          const std::string hit = space_.collision_at_axes(q, ws, plan.counters);
           if (!hit.empty()) {
             rep.reorientation = "collides: " + hit;
             plan.warnings.push_back(fmt::format("{}: the reorientation into the segment starting here collides ({})",

@@ -60,9 +60,10 @@ struct Counters {
 /// The C-space model: immutable, shared by threads. Per-thread scratch lives in Workspace.
 class Space {
  public:
-  /// `scene` and `tool` may be null (no collision checking). They must outlive the Space.
+  /// `scene` and `tool` may be null (no collision checking). `head` holds machine meshes that move with the
+  /// spindle (machine file geometry.head_mesh), checked against `scene`. All must outlive the Space.
   Space(std::shared_ptr<const kin::Kinematics> kinematics, const geom::Scene* scene, const geom::ToolShape* tool,
-        Options options);
+        Options options, const geom::Scene* head = nullptr);
 
   [[nodiscard]] const Options& options() const { return opt_; }
   [[nodiscard]] const kin::Kinematics& kinematics() const { return *kin_; }
@@ -85,6 +86,8 @@ class Space {
   void evaluate(const kin::Posed& cl_pose, Cell& cell, geom::QueryWorkspace& ws, Counters& c) const;
   /// Collision of an arbitrary tool pose (for reorientation moves). Empty string if free.
   [[nodiscard]] std::string collision_at(const kin::Posed& tool_pose, geom::QueryWorkspace& ws, Counters& c) const;
+  /// Collision of the tool and the machine head meshes for axis values q. Empty string if free.
+  [[nodiscard]] std::string collision_at_axes(const kin::Axes& q, geom::QueryWorkspace& ws, Counters& c) const;
   /// The tool axis (part frame) of rotary values.
   [[nodiscard]] Eigen::Vector3d axis_of(double r1, double r2) const;
 
@@ -93,6 +96,7 @@ class Space {
   const geom::Scene* scene_;
   const geom::ToolShape* tool_;
   Options opt_;
+  const geom::Scene* head_ = nullptr;
   int rot1_ = 0, rot2_ = 0;
   int i1_min_ = 0, i1_max_ = 0, i2_min_ = 0, i2_max_ = 0;
 };

@@ -244,4 +244,11 @@ struct CollisionResult {
 [[nodiscard]] double clearance(const Scene& scene, const ToolShape& tool, const kin::Posed& tool_pose_in_part,
                                const CheckOptions& options, QueryWorkspace& workspace);
 
+/// Collision between two sets of meshes: every obstacle of `moving` (e.g. a machine head that moves with
+/// the tool), placed in the part frame by `moving_in_part`, against the obstacles of `fixed` selected by
+/// `options.roles` (Machine-role obstacles of `fixed` placed by options.machine_in_part, as in check()).
+/// Meshes are surfaces: a part wholly inside another is not seen. Counts one collision query.
+[[nodiscard]] CollisionResult check_meshes(const Scene& moving, const Eigen::Isometry3d& moving_in_part,
+                                           const Scene& fixed, const CheckOptions& options, QueryWorkspace& workspace);
+
 }  // namespace cscam::geom

@@ -1,6 +1,7 @@
 #pragma once
 /// @file
 /// The interface every machine's kinematics offers to the planner, the post and verification.
+#include <Eigen/Geometry>
 #include <array>
 #include <memory>
 #include <optional>
@@ -34,6 +35,9 @@ class Kinematics {
   /// depend on the position. Returns false if no axis values put the tip there.
   virtual bool tool_axis_at(double primary, double secondary, const Eigen::Vector3d& tip_mm,
                             Eigen::Vector3d& axis) const = 0;
+  /// The rigid motion of the tool-side end link (spindle housing) for axis values q: it maps a point given
+  /// in the machine frame at home to its position in the part frame. False if the model cannot say.
+  virtual bool head_in_part(const Axes& /*q*/, Eigen::Isometry3d& /*T*/) const { return false; }
   /// Limits that the axis values alone do not show, e.g. a PKM's passive joint angles; empty if none broken.
   [[nodiscard]] virtual std::string passive_violation(const Axes& /*q*/) const { return {}; }
   /// First limit that q violates, or empty.

@@ -78,9 +78,10 @@ struct SegmentSpace {
 
 class Planner {
  public:
-  /// `scene`/`tool` may be null (no collision checking); they must outlive the planner.
+  /// `scene`/`tool` may be null (no collision checking); `head`: machine meshes moving with the spindle.
+  /// All must outlive the planner.
   Planner(const machine::Machine& machine, std::shared_ptr<const kin::Kinematics> kinematics, const geom::Scene* scene,
-          const geom::ToolShape* tool, Options options);
+          const geom::ToolShape* tool, Options options, const geom::Scene* head = nullptr);
   /// Plans a whole program. Throws InputError (CL line, point, the constraint that emptied the cells and
   /// the nearest feasible cell) when a point has no feasible cell.
   Plan run(const cl::Program& program) const;
