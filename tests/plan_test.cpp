@@ -257,7 +257,8 @@ namespace {
 /// An axis-aligned box as a closed, outward-oriented triangle mesh.
 geom::Mesh box_mesh(const Vec3& lo, const Vec3& hi) {
   geom::Mesh m;
-  for (int i = 0; i < 8; ++i) m.vertices_mm.emplace_back(i & 1 ? hi.x() : lo.x(), i & 2 ? hi.y() : lo.y(), i & 4 ? hi.z() : lo.z());
+  for (int i = 0; i < 8; ++i)
+    m.vertices_mm.emplace_back(i & 1 ? hi.x() : lo.x(), i & 2 ? hi.y() : lo.y(), i & 4 ? hi.z() : lo.z());
   const int f[12][3] = {{0, 2, 1}, {1, 2, 3}, {4, 5, 6}, {5, 7, 6}, {0, 1, 4}, {1, 5, 4},
                         {2, 6, 3}, {3, 6, 7}, {0, 4, 2}, {2, 4, 6}, {1, 3, 5}, {3, 7, 5}};
   for (const auto& t : f) m.triangles.emplace_back(t[0], t[1], t[2]);
@@ -284,7 +285,8 @@ TEST(Planner, MachineHeadAgainstTheTableRulesOutSteepTilts) {
   auto at_tilt = [](double deg) {
     std::ostringstream s;
     s.precision(12);
-    s << "UNITS/MM\nMULTAX\nCUTTER/6,3\nGOTO/0,0,0,0," << std::sin(deg2rad(deg)) << "," << std::cos(deg2rad(deg)) << "\n";
+    s << "UNITS/MM\nMULTAX\nCUTTER/6,3\nGOTO/0,0,0,0," << std::sin(deg2rad(deg)) << "," << std::cos(deg2rad(deg))
+      << "\n";
     return cl::read_text(s.str(), "tilt.cls");
   };
   const plan::Planner with_head(m, k, &scene, &tool, o, &head);

@@ -221,7 +221,8 @@ void Space::evaluate(const kin::Posed& cl, Cell& cell, geom::QueryWorkspace& ws,
         const geom::CollisionResult h = geom::check_meshes(*head_, T, *scene_, opt_.collision, ws);
         if (h.collides) {
           cell.status = Status::Collision;
-          cell.detail = fmt::format("machine head hits {}", scene_->obstacle_name(static_cast<std::size_t>(h.obstacle)));
+          cell.detail =
+              fmt::format("machine head hits {}", scene_->obstacle_name(static_cast<std::size_t>(h.obstacle)));
           return;
         }
       }
@@ -237,6 +238,16 @@ std::string Space::collision_at(const kin::Posed& pose, geom::QueryWorkspace& ws
   if (!r.collides) return {};
   return fmt::format("{} hits {}", geom::to_string(r.part),
                      r.obstacle >= 0 ? scene_->obstacle_name(static_cast<std::size_t>(r.obstacle)) : std::string("?"));
+}
+
+bool Space::free_with_margin(const kin::Posed& cl, const Cell& cell, double margin_mm, geom::QueryWorkspace& ws,
+                             Counters& c) const {
+  if (!opt_.check_collision || !scene_ || !tool_) return true;
+  geom::CheckOptions o = opt_.collision;
+  o.clearance_mm += margin_mm;
+  o.cutter_clearance_mm += margin_mm;
+  ++c.collision;
+  return !geom::check(*scene_, *tool_, tool_pose(cl, cell.r1, cell.r2), o, ws).collides;
 }
 
 std::string Space::collision_at_axes(const kin::Axes& q, geom::QueryWorkspace& ws, Counters& c) const {

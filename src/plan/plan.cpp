@@ -286,6 +286,18 @@ class Search {
     return false;
   }
 
+  /// Extra clearance (mm, coarse steps) a path keeps at its first, middle and last points.
+  double room(const std::vector<const Cell*>& p) {
+    const std::size_t n = p.size();
+    double r = 0.0;
+    for (double m : {0.5, 1.0, 2.0, 4.0, 8.0, 16.0}) {
+      for (std::size_t k : {std::size_t{0}, n / 2, n - 1})
+        if (!sp_.free_with_margin(L_[k].cl, *p[k], m, ws_, c_)) return r;
+      r = m;
+    }
+    return r;
+  }
+
   // ---- tier 1: one cell feasible at every point ----
   bool fixed2(std::vector<const Cell*>& path, TierFailure& fail, const kin::Axes* prefer) {
     const std::size_t n = L_.size();
@@ -354,7 +366,33 @@ class Search {
         path[k] = c;
         ++checked;
       }
-      if (failed_at == n) return true;
+      if (failed_at == n) {
+        if (!sp_.options().check_collision) return true;
+        // Ties in orientation are broken by clearance: among the candidates about as close to the CL axis
+        // (within 0.1 deg) that are feasible everywhere, keep the one with the most room around it.
+        std::vector<const Cell*> best_path = path;
+        double best_room = room(path);
+        int tried = 0;
+        for (const Cand* nx = &cd + 1; nx < cands.data() + cands.size() && tried < 8; ++nx) {
+          if (nx->score > cd.score + deg2rad(0.1)) break;
+          ++tried;
+          std::vector<const Cell*> alt(n, nullptr);
+          bool ok = true;
+          for (std::size_t kk = 0; kk < n && ok; ++kk) {
+            Cell* c = cell(kk, nx->i1, nx->i2);
+            ok = c && feasible(kk, *c);
+            if (ok) alt[kk] = c;
+          }
+          if (!ok) continue;
+          const double r = room(alt);
+          if (r > best_room) {
+            best_room = r;
+            best_path = alt;
+          }
+        }
+        path = best_path;
+        return true;
+      }
       // Report the failure of the candidate that got furthest from the segment start (in point order).
       std::size_t reach = 0;
       while (reach < n && path[reach]) ++reach;

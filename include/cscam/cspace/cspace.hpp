@@ -86,6 +86,10 @@ class Space {
   void evaluate(const kin::Posed& cl_pose, Cell& cell, geom::QueryWorkspace& ws, Counters& c) const;
   /// Collision of an arbitrary tool pose (for reorientation moves). Empty string if free.
   [[nodiscard]] std::string collision_at(const kin::Posed& tool_pose, geom::QueryWorkspace& ws, Counters& c) const;
+  /// Whether a feasible cell stays free with `margin_mm` more clearance (a cheap measure of room for
+  /// tie-breaking: collision queries only, no distance query).
+  [[nodiscard]] bool free_with_margin(const kin::Posed& cl_pose, const Cell& cell, double margin_mm,
+                                      geom::QueryWorkspace& ws, Counters& c) const;
   /// Collision of the tool and the machine head meshes for axis values q. Empty string if free.
   [[nodiscard]] std::string collision_at_axes(const kin::Axes& q, geom::QueryWorkspace& ws, Counters& c) const;
   /// The tool axis (part frame) of rotary values.
