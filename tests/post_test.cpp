@@ -17,9 +17,12 @@
 #include "cscam/machine/machine.hpp"
 #include "cscam/nc/reader.hpp"
 #include "cscam/report/verify.hpp"
+#include "rs274_support.hpp"
 #include "test_support.hpp"
 
 using namespace cscam;
+using cscam::test::expect_rs274_agrees;
+using cscam::test::rs274_moves;
 namespace fs = std::filesystem;
 using Vec3 = Eigen::Vector3d;
 
@@ -29,14 +32,7 @@ machine::Machine load_machine(const std::string& name) {
   return machine::load(test::source_path("machines/" + name + ".yaml"));
 }
 
-nc::AxisLetters letters_of(const machine::Machine& m) {
-  nc::AxisLetters l;
-  for (size_t i = 0; i < 5; ++i) {
-    l.letter[i] = m.post.letters[i][0];
-    l.rotary[i] = m.axes[i].rotary();
-  }
-  return l;
-}
+nc::AxisLetters letters_of(const machine::Machine& m) { return report::axis_letters(m); }
 
 struct Posted {
   std::string text;
@@ -53,51 +49,6 @@ Posted post_program(const cl::Program& prog, const machine::Machine& m, const ki
   post::write_nc(os, prog, m, k, axes, o, p.summary);
   p.text = os.str();
   return p;
-}
-
-/// Runs rs274 -g on the text and returns every STRAIGHT_FEED/TRAVERSE as (x y z a b c).
-std::vector<std::array<double, 6>> rs274_moves(const std::string& text, const std::string& tag, std::string& log) {
-  const std::string path = (fs::temp_directory_path() / ("cscam_post_test_" + tag + ".ngc")).string();
-  std::ofstream(path) << text;
-  const auto r = test::run_command("rs274 -g " + path);
-  log = r.output;
-  std::vector<std::array<double, 6>> moves;
-  std::istringstream in(r.output);
-  std::string line;
-  const std::regex re(R"(STRAIGHT_(FEED|TRAVERSE)\(([^)]*)\))");
-  std::smatch m;
-  while (std::getline(in, line)) {
-    if (!std::regex_search(line, m, re)) continue;
-    std::array<double, 6> v{};
-    std::istringstream vs(m[2].str());
-    for (auto& x : v) {
-      vs >> x;
-      vs.ignore(2, ',');
-    }
-    moves.push_back(v);
-  }
-  fs::remove(path);
-  return moves;
-}
-
-/// rs274 prints x y z a b c; map our five axes (by their letters) into those slots.
-void expect_rs274_agrees(const std::string& text, const machine::Machine& m, const std::string& tag) {
-  std::string log;
-  const auto moves = rs274_moves(text, tag, log);
-  EXPECT_EQ(log.find("error"), std::string::npos) << log.substr(0, 2000);
-  EXPECT_EQ(log.find("Error"), std::string::npos) << log.substr(0, 2000);
-  const nc::Program ours = nc::read_text(text, tag, letters_of(m));
-  ASSERT_EQ(moves.size(), ours.blocks.size()) << "rs274 and our reader see different numbers of moves";
-  const std::string slots = "XYZABC";
-  for (size_t i = 0; i < moves.size(); ++i) {
-    for (size_t a = 0; a < 5; ++a) {
-      const size_t slot = slots.find(m.post.letters[a][0]);
-      ASSERT_NE(slot, std::string::npos);
-      const double ours_v = m.axes[a].rotary() ? rad2deg(ours.blocks[i].axes[a]) : ours.blocks[i].axes[a];
-      // rs274 prints 4 decimals: agreement to half a unit in the last place.
-      ASSERT_NEAR(moves[i][slot], ours_v, 0.5e-4 + 1e-9) << tag << " move " << i << " axis " << m.axes[a].name;
-    }
-  }
 }
 
 report::VerifyResult verify_text(const std::string& text, const cl::Program& prog, const machine::Machine& m,

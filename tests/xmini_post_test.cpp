@@ -20,9 +20,12 @@
 #include "cscam/report/backlash.hpp"
 #include "cscam/report/stats.hpp"
 #include "cscam/report/verify.hpp"
+#include "rs274_support.hpp"
 #include "test_support.hpp"
 
 using namespace cscam;
+using cscam::test::expect_rs274_agrees;
+using cscam::test::rs274_moves;
 namespace fs = std::filesystem;
 using Vec3 = Eigen::Vector3d;
 
@@ -38,7 +41,7 @@ constexpr int kRandomPoses = 500;
 constexpr double kPrintedRoundingMm = 1e-4;
 constexpr double kPrintedRoundingDeg = 1e-3;
 /// rs274 prints 4 decimals: agreement to half a unit in the last place.
-constexpr double kRs274Half = 0.5e-4 + 1e-9;
+constexpr double kRs274Half = cscam::test::kRs274HalfUnit;
 /// Home of the spec, printed with 6 decimals.
 constexpr double kHomeMm = 1e-5;
 
@@ -67,14 +70,7 @@ machine::Machine xmini_xyz() {
   return xmini_variant("letters: {q1: U, q2: V, q3: W, c: C, a: A}", "letters: {q1: X, q2: Y, q3: Z, c: C, a: A}");
 }
 
-nc::AxisLetters letters_of(const machine::Machine& m) {
-  nc::AxisLetters l;
-  for (size_t i = 0; i < 5; ++i) {
-    l.letter[i] = m.post.letters[i][0];
-    l.rotary[i] = m.axes[i].rotary();
-  }
-  return l;
-}
+nc::AxisLetters letters_of(const machine::Machine& m) { return report::axis_letters(m); }
 
 std::string post_text(const cl::Program& prog, const machine::Machine& m, const kin::Kinematics& k,
                       const std::string& dialect = "", post::Summary* summary = nullptr) {
@@ -87,51 +83,6 @@ std::string post_text(const cl::Program& prog, const machine::Machine& m, const 
   post::write_nc(os, prog, m, k, axes, o, s);
   if (summary) *summary = s;
   return os.str();
-}
-
-/// Runs rs274 -g on the text and returns every STRAIGHT_FEED/TRAVERSE as (x y z a b c).
-std::vector<std::array<double, 6>> rs274_moves(const std::string& text, const std::string& tag, std::string& log) {
-  const std::string path = (fs::temp_directory_path() / ("cscam_xmini_post_test_" + tag + ".ngc")).string();
-  std::ofstream(path) << text;
-  const auto r = test::run_command("rs274 -g " + path);
-  log = r.output;
-  std::vector<std::array<double, 6>> moves;
-  std::istringstream in(r.output);
-  std::string line;
-  const std::regex re(R"(STRAIGHT_(FEED|TRAVERSE)\(([^)]*)\))");
-  std::smatch m;
-  while (std::getline(in, line)) {
-    if (!std::regex_search(line, m, re)) continue;
-    std::array<double, 6> v{};
-    std::istringstream vs(m[2].str());
-    for (auto& x : v) {
-      vs >> x;
-      vs.ignore(2, ',');
-    }
-    moves.push_back(v);
-  }
-  fs::remove(path);
-  return moves;
-}
-
-/// Every move rs274 makes equals the axis values we wrote (to rs274's printed precision).
-void expect_rs274_agrees(const std::string& text, const machine::Machine& m, const std::string& tag) {
-  std::string log;
-  const auto moves = rs274_moves(text, tag, log);
-  EXPECT_EQ(log.find("error"), std::string::npos) << log.substr(0, 2000);
-  EXPECT_EQ(log.find("Error"), std::string::npos) << log.substr(0, 2000);
-  EXPECT_EQ(log.find("Unknown"), std::string::npos) << log.substr(0, 2000);
-  const nc::Program ours = nc::read_text(text, tag, letters_of(m));
-  ASSERT_EQ(moves.size(), ours.blocks.size()) << "rs274 and our reader see different numbers of moves";
-  ASSERT_GT(moves.size(), 2u);
-  const std::string slots = "XYZABC";
-  for (size_t i = 0; i < moves.size(); ++i)
-    for (size_t a = 0; a < 5; ++a) {
-      const size_t slot = slots.find(m.post.letters[a][0]);
-      ASSERT_NE(slot, std::string::npos);
-      const double ours_v = m.axes[a].rotary() ? rad2deg(ours.blocks[i].axes[a]) : ours.blocks[i].axes[a];
-      ASSERT_NEAR(moves[i][slot], ours_v, kRs274Half) << tag << " move " << i << " axis " << m.axes[a].name;
-    }
 }
 
 report::VerifyResult verify_text(const std::string& text, const cl::Program& prog, const machine::Machine& m,

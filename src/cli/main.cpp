@@ -15,6 +15,7 @@
 #include "cscam/nc/reader.hpp"
 #include "cscam/post/post.hpp"
 #include "cscam/report/backlash.hpp"
+#include "cscam/report/letters.hpp"
 #include "cscam/report/stats.hpp"
 #include "cscam/report/verify.hpp"
 #include "plan_cmd.hpp"
@@ -48,15 +49,6 @@ std::optional<LengthUnit> parse_units(const std::string& s) {
   if (s == "mm") return LengthUnit::Millimetre;
   if (s == "inch" || s == "in") return LengthUnit::Inch;
   throw InputError(fmt::format("--units: expected mm or inch, got '{}'", s));
-}
-
-nc::AxisLetters letters_of(const machine::Machine& m) {
-  nc::AxisLetters l;
-  for (size_t i = 0; i < 5; ++i) {
-    l.letter[i] = m.post.letters[i][0];
-    l.rotary[i] = m.axes[i].rotary();
-  }
-  return l;
 }
 
 std::array<std::string, 5> names_of(const machine::Machine& m, bool use_letters) {
@@ -124,7 +116,7 @@ int cmd_verify(const VerifyArgs& a) {
   cl::ReadOptions ro;
   ro.units = parse_units(a.units);
   const cl::Program prog = cl::read_file(a.cl, ro);
-  const nc::Program ncp = nc::read_file(a.nc, letters_of(m));
+  const nc::Program ncp = nc::read_file(a.nc, report::axis_letters(m));
   if (ncp.tcp)
     throw InputError(SourceLoc{a.nc},
                      "this program uses TCP (G43.4/G234): its axis values are not machine coordinates, "
@@ -153,7 +145,7 @@ int cmd_stats(const std::vector<std::string>& files, const std::string& machine_
   std::vector<report::Stats> cols;
   std::vector<std::string> headers;
   for (const auto& f : files) {
-    const nc::Program p = nc::read_file(f, letters_of(m));
+    const nc::Program p = nc::read_file(f, report::axis_letters(m));
     cols.push_back(report::compute(p, names_of(m, true), rotary_of(m)));
     headers.push_back(fs::path(f).filename().string());
   }
@@ -190,7 +182,7 @@ int cmd_backlash(const BacklashArgs& a) {
   const double step = a.max_step > 0 ? (rotary ? deg2rad(a.max_step) : a.max_step) : (width > 0 ? width / 10 : 0.001);
   std::vector<report::BacklashResult> results;
   for (const auto& f : a.nc) {
-    const nc::Program ncp = nc::read_file(f, letters_of(m));
+    const nc::Program ncp = nc::read_file(f, report::axis_letters(m));
     if (ncp.tcp)
       throw InputError(SourceLoc{f}, "this program uses TCP (G43.4/G234): its axis values are not machine coordinates");
     const double L = a.tool_length >= 0 ? a.tool_length : ncp.tool_length_mm.value_or(m.default_tool_length_mm);

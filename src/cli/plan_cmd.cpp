@@ -19,6 +19,7 @@
 #include "cscam/nc/reader.hpp"
 #include "cscam/plan/plan.hpp"
 #include "cscam/post/post.hpp"
+#include "cscam/report/letters.hpp"
 #include "cscam/report/stats.hpp"
 #include "cscam/report/svg.hpp"
 #include "cscam/report/verify.hpp"
@@ -138,15 +139,6 @@ std::string post_to_string(const Setup& s, const cl::Program& prog, const std::v
   return os.str();
 }
 
-nc::AxisLetters letters_of(const machine::Machine& m) {
-  nc::AxisLetters l;
-  for (size_t i = 0; i < 5; ++i) {
-    l.letter[i] = m.post.letters[i][0];
-    l.rotary[i] = m.axes[i].rotary();
-  }
-  return l;
-}
-
 report::Stats stats_of(const Setup& s, const std::string& text, const std::string& name) {
   std::array<std::string, 5> names;
   std::array<bool, 5> rot{};
@@ -154,7 +146,7 @@ report::Stats stats_of(const Setup& s, const std::string& text, const std::strin
     names[i] = s.m.post.letters[i];
     rot[i] = s.m.axes[i].rotary();
   }
-  auto st = report::compute(nc::read_text(text, name, letters_of(s.m)), names, rot);
+  auto st = report::compute(nc::read_text(text, name, report::axis_letters(s.m)), names, rot);
   st.source = name;
   return st;
 }
@@ -164,7 +156,7 @@ report::VerifyResult verify_text(const Setup& s, const std::string& text, double
   vo.tip_tolerance_mm = s.m.post.tolerance_mm + 0.002;
   vo.axis_tolerance_deg = s.m.post.axis_tolerance_deg + 0.01 + cone_deg;
   vo.ball_centre = cone_deg > 0;
-  return report::verify(nc::read_text(text, "planned.ngc", letters_of(s.m)), s.prog, *s.kin, vo);
+  return report::verify(nc::read_text(text, "planned.ngc", report::axis_letters(s.m)), s.prog, *s.kin, vo);
 }
 
 void write_svgs(const Setup& s, const plan::Planner& planner, const plan::Plan& p, const std::vector<kin::Axes>& conv,

@@ -1,0 +1,73 @@
+#pragma once
+// LinuxCNC's own interpreter as the oracle for our G-code: run `rs274 -g` and compare every move it makes
+// with the axis values we meant.
+#include <gtest/gtest.h>
+
+#include <array>
+#include <filesystem>
+#include <fstream>
+#include <regex>
+#include <sstream>
+#include <string>
+#include <vector>
+
+#include "cscam/core/units.hpp"
+#include "cscam/machine/machine.hpp"
+#include "cscam/nc/reader.hpp"
+#include "cscam/report/letters.hpp"
+#include "test_support.hpp"
+
+namespace cscam::test {
+
+/// rs274 prints 4 decimals: agreement to half a unit in the last place.
+inline constexpr double kRs274HalfUnit = 0.5e-4 + 1e-9;
+
+/// Runs rs274 -g on the text and returns every STRAIGHT_FEED/TRAVERSE as (x y z a b c), and its output.
+inline std::vector<std::array<double, 6>> rs274_moves(const std::string& text, const std::string& tag,
+                                                      std::string& log) {
+  namespace fs = std::filesystem;
+  const std::string path = (fs::temp_directory_path() / ("cscam_rs274_" + tag + ".ngc")).string();
+  std::ofstream(path) << text;
+  const auto r = run_command("rs274 -g " + path);
+  log = r.output;
+  std::vector<std::array<double, 6>> moves;
+  std::istringstream in(r.output);
+  std::string line;
+  const std::regex re(R"(STRAIGHT_(FEED|TRAVERSE)\(([^)]*)\))");
+  std::smatch m;
+  while (std::getline(in, line)) {
+    if (!std::regex_search(line, m, re)) continue;
+    std::array<double, 6> v{};
+    std::istringstream vs(m[2].str());
+    for (auto& x : v) {
+      vs >> x;
+      vs.ignore(2, ',');
+    }
+    moves.push_back(v);
+  }
+  fs::remove(path);
+  return moves;
+}
+
+/// rs274 accepts the program and every move equals ours (read back by our NC reader), axis by axis: rs274
+/// prints x y z a b c, and our five axes go to the slots of their letters.
+inline void expect_rs274_agrees(const std::string& text, const machine::Machine& m, const std::string& tag) {
+  std::string log;
+  const auto moves = rs274_moves(text, tag, log);
+  EXPECT_EQ(log.find("error"), std::string::npos) << log.substr(0, 2000);
+  EXPECT_EQ(log.find("Error"), std::string::npos) << log.substr(0, 2000);
+  EXPECT_EQ(log.find("Unknown"), std::string::npos) << log.substr(0, 2000);
+  const nc::Program ours = nc::read_text(text, tag, report::axis_letters(m));
+  ASSERT_EQ(moves.size(), ours.blocks.size()) << "rs274 and our reader see different numbers of moves";
+  ASSERT_GT(moves.size(), 1u);
+  const std::string slots = "XYZABC";
+  for (size_t i = 0; i < moves.size(); ++i)
+    for (size_t a = 0; a < 5; ++a) {
+      const size_t slot = slots.find(m.post.letters[a][0]);
+      ASSERT_NE(slot, std::string::npos);
+      const double ours_v = m.axes[a].rotary() ? rad2deg(ours.blocks[i].axes[a]) : ours.blocks[i].axes[a];
+      ASSERT_NEAR(moves[i][slot], ours_v, kRs274HalfUnit) << tag << " move " << i << " axis " << m.axes[a].name;
+    }
+}
+
+}  // namespace cscam::test
