@@ -225,11 +225,9 @@ int run_compare(const PlanArgs& a) {
     if (!s->has_meshes || !s->tool) return h;
     cspace::Options co = s->opt.cspace;
     co.check_collision = true;
-    const cspace::Space space(s->kin, &s->scene, s->tool.get(), co);
     geom::QueryWorkspace ws;
     cspace::Counters cc;
     const cspace::Space space_h(s->kin, &s->scene, s->tool.get(), co, s->has_head ? &s->head : nullptr);
-    (void)space;
     for (std::size_t i = 0; i < s->prog.moves.size(); ++i)
       if (!space_h.collision_at_axes(axes[i], ws, cc).empty()) {
         if (!h.n) h.first_line = s->prog.moves[i].line;

@@ -101,7 +101,6 @@ void Space::enumerate(const kin::Posed& cl, std::vector<Cell>& out, std::size_t 
                hi2 = i2_max_ * res + 1e-9;
   if (opt_.cone_rad <= 0) {
     // Exact orientation: the cells are the IK solutions themselves (every branch and winding).
-    int id = 0;
     for (const auto& s : sols) {
       const double r1 = s.axes[rot1_], r2 = s.axes[rot2_];
       if (r1 < lo1 || r1 > hi1 || r2 < lo2 || r2 > hi2) continue;
@@ -112,7 +111,6 @@ void Space::enumerate(const kin::Posed& cl, std::vector<Cell>& out, std::size_t 
       cell.i2 = static_cast<int>(std::lround(r2 / res));
       cell.orient_err = 0.0f;
       cell.singular = s.singular;
-      (void)id;
       out.push_back(cell);
     }
     c.cells_enumerated += out.size();

@@ -175,12 +175,8 @@ void SerialKinematics::inverse_all(const Posed& pose, const Axes* hint, std::vec
   std::vector<Solution> base;
   inverse_branches(pose, hint, base);
   out.clear();
-  for (const Solution& s : base) {
-    const size_t first = out.size();
-    expand_windings(s, out);
-    // Windings change the rotaries by whole turns: the linear axes are unchanged, so nothing to redo.
-    (void)first;
-  }
+  // Windings change the rotaries by whole turns: the linear axes are unchanged, so nothing to redo.
+  for (const Solution& s : base) expand_windings(s, out);
 }
 
 bool SerialKinematics::solve_for_rotaries(const Posed& pose, Axes& q) const {

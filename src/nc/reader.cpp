@@ -64,7 +64,7 @@ Program read_text(const std::string& text, const std::string& name, const AxisLe
       auto r = std::from_chars(v.data(), v.data() + v.size(), L);
       if (r.ec == std::errc()) prog.tool_length_mm = L;
     }
-    bool has_motion_word = false, non_modal_skip = false, tcp_word = false;
+    bool non_modal_skip = false, tcp_word = false;
     Block b = state;
     b.words = {};
     size_t i = 0;
@@ -113,19 +113,19 @@ Program read_text(const std::string& text, const std::string& name, const AxisLe
         switch (g10) {
           case 0:
             motion = Motion::Rapid;
-            has_motion_word = true;
+
             break;
           case 10:
             motion = Motion::Linear;
-            has_motion_word = true;
+
             break;
           case 20:
             motion = Motion::ArcCW;
-            has_motion_word = true;
+
             break;
           case 30:
             motion = Motion::ArcCCW;
-            has_motion_word = true;
+
             break;
           case 200:
             inch = true;
@@ -179,7 +179,6 @@ Program read_text(const std::string& text, const std::string& name, const AxisLe
         prog.notes.push_back(fmt::format("{}:{}: G28/G30/G53/G10/G92 block not taken as a position", name, lineno));
       continue;
     }
-    (void)has_motion_word;
     if (!any_axis) continue;
     for (int a = 0; a < 5; ++a) {
       if (!b.words[static_cast<size_t>(a)]) continue;

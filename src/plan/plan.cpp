@@ -353,7 +353,7 @@ class Search {
     std::string best_reason;
     for (const Cand& cd : cands) {
       path.assign(n, nullptr);
-      std::size_t checked = 0, failed_at = n;
+      std::size_t failed_at = n;
       for (std::size_t oi = 0; oi < n; ++oi) {
         const std::size_t k = order[oi];
         Cell* c = cell(k, cd.i1, cd.i2);
@@ -364,7 +364,6 @@ class Search {
           break;
         }
         path[k] = c;
-        ++checked;
       }
       if (failed_at == n) {
         if (!sp_.options().check_collision) return true;
@@ -403,7 +402,6 @@ class Search {
             fmt::format("{}: {} (best fixed orientation {:.3f}, {:.3f} deg)", c ? to_string(c->status) : "orientation",
                         c ? c->detail : "", rad2deg(sp_.r1_of(cd.i1)), rad2deg(sp_.r2_of(cd.i2)));
       }
-      (void)checked;
     }
     fail = {Tier::Fixed2, L_[best_reach].move, line(best_reach), best_reason};
     return false;
