@@ -113,19 +113,15 @@ Program read_text(const std::string& text, const std::string& name, const AxisLe
         switch (g10) {
           case 0:
             motion = Motion::Rapid;
-
             break;
           case 10:
             motion = Motion::Linear;
-
             break;
           case 20:
             motion = Motion::ArcCW;
-
             break;
           case 30:
             motion = Motion::ArcCCW;
-
             break;
           case 200:
             inch = true;
