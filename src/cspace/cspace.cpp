@@ -5,6 +5,7 @@
 #include <algorithm>
 #include <cmath>
 #include <queue>
+#include <utility>
 
 #include "cscam/core/error.hpp"
 #include "cscam/core/units.hpp"
@@ -39,7 +40,7 @@ Counters& Counters::operator+=(const Counters& o) {
 
 Space::Space(std::shared_ptr<const kin::Kinematics> kinematics, const geom::Scene* scene, const geom::ToolShape* tool,
              Options options, const geom::Scene* head)
-    : kin_(std::move(kinematics)), scene_(scene), tool_(tool), opt_(options), head_(head) {
+    : kin_(std::move(kinematics)), scene_(scene), tool_(tool), opt_(std::move(options)), head_(head) {
   if (!(opt_.resolution_rad > 0)) throw InputError("C-space resolution must be positive");
   if (opt_.cone_rad < 0 || opt_.min_tilt_rad < 0) throw InputError("cone and minimum tilt must not be negative");
   if (opt_.min_tilt_rad > opt_.cone_rad && opt_.cone_rad > 0)

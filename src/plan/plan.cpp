@@ -9,6 +9,7 @@
 #include <limits>
 #include <numeric>
 #include <unordered_map>
+#include <utility>
 
 #include "cscam/core/error.hpp"
 #include "cscam/core/units.hpp"
@@ -695,7 +696,6 @@ class Search {
       path[k] = S[k][static_cast<size_t>(idx)].cell;
       idx = S[k][static_cast<size_t>(idx)].pred;
     }
-    desc = fmt::format("weighted rotary travel {:.3f} deg", rad2deg(S[n - 1].empty() ? 0.0 : path.back() ? 0.0 : 0.0));
     double travel = 0;
     for (std::size_t k = 1; k < n; ++k)
       travel += std::abs(path[k]->r1 - path[k - 1]->r1) + std::abs(path[k]->r2 - path[k - 1]->r2);
@@ -822,7 +822,10 @@ std::string Plan::summary() const {
 
 Planner::Planner(const machine::Machine& machine, std::shared_ptr<const kin::Kinematics> kinematics,
                  const geom::Scene* scene, const geom::ToolShape* tool, Options options, const geom::Scene* head)
-    : machine_(machine), kin_(kinematics), space_(kinematics, scene, tool, options.cspace, head), opt_(options) {}
+    : machine_(machine),
+      kin_(kinematics),
+      space_(kinematics, scene, tool, options.cspace, head),
+      opt_(std::move(options)) {}
 
 Plan Planner::run(const cl::Program& program) const {
   const auto t0 = std::chrono::steady_clock::now();
@@ -1157,7 +1160,7 @@ SegmentSpace Planner::sample_segment(const cl::Program& program, const Plan& pla
     const kin::Posed cl{program.moves[m].tip_in_part_mm, program.moves[m].axis_in_part.normalized()};
     for (int b = 0; b < n2; ++b)
       for (int a = 0; a < n1; ++a) {
-        auto& st = out.status[static_cast<size_t>(b * n1 + a)];
+        auto& st = out.status[static_cast<size_t>(b) * static_cast<size_t>(n1) + static_cast<size_t>(a)];
         if (st != Status::Feasible) continue;
         Cell c;
         c.r1 = (out.i1_min + a) * res;
