@@ -50,3 +50,8 @@ TEST(Core, AtomicWriteLeavesNothingOnError) {
   EXPECT_THROW(write_file_atomically("/nonexistent-dir/x.txt", [](std::ostream&) {}), InputError);
   fs::remove_all(dir);
 }
+
+TEST(Core, WholeDegreesDoNotTruncate) {
+  EXPECT_NEAR(deg2rad(5), 5.0 * kPi / 180.0, 1e-15);
+  EXPECT_NEAR(rad2deg(1), 180.0 / kPi, 1e-12);
+}

@@ -179,7 +179,7 @@ void Space::enumerate(const kin::Posed& cl, std::vector<Cell>& out, std::size_t 
   c.cells_enumerated += out.size();
 }
 
-void Space::evaluate(const kin::Posed& cl, Cell& cell, geom::QueryWorkspace& ws, Counters& c) const {
+void Space::evaluate(const kin::Posed& cl, Cell& cell, geom::QueryWorkspace& ws, Counters& c, Certificate* cert) const {
   if (cell.status != Status::Unknown) {
     ++c.cache_hits;
     return;
@@ -204,6 +204,31 @@ void Space::evaluate(const kin::Posed& cl, Cell& cell, geom::QueryWorkspace& ws,
     return;
   }
   if (opt_.check_collision && scene_ && tool_) {
+    // A certificate from a neighbouring point covers this pose: same axis, moved less than the margin.
+    if (cert && cert->valid && !head_ && pose.axis.dot(cert->axis) > 1.0 - 1e-15 &&
+        (pose.tip_mm - cert->tip_mm).norm() < cert->margin_mm) {
+      ++c.certified;
+      cell.status = Status::Feasible;
+      return;
+    }
+    if (cert && !head_) {
+      // Probe with a margin; on success this pose certifies its neighbours. The cutter body is extended
+      // toward the tip by the margin (less relief) so that a translation along the axis is covered too.
+      const double r = tool_->cutter.corner_radius_mm;
+      const double relief = opt_.collision.relief_mm >= 0 ? opt_.collision.relief_mm : (r > 0 ? 0.2 * r : 0.5);
+      const double m = std::min(1.0, relief);
+      geom::CheckOptions o = opt_.collision;
+      o.clearance_mm += m;
+      o.cutter_clearance_mm += m;
+      o.relief_mm = relief - m;
+      ++c.collision;
+      if (m > 0 && !geom::check(*scene_, *tool_, pose, o, ws).collides) {
+        *cert = {true, pose.tip_mm, pose.axis, m};
+        cell.status = Status::Feasible;
+        return;
+      }
+      cert->valid = false;
+    }
     ++c.collision;
     const geom::CollisionResult r = geom::check(*scene_, *tool_, pose, opt_.collision, ws);
     if (r.collides) {

@@ -77,8 +77,8 @@ class Search {
     return slot.status == Status::Orientation ? nullptr : &slot;
   }
 
-  bool feasible(std::size_t k, Cell& c) {
-    sp_.evaluate(L_[k].cl, c, ws_, c_);
+  bool feasible(std::size_t k, Cell& c, cspace::Certificate* cert = nullptr) {
+    sp_.evaluate(L_[k].cl, c, ws_, c_, cert);
     return c.status == Status::Feasible;
   }
 
@@ -355,10 +355,11 @@ class Search {
     for (const Cand& cd : cands) {
       path.assign(n, nullptr);
       std::size_t failed_at = n;
+      cspace::Certificate cert;  // one fixed orientation along the segment: neighbours certify each other
       for (std::size_t oi = 0; oi < n; ++oi) {
         const std::size_t k = order[oi];
         Cell* c = cell(k, cd.i1, cd.i2);
-        if (!c || !feasible(k, *c)) {
+        if (!c || !feasible(k, *c, &cert)) {
           failed_at = k;
           std::rotate(order.begin(), order.begin() + static_cast<std::ptrdiff_t>(oi),
                       order.begin() + static_cast<std::ptrdiff_t>(oi) + 1);
@@ -370,25 +371,39 @@ class Search {
         if (!sp_.options().check_collision) return true;
         // Ties in orientation are broken by clearance: among the candidates about as close to the CL axis
         // (within 0.1 deg) that are feasible everywhere, keep the one with the most room around it.
-        std::vector<const Cell*> best_path = path;
-        double best_room = room(path);
+        // Room is probed at three points per alternative; only the winner is then validated everywhere.
+        const double room0 = room(path);
+        const Cand* winner = nullptr;
+        double best_room = room0;
         int tried = 0;
         for (const Cand* nx = &cd + 1; nx < cands.data() + cands.size() && tried < 8; ++nx) {
           if (nx->score > cd.score + deg2rad(0.1)) break;
           ++tried;
-          std::vector<const Cell*> alt(n, nullptr);
+          std::vector<const Cell*> probe(n, nullptr);
           bool ok = true;
-          for (std::size_t kk = 0; kk < n && ok; ++kk) {
+          for (std::size_t kk : {std::size_t{0}, n / 2, n - 1}) {
             Cell* c = cell(kk, nx->i1, nx->i2);
-            ok = c && feasible(kk, *c);
-            if (ok) alt[kk] = c;
+            ok = ok && c && feasible(kk, *c);
+            if (ok) probe[kk] = c;
           }
           if (!ok) continue;
-          const double r = room(alt);
+          const double r = room(probe);
           if (r > best_room) {
             best_room = r;
-            best_path = alt;
+            winner = nx;
           }
+        }
+        std::vector<const Cell*> best_path = path;
+        if (winner) {
+          std::vector<const Cell*> alt(n, nullptr);
+          cspace::Certificate cert2;
+          bool ok = true;
+          for (std::size_t kk = 0; kk < n && ok; ++kk) {
+            Cell* c = cell(kk, winner->i1, winner->i2);
+            ok = c && feasible(kk, *c, &cert2);
+            if (ok) alt[kk] = c;
+          }
+          if (ok) best_path = alt;
         }
         path = best_path;
         return true;

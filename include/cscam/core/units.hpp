@@ -17,6 +17,9 @@ template <typename T>
 constexpr T rad2deg(T rad) {
   return rad * T(180.0 / kPi);
 }
+// Whole degrees must not truncate to an integer number of radians: deg2rad(5) is 0.0873, not 0.
+constexpr double deg2rad(int deg) { return deg * (kPi / 180.0); }
+constexpr double rad2deg(int rad) { return rad * (180.0 / kPi); }
 
 /// Wrap an angle to (-pi, pi].
 inline double wrap_pi(double a) {

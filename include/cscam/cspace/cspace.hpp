@@ -57,6 +57,16 @@ struct Counters {
   Counters& operator+=(const Counters& o);
 };
 
+/// Reuse between neighbouring points: a pose proven free with an extra margin m (shapes inflated by m,
+/// cutter body extended m toward the tip) stays free under any translation shorter than m with the same
+/// axis, so the next points of a fixed orientation need no query until the tool has moved m.
+struct Certificate {
+  bool valid = false;
+  Eigen::Vector3d tip_mm = Eigen::Vector3d::Zero();
+  Eigen::Vector3d axis = Eigen::Vector3d::UnitZ();
+  double margin_mm = 0.0;
+};
+
 /// The C-space model: immutable, shared by threads. Per-thread scratch lives in Workspace.
 class Space {
  public:
@@ -83,7 +93,8 @@ class Space {
   /// The tool pose a cell gives at a CL pose (tip moves for a ball mill so the centre stays put).
   [[nodiscard]] kin::Posed tool_pose(const kin::Posed& cl_pose, double r1, double r2) const;
   /// Stroke and collision of a cell (the orientation test must have passed). Fills status, axes, detail.
-  void evaluate(const kin::Posed& cl_pose, Cell& cell, geom::QueryWorkspace& ws, Counters& c) const;
+  void evaluate(const kin::Posed& cl_pose, Cell& cell, geom::QueryWorkspace& ws, Counters& c,
+                Certificate* certificate = nullptr) const;
   /// Collision of an arbitrary tool pose (for reorientation moves). Empty string if free.
   [[nodiscard]] std::string collision_at(const kin::Posed& tool_pose, geom::QueryWorkspace& ws, Counters& c) const;
   /// Whether a feasible cell stays free with `margin_mm` more clearance (a cheap measure of room for
