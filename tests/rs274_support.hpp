@@ -2,6 +2,7 @@
 // LinuxCNC's own interpreter as the oracle for our G-code: run `rs274 -g` and compare every move it makes
 // with the axis values we meant.
 #include <gtest/gtest.h>
+#include <unistd.h>
 
 #include <array>
 #include <filesystem>
@@ -26,9 +27,16 @@ inline constexpr double kRs274HalfUnit = 0.5e-4 + 1e-9;
 inline std::vector<std::array<double, 6>> rs274_moves(const std::string& text, const std::string& tag,
                                                       std::string& log) {
   namespace fs = std::filesystem;
-  const std::string path = (fs::temp_directory_path() / ("cscam_rs274_" + tag + ".ngc")).string();
+  // Each run in its own directory, and one rs274 at a time machine-wide: the standalone interpreter keeps
+  // state beside it and crashed (bus error) when two test processes ran it at once under ctest -j.
+  static int counter = 0;
+  const fs::path dir =
+      fs::temp_directory_path() / ("cscam_rs274_" + std::to_string(::getpid()) + "_" + std::to_string(counter++));
+  fs::create_directories(dir);
+  const std::string path = (dir / (tag + ".ngc")).string();
   std::ofstream(path) << text;
-  const auto r = run_command("rs274 -g " + path);
+  const std::string lock = (fs::temp_directory_path() / "cscam_rs274.lock").string();
+  const auto r = run_command("cd '" + dir.string() + "' && flock '" + lock + "' rs274 -g '" + path + "'");
   log = r.output;
   std::vector<std::array<double, 6>> moves;
   std::istringstream in(r.output);
@@ -45,7 +53,7 @@ inline std::vector<std::array<double, 6>> rs274_moves(const std::string& text, c
     }
     moves.push_back(v);
   }
-  fs::remove(path);
+  fs::remove_all(dir);
   return moves;
 }
 
