@@ -25,11 +25,19 @@ using namespace cscam;
 
 namespace {
 
+using cli::parse_units;
 using cli::resolve_machine;
 
 }  // namespace
 
 namespace cscam::cli {
+std::optional<LengthUnit> parse_units(const std::string& s) {
+  if (s.empty()) return std::nullopt;
+  if (s == "mm") return LengthUnit::Millimetre;
+  if (s == "inch" || s == "in") return LengthUnit::Inch;
+  throw InputError(fmt::format("--units: expected mm or inch, got '{}'", s));
+}
+
 /// A machine may be named by path or by its name in the bundled machines/ folder.
 std::string resolve_machine(const std::string& arg) {
   if (fs::exists(arg)) return arg;
@@ -43,13 +51,6 @@ std::string resolve_machine(const std::string& arg) {
 }  // namespace cscam::cli
 
 namespace {
-
-std::optional<LengthUnit> parse_units(const std::string& s) {
-  if (s.empty()) return std::nullopt;
-  if (s == "mm") return LengthUnit::Millimetre;
-  if (s == "inch" || s == "in") return LengthUnit::Inch;
-  throw InputError(fmt::format("--units: expected mm or inch, got '{}'", s));
-}
 
 std::array<std::string, 5> names_of(const machine::Machine& m, bool use_letters) {
   std::array<std::string, 5> n;

@@ -56,12 +56,7 @@ std::unique_ptr<Setup> setup(const PlanArgs& a) {
   auto s = std::make_unique<Setup>();
   s->m = machine::load(resolve_machine(a.machine));
   cl::ReadOptions ro;
-  if (a.units == "inch" || a.units == "in")
-    ro.units = LengthUnit::Inch;
-  else if (a.units == "mm")
-    ro.units = LengthUnit::Millimetre;
-  else if (!a.units.empty())
-    throw InputError(fmt::format("--units: expected mm or inch, got '{}'", a.units));
+  ro.units = parse_units(a.units);
   s->prog = cl::read_file(a.cl, ro);
   for (const auto& w : s->prog.warnings) std::cerr << "warning: " << w.where.str() << ": " << w.message << "\n";
   s->tool_length = post::tool_length_for(s->m, a.tool_length);
