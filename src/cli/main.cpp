@@ -2,15 +2,18 @@
 #include <fmt/format.h>
 
 #include <CLI/CLI.hpp>
+#include <nlohmann/json.hpp>
 #include <algorithm>
 #include <chrono>
 #include <filesystem>
 #include <fstream>
 #include <iostream>
+#include <sstream>
 
 #include "cscam/cl/program.hpp"
 #include "cscam/core/atomic_file.hpp"
 #include "cscam/core/error.hpp"
+#include "cscam/gate/gate.hpp"
 #include "cscam/machine/machine.hpp"
 #include "cscam/nc/reader.hpp"
 #include "cscam/post/post.hpp"
@@ -67,6 +70,7 @@ std::array<bool, 5> rotary_of(const machine::Machine& m) {
 struct PostArgs {
   std::string cl, machine, out, dialect, units;
   double tolerance = 0, axis_tolerance = 0, tool_length = 0;
+  double default_feed = 0;  ///< mm/min for feed moves without a feed rate; 0: such a CL file is an error
   bool json = false, no_linearise = false;
 };
 
@@ -75,6 +79,8 @@ int cmd_post(const PostArgs& a) {
   const machine::Machine m = machine::load(resolve_machine(a.machine));
   cl::ReadOptions ro;
   ro.units = parse_units(a.units);
+  ro.require_feed = true;
+  if (a.default_feed > 0) ro.default_feed_mm_per_min = a.default_feed;
   const cl::Program prog = cl::read_file(a.cl, ro);
   for (const auto& w : prog.warnings) std::cerr << "warning: " << w.where.str() << ": " << w.message << "\n";
   const double L = post::tool_length_for(m, a.tool_length);
@@ -89,18 +95,42 @@ int cmd_post(const PostArgs& a) {
   po.tool_length_mm = L;
   post::Summary sum;
   const std::string out = a.out.empty() ? fs::path(a.cl).stem().string() + ".ngc" : a.out;  // in the working dir
-  write_file_atomically(out, [&](std::ostream& os) { post::write_nc(os, prog, m, *kin, axes, po, sum); });
-  const double secs = std::chrono::duration<double>(std::chrono::steady_clock::now() - t0).count();
+  std::ostringstream nc_text;
+  post::write_nc(nc_text, prog, m, *kin, axes, po, sum);
   for (const auto& w : sum.warnings) std::cerr << "warning: " << w << "\n";
+  // No program reaches disk without passing the independent back-simulation (limits, feeds, tolerance).
+  const gate::Summary gs =
+      gate::write_checked(out, nc_text.str(), prog, m, *kin, gate::options_for(m, a.tolerance, a.axis_tolerance, 0.0),
+                          &sum.cl_line_of_nc_line);
+  const double secs = std::chrono::duration<double>(std::chrono::steady_clock::now() - t0).count();
   if (a.json) {
-    std::cout << fmt::format(
-        "{{\"nc\": \"{}\", \"machine\": \"{}\", \"cl_points\": {}, \"blocks\": {}, \"inserted_points\": {}, "
-        "\"seconds\": {:.4f}}}\n",
-        out, m.name, sum.cl_points, sum.blocks, sum.inserted_points, secs);
+    nlohmann::json j;
+    j["nc"] = out;
+    j["machine"] = m.name;
+    j["cl_points"] = sum.cl_points;
+    j["blocks"] = sum.blocks;
+    j["inserted_points"] = sum.inserted_points;
+    j["reorientations"] = sum.reorientations;
+    j["retracts"] = sum.retracts;
+    j["gate"] = {{"ok", gs.ok},
+                 {"message", gs.message},
+                 {"max_tip_deviation_mm", gs.deviation.max_tip_deviation_mm},
+                 {"max_axis_deviation_deg", gs.deviation.max_axis_deviation_deg},
+                 {"max_velocity_ratio", gs.max_velocity_ratio}};
+    j["warnings"] = nlohmann::json::array();
+    for (const auto& w : prog.warnings) j["warnings"].push_back(w.where.str() + ": " + w.message);
+    for (const auto& w : sum.warnings) j["warnings"].push_back(w);
+    j["seconds"] = secs;
+    std::cout << j.dump() << "\n";
   } else {
     std::cout << fmt::format(
-        "wrote {} ({} CL points -> {} blocks, {} points inserted by linearisation) for machine {} in {:.3f} s\n", out,
-        sum.cl_points, sum.blocks, sum.inserted_points, m.name, secs);
+        "wrote {} ({} CL points -> {} blocks, {} points inserted by linearisation{}) for machine {} in {:.3f} s\n"
+        "gate {}\n",
+        out, sum.cl_points, sum.blocks, sum.inserted_points,
+        sum.reorientations + sum.retracts
+            ? fmt::format(", {} reorientations in place, {} retracts", sum.reorientations, sum.retracts)
+            : std::string(),
+        m.name, secs, gs.message);
   }
   return 0;
 }
@@ -248,6 +278,10 @@ int main(int argc, char** argv) {
   post_cmd->add_option("--tolerance", pa.tolerance, "linearisation tolerance of the tip, mm");
   post_cmd->add_option("--axis-tolerance", pa.axis_tolerance, "linearisation tolerance of the tool axis, deg");
   post_cmd->add_option("--tool-length", pa.tool_length, "gauge-to-tip tool length, mm (default: machine file)");
+  post_cmd
+      ->add_option("--default-feed", pa.default_feed,
+                   "feed, mm/min, for cutting moves the CL gives no feed rate for (default: such a CL is an error)")
+      ->check(CLI::PositiveNumber);
   post_cmd->add_flag("--no-linearise", pa.no_linearise, "do not insert points between CL points");
   post_cmd->add_flag("--json", pa.json, "print a JSON summary");
 

@@ -17,6 +17,7 @@
 #include "cscam/geom/scene.hpp"
 #include "cscam/machine/machine.hpp"
 #include "cscam/nc/reader.hpp"
+#include "cscam/gate/gate.hpp"
 #include "cscam/plan/plan.hpp"
 #include "cscam/post/post.hpp"
 #include "cscam/report/letters.hpp"
@@ -35,6 +36,7 @@ struct PlanArgs {
   std::vector<std::string> parts, fixtures;
   double cone_deg = 0, min_tilt_deg = 0, resolution_deg = 1.0, clearance_mm = 0.5, tool_length = 0, tolerance = 0;
   double max_step_deg = 0, mesh_scale = 1.0, tilt_step_deg = 0;
+  double default_feed = 0;  ///< mm/min for feed moves without a feed rate; 0: such a CL file is an error
   bool no_collision = false, json = false;
 };
 
@@ -57,6 +59,8 @@ std::unique_ptr<Setup> setup(const PlanArgs& a) {
   s->m = machine::load(resolve_machine(a.machine));
   cl::ReadOptions ro;
   ro.units = parse_units(a.units);
+  ro.require_feed = true;
+  if (a.default_feed > 0) ro.default_feed_mm_per_min = a.default_feed;
   s->prog = cl::read_file(a.cl, ro);
   for (const auto& w : s->prog.warnings) std::cerr << "warning: " << w.where.str() << ": " << w.message << "\n";
   s->tool_length = post::tool_length_for(s->m, a.tool_length);
@@ -146,6 +150,20 @@ report::Stats stats_of(const Setup& s, const std::string& text, const std::strin
   return st;
 }
 
+/// The safety gate's options for a program of this run; with meshes, rapids are checked against them.
+gate::Options gate_options(const Setup& s, const PlanArgs& a, double cone_deg) {
+  gate::Options g = gate::options_for(s.m, a.tolerance, 0.0, cone_deg);
+  if (s.has_meshes && s.tool) {
+    cspace::Options co = s.opt.cspace;
+    co.check_collision = true;
+    auto space = std::make_shared<const cspace::Space>(s.kin, &s.scene, s.tool.get(), co, s.has_head ? &s.head : nullptr);
+    auto ws = std::make_shared<geom::QueryWorkspace>();
+    auto cc = std::make_shared<cspace::Counters>();
+    g.collision = [space, ws, cc](const kin::Axes& q) { return space->collision_at_axes(q, *ws, *cc); };
+  }
+  return g;
+}
+
 report::VerifyResult verify_text(const Setup& s, const std::string& text, double cone_deg) {
   report::VerifyOptions vo;
   vo.tip_tolerance_mm = s.m.post.tolerance_mm + 0.002;
@@ -181,10 +199,9 @@ int run_plan(const PlanArgs& a) {
   const plan::Plan p = planner.run(s->prog);
   post::Summary sum;
   const std::string text = post_to_string(*s, p.program, p.axes, a, "cspace-planner", sum);
-  const auto v = verify_text(*s, text, a.cone_deg);
-  if (!v.ok) throw std::runtime_error("planned program failed its own verification: " + v.message);
   const std::string out = a.out.empty() ? fs::path(a.cl).stem().string() + ".planned.ngc" : a.out;
-  write_file_atomically(out, [&](std::ostream& os) { os << text; });
+  const gate::Summary v =
+      gate::write_checked(out, text, p.program, s->m, *s->kin, gate_options(*s, a, a.cone_deg), &sum.cl_line_of_nc_line);
   if (!a.svg_dir.empty()) write_svgs(*s, planner, p, post::conventional_axes(s->prog, s->m, *s->kin), a.svg_dir);
   std::cout << p.summary();
   std::cout << fmt::format("wrote {} ({} blocks); verify: {}\n", out, sum.blocks, v.message);
@@ -273,7 +290,9 @@ int run_compare(const PlanArgs& a) {
   const std::string json_path = a.json_out.empty() ? fs::path(a.cl).stem().string() + ".compare.json" : a.json_out;
   write_file_atomically(json_path, [&](std::ostream& os) { os << json; });
   std::cout << "JSON: " << json_path << "\n";
-  if (!a.out.empty()) write_file_atomically(a.out, [&](std::ostream& os) { os << plan_text; });
+  if (!a.out.empty())
+    gate::write_checked(a.out, plan_text, p.program, s->m, *s->kin, gate_options(*s, a, a.cone_deg),
+                        &sp.cl_line_of_nc_line);
   if (!a.svg_dir.empty()) write_svgs(*s, planner, p, conv, a.svg_dir);
   return vp.ok ? 0 : 1;
 }
@@ -295,6 +314,9 @@ void common_options(CLI::App* c, PlanArgs& a) {
   c->add_option("--tolerance", a.tolerance, "post linearisation tolerance, mm");
   c->add_option("--dialect", a.dialect, "post dialect override");
   c->add_option("--units", a.units, "force CL units (mm or inch)");
+  c->add_option("--default-feed", a.default_feed,
+                "feed, mm/min, for cutting moves the CL gives no feed rate for (default: such a CL is an error)")
+      ->check(CLI::PositiveNumber);
   c->add_option("--svg", a.svg_dir, "write C-space and axis pictures into this directory");
   c->add_flag("--no-collision", a.no_collision, "ignore the meshes (to show what the plan would hit)");
 }

@@ -133,11 +133,16 @@ class Writer {
   }
 
   void run(const std::vector<kin::Axes>& axes) {
+    sum_.cl_line_of_nc_line.assign(1, 0);
     header();
+    map_lines(0);
     size_t ev = 0;
     const auto& moves = prog_.moves;
     for (size_t i = 0; i < moves.size(); ++i) {
-      while (ev < prog_.events.size() && prog_.events[ev].before_move <= i) event(prog_.events[ev++]);
+      while (ev < prog_.events.size() && prog_.events[ev].before_move <= i) {
+        event(prog_.events[ev]);
+        map_lines(prog_.events[ev++].line);
+      }
       const cl::Move& mv = moves[i];
       ++sum_.cl_points;
       check_limits(axes[i], mv);
@@ -148,10 +153,15 @@ class Writer {
       } else {
         feed(moves[i - 1], axes[i - 1], mv, axes[i]);
       }
+      map_lines(mv.line);
       if (buf_.size() > (1 << 15)) flush();
     }
-    while (ev < prog_.events.size()) event(prog_.events[ev++]);
+    while (ev < prog_.events.size()) {
+      event(prog_.events[ev]);
+      map_lines(prog_.events[ev++].line);
+    }
     footer();
+    map_lines(0);
     flush();
   }
 
@@ -159,6 +169,13 @@ class Writer {
   void flush() {
     out_.write(buf_.data(), static_cast<std::streamsize>(buf_.size()));
     buf_.clear();
+    scanned_ = 0;
+  }
+
+  /// Attributes the NC lines written since the last call to `cl_line` (for the gate's messages).
+  void map_lines(int cl_line) {
+    for (; scanned_ < buf_.size(); ++scanned_)
+      if (buf_[scanned_] == '\n') sum_.cl_line_of_nc_line.push_back(cl_line);
   }
 
   void line(std::string_view s) {
@@ -664,6 +681,7 @@ class Writer {
   double last_feed_ = -1.0;
   kin::Axes cur_ = kin::Axes::Zero();
   std::string buf_;
+  size_t scanned_ = 0;  ///< bytes of buf_ already attributed to a CL line
   std::vector<kin::Solution> sols_;
   std::vector<Piece> stack_;
 };

@@ -1,11 +1,14 @@
 #include "cscam/report/verify.hpp"
 
+#include "cscam/report/json.hpp"
+
 #include <fmt/format.h>
 
 #include <algorithm>
 #include <cmath>
 #include <limits>
 
+#include "cscam/core/tolerances.hpp"
 #include "cscam/core/units.hpp"
 
 namespace cscam::report {
@@ -34,6 +37,16 @@ double seg_distance(const ClSeg& s, const Vec3& p, double& t) {
 }
 
 }  // namespace
+
+VerifyOptions verify_options_for(const machine::Machine& machine, double tolerance_mm, double axis_tolerance_deg,
+                                 double cone_deg) {
+  VerifyOptions vo;
+  vo.tip_tolerance_mm = (tolerance_mm > 0 ? tolerance_mm : machine.post.tolerance_mm) + tol::kVerifySlackMm;
+  vo.axis_tolerance_deg =
+      (axis_tolerance_deg > 0 ? axis_tolerance_deg : machine.post.axis_tolerance_deg) + tol::kVerifySlackDeg + cone_deg;
+  vo.ball_centre = cone_deg > 0;
+  return vo;
+}
 
 VerifyResult verify(const nc::Program& nc, const cl::Program& cl, const kin::Kinematics& kinematics,
                     const VerifyOptions& options) {
@@ -178,13 +191,20 @@ VerifyResult verify(const nc::Program& nc, const cl::Program& cl, const kin::Kin
   return r;
 }
 
-std::string VerifyResult::to_json() const {
-  return fmt::format(
-      "{{\"ok\": {}, \"feed_blocks\": {}, \"samples\": {}, \"max_tip_deviation_mm\": {:.6f}, \"max_tip_nc_line\": {}, "
-      "\"max_tip_cl_line\": {}, \"max_axis_deviation_deg\": {:.6f}, \"max_axis_nc_line\": {}, "
-      "\"max_uncovered_cl_mm\": {:.6f}, \"max_uncovered_cl_line\": {}, \"message\": \"{}\"}}",
-      ok ? "true" : "false", feed_blocks, samples, max_tip_deviation_mm, max_tip_nc_line, max_tip_cl_line,
-      max_axis_deviation_deg, max_axis_nc_line, max_uncovered_cl_mm, max_uncovered_cl_line, message);
+nlohmann::json VerifyResult::json() const {
+  return {{"ok", ok},
+          {"feed_blocks", feed_blocks},
+          {"samples", samples},
+          {"max_tip_deviation_mm", rounded(max_tip_deviation_mm, 6)},
+          {"max_tip_nc_line", max_tip_nc_line},
+          {"max_tip_cl_line", max_tip_cl_line},
+          {"max_axis_deviation_deg", rounded(max_axis_deviation_deg, 6)},
+          {"max_axis_nc_line", max_axis_nc_line},
+          {"max_uncovered_cl_mm", rounded(max_uncovered_cl_mm, 6)},
+          {"max_uncovered_cl_line", max_uncovered_cl_line},
+          {"message", message}};
 }
+
+std::string VerifyResult::to_json() const { return json().dump(); }
 
 }  // namespace cscam::report

@@ -18,5 +18,9 @@ inline constexpr double kLimitSlackDeg = 1e-7;
 /// Hysteresis for counting a reversal in statistics.
 inline constexpr double kReversalHysteresisMm = 0.002;
 inline constexpr double kReversalHysteresisDeg = 0.01;
+/// What verification and the safety gate allow on top of the post's own tolerances: the rounding of
+/// printed axis words (4-5 decimals) and of the FK samples. One place for verify, plan and the gate.
+inline constexpr double kVerifySlackMm = 0.002;
+inline constexpr double kVerifySlackDeg = 0.01;
 
 }  // namespace cscam::tol

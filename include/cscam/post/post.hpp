@@ -35,7 +35,11 @@ struct Summary {
   size_t inserted_points = 0;  ///< points added by linearisation
   size_t ik_calls = 0;
   double max_checked_tip_deviation_mm = 0.0;
+  std::size_t reorientations = 0;  ///< branch flips or unwinds done with the tip held in place
+  std::size_t retracts = 0;        ///< branch flips or unwinds done by retract, rotate and plunge
   std::vector<std::string> warnings;
+  /// For every NC line (1-based index; index 0 unused) the CL line it came from (0: header, footer).
+  std::vector<int> cl_line_of_nc_line;
 };
 
 /// The conventional strategy a typical post uses: the machine's preferred branch at the start, then

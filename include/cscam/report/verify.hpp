@@ -2,10 +2,12 @@
 /// @file
 /// Back-simulation: read NC axis values, run forward kinematics inside every block, and compare the
 /// tool tip and axis with the CL path.
+#include <nlohmann/json_fwd.hpp>
 #include <string>
 
 #include "cscam/cl/program.hpp"
 #include "cscam/kin/kinematics.hpp"
+#include "cscam/machine/machine.hpp"
 #include "cscam/nc/reader.hpp"
 
 namespace cscam::report {
@@ -31,8 +33,16 @@ struct VerifyResult {
   int max_axis_nc_line = 0;
   double max_uncovered_cl_mm = 0.0;  ///< largest distance from a CL feed point to the NC path
   int max_uncovered_cl_line = 0;
-  [[nodiscard]] std::string to_json() const;
+  [[nodiscard]] nlohmann::json json() const;
+  [[nodiscard]] std::string to_json() const;  ///< json().dump()
 };
+
+/// Verification options for a program posted with `tolerance_mm` / `axis_tolerance_deg` (0 or less: the
+/// machine file's) and planned within a cone of `cone_deg` (0: the CL orientation): the post's tolerances
+/// plus tol::kVerifySlackMm / kVerifySlackDeg; inside a cone the axis may deviate by the cone and a ball
+/// mill's centre is what stays on the path.
+VerifyOptions verify_options_for(const machine::Machine& machine, double tolerance_mm = 0.0,
+                                 double axis_tolerance_deg = 0.0, double cone_deg = 0.0);
 
 /// Compares the NC program (machine axis values) with the CL program through `kinematics`.
 VerifyResult verify(const nc::Program& nc, const cl::Program& cl, const kin::Kinematics& kinematics,

@@ -1,0 +1,305 @@
+#include "cscam/gate/gate.hpp"
+
+#include <fmt/format.h>
+
+#include <algorithm>
+#include <cmath>
+#include <stdexcept>
+
+#include "cscam/core/atomic_file.hpp"
+#include "cscam/core/error.hpp"
+#include "cscam/core/tolerances.hpp"
+#include "cscam/core/units.hpp"
+#include "cscam/kin/track.hpp"
+#include "cscam/nc/reader.hpp"
+#include "cscam/report/letters.hpp"
+
+namespace cscam::gate {
+
+namespace {
+
+using Vec3 = Eigen::Vector3d;
+
+/// A tool-tip-control program holds the tip (part frame) in its linear words and the tool vector in its
+/// rotary words; the control moves both linearly between blocks. This adapter gives verify that view.
+class TipWordsKinematics final : public kin::Kinematics {
+ public:
+  TipWordsKinematics(const kin::Kinematics& machine_kin, bool xmini_virtual_wrist)
+      : k_(machine_kin), xmini_(xmini_virtual_wrist) {
+    for (int i = 0; i < 5; ++i)
+      if (!k_.axes()[static_cast<size_t>(i)].rotary()) lin_[static_cast<size_t>(nlin_++)] = i;
+  }
+  [[nodiscard]] const std::vector<kin::AxisInfo>& axes() const override { return k_.axes(); }
+  [[nodiscard]] std::array<int, 2> rotary_pair() const override { return k_.rotary_pair(); }
+  [[nodiscard]] kin::Posed forward(const kin::Axes& q) const override {
+    kin::Posed p;
+    p.tip_mm = Vec3(q[lin_[0]], q[lin_[1]], q[lin_[2]]);
+    const auto rp = k_.rotary_pair();
+    if (xmini_) {
+      // Virtual wrist angles of an untilted platform (the post's Cartesian words): u(C, A).
+      const double c = q[rp[0]], a = q[rp[1]];
+      p.axis = Vec3(-std::sin(a) * std::sin(c), -std::sin(a) * std::cos(c), std::cos(a));
+    } else if (!k_.tool_axis_at(q[rp[0]], q[rp[1]], p.tip_mm, p.axis)) {
+      p.axis = Vec3::Constant(std::numeric_limits<double>::quiet_NaN());
+    }
+    return p;
+  }
+  void inverse_all(const kin::Posed&, const kin::Axes*, std::vector<kin::Solution>&) const override {
+    throw std::logic_error("TipWordsKinematics has no inverse");
+  }
+  void inverse_branches(const kin::Posed&, const kin::Axes*, std::vector<kin::Solution>&) const override {
+    throw std::logic_error("TipWordsKinematics has no inverse");
+  }
+  bool solve_for_rotaries(const kin::Posed&, kin::Axes&) const override { return false; }
+  bool tool_axis_at(double, double, const Vec3&, Vec3&) const override { return false; }
+
+ private:
+  const kin::Kinematics& k_;
+  bool xmini_;
+  std::array<int, 3> lin_{};
+  int nlin_ = 0;
+};
+
+bool contains(const std::string& text, std::string_view what) { return text.find(what) != std::string::npos; }
+
+std::string axis_value(const kin::AxisInfo& a, double v) {
+  return a.rotary() ? fmt::format("{:.4f} deg", rad2deg(v)) : fmt::format("{:.4f} mm", v);
+}
+
+}  // namespace
+
+Options options_for(const machine::Machine& machine, double tolerance_mm, double axis_tolerance_deg,
+                    double cone_deg) {
+  Options o;
+  const report::VerifyOptions vo = report::verify_options_for(machine, tolerance_mm, axis_tolerance_deg, cone_deg);
+  o.tip_tolerance_mm = vo.tip_tolerance_mm;
+  o.axis_tolerance_deg = vo.axis_tolerance_deg;
+  o.ball_centre = vo.ball_centre;
+  return o;
+}
+
+Summary check(const std::string& nc_text, const std::string& nc_name, const cl::Program& cl,
+              const machine::Machine& machine, const kin::Kinematics& kinematics, const Options& options,
+              const std::vector<int>* cl_line_of_nc_line) {
+  Summary s;
+  auto cl_line_of = [&](int nc_line) {
+    if (!cl_line_of_nc_line || nc_line <= 0 || static_cast<size_t>(nc_line) >= cl_line_of_nc_line->size()) return 0;
+    return (*cl_line_of_nc_line)[static_cast<size_t>(nc_line)];
+  };
+  auto add = [&](Violation::Kind kind, int nc_line, int cl_line, std::string msg) {
+    s.violations.push_back({kind, nc_line, cl_line ? cl_line : cl_line_of(nc_line), std::move(msg)});
+  };
+
+  // Tool-tip control: the program says so (G43.4 / G234 / TCPM words, or our Cartesian header).
+  const bool tip_words = contains(nc_text, "(cartesian:") || contains(nc_text, "G43.4") ||
+                         contains(nc_text, "G234") || contains(nc_text, "TCPM") || contains(nc_text, "TRAORI");
+  nc::AxisLetters letters = report::axis_letters(machine);
+  if (tip_words) {
+    int k = 0;
+    for (size_t i = 0; i < 5; ++i)
+      if (!letters.rotary[i]) letters.letter[i] = "XYZ"[k++];
+  }
+  nc::Program ncp;
+  try {
+    ncp = nc::read_text(nc_text, nc_name, letters);
+  } catch (const InputError& e) {
+    add(Violation::Kind::Unreadable, e.where().line, 0, fmt::format("the program cannot be read back: {}", e.message()));
+    s.message = s.violations.front().message;
+    return s;
+  }
+  s.tool_tip_control = tip_words || ncp.tcp;
+  s.blocks = ncp.blocks.size();
+  const auto& ax = kinematics.axes();
+  const TipWordsKinematics tip_kin(kinematics, machine.kind == machine::ModelKind::Xmini);
+
+  // Machine (joint) values of every block: the words themselves, or for tool-tip control the IK solution
+  // nearest the previous block's (what the control computes), inside every limit.
+  std::vector<kin::Axes> joints(ncp.blocks.size(), kin::Axes::Zero());
+  std::vector<char> joints_ok(ncp.blocks.size(), 0);
+  kin::Axes prev = kin::Axes::Zero();
+  for (size_t bi = 0; bi < ncp.blocks.size(); ++bi) {
+    const nc::Block& b = ncp.blocks[bi];
+    if (!std::all_of(b.known.begin(), b.known.end(), [](bool k) { return k; })) {
+      // Before every axis has been programmed only the programmed words can be checked.
+      for (int i = 0; i < 5; ++i) {
+        const auto& a = ax[static_cast<size_t>(i)];
+        const double slack = a.rotary() ? deg2rad(tol::kLimitSlackDeg) : tol::kLimitSlackMm;
+        if (!s.tool_tip_control && b.known[static_cast<size_t>(i)] &&
+            (b.axes[static_cast<size_t>(i)] < a.min - slack || b.axes[static_cast<size_t>(i)] > a.max + slack))
+          add(Violation::Kind::Limit, b.line, 0,
+              fmt::format("{} = {} outside its limits", a.name, axis_value(a, b.axes[static_cast<size_t>(i)])));
+      }
+      continue;
+    }
+    kin::Axes q;
+    for (int i = 0; i < 5; ++i) q[i] = b.axes[static_cast<size_t>(i)];
+    ++s.limit_checks;
+    if (s.tool_tip_control) {
+      const kin::Posed pose = tip_kin.forward(q);
+      std::string why;
+      kin::Axes sol;
+      if (!pose.axis.allFinite() || !kin::nearest_solution(kinematics, pose, prev, sol, &why)) {
+        add(Violation::Kind::Limit, b.line, 0,
+            fmt::format("no machine axis values inside the limits reach tip ({:.4f}, {:.4f}, {:.4f}) with this tool "
+                        "vector{}",
+                        pose.tip_mm.x(), pose.tip_mm.y(), pose.tip_mm.z(), why.empty() ? "" : ": " + why));
+        continue;
+      }
+      q = sol;
+    } else {
+      std::string v = kinematics.check_limits(q);
+      if (v.empty()) v = kinematics.passive_violation(q);
+      if (!v.empty()) {
+        add(Violation::Kind::Limit, b.line, 0, v);
+        continue;
+      }
+    }
+    joints[bi] = q;
+    joints_ok[bi] = 1;
+    prev = q;
+  }
+
+  // Inside every move: passive joints (nonlinear in the axes) and, for rapids, collisions.
+  for (size_t bi = 1; bi < ncp.blocks.size(); ++bi) {
+    if (!joints_ok[bi] || !joints_ok[bi - 1]) continue;
+    const nc::Block& b = ncp.blocks[bi];
+    const kin::Axes& qa = joints[bi - 1];
+    const kin::Axes& qb = joints[bi];
+    const bool rapid = b.motion == nc::Motion::Rapid;
+    double span = 0.0;
+    for (int i = 0; i < 5; ++i) span = std::max(span, std::abs(qb[i] - qa[i]) / (ax[static_cast<size_t>(i)].rotary()
+                                                                                     ? deg2rad(1.0)
+                                                                                     : 1.0));
+    const int n = std::clamp(static_cast<int>(std::ceil(span / std::max(options.collision_step, 1e-6))), 1, 4000);
+    for (int k = 1; k < n; ++k) {
+      const kin::Axes q = qa + (static_cast<double>(k) / n) * (qb - qa);
+      if (const std::string v = kinematics.passive_violation(q); !v.empty()) {
+        add(Violation::Kind::Limit, b.line, 0, fmt::format("inside the move: {}", v));
+        break;
+      }
+    }
+    if (rapid && options.collision) {
+      const int nc = std::clamp(static_cast<int>(std::ceil(span / std::max(options.collision_step, 1e-6))), 1, 20000);
+      for (int k = 1; k <= nc; ++k) {
+        const kin::Axes q = qa + (static_cast<double>(k) / nc) * (qb - qa);
+        ++s.collision_checks;
+        if (const std::string c = options.collision(q); !c.empty()) {
+          add(Violation::Kind::Collision, b.line, 0, fmt::format("rapid move collides: {}", c));
+          break;
+        }
+      }
+    }
+  }
+
+  // Axis velocities of feed blocks against max_feed (time from G93 inverse time, or from F and the length
+  // of the move as an RS274 control measures it: linear axes first, else rotary degrees).
+  for (size_t bi = 1; bi < ncp.blocks.size(); ++bi) {
+    const nc::Block& b = ncp.blocks[bi];
+    if (b.motion == nc::Motion::Rapid || !joints_ok[bi] || !joints_ok[bi - 1]) continue;
+    kin::Axes wa, wb;  // the words (tip or joints) that set the programmed length
+    for (int i = 0; i < 5; ++i) {
+      wa[i] = ncp.blocks[bi - 1].axes[static_cast<size_t>(i)];
+      wb[i] = b.axes[static_cast<size_t>(i)];
+    }
+    const kin::Axes dq = joints[bi] - joints[bi - 1];
+    if (dq.cwiseAbs().maxCoeff() < 1e-12) continue;
+    double minutes = 0.0;
+    if (b.inverse_time) {
+      if (b.feed <= 0) {
+        add(Violation::Kind::Velocity, b.line, 0, "inverse-time feed block without a positive F word");
+        continue;
+      }
+      minutes = 1.0 / b.feed;
+    } else {
+      double lin2 = 0.0, rot2 = 0.0;
+      for (int i = 0; i < 5; ++i) {
+        const double d = wb[i] - wa[i];
+        (ax[static_cast<size_t>(i)].rotary() ? rot2 : lin2) += d * d;
+      }
+      const double len = lin2 > 1e-18 ? std::sqrt(lin2) : rad2deg(std::sqrt(rot2));
+      if (b.feed <= 0) {
+        add(Violation::Kind::Velocity, b.line, 0, "feed move with no feed rate (F0)");
+        continue;
+      }
+      minutes = len / b.feed;
+    }
+    for (int i = 0; i < 5; ++i) {
+      const auto& a = ax[static_cast<size_t>(i)];
+      if (a.max_feed <= 0) continue;
+      const double v = std::abs(dq[i]) / std::max(minutes, 1e-12);
+      const double ratio = v / a.max_feed;
+      if (ratio > s.max_velocity_ratio) {
+        s.max_velocity_ratio = ratio;
+        s.max_velocity_nc_line = b.line;
+      }
+      if (ratio > 1.0 + options.feed_slack)
+        add(Violation::Kind::Velocity, b.line, 0,
+            a.rotary() ? fmt::format("axis {} would turn at {:.1f} deg/min, above its max_feed {:.1f} deg/min", a.name,
+                                     rad2deg(v), rad2deg(a.max_feed))
+                       : fmt::format("axis {} would move at {:.1f} mm/min, above its max_feed {:.1f} mm/min", a.name, v,
+                                     a.max_feed));
+    }
+  }
+
+  // Tip and tool axis against the CL path, sampled inside every feed block.
+  report::VerifyOptions vo;
+  vo.tip_tolerance_mm = options.tip_tolerance_mm;
+  vo.axis_tolerance_deg = options.axis_tolerance_deg;
+  vo.samples_per_block = options.samples_per_block;
+  vo.ball_centre = options.ball_centre;
+  s.deviation = report::verify(ncp, cl, s.tool_tip_control ? static_cast<const kin::Kinematics&>(tip_kin) : kinematics,
+                               vo);
+  const auto& d = s.deviation;
+  if (d.max_tip_deviation_mm > vo.tip_tolerance_mm)
+    add(Violation::Kind::Deviation, d.max_tip_nc_line, d.max_tip_cl_line,
+        fmt::format("tool tip leaves the CL path by {:.4f} mm (allowed {:.4f} mm)", d.max_tip_deviation_mm,
+                    vo.tip_tolerance_mm));
+  if (d.max_axis_deviation_deg > vo.axis_tolerance_deg)
+    add(Violation::Kind::Deviation, d.max_axis_nc_line, 0,
+        fmt::format("tool axis leaves the CL orientation by {:.4f} deg (allowed {:.4f} deg)", d.max_axis_deviation_deg,
+                    vo.axis_tolerance_deg));
+  if (d.max_uncovered_cl_mm > vo.tip_tolerance_mm)
+    add(Violation::Kind::Coverage, 0, d.max_uncovered_cl_line,
+        std::isfinite(d.max_uncovered_cl_mm)
+            ? fmt::format("the CL point is never reached (nearest programmed point {:.4f} mm away)",
+                          d.max_uncovered_cl_mm)
+            : std::string("the CL feed moves are never reached: the program has no feed blocks"));
+
+  s.ok = s.violations.empty();
+  if (s.ok) {
+    s.message = fmt::format(
+        "passed: {} blocks inside the limits, axis velocities up to {:.0f}% of max_feed, max tip deviation {:.5f} mm, "
+        "max axis deviation {:.4f} deg{}",
+        s.blocks, 100.0 * s.max_velocity_ratio, d.max_tip_deviation_mm, d.max_axis_deviation_deg,
+        options.collision ? fmt::format(", {} collision checks on rapids", s.collision_checks) : std::string());
+  } else {
+    const Violation& v = s.violations.front();
+    s.message = fmt::format("{}{}{}", v.message, v.nc_line ? fmt::format(" at NC line {}", v.nc_line) : std::string(),
+                            v.cl_line ? fmt::format(" (CL line {})", v.cl_line) : std::string());
+    if (s.violations.size() > 1) s.message += fmt::format("; {} more violation(s)", s.violations.size() - 1);
+  }
+  return s;
+}
+
+Summary write_checked(const std::string& path, const std::string& nc_text, const cl::Program& cl,
+                      const machine::Machine& machine, const kin::Kinematics& kinematics, const Options& options,
+                      const std::vector<int>* cl_line_of_nc_line) {
+  Summary s = check(nc_text, path, cl, machine, kinematics, options, cl_line_of_nc_line);
+  if (!s.ok) {
+    const Violation& v = s.violations.front();
+    std::string where = v.cl_line ? fmt::format(" (from {})", SourceLoc{cl.file, v.cl_line, 0}.str()) : std::string();
+    std::string more;
+    for (size_t i = 1; i < s.violations.size() && i < 5; ++i) {
+      const Violation& w = s.violations[i];
+      more += fmt::format("\n  also: {}{}{}", w.message, w.nc_line ? fmt::format(" at NC line {}", w.nc_line) : "",
+                          w.cl_line ? fmt::format(" (CL line {})", w.cl_line) : "");
+    }
+    if (s.violations.size() > 5) more += fmt::format("\n  ... {} violations in all", s.violations.size());
+    throw InputError(SourceLoc{path, v.nc_line, 0},
+                     fmt::format("unsafe program not written: {}{}{}", v.message, where, more));
+  }
+  write_file_atomically(path, [&](std::ostream& os) { os << nc_text; });
+  return s;
+}
+
+}  // namespace cscam::gate
