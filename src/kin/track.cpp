@@ -14,21 +14,25 @@ double rotary_distance(const Kinematics& k, const Axes& a, const Axes& b) {
 }
 
 bool track_rec(const Kinematics& k, const Axes& prev, const Posed& p0, const Posed& p1, int depth, Axes& out,
-               std::string* violation, bool* singular, double max_step) {
+               std::string* violation, bool* singular, double max_step, bool* jumped = nullptr) {
   if (!nearest_solution(k, p1, prev, out, violation, singular)) return false;
-  if (rotary_distance(k, out, prev) <= max_step || depth >= 20) return true;
+  if (rotary_distance(k, out, prev) <= max_step) return true;
+  if (depth >= 20) {
+    if (jumped) *jumped = true;
+    return true;
+  }
   const double ang = std::acos(std::clamp(p0.axis.dot(p1.axis), -1.0, 1.0));
   if (ang < 1e-12) return true;
   const Eigen::Vector3d mid_axis = (std::sin(0.5 * ang) / std::sin(ang) * (p0.axis + p1.axis)).normalized();
   const Posed mid{0.5 * (p0.tip_mm + p1.tip_mm), mid_axis};
   Axes qm;
-  if (!track_rec(k, prev, p0, mid, depth + 1, qm, violation, nullptr, max_step)) return false;
-  return track_rec(k, qm, mid, p1, depth + 1, out, violation, singular, max_step);
+  if (!track_rec(k, prev, p0, mid, depth + 1, qm, violation, nullptr, max_step, jumped)) return false;
+  return track_rec(k, qm, mid, p1, depth + 1, out, violation, singular, max_step, jumped);
 }
 }  // namespace
 
 bool nearest_solution(const Kinematics& k, const Posed& pose, const Axes& near, Axes& out, std::string* violation,
-                      bool* singular) {
+                      bool* singular, const std::function<double(const Axes&)>& extra_cost) {
   thread_local std::vector<Solution> sols;
   k.inverse_branches(pose, &near, sols);
   double best = std::numeric_limits<double>::infinity();
@@ -41,7 +45,7 @@ bool nearest_solution(const Kinematics& k, const Posed& pose, const Axes& near, 
       if (violation && violation->empty()) *violation = v;
       continue;
     }
-    const double d = rotary_distance(k, s.axes, near);
+    const double d = rotary_distance(k, s.axes, near) + (extra_cost ? extra_cost(s.axes) : 0.0);
     if (d < best) {
       best = d;
       out = s.axes;
@@ -54,6 +58,12 @@ bool nearest_solution(const Kinematics& k, const Posed& pose, const Axes& near, 
 bool track(const Kinematics& k, const Axes& from, const Posed& p0, const Posed& p1, Axes& out, std::string* violation,
            bool* singular, double max_step_rad) {
   return track_rec(k, from, p0, p1, 0, out, violation, singular, max_step_rad);
+}
+
+bool track_checked(const Kinematics& k, const Axes& from, const Posed& p0, const Posed& p1, Axes& out, bool& jumped,
+                   std::string* violation, double max_step_rad) {
+  jumped = false;
+  return track_rec(k, from, p0, p1, 0, out, violation, nullptr, max_step_rad, &jumped);
 }
 
 }  // namespace cscam::kin

@@ -90,6 +90,9 @@ std::array<double, 2> xmini_virtual_ca(const Vec3& u_W, double q_c, double q_a) 
   return best;
 }
 
+/// Rotary changes between two CL points below this are taken as continuing the branch without a check.
+constexpr double kFlipCheckRad = 0.5235987756;  // 30 deg
+
 /// A retract target counts only if the tool axis points up at least this much (cos of the tilt).
 constexpr double kMinRetractAxisZ = 0.1;
 
@@ -359,15 +362,18 @@ class Writer {
         buf_.append("\nG0");
       }
       append_words(at_safe, {rp[0], rp[1]});
+      const size_t mark = buf_.size();
       buf_.append("\nG0");
       kin::Axes above = q;
       above[z_] = safe_z_;
       std::vector<int> xy;
       for (int i : lin)
         if (i != z_) xy.push_back(i);
-      for (int i : xy) append_words(above, {i}, !have_word_[static_cast<size_t>(i)]);
+      bool any = false;
+      for (int i : xy) any = append_words(above, {i}, !have_word_[static_cast<size_t>(i)]) || any;
+      if (!any) buf_.resize(mark);  // already above the point: no empty block (a control would still move)
       buf_.push_back('\n');
-      sum_.blocks += 3;
+      sum_.blocks += any ? 3 : 2;
     }
     if (rotaries_differ(q) && z_ < 0 && axis_retract_) pkm_reposition(q, mv);
     set_mode94();
@@ -399,7 +405,126 @@ class Writer {
     return bad;
   }
 
-  void feed(const cl::Move& m0, const kin::Axes& q0, const cl::Move& m1, const kin::Axes& q1) {
+  // --- Branch flips and unwinds between two feed points ------------------------------------------
+
+  /// Largest rotary change between two axis vectors (rad).
+  double rotary_jump(const kin::Axes& a, const kin::Axes& b) const {
+    const auto rp = kin_.rotary_pair();
+    return std::max(std::abs(a[rp[0]] - b[rp[0]]), std::abs(a[rp[1]] - b[rp[1]]));
+  }
+
+  /// Whether q1 continues the solution branch of q0 (no flip, no change of winding). Small rotary
+  /// changes always do; large ones are checked by tracking the pose continuously from q0.
+  bool continues_branch(const kin::Posed& pose0, const kin::Axes& q0, const kin::Posed& pose1,
+                        const kin::Axes& q1) const {
+    if (rotary_jump(q0, q1) < kFlipCheckRad) return true;
+    kin::Axes tracked;
+    bool jumped = false;
+    if (!kin::track_checked(kin_, q0, pose0, pose1, tracked, jumped)) return false;
+    return !jumped && rotary_jump(tracked, q1) < 1e-6;
+  }
+
+  /// One feed block to q at a tip speed of feed_mm_min (an axis never faster than its max_feed).
+  void emit_feed_to(const kin::Axes& from, const kin::Axes& q, double tip_len_mm, double feed_mm_min) {
+    emit_inverse_time(from, q, tip_len_mm, feed_mm_min);
+    cur_ = q;
+  }
+
+  /// q0 (at m0) and q1 (at m1) lie on different branches or windings: a rotary limit or the branch rule
+  /// forces a flip or an unwind. Turns to q1's branch at m0, in place when the joint move keeps the tool
+  /// pose within tolerance (at the singular point itself), else by retract along the tool axis, turn,
+  /// plunge. Returns the axis values at m0 on the new branch, from which the feed to q1 continues.
+  kin::Axes reconfigure(const kin::Posed& pose0, const kin::Axes& q0, const kin::Posed& pose1, const kin::Axes& q1,
+                        const cl::Move& m0, const cl::Move& m1, double feed_mm_min) {
+    const auto& pol = m_.post.singularity;
+    const SourceLoc where{prog_.file, m1.line, 0};
+    const auto rp = kin_.rotary_pair();
+    auto describe = [&] {
+      return fmt::format("{} {:.3f} -> {:.3f} deg, {} {:.3f} -> {:.3f} deg", m_.axes[static_cast<size_t>(rp[0])].name,
+                         rad2deg(q0[rp[0]]), rad2deg(q1[rp[0]]), m_.axes[static_cast<size_t>(rp[1])].name,
+                         rad2deg(q0[rp[1]]), rad2deg(q1[rp[1]]));
+    };
+    if (pol.flip == "refuse")
+      throw InputError(where, fmt::format("the rotaries must flip or unwind between CL lines {} and {} ({}): a rotary "
+                                          "limit or the branch rule forces it, and post.singularity.flip is 'refuse'",
+                                          m0.line, m1.line, describe()));
+    // q1's branch at m0's pose: track back from q1 so that the feed m0 -> m1 is continuous on it.
+    kin::Axes q0n;
+    bool jumped = false;
+    if (!kin::track_checked(kin_, q1, pose1, pose0, q0n, jumped) || jumped) {
+      std::string why;
+      if (!kin::nearest_solution(kin_, pose0, q1, q0n, &why))
+        throw InputError(where, fmt::format("the rotaries must flip or unwind between CL lines {} and {} ({}) but no "
+                                            "axis values inside the limits hold the tool at CL line {}{}",
+                                            m0.line, m1.line, describe(), m0.line, why.empty() ? "" : ": " + why));
+    }
+    if (rotary_jump(q0, q0n) < 1e-9) return q0;  // tracking stalled near a singularity: same branch after all
+    // In place: the straight joint move q0 -> q0n keeps the tool pose (e.g. the primary turning while the
+    // tool axis lies along it).
+    if (pol.flip == "auto") {
+      const Vec3 ctrl0 = pose0.tip_mm + opt_.control_offset_mm * pose0.axis;
+      const int n = std::clamp(static_cast<int>(std::ceil(rad2deg(rotary_jump(q0, q0n)))), 2, 720);
+      bool held = true;
+      for (int k = 1; k < n && held; ++k) {
+        const kin::Axes q = q0 + (static_cast<double>(k) / n) * (q0n - q0);
+        const kin::Posed p = kin_.forward(q);
+        held = (p.tip_mm + opt_.control_offset_mm * p.axis - ctrl0).norm() <= tol_mm_ &&
+               p.axis.dot(pose0.axis) >= cos_tol_axis_ && kin_.passive_violation(q).empty();
+      }
+      if (held) {
+        check_limits(q0n, m1);
+        emit_feed_to(q0, q0n, 0.0, feed_mm_min);
+        ++sum_.reorientations;
+        sum_.warnings.push_back(fmt::format(
+            "{}: rotaries turned in place at CL line {} ({} {:.3f} -> {:.3f} deg, {} {:.3f} -> {:.3f} deg), the tool held",
+            where.str(), m0.line, m_.axes[static_cast<size_t>(rp[0])].name, rad2deg(q0[rp[0]]), rad2deg(q0n[rp[0]]),
+            m_.axes[static_cast<size_t>(rp[1])].name, rad2deg(q0[rp[1]]), rad2deg(q0n[rp[1]])));
+        return q0n;
+      }
+    }
+    // Retract along the tool axis, turn at the safe position, come back above the point, plunge.
+    const double d = pol.retract_mm;
+    kin::Axes up0, up1;
+    cl::Move m_up = m0;  // the point d above m0 along the CL tool axis, at m1's feed
+    m_up.tip_in_part_mm = pose0.tip_mm + d * pose0.axis;
+    m_up.axis_in_part = pose0.axis;
+    m_up.feed_mm_per_min = feed_mm_min;
+    m_up.line = m1.line;
+    const kin::Posed above{m_up.tip_in_part_mm, pose0.axis};
+    if (!kin::nearest_solution(kin_, above, q0, up0) || !kin::nearest_solution(kin_, above, q0n, up1) ||
+        rotary_jump(up0, q0) > kFlipCheckRad || rotary_jump(up1, q0n) > kFlipCheckRad)
+      throw InputError(where, fmt::format("the rotaries must flip or unwind between CL lines {} and {} ({}) but the "
+                                          "tool cannot retract {:.1f} mm along its axis inside the limits "
+                                          "(post.singularity.retract_mm)",
+                                          m0.line, m1.line, describe(), d));
+    (void)feed_mm_min;
+    feed_linear(m0, q0, m_up, up0);  // straight out along the tool axis (linearised: a PKM's joints are not)
+    rapid(up1, m1);
+    cl::Move m_back = m0;
+    m_back.feed_mm_per_min = feed_mm_min;
+    m_back.line = m1.line;
+    feed_linear(m_up, up1, m_back, q0n);  // and straight back in
+    ++sum_.retracts;
+    sum_.warnings.push_back(fmt::format("{}: rotaries flip or unwind at CL line {} ({}): retract {:.1f} mm along the "
+                                        "tool axis, turn, plunge",
+                                        where.str(), m0.line, describe(), d));
+    return q0n;
+  }
+
+  void feed(const cl::Move& m0, const kin::Axes& q0_in, const cl::Move& m1, const kin::Axes& q1) {
+    kin::Axes q0 = q0_in;
+    {
+      const double fr = m1.feed_mm_per_min > 0 ? m1.feed_mm_per_min : 1000.0;
+      const kin::Posed pose0{m0.tip_in_part_mm, m0.axis_in_part.normalized()};
+      const kin::Posed pose1{m1.tip_in_part_mm, m1.axis_in_part.normalized()};
+      if (!continues_branch(pose0, q0, pose1, q1)) q0 = reconfigure(pose0, q0, pose1, q1, m0, m1, fr);
+    }
+    feed_linear(m0, q0, m1, q1);
+  }
+
+  /// Feed from q0 (at m0) to q1 (at m1) on one branch, linearised so that the tip stays within the
+  /// tolerance of the straight CL segment and the axis within its tolerance of the interpolated CL axis.
+  void feed_linear(const cl::Move& m0, const kin::Axes& q0, const cl::Move& m1, const kin::Axes& q1) {
     const bool rot_moves = rotaries_differ(q1);
     const double feed_mm_min = m1.feed_mm_per_min > 0 ? m1.feed_mm_per_min : 1000.0;
     if (!rot_moves) {
@@ -517,24 +642,9 @@ class Writer {
     return true;
   }
 
-  /// IK for `pose`: the solution nearest to `near` (rotary travel, windings included) inside every limit,
-  /// the passive joints of a PKM included (Solution::violation). False when there is none.
-  bool try_solve_near(const kin::Posed& pose, const kin::Axes& near, kin::Axes& out) {
-    kin_.inverse_branches(pose, &near, sols_);
-    const auto rp = kin_.rotary_pair();
-    double best = std::numeric_limits<double>::infinity();
-    for (kin::Solution& s : sols_) {
-      // A violation that the axis values do not show is a hidden limit (a PKM's passive joints).
-      if (!s.violation.empty() && kin_.check_limits(s.axes).empty()) continue;
-      kin_.nearest_winding(s.axes, near);
-      if (!kin_.check_limits(s.axes).empty()) continue;
-      const double d = std::abs(s.axes[rp[0]] - near[rp[0]]) + std::abs(s.axes[rp[1]] - near[rp[1]]);
-      if (d < best) {
-        best = d;
-        out = s.axes;
-      }
-    }
-    return std::isfinite(best);
+  /// IK for `pose`: the solution nearest to `near` inside every limit (kin::nearest_solution).
+  bool try_solve_near(const kin::Posed& pose, const kin::Axes& near, kin::Axes& out) const {
+    return kin::nearest_solution(kin_, pose, near, out);
   }
 
   /// Joint values with the tip of q moved along its tool axis to the safe plane, the axis kept (by IK).

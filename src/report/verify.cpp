@@ -1,7 +1,5 @@
 #include "cscam/report/verify.hpp"
 
-#include "cscam/report/json.hpp"
-
 #include <fmt/format.h>
 
 #include <algorithm>
@@ -10,6 +8,7 @@
 
 #include "cscam/core/tolerances.hpp"
 #include "cscam/core/units.hpp"
+#include "cscam/report/json.hpp"
 
 namespace cscam::report {
 
@@ -34,6 +33,24 @@ double seg_distance(const ClSeg& s, const Vec3& p, double& t) {
   const double L2 = ab.squaredNorm();
   t = L2 > 0 ? std::clamp((p - s.p0).dot(ab) / L2, 0.0, 1.0) : 0.0;
   return (s.p0 + t * ab - p).norm();
+}
+
+/// A feed block that moves the tool only along its own axis, away from the CL path (a post's retract
+/// before a flip or unwind, or the plunge back): every sample lies on the line through the block's start
+/// along its axis, the axis stays within tolerance, and no sample is below the CL path (no gouge).
+/// `cl_point_near(p)` gives the nearest CL path point and its axis.
+template <typename Near>
+bool departure(const kin::Kinematics& k, const kin::Axes& qa, const kin::Axes& qb, int n, double tip_tol,
+               double cos_axis_tol, Near&& cl_point_near) {
+  const kin::Posed pa = k.forward(qa), pb = k.forward(qb);
+  if ((pb.tip_mm - pa.tip_mm).norm() <= tip_tol) return false;
+  for (int i = 0; i <= n; ++i) {
+    const kin::Posed p = i == 0 ? pa : (i == n ? pb : k.forward(qa + (static_cast<double>(i) / n) * (qb - qa)));
+    if ((p.tip_mm - pa.tip_mm).cross(pa.axis).norm() > tip_tol || p.axis.dot(pa.axis) < cos_axis_tol) return false;
+    const auto [c, u] = cl_point_near(p.tip_mm);
+    if ((p.tip_mm - c).dot(u) < -tip_tol) return false;
+  }
+  return true;
 }
 
 }  // namespace
@@ -106,8 +123,28 @@ VerifyResult verify(const nc::Program& nc, const cl::Program& cl, const kin::Kin
       prev = &b;
       continue;
     }
-    ++r.feed_blocks;
     const kin::Axes qa = to_axes(*prev), qb = to_axes(b);
+    if (departure(kinematics, qa, qb, std::max(1, options.samples_per_block), options.tip_tolerance_mm,
+                  std::cos(deg2rad(options.axis_tolerance_deg)), [&](const Vec3& p) {
+                    size_t c = cursor;
+                    double t;
+                    nearest(p, c, false, t);
+                    const ClSeg& sg = segs[c];
+                    return std::pair<Vec3, Vec3>(sg.p0 + t * (sg.p1 - sg.p0), slerp(sg.u0, sg.u1, t));
+                  })) {
+      // A retract or plunge along the fixed tool axis (a post's flip or unwind): off the path by design,
+      // like a rapid; the CL points around it must still be reached.
+      ++r.axial_blocks;
+      for (const kin::Axes* q : {&qa, &qb}) {  // its ends may be CL points (a CL plunge or retract at feed)
+        const kin::Posed p = kinematics.forward(*q);
+        nc_feed_points.push_back(point(p.tip_mm, p.axis));
+        nc_feed_lines.push_back(b.line);
+      }
+      after_rapid = true;
+      prev = &b;
+      continue;
+    }
+    ++r.feed_blocks;
     const int n = std::max(1, options.samples_per_block);
     for (int k = after_rapid ? 0 : 1; k <= n; ++k) {
       const double s = static_cast<double>(k) / n;

@@ -4,6 +4,7 @@
 /// starting from a known solution, choosing at every small step the solution nearest the previous one.
 /// This is how a solution branch is continued without flips; near the singularity the tilt azimuth turns
 /// fast and a single "nearest solution" jump could land on a branch the motion cannot reach.
+#include <functional>
 #include <string>
 
 #include "cscam/kin/kinematics.hpp"
@@ -15,9 +16,18 @@ namespace cscam::kin {
 bool track(const Kinematics& k, const Axes& from, const Posed& p0, const Posed& p1, Axes& out,
            std::string* violation = nullptr, bool* singular = nullptr, double max_step_rad = 0.0872664626);
 
+/// Tracking that also says whether it had to jump: `jumped` is set when no continuous motion inside the
+/// limits exists (a limit or the branch structure forces a flip or an unwind, seen as a rotary step larger
+/// than `max_step_rad` that does not shrink when the pose step does).
+bool track_checked(const Kinematics& k, const Axes& from, const Posed& p0, const Posed& p1, Axes& out, bool& jumped,
+                   std::string* violation = nullptr, double max_step_rad = 0.0872664626);
+
 /// Among the IK solutions of `pose` (windings adjusted to `near`), the one nearest `near` in rotary
-/// travel that lies inside the limits.
+/// travel that lies inside every limit, the passive joints of a PKM included. `extra_cost`, when given,
+/// is added to the rotary travel (e.g. a large penalty for the branch a post's rule avoids). This is the
+/// one place where a solution is chosen by nearness: the post, the conventional strategy and tracking use it.
 bool nearest_solution(const Kinematics& k, const Posed& pose, const Axes& near, Axes& out,
-                      std::string* violation = nullptr, bool* singular = nullptr);
+                      std::string* violation = nullptr, bool* singular = nullptr,
+                      const std::function<double(const Axes&)>& extra_cost = {});
 
 }  // namespace cscam::kin

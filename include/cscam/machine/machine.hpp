@@ -10,6 +10,7 @@
 #include <string>
 #include <vector>
 
+#include "cscam/core/error.hpp"
 #include "cscam/kin/kinematics.hpp"
 #include "cscam/kin/serial.hpp"
 
@@ -30,6 +31,15 @@ struct PostSettings {
   /// start: the start_branch preference picks the first solution, then the nearest one is followed;
   /// always: the preference applies at every point (what simple posts do: they flip at the singularity).
   std::string branch_rule = "start";
+  /// What the post does where the tool axis passes through or near the singular direction (parallel to
+  /// the primary rotary) and where a branch rule or a rotary limit forces a flip or an unwind.
+  struct Singularity {
+    /// auto: turn in place when the joint move keeps the tip and axis within tolerance (at the singular
+    /// point itself), else retract along the tool axis, turn and plunge; retract: always the latter;
+    /// refuse: an error naming the CL point.
+    std::string flip = "auto";
+    double retract_mm = 10.0;  ///< how far the tip leaves along the tool axis before turning
+  } singularity;
   std::string program_name = "CSCAM";
 };
 
@@ -61,11 +71,17 @@ struct Machine {
   /// Builds the model for a given tool length (gauge point to tip, mm). Other kinds plug in here.
   std::function<std::shared_ptr<const kin::Kinematics>(double)> make_kinematics;
 
+  /// Where each key of the machine file is: "post.safe_z_mm", "axes[3].limits", ... -> file:line:column.
+  std::map<std::string, SourceLoc> key_locations;
+
   /// Kinematics for the default tool length.
   [[nodiscard]] std::shared_ptr<const kin::Kinematics> kinematics() const {
     return make_kinematics(default_tool_length_mm);
   }
   [[nodiscard]] int axis_index(const std::string& axis_name) const;  ///< -1 if none
+  /// The machine file's location of `key` (as in key_locations), or just the file when the key is not in it
+  /// (a default). Errors about a machine-file value name this, not the CL file.
+  [[nodiscard]] SourceLoc where(const std::string& key) const;
 };
 
 /// Reads and validates a machine file. Throws InputError naming the file, line and key on bad input.

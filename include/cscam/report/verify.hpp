@@ -25,6 +25,7 @@ struct VerifyResult {
   bool ok = false;
   std::string message;
   size_t feed_blocks = 0;
+  size_t axial_blocks = 0;  ///< feed blocks that retract or plunge along the fixed tool axis (not compared)
   size_t samples = 0;
   double max_tip_deviation_mm = 0.0;
   int max_tip_nc_line = 0;

@@ -1,0 +1,276 @@
+// The safety gate and the post's flips. The gate is an oracle only if it can fail: every rule is shown
+// failing on a program that was tampered with in one place (an axis beyond its limit, a feed above
+// max_feed, a tip moved off the path, a CL point skipped), naming that NC line, and write_checked then
+// leaves no file. The post's flip/unwind handling is checked by the gate, by an independent FK scan of
+// every feed block, and by LinuxCNC's rs274.
+#include "cscam/gate/gate.hpp"
+
+#include <fmt/format.h>
+#include <gtest/gtest.h>
+
+#include <filesystem>
+#include <fstream>
+#include <regex>
+#include <sstream>
+
+#include "cscam/cl/program.hpp"
+#include "cscam/core/error.hpp"
+#include "cscam/core/units.hpp"
+#include "cscam/machine/machine.hpp"
+#include "cscam/nc/reader.hpp"
+#include "cscam/post/post.hpp"
+#include "cscam/report/letters.hpp"
+#include "rs274_support.hpp"
+#include "test_support.hpp"
+
+using namespace cscam;
+namespace fs = std::filesystem;
+
+namespace {
+
+machine::Machine load_machine(const std::string& name) {
+  return machine::load(test::source_path("machines/" + name + ".yaml"));
+}
+
+struct Posted {
+  std::string text;
+  post::Summary summary;
+};
+
+Posted post_program(const cl::Program& prog, const machine::Machine& m, const kin::Kinematics& k) {
+  const auto axes = post::conventional_axes(prog, m, k);
+  std::ostringstream os;
+  post::Options o;
+  Posted p;
+  post::write_nc(os, prog, m, k, axes, o, p.summary);
+  p.text = os.str();
+  return p;
+}
+
+std::vector<std::string> lines_of(const std::string& text) {
+  std::vector<std::string> out;
+  std::istringstream is(text);
+  for (std::string l; std::getline(is, l);) out.push_back(l);
+  return out;
+}
+
+std::string join(const std::vector<std::string>& lines) {
+  std::string s;
+  for (const auto& l : lines) s += l + "\n";
+  return s;
+}
+
+/// The 1-based number of the n-th line (from `from`) that starts with `prefix`.
+int find_line(const std::vector<std::string>& lines, const std::string& prefix, int from = 0) {
+  for (size_t i = static_cast<size_t>(from); i < lines.size(); ++i)
+    if (lines[i].rfind(prefix, 0) == 0) return static_cast<int>(i) + 1;
+  return 0;
+}
+
+/// A program on the trunnion: the ISO/CATIA example (linear and rotary motion, a rapid).
+struct Fixture {
+  machine::Machine m = load_machine("trunnion-ac");
+  cl::Program prog = cl::read_file(test::source_path("examples/cl/iso_catia.cls"));
+  std::shared_ptr<const kin::Kinematics> k = m.make_kinematics(post::tool_length_for(m, 0));
+  Posted posted = post_program(prog, m, *k);
+  gate::Options opt = gate::options_for(m, 0, 0, 0);
+  gate::Summary run(const std::string& text) const {
+    return gate::check(text, "t.ngc", prog, m, *k, opt, &posted.summary.cl_line_of_nc_line);
+  }
+};
+
+bool has_kind(const gate::Summary& s, gate::Violation::Kind kind, int nc_line) {
+  for (const auto& v : s.violations)
+    if (v.kind == kind && (nc_line == 0 || v.nc_line == nc_line)) return true;
+  return false;
+}
+
+}  // namespace
+
+TEST(Gate, PassesTheConventionalProgram) {
+  Fixture f;
+  const auto s = f.run(f.posted.text);
+  EXPECT_TRUE(s.ok) << s.message;
+  EXPECT_GT(s.limit_checks, 50u);
+  EXPECT_GT(s.deviation.samples, 100u);
+  EXPECT_LE(s.max_velocity_ratio, 1.0 + f.opt.feed_slack);
+}
+
+TEST(Gate, RefusesAnAxisBeyondItsLimit) {
+  Fixture f;
+  auto lines = lines_of(f.posted.text);
+  const int n = find_line(lines, "G1", 20);
+  ASSERT_GT(n, 0);
+  // The trunnion's A stops at -100/+50 deg: A100 is beyond it.
+  lines[static_cast<size_t>(n - 1)] = std::regex_replace(lines[static_cast<size_t>(n - 1)], std::regex(" A-?[0-9.]+"), "");
+  lines[static_cast<size_t>(n - 1)] += " A100.0";
+  const auto s = f.run(join(lines));
+  ASSERT_FALSE(s.ok);
+  EXPECT_TRUE(has_kind(s, gate::Violation::Kind::Limit, n)) << s.message;
+  EXPECT_NE(s.message.find("limits"), std::string::npos) << s.message;
+}
+
+TEST(Gate, RefusesAFeedAboveMaxFeed) {
+  Fixture f;
+  auto lines = lines_of(f.posted.text);
+  // An inverse-time block with rotary motion, made 1000 times faster than the post wrote it.
+  int n = 0;
+  for (int from = 0; (n = find_line(lines, "G1", from)) > 0; from = n) {
+    const std::string& l = lines[static_cast<size_t>(n - 1)];
+    if (l.find(" C") != std::string::npos && l.find(" F") != std::string::npos) break;
+  }
+  if (n == 0)
+    for (int from = 0; (n = find_line(lines, "G93 G1", from)) > 0; from = n)
+      if (lines[static_cast<size_t>(n - 1)].find(" F") != std::string::npos) break;
+  ASSERT_GT(n, 0) << "no rotary feed block in the program";
+  std::smatch mt;
+  std::string& l = lines[static_cast<size_t>(n - 1)];
+  ASSERT_TRUE(std::regex_search(l, mt, std::regex(" F([0-9.]+)")));
+  const double F = std::stod(mt[1].str());
+  l = std::regex_replace(l, std::regex(" F[0-9.]+"), " F" + std::to_string(F * 1000.0));
+  const auto s = f.run(join(lines));
+  ASSERT_FALSE(s.ok);
+  EXPECT_TRUE(has_kind(s, gate::Violation::Kind::Velocity, n)) << s.message;
+}
+
+TEST(Gate, RefusesATipOffThePathAndNamesTheClLine) {
+  Fixture f;
+  auto lines = lines_of(f.posted.text);
+  // Move one feed block's X by 0.5 mm: far beyond the 0.01 mm tolerance.
+  int n = 0;
+  for (int from = 20; (n = find_line(lines, "G1", from)) > 0; from = n)
+    if (lines[static_cast<size_t>(n - 1)].find(" X") != std::string::npos) break;
+  ASSERT_GT(n, 0);
+  std::string& l = lines[static_cast<size_t>(n - 1)];
+  std::smatch mt;
+  ASSERT_TRUE(std::regex_search(l, mt, std::regex(" X(-?[0-9.]+)")));
+  const double x = std::stod(mt[1].str());
+  l = std::regex_replace(l, std::regex(" X-?[0-9.]+"), fmt::format(" X{:.4f}", x + 0.5));
+  const auto s = f.run(join(lines));
+  ASSERT_FALSE(s.ok);
+  ASSERT_TRUE(has_kind(s, gate::Violation::Kind::Deviation, 0)) << s.message;
+  const auto& v = s.violations.front();
+  EXPECT_TRUE(v.nc_line == n || v.nc_line == n + 1) << "gate blamed NC line " << v.nc_line << ", tampered " << n;
+  EXPECT_GT(v.cl_line, 0);
+}
+
+TEST(Gate, RefusesASkippedClPoint) {
+  Fixture f;
+  auto lines = lines_of(f.posted.text);
+  // Drop the last feed block before the end: its CL point is never reached.
+  int last = 0;
+  for (int from = 0, n; (n = find_line(lines, "G1", from)) > 0; from = n) last = n;
+  ASSERT_GT(last, 0);
+  lines.erase(lines.begin() + last - 1);
+  const auto s = f.run(join(lines));
+  ASSERT_FALSE(s.ok) << "a skipped CL point must be found";
+  EXPECT_TRUE(has_kind(s, gate::Violation::Kind::Coverage, 0) || has_kind(s, gate::Violation::Kind::Deviation, 0))
+      << s.message;
+}
+
+TEST(Gate, WriteCheckedLeavesNoFileOnFailure) {
+  Fixture f;
+  const fs::path dir = fs::temp_directory_path() / "cscam_gate_test";
+  fs::create_directories(dir);
+  const fs::path out = dir / "bad.ngc";
+  fs::remove(out);
+  auto lines = lines_of(f.posted.text);
+  const int n = find_line(lines, "G1", 20);
+  lines[static_cast<size_t>(n - 1)] += " A100.0";
+  try {
+    gate::write_checked(out.string(), join(lines), f.prog, f.m, *f.k, f.opt, &f.posted.summary.cl_line_of_nc_line);
+    FAIL() << "the gate let an unsafe program through";
+  } catch (const InputError& e) {
+    EXPECT_NE(std::string(e.what()).find("unsafe program not written"), std::string::npos) << e.what();
+    EXPECT_EQ(e.where().line, n) << e.what();
+  }
+  EXPECT_FALSE(fs::exists(out));
+  for (const auto& entry : fs::directory_iterator(dir)) ADD_FAILURE() << "left behind: " << entry.path();
+  gate::write_checked(out.string(), f.posted.text, f.prog, f.m, *f.k, f.opt, &f.posted.summary.cl_line_of_nc_line);
+  EXPECT_TRUE(fs::exists(out));
+  fs::remove_all(dir);
+}
+
+// --- The post's flips and unwinds ------------------------------------------------------------------
+
+namespace {
+
+/// Independent of the gate: the largest rotary change (deg) of any feed block that also moves the tip
+/// sideways (not along the tool axis): a flip inside a cut shows up here.
+double largest_rotary_step_while_cutting(const std::string& text, const machine::Machine& m, const kin::Kinematics& k) {
+  const nc::Program p = nc::read_text(text, "t.ngc", report::axis_letters(m));
+  const auto rp = k.rotary_pair();
+  double worst = 0;
+  for (size_t i = 1; i < p.blocks.size(); ++i) {
+    const auto& a = p.blocks[i - 1];
+    const auto& b = p.blocks[i];
+    if (b.motion == nc::Motion::Rapid) continue;
+    const double step = std::max(std::abs(b.axes[static_cast<size_t>(rp[0])] - a.axes[static_cast<size_t>(rp[0])]),
+                                 std::abs(b.axes[static_cast<size_t>(rp[1])] - a.axes[static_cast<size_t>(rp[1])]));
+    worst = std::max(worst, rad2deg(step));
+  }
+  return worst;
+}
+
+}  // namespace
+
+TEST(PostFlips, CyclicLimitOnAHeadHeadMachineRetractsTurnsAndPlunges) {
+  // NX's variable-axis path on the A/C fork head: C runs into its -360 deg stop. Before the fix the post
+  // swung A+1.9 -> A-1.9 and C-360 -> C-180 in one G1 block (15 mm off the path).
+  const auto m = load_machine("head-head-ac");
+  const auto prog = cl::read_file(test::source_path("examples/nx-haas-umc750/variable_axis.cls"));
+  const auto k = m.make_kinematics(post::tool_length_for(m, 0));
+  const Posted p = post_program(prog, m, *k);
+  EXPECT_GE(p.summary.retracts, 1u);
+  const auto s = gate::check(p.text, "hh.ngc", prog, m, *k, gate::options_for(m, 0, 0, 0),
+                             &p.summary.cl_line_of_nc_line);
+  EXPECT_TRUE(s.ok) << s.message;
+  EXPECT_LT(largest_rotary_step_while_cutting(p.text, m, *k), 30.0);
+  test::expect_rs274_agrees(p.text, m, "gate_hh");
+}
+
+TEST(PostFlips, RefusePolicyNamesTheClLine) {
+  auto m = load_machine("head-head-ac");
+  m.post.singularity.flip = "refuse";
+  const auto prog = cl::read_file(test::source_path("examples/nx-haas-umc750/variable_axis.cls"));
+  const auto k = m.make_kinematics(post::tool_length_for(m, 0));
+  try {
+    post_program(prog, m, *k);
+    FAIL() << "flip: refuse must refuse";
+  } catch (const InputError& e) {
+    EXPECT_GT(e.where().line, 0);
+    EXPECT_NE(std::string(e.what()).find("refuse"), std::string::npos) << e.what();
+  }
+}
+
+TEST(PostFlips, XminiTurnsCInPlaceAtTheSingularPoint) {
+  // Seed 000's cut crosses the wrist singularity (a = 0) at x = 0; the branch rule keeps a >= 0, so C must
+  // turn 180 deg. At a = 0 that turn does not move the tool: the post turns there, with the tool held.
+  const auto m = load_machine("xmini");
+  const auto prog = cl::read_file(test::source_path("examples/xmini/seed000_x_cut.cls"));
+  const auto k = m.make_kinematics(post::tool_length_for(m, 0));
+  const Posted p = post_program(prog, m, *k);
+  EXPECT_EQ(p.summary.reorientations, 1u);
+  EXPECT_EQ(p.summary.retracts, 0u);
+  const auto s = gate::check(p.text, "x.ngc", prog, m, *k, gate::options_for(m, 0, 0, 0),
+                             &p.summary.cl_line_of_nc_line);
+  EXPECT_TRUE(s.ok) << s.message;
+  EXPECT_LT(s.deviation.max_tip_deviation_mm, m.post.tolerance_mm);
+}
+
+TEST(PostFlips, MachineFileRejectsABadPolicy) {
+  const std::string path = test::source_path("machines/head-head-ac.yaml");
+  std::ifstream in(path);
+  std::stringstream ss;
+  ss << in.rdbuf();
+  std::string text = ss.str();
+  text = std::regex_replace(text, std::regex("flip: auto"), "flip: sometimes");
+  try {
+    machine::load_text(text, "bad-machine.yaml");
+    FAIL() << "an unknown flip policy must be an error";
+  } catch (const InputError& e) {
+    EXPECT_NE(std::string(e.what()).find("bad-machine.yaml"), std::string::npos) << e.what();
+    EXPECT_NE(std::string(e.what()).find("post.singularity.flip"), std::string::npos) << e.what();
+    EXPECT_GT(e.where().line, 0);
+  }
+}
