@@ -68,7 +68,7 @@ Dialect make_dialect(const std::string& name) {
 
 // --- Cartesian (TCP) output --------------------------------------------------------------------
 // Rotary words of the XMINI in Cartesian mode: the tool vector u (W) as the virtual wrist angles (C, A)
-// of an untilted platform, u = (-sin A sin C, -sin A cos C, cos A) (spec/xmini.md with R_BP = I and
+// of an untilted platform, u = (-sin A sin C, -sin A cos C, cos A) (docs/xmini.md with R_BP = I and
 // nominal wrist): the two branches (C, A) and (C + 180 deg, -A); the one nearest to the machine's own
 // wrist values q_c, q_a is taken, so branch and winding follow the chosen axis path. At A = 0, C = q_c.
 std::array<double, 2> xmini_virtual_ca(const Vec3& u_W, double q_c, double q_a) {
@@ -108,7 +108,12 @@ class Writer {
   Writer(std::ostream& out, const cl::Program& program, const machine::Machine& machine, const kin::Kinematics& kin,
          const Options& opt, Summary& summary)
       : out_(out), prog_(program), m_(machine), kin_(kin), opt_(opt), sum_(summary) {
-    dialect_ = make_dialect(opt.dialect.empty() ? machine.post.dialect : opt.dialect);
+    try {
+      dialect_ = make_dialect(opt.dialect.empty() ? machine.post.dialect : opt.dialect);
+    } catch (const InputError& e) {
+      if (!opt.dialect.empty()) throw InputError("--dialect: " + e.message());
+      throw InputError(machine.where("post.dialect"), e.message());  // the machine file's value
+    }
     tol_mm_ = opt.tolerance_mm > 0 ? opt.tolerance_mm : machine.post.tolerance_mm;
     tol_axis_rad_ = deg2rad(opt.axis_tolerance_deg > 0 ? opt.axis_tolerance_deg : machine.post.axis_tolerance_deg);
     cos_tol_axis_ = std::cos(tol_axis_rad_);
@@ -210,6 +215,7 @@ class Writer {
   }
 
   void footer() {
+    exit_along_axis();
     if (!cart_ && z_ >= 0 && have_state_) {
       fmt::format_to(std::back_inserter(buf_), "G0 {}{}\n", letters_[static_cast<size_t>(z_)], fmt_axis(z_, safe_z_));
     } else if (have_state_) {
@@ -233,6 +239,7 @@ class Writer {
                          sanitize_comment(prog_.tools[static_cast<size_t>(e.tool_index)].name),
                          prog_.tools[static_cast<size_t>(e.tool_index)].diameter_mm);
         // Retract before the change so the new tool does not come down into the part.
+        exit_along_axis();
         if (!cart_ && z_ >= 0 && have_state_)
           emit_safe_z();
         else if (have_state_)
@@ -246,6 +253,7 @@ class Writer {
         fmt::format_to(std::back_inserter(buf_), "S{:.0f} {}\n", e.spindle_rpm, e.clockwise ? "M3" : "M4");
         break;
       case K::SpindleOff:
+        exit_along_axis();  // leave the cut while the spindle still turns
         line("M5");
         break;
       case K::CoolantOn:
@@ -349,6 +357,7 @@ class Writer {
     for (int i = 0; i < 5; ++i)
       if (i != rp[0] && i != rp[1]) lin.push_back(i);
     if (rotaries_differ(q) && z_ >= 0) {
+      exit_along_axis();
       if (have_state_) emit_safe_z();
       kin::Axes at_safe = have_state_ ? cur_ : q;
       at_safe[z_] = safe_z_;
@@ -384,6 +393,7 @@ class Writer {
     ++sum_.blocks;
     cur_ = q;
     have_state_ = true;
+    at_cut_ = false;
   }
 
   /// The largest normalised deviation (1 = at tolerance) of the machine's straight joint-space move
@@ -403,6 +413,26 @@ class Writer {
       }
     }
     return bad;
+  }
+
+  /// After a cut, before a retract that is not along the tool axis (machine Z up, a tool change, the end):
+  /// feed out post.singularity.retract_mm along the tool axis first, so that a tilted tool under an
+  /// overhang does not drag through it on the way up.
+  void exit_along_axis() {
+    if (!at_cut_ || cart_ || axis_retract_) return;
+    at_cut_ = false;
+    // Along the machine's actual tool axis (a planned program may tilt away from the CL axis).
+    const kin::Posed here = kin_.forward(cur_);
+    cl::Move from = cut_move_, up = cut_move_;
+    from.tip_in_part_mm = here.tip_mm;
+    from.axis_in_part = here.axis;
+    up.tip_in_part_mm = here.tip_mm + m_.post.singularity.retract_mm * here.axis;
+    up.axis_in_part = here.axis;
+    kin::Axes q_up;
+    if (!kin::nearest_solution(kin_, kin::Posed{up.tip_in_part_mm, here.axis}, cur_, q_up) ||
+        rotary_jump(q_up, cur_) > kFlipCheckRad)
+      return;  // no room along the axis: the plain retract follows (and the gate checks it against the meshes)
+    feed_linear(from, cur_, up, q_up);
   }
 
   // --- Branch flips and unwinds between two feed points ------------------------------------------
@@ -499,6 +529,7 @@ class Writer {
                                           m0.line, m1.line, describe(), d));
     (void)feed_mm_min;
     feed_linear(m0, q0, m_up, up0);  // straight out along the tool axis (linearised: a PKM's joints are not)
+    at_cut_ = false;                 // already out
     rapid(up1, m1);
     cl::Move m_back = m0;
     m_back.feed_mm_per_min = feed_mm_min;
@@ -520,6 +551,9 @@ class Writer {
       if (!continues_branch(pose0, q0, pose1, q1)) q0 = reconfigure(pose0, q0, pose1, q1, m0, m1, fr);
     }
     feed_linear(m0, q0, m1, q1);
+    at_cut_ = true;
+    cut_move_ = m1;
+    if (cut_move_.feed_mm_per_min <= 0) cut_move_.feed_mm_per_min = 1000.0;
   }
 
   /// Feed from q0 (at m0) to q1 (at m1) on one branch, linearised so that the tip stays within the
@@ -588,7 +622,15 @@ class Writer {
         const Vec3 axis_a = axis(pc.sa);
         const kin::Posed from{P0 + pc.sa * (P1 - P0) - opt_.control_offset_mm * axis_a, axis_a};
         ++sum_.ik_calls;
-        const bool tracked = kin::track(kin_, pc.qa, from, target, qm);
+        bool jumped = false;
+        std::string why;
+        const bool tracked = kin::track_checked(kin_, pc.qa, from, target, qm, jumped, &why);
+        if (tracked && jumped)
+          throw InputError(SourceLoc{prog_.file, m1.line, 0},
+                           fmt::format("the machine cannot follow the CL segment from line {} to line {} "
+                                       "continuously: inside it a limit{} forces the rotaries to flip (the "
+                                       "tool would leave the path); split the segment or plan it with a cone",
+                                       m0.line, m1.line, why.empty() ? "" : " (" + why + ")"));
         if (!tracked) {
           sum_.warnings.push_back(
               fmt::format("{}: no IK solution while linearising", SourceLoc{prog_.file, m1.line, 0}.str()));
@@ -787,6 +829,8 @@ class Writer {
   bool axis_retract_ = false;           ///< retract along the tool axis to z = safe_z_mm (no Z axis, or Cartesian)
   Vec3 cart_tip_ = Vec3::Zero(), cart_axis_ = Vec3::UnitZ();  ///< last Cartesian position (part frame)
   bool have_state_ = false;
+  bool at_cut_ = false;  ///< the last motion was a feed: the tool may be in the material
+  cl::Move cut_move_;    ///< the CL point that feed ended at
   bool mode93_ = false;
   double last_feed_ = -1.0;
   kin::Axes cur_ = kin::Axes::Zero();

@@ -41,14 +41,15 @@ double seg_distance(const ClSeg& s, const Vec3& p, double& t) {
 /// `cl_point_near(p)` gives the nearest CL path point and its axis.
 template <typename Near>
 bool departure(const kin::Kinematics& k, const kin::Axes& qa, const kin::Axes& qb, int n, double tip_tol,
-               double cos_axis_tol, Near&& cl_point_near) {
+               double cos_axis_tol, double ball_r, Near&& cl_point_near) {
   const kin::Posed pa = k.forward(qa), pb = k.forward(qb);
   if ((pb.tip_mm - pa.tip_mm).norm() <= tip_tol) return false;
   for (int i = 0; i <= n; ++i) {
     const kin::Posed p = i == 0 ? pa : (i == n ? pb : k.forward(qa + (static_cast<double>(i) / n) * (qb - qa)));
     if ((p.tip_mm - pa.tip_mm).cross(pa.axis).norm() > tip_tol || p.axis.dot(pa.axis) < cos_axis_tol) return false;
-    const auto [c, u] = cl_point_near(p.tip_mm);
-    if ((p.tip_mm - c).dot(u) < -tip_tol) return false;
+    const Vec3 ctrl = p.tip_mm + ball_r * p.axis;  // the compared point: tip, or ball centre
+    const auto [c, u] = cl_point_near(ctrl);
+    if ((ctrl - c).dot(u) < -tip_tol) return false;
   }
   return true;
 }
@@ -125,7 +126,7 @@ VerifyResult verify(const nc::Program& nc, const cl::Program& cl, const kin::Kin
     }
     const kin::Axes qa = to_axes(*prev), qb = to_axes(b);
     if (departure(kinematics, qa, qb, std::max(1, options.samples_per_block), options.tip_tolerance_mm,
-                  std::cos(deg2rad(options.axis_tolerance_deg)), [&](const Vec3& p) {
+                  std::cos(deg2rad(options.axis_tolerance_deg)), ball_r, [&](const Vec3& p) {
                     size_t c = cursor;
                     double t;
                     nearest(p, c, false, t);
