@@ -32,7 +32,7 @@ std::vector<Pose> poses(std::size_t n) {
   return out;
 }
 
-/// The perturbed parameter set of shared/spec/xmini-vectors.csv (every wrist offset non-zero, so
+/// The perturbed parameter set of tests/data/xmini-vectors.csv (every wrist offset non-zero, so
 /// both wrist branches need their own Newton solve).
 XminiParams<double> perturbed() {
   XminiParams<double> p = XminiParams<double>::nominal();

@@ -22,7 +22,6 @@ namespace cscam::cl {
 namespace {
 
 using Eigen::Vector3d;
-using test::shared_path;
 using test::source_path;
 
 /// Values the reader computes exactly from the printed numbers (a scale by 25.4, a normalisation).
@@ -30,9 +29,9 @@ constexpr double kExactMm = 1e-9;
 /// NX prints its G-code to 4 decimals of an inch; matching a CL arc to its G02/G03 block allows for that.
 constexpr double kNcRoundingMm = 0.0002 * kMmPerInch;
 
-const std::string kVariableAxis = "data/real/nx-haas-umc750/variable_axis.cls";
-const std::string kZigzag = "data/real/nx-haas-umc750/zigzag_smoothed.cls";
-const std::string kZigzagNc = "data/real/nx-haas-umc750/zigzag_smoothed.nx-post.nc";
+const std::string kVariableAxis = "examples/nx-haas-umc750/variable_axis.cls";
+const std::string kZigzag = "examples/nx-haas-umc750/zigzag_smoothed.cls";
+const std::string kZigzagNc = "examples/nx-haas-umc750/zigzag_smoothed.nx-post.nc";
 
 std::vector<std::string> lines_of(const std::string& path) {
   std::ifstream in(path);
@@ -70,7 +69,7 @@ std::vector<const Event*> events_of(const Program& p, Event::Kind k) {
 // Real NX files
 
 TEST(ClRealNx, VariableAxisParsesInInches) {
-  const Program p = read_file(shared_path(kVariableAxis));
+  const Program p = read_file(source_path(kVariableAxis));
   EXPECT_EQ(p.source_units, LengthUnit::Inch);  // no UNITS/: FEDRAT/IPM decides
   EXPECT_TRUE(p.warnings.empty()) << p.warnings.front().where.str() << ": " << p.warnings.front().message;
   EXPECT_EQ(p.moves.size(), 348u);  // grep -c '^GOTO'
@@ -136,7 +135,7 @@ TEST(ClRealNx, VariableAxisParsesInInches) {
 }
 
 TEST(ClRealNx, ZigzagParsesInMillimetres) {
-  const Program p = read_file(shared_path(kZigzag));
+  const Program p = read_file(source_path(kZigzag));
   EXPECT_EQ(p.source_units, LengthUnit::Millimetre);  // FEDRAT/MMPM
   EXPECT_TRUE(p.warnings.empty());
   size_t gotos = 0;
@@ -180,8 +179,8 @@ TEST(ClCircle, RealArcsLieOnTheirCirclesWithinTolerance) {
   ReadOptions opt;
   for (const double tol : {0.001, 0.01}) {
     opt.arc_tolerance_mm = tol;
-    const Program p = read_file(shared_path(kZigzag), opt);
-    const auto arcs = circles_in(shared_path(kZigzag));
+    const Program p = read_file(source_path(kZigzag), opt);
+    const auto arcs = circles_in(source_path(kZigzag));
     ASSERT_EQ(arcs.size(), 35u);
     size_t checked_points = 0;
     for (const ClArc& a : arcs) {
@@ -262,8 +261,8 @@ std::vector<NcArc> nc_arcs(const std::string& path) {
 // Which way does NX mean a CIRCLE/? Its own post printed zigzag_smoothed.cls with G02/G03; every arc we generate
 // must turn the same way as the G-code arc that ends at the same point.
 TEST(ClCircle, SenseOfRotationMatchesNxPostOutput) {
-  const Program p = read_file(shared_path(kZigzag));
-  const auto arcs = nc_arcs(shared_path(kZigzagNc));
+  const Program p = read_file(source_path(kZigzag));
+  const auto arcs = nc_arcs(source_path(kZigzagNc));
   ASSERT_EQ(arcs.size(), 34u);  // the 35th CIRCLE/ (0.8 degrees) came out as a G01
   int matched_cw = 0, matched_ccw = 0;
   for (size_t k = 1; k + 1 < p.moves.size(); ++k) {
@@ -323,7 +322,7 @@ TEST(ClCircle, SyntheticArcsQuarterFullAndHelical) {
   }
   EXPECT_LT(min_x, -9.9);  // went all the way round
   // A CIRCLE with no start point is not an error: a warning, then a straight move.
-  const Program lone = read_text("CIRCLE/0,0,0,0,0,1,10\nGOTO/10,0,0\n", "lone.cls");
+  const Program lone = read_text("UNITS/MM\nCIRCLE/0,0,0,0,0,1,10\nGOTO/10,0,0\n", "lone.cls");
   EXPECT_EQ(lone.moves.size(), 1u);
   EXPECT_EQ(lone.warnings.size(), 1u);
   // A start point off the circle is drawn anyway, with a warning naming the CIRCLE line.
@@ -501,7 +500,8 @@ TEST(ClIso, UnknownRecordWarnsAndContinues) {
   EXPECT_EQ(p.warnings[0].where.file, "w.cls");
   EXPECT_NE(p.warnings[0].message.find("unknown record 'FOO' ignored"), std::string::npos);
   // PAINT and NX's listing trailer are known: no warning.
-  EXPECT_TRUE(read_text("PAINT/COLOR,3\nGOTO/0,0,0\nTool Path Listing has 2 lines.\n", "n.cls").warnings.empty());
+  EXPECT_TRUE(
+      read_text("UNITS/MM\nPAINT/COLOR,3\nGOTO/0,0,0\nTool Path Listing has 2 lines.\n", "n.cls").warnings.empty());
 }
 
 TEST(ClIso, ExamplesParse) {
@@ -603,6 +603,114 @@ TEST(ClErrors, MissingFileNamesIt) {
   } catch (const InputError& e) {
     EXPECT_NE(std::string(e.what()).find(path), std::string::npos) << e.what();
   }
+}
+
+// ------------------------------------------------------------------------------------------------------------
+// Hostile input: never a silent success.
+
+TEST(ClHostile, EmptyBinaryAndMotionlessFilesHaveNoMotionRecords) {
+  for (const std::string text : {std::string(), std::string("\n  \r\n\t\n"), std::string("\xEF\xBB\xBF")}) {
+    const InputError e = error_of(text, "empty.cls");
+    EXPECT_EQ(e.where().file, "empty.cls");
+    EXPECT_EQ(e.where().line, 1);
+    EXPECT_NE(e.message().find("no motion records"), std::string::npos) << e.what();
+  }
+  // Binary: a NUL byte (here on line 2), or mostly control characters.
+  InputError e = error_of(std::string("GOTO/1,2,3\nab\0cd\n", 17), "bin.cls");
+  EXPECT_EQ(e.where().line, 2);
+  EXPECT_EQ(e.where().column, 3);
+  EXPECT_NE(e.message().find("no motion records"), std::string::npos) << e.what();
+  EXPECT_NE(e.message().find("binary"), std::string::npos) << e.what();
+  std::string noise;
+  auto rng = test::rng(7);
+  for (int i = 0; i < 3000; ++i) noise.push_back(static_cast<char>(1 + rng() % 255));
+  e = error_of(noise, "noise.bin");
+  EXPECT_NE(e.message().find("binary"), std::string::npos) << e.what();
+  // Text without a single motion (the error names the last line).
+  e = error_of("$$ just comments\nUNITS/MM\nFEDRAT/MMPM,100\nSPINDL/1000\n", "still.cls");
+  EXPECT_EQ(e.where().file, "still.cls");
+  EXPECT_EQ(e.where().line, 4);
+  EXPECT_NE(e.message().find("no motion records"), std::string::npos) << e.what();
+  // Motion only after FINI does not count.
+  EXPECT_NE(error_of("UNITS/MM\nFINI\nGOTO/1,2,3\n").message().find("no motion records"), std::string::npos);
+  // Binary through read_file as well.
+  const std::string path = ::testing::TempDir() + "/cscam_cl_binary.cls";
+  {
+    std::ofstream out(path, std::ios::binary);
+    out << std::string(1, '\x7f') << std::string("ELF\x02\x01\x01\0\0\0", 9);
+  }
+  try {
+    (void)read_file(path);
+    ADD_FAILURE() << "no error for a binary file";
+  } catch (const InputError& ex) {
+    EXPECT_EQ(ex.where().file, path);
+    EXPECT_NE(ex.message().find("no motion records"), std::string::npos) << ex.what();
+  }
+  std::remove(path.c_str());
+}
+
+TEST(ClHostile, MissingFeedIsAnErrorUnlessADefaultIsGiven) {
+  ReadOptions strict;
+  strict.require_feed = true;
+  // No feed anywhere: the first feed move is named.
+  const std::string nofeed = "UNITS/MM\nRAPID\nGOTO/0,0,5\nGOTO/0,0,0\nGOTO/1,0,0\n";
+  try {
+    (void)read_text(nofeed, "nofeed.cls", strict);
+    ADD_FAILURE() << "no error without a feed";
+  } catch (const InputError& e) {
+    EXPECT_EQ(e.where().str(), "nofeed.cls:4");
+    EXPECT_NE(e.message().find("no feed rate anywhere"), std::string::npos) << e.what();
+    EXPECT_NE(e.message().find("--default-feed"), std::string::npos) << e.what();
+  }
+  // A feed move before the first FEDRAT/.
+  try {
+    (void)read_text("UNITS/MM\nGOTO/0,0,0\nFEDRAT/MMPM,100\nGOTO/1,0,0\n", "late.cls", strict);
+    ADD_FAILURE() << "no error for a feed move before FEDRAT";
+  } catch (const InputError& e) {
+    EXPECT_EQ(e.where().str(), "late.cls:2");
+    EXPECT_NE(e.message().find("before any feed rate"), std::string::npos) << e.what();
+  }
+  // CSV without a feed column.
+  EXPECT_THROW((void)read_text("0,0,0,0,0,1\n1,0,0,0,0,1\n", "p.csv", strict), InputError);
+  // Rapids alone need no feed.
+  EXPECT_NO_THROW((void)read_text("UNITS/MM\nFROM/0,0,50\nRAPID\nGOTO/0,0,5\n", "r.cls", strict));
+  // With a default feed: every unfed feed move gets it, with one warning.
+  ReadOptions dflt = strict;
+  dflt.default_feed_mm_per_min = 250.0;
+  const Program p = read_text(nofeed, "nofeed.cls", dflt);
+  ASSERT_EQ(p.moves.size(), 3u);
+  EXPECT_EQ(p.moves[0].feed_mm_per_min, 0.0);  // the rapid
+  EXPECT_EQ(p.moves[1].feed_mm_per_min, 250.0);
+  EXPECT_EQ(p.moves[2].feed_mm_per_min, 250.0);
+  ASSERT_EQ(p.warnings.size(), 1u);
+  EXPECT_EQ(p.warnings[0].where.str(), "nofeed.cls:4");
+  EXPECT_NE(p.warnings[0].message.find("default feed 250"), std::string::npos) << p.warnings[0].message;
+  // A default never overrides the file's own feed.
+  const Program q = read_text("UNITS/MM\nFEDRAT/MMPM,100\nGOTO/1,0,0\n", "f.cls", dflt);
+  EXPECT_EQ(q.moves[0].feed_mm_per_min, 100.0);
+  EXPECT_TRUE(q.warnings.empty());
+  // The default itself must be a feed.
+  dflt.default_feed_mm_per_min = -5;
+  EXPECT_THROW((void)read_text(nofeed, "nofeed.cls", dflt), InputError);
+  // Without require_feed (verify's reading), no error.
+  EXPECT_NO_THROW((void)read_text(nofeed, "nofeed.cls"));
+}
+
+TEST(ClHostile, AssumedMillimetresAreAWarning) {
+  Program p = read_text("FEDRAT/100\nGOTO/1,0,0\nGOTO/2,0,0\n", "nounits.cls");
+  ASSERT_EQ(p.warnings.size(), 1u);
+  EXPECT_EQ(p.warnings[0].where.str(), "nounits.cls:2");
+  EXPECT_NE(p.warnings[0].message.find("taken as mm"), std::string::npos) << p.warnings[0].message;
+  p = read_text("0,0,0,0,0,1,100\n", "p.csv");
+  ASSERT_EQ(p.warnings.size(), 1u);
+  EXPECT_NE(p.warnings[0].message.find("taken as mm"), std::string::npos);
+  // UNITS/, FEDRAT/ with a unit, or the option: no warning.
+  EXPECT_TRUE(read_text("UNITS/MM\nFEDRAT/100\nGOTO/1,0,0\n", "u.cls").warnings.empty());
+  EXPECT_TRUE(read_text("FEDRAT/MMPM,100\nGOTO/1,0,0\n", "f.cls").warnings.empty());
+  ReadOptions mm;
+  mm.units = LengthUnit::Millimetre;
+  EXPECT_TRUE(read_text("FEDRAT/100\nGOTO/1,0,0\n", "o.cls", mm).warnings.empty());
+  EXPECT_TRUE(read_text("0,0,0,0,0,1,100\n", "p.csv", mm).warnings.empty());
 }
 
 TEST(ClErrors, BadArcTolerance) {

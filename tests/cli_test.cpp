@@ -3,7 +3,11 @@
 
 #include <filesystem>
 #include <fstream>
+#include <nlohmann/json.hpp>
 
+#include "cscam/cl/program.hpp"
+#include "cscam/machine/machine.hpp"
+#include "cscam/post/post.hpp"
 #include "test_support.hpp"
 
 namespace fs = std::filesystem;
@@ -32,7 +36,7 @@ const std::string kCli = CSCAM_CLI;
 
 TEST(Cli, PostVerifyStatsOnRealNxFile) {
   TempDir d;
-  const std::string cl = cscam::test::shared_path("data/real/nx-haas-umc750/variable_axis.cls");
+  const std::string cl = cscam::test::source_path("examples/nx-haas-umc750/variable_axis.cls");
   const std::string out = d.file("va.ngc");
   auto r = run_command(kCli + " post " + cl + " --machine haas-umc750 -o " + out);
   ASSERT_EQ(r.status, 0) << r.output;
@@ -41,7 +45,7 @@ TEST(Cli, PostVerifyStatsOnRealNxFile) {
   EXPECT_EQ(r.status, 0) << r.output;
   EXPECT_NE(r.output.find("OK"), std::string::npos) << r.output;
   r = run_command(kCli + " stats " + out + " " +
-                  cscam::test::shared_path("data/real/nx-haas-umc750/variable_axis.nx-post.nc") +
+                  cscam::test::source_path("examples/nx-haas-umc750/variable_axis.nx-post.nc") +
                   " --machine haas-umc750");
   EXPECT_EQ(r.status, 0) << r.output;
   EXPECT_NE(r.output.find("C reversals"), std::string::npos) << r.output;
@@ -53,8 +57,26 @@ TEST(Cli, VerifyFailsWhenTheProgramLeavesTheTolerance) {
                                 "UNITS/MM\nMULTAX\nFEDRAT/MMPM,1000\nRAPID\nGOTO/100,50,20,0,0,1\n"
                                 "GOTO/110,50,20,0.5,0,0.8660254\n");
   const std::string out = d.file("swing.ngc");
+  // Without linearisation the swing leaves the path: the safety gate refuses it, names the block and the
+  // CL line, and writes nothing.
   auto r = run_command(kCli + " post " + cl + " --machine trunnion-ac --no-linearise -o " + out);
-  ASSERT_EQ(r.status, 0) << r.output;
+  EXPECT_EQ(r.status, 2) << r.output;
+  EXPECT_NE(r.output.find("unsafe program not written"), std::string::npos) << r.output;
+  EXPECT_NE(r.output.find("swing.ngc:"), std::string::npos) << r.output;
+  EXPECT_NE(r.output.find("swing.cls:6"), std::string::npos) << r.output;
+  EXPECT_FALSE(fs::exists(out));
+  // verify finds the same on a program written past the CLI (the library's post without the gate).
+  {
+    const auto m = cscam::machine::load(cscam::test::source_path("machines/trunnion-ac.yaml"));
+    const auto prog = cscam::cl::read_file(cl);
+    const auto k = m.make_kinematics(cscam::post::tool_length_for(m, 0));
+    cscam::post::Options o;
+    o.linearise = false;
+    o.tool_length_mm = cscam::post::tool_length_for(m, 0);
+    cscam::post::Summary sum;
+    std::ofstream os(out);
+    cscam::post::write_nc(os, prog, m, *k, cscam::post::conventional_axes(prog, m, *k), o, sum);
+  }
   r = run_command(kCli + " verify " + out + " --machine trunnion-ac --cl " + cl);
   EXPECT_EQ(r.status, 1) << r.output;
   EXPECT_NE(r.output.find("FAILED"), std::string::npos) << r.output;
@@ -73,7 +95,7 @@ TEST(Cli, BadClInputExitsNonZeroWithLocationAndWritesNothing) {
 
 TEST(Cli, UnreachablePointKeepsThePreviousOutputIntact) {
   TempDir d;
-  const std::string cl = d.file("far.cls", "UNITS/MM\nMULTAX\nGOTO/0,0,0,0,0,1\nGOTO/5000,0,0,0,0,1\n");
+  const std::string cl = d.file("far.cls", "UNITS/MM\nFEDRAT/MMPM,1000\nGOTO/0,0,0,0,0,1\nGOTO/5000,0,0,0,0,1\n");
   const std::string out = d.file("far.ngc", "previous content\n");
   const auto r = run_command(kCli + " post " + cl + " --machine trunnion-ac -o " + out);
   EXPECT_EQ(r.status, 2) << r.output;
@@ -85,7 +107,7 @@ TEST(Cli, UnreachablePointKeepsThePreviousOutputIntact) {
 
 TEST(Cli, BadMachineAndBadArguments) {
   TempDir d;
-  const std::string cl = d.file("ok.cls", "UNITS/MM\nGOTO/0,0,0\n");
+  const std::string cl = d.file("ok.cls", "UNITS/MM\nFEDRAT/MMPM,500\nGOTO/0,0,0\n");
   auto r = run_command(kCli + " post " + cl + " --machine no-such-machine");
   EXPECT_EQ(r.status, 2);
   EXPECT_NE(r.output.find("no-such-machine"), std::string::npos) << r.output;
@@ -113,7 +135,9 @@ TEST(Cli, PlanAndCompareOnTheSeedGroove) {
   EXPECT_TRUE(fs::exists(d.path / "svg" / "segment1_cspace.svg"));
   std::ifstream j(json);
   std::string js((std::istreambuf_iterator<char>(j)), {});
-  EXPECT_NE(js.find("\"tiers\": [1]"), std::string::npos) << js;
+  const auto parsed = nlohmann::json::parse(js);  // JSON through a library: parses back
+  EXPECT_EQ(parsed["planner"]["tiers"], nlohmann::json::array({1})) << js;
+  EXPECT_EQ(parsed["cl"], cl);
   r = run_command(kCli + " verify " + out + " --machine trunnion-ac --cl " + cl + " --cone 25");
   EXPECT_EQ(r.status, 0) << r.output;
 }
@@ -123,7 +147,7 @@ TEST(Cli, PlanRejectsAnOpenMeshNamingTheFile) {
   const std::string stl = d.file("open.stl",
                                  "solid t\nfacet normal 0 0 1\nouter loop\nvertex 0 0 0\nvertex 1 0 0\nvertex 0 1 0\n"
                                  "endloop\nendfacet\nendsolid t\n");
-  const std::string cl = d.file("p.cls", "UNITS/MM\nMULTAX\nCUTTER/6,3\nGOTO/0,0,0,0,0,1\nGOTO/1,0,0,0,0,1\n");
+  const std::string cl = d.file("p.cls", "UNITS/MM\nFEDRAT/MMPM,500\nCUTTER/6,3\nGOTO/0,0,0,0,0,1\nGOTO/1,0,0,0,0,1\n");
   const std::string out = d.file("p.ngc");
   const auto r = run_command(kCli + " plan " + cl + " --machine trunnion-ac --part " + stl + " -o " + out);
   EXPECT_EQ(r.status, 2) << r.output;
@@ -133,11 +157,183 @@ TEST(Cli, PlanRejectsAnOpenMeshNamingTheFile) {
 
 TEST(Cli, PlanWithNoFeasibleCellWritesNothing) {
   TempDir d;
-  const std::string cl = d.file("u.cls", "UNITS/MM\nMULTAX\nGOTO/0,0,0,0,0,1\nGOTO/450,0,0,0,0.9396926,0.3420201\n");
+  const std::string cl =
+      d.file("u.cls", "UNITS/MM\nFEDRAT/MMPM,500\nGOTO/0,0,0,0,0,1\nGOTO/450,0,0,0,0.9396926,0.3420201\n");
   const std::string out = d.file("u.ngc");
   const auto r = run_command(kCli + " plan " + cl + " --machine trunnion-ac -o " + out);
   EXPECT_EQ(r.status, 2) << r.output;
   EXPECT_NE(r.output.find("u.cls:4"), std::string::npos) << r.output;
   EXPECT_NE(r.output.find("nearest feasible cell"), std::string::npos) << r.output;
   EXPECT_FALSE(fs::exists(out));
+}
+
+// --- Hostile input (issue 7, part 3): non-zero exit, file:line in the message, no output file -------------------
+
+namespace {
+std::string q(const std::string& s) { return "'" + s + "'"; }  // for the shell (our paths have no single quote)
+
+// Tilted 10 deg (A = 10): a vertical tool would sit on the trunnion's singularity.
+const char* kSmallCl =
+    "UNITS/MM\nFEDRAT/MMPM,500\nRAPID\nGOTO/0,0,50,0,0.1736482,0.9848078\nGOTO/0,0,0,0,0.1736482,0.9848078\n"
+    "GOTO/10,0,0,0,0.1736482,0.9848078\n";
+const char* kTilted = "0,0.1736482,0.9848078";
+}  // namespace
+
+TEST(Cli, EmptyBinaryAndMotionlessClFilesAreRefused) {
+  TempDir d;
+  const std::string empty = (d.path / "empty.cls").string();
+  std::ofstream(empty).close();
+  const std::string bin = (d.path / "part.bin").string();
+  std::ofstream(bin, std::ios::binary) << "GOTO/1,2,3\n" << std::string(1, '\x7f') << std::string("ELF\0\0\x01\x02", 7);
+  const std::string still = d.file("still.cls", "UNITS/MM\nFEDRAT/MMPM,100\nSPINDL/1000\n");
+  const std::pair<std::string, std::string> cases[] = {
+      {empty, "empty.cls:1:"}, {bin, "part.bin:2:"}, {still, "still.cls:3:"}};
+  for (const auto& [cl, where] : cases) {
+    for (const std::string cmd : {"post", "plan"}) {
+      const std::string out = d.file("o.ngc");
+      const auto r = run_command(kCli + " " + cmd + " " + q(cl) + " --machine trunnion-ac -o " + q(out));
+      EXPECT_EQ(r.status, 2) << cmd << " " << cl << ": " << r.output;
+      EXPECT_NE(r.output.find(where), std::string::npos) << r.output;
+      EXPECT_NE(r.output.find("no motion records"), std::string::npos) << r.output;
+      EXPECT_FALSE(fs::exists(out)) << cmd << " " << cl;
+    }
+  }
+}
+
+TEST(Cli, NoFeedRateIsAnErrorUnlessADefaultFeedIsGiven) {
+  TempDir d;
+  const std::string t = kTilted;
+  const std::string cl =
+      d.file("nofeed.cls", "UNITS/MM\nRAPID\nGOTO/0,0,50," + t + "\nGOTO/0,0,0," + t + "\nGOTO/10,0,0," + t + "\n");
+  const std::string out = d.file("nofeed.ngc");
+  for (const std::string& cmd :
+       {std::string("post"), std::string("plan"), "compare --json-out " + q(d.file("c.json"))}) {
+    const auto r = run_command(kCli + " " + cmd + " " + q(cl) + " --machine trunnion-ac -o " + q(out));
+    EXPECT_EQ(r.status, 2) << cmd << ": " << r.output;
+    EXPECT_NE(r.output.find("nofeed.cls:4"), std::string::npos) << cmd << ": " << r.output;
+    EXPECT_NE(r.output.find("no feed rate anywhere"), std::string::npos) << r.output;
+    EXPECT_FALSE(fs::exists(out)) << cmd;
+  }
+  EXPECT_FALSE(fs::exists(d.path / "c.json"));
+  // With --default-feed: a warning naming the first unfed move, and the feed in the program.
+  auto r = run_command(kCli + " post " + q(cl) + " --machine trunnion-ac --default-feed 300 -o " + q(out));
+  ASSERT_EQ(r.status, 0) << r.output;
+  EXPECT_NE(r.output.find("warning: " + cl + ":4"), std::string::npos) << r.output;
+  EXPECT_NE(r.output.find("default feed 300 mm/min"), std::string::npos) << r.output;
+  std::ifstream in(out);
+  const std::string nc((std::istreambuf_iterator<char>(in)), {});
+  EXPECT_NE(nc.find("F300"), std::string::npos) << nc;
+  r = run_command(kCli + " plan " + q(cl) + " --machine trunnion-ac --default-feed 300 -o " + q(d.file("p.ngc")));
+  EXPECT_EQ(r.status, 0) << r.output;
+  // The option itself is checked.
+  r = run_command(kCli + " post " + q(cl) + " --machine trunnion-ac --default-feed -5 -o " + q(out));
+  EXPECT_NE(r.status, 0) << r.output;
+}
+
+TEST(Cli, AssumedMillimetresAreAWarning) {
+  TempDir d;
+  const std::string cl = d.file("mm.cls", "FEDRAT/500\nRAPID\nGOTO/0,0,50,0,0,1\nGOTO/0,0,0,0,0,1\n");
+  auto r = run_command(kCli + " post " + q(cl) + " --machine trunnion-ac -o " + q(d.file("mm.ngc")));
+  EXPECT_EQ(r.status, 0) << r.output;
+  EXPECT_NE(r.output.find("warning: " + cl + ":3: no UNITS/"), std::string::npos) << r.output;
+  r = run_command(kCli + " post " + q(cl) + " --units mm --machine trunnion-ac -o " + q(d.file("mm2.ngc")));
+  EXPECT_EQ(r.status, 0) << r.output;
+  EXPECT_EQ(r.output.find("no UNITS/"), std::string::npos) << r.output;
+}
+
+TEST(Cli, MachineFileErrorsNameTheMachineFileNotTheClFile) {
+  TempDir d;
+  const std::string cl = d.file("part.cls", kSmallCl);
+  std::ifstream src(cscam::test::source_path("machines/trunnion-ac.yaml"));
+  const std::string good((std::istreambuf_iterator<char>(src)), {});
+  struct Case {
+    std::string from, to, key;
+  };
+  const Case cases[] = {
+      {"  tolerance_mm: 0.01\n", "  tolerance_mm: 0.01\n  tolerance_mm: 0.5\n", "duplicate key"},
+      {"  tolerance_mm: 0.01\n", "  tolerance_mm: -0.01\n", "post.tolerance_mm"},
+      {"letters: {x: X, y: Y, z: Z, a: A, c: C}", "letters: {x: X, y: Y, z: Z, a: A, c: A}", "duplicate axis letter"},
+      {"pivot_mm: [0, 0, 0], limits: [-36000", "limits: [-36000", "pivot_mm"},
+      {"chains:", "xchains:", "unknown key"},
+  };
+  for (const auto& c : cases) {
+    std::string text = good;
+    const auto at = text.find(c.from);
+    ASSERT_NE(at, std::string::npos) << c.from;
+    text.replace(at, c.from.size(), c.to);
+    const std::string m = d.file("bad-machine.yaml", text);
+    const std::string out = d.file("o.ngc");
+    const auto r = run_command(kCli + " post " + q(cl) + " --machine " + q(m) + " -o " + q(out));
+    EXPECT_EQ(r.status, 2) << c.key << ": " << r.output;
+    EXPECT_NE(r.output.find("bad-machine.yaml:"), std::string::npos) << r.output;
+    EXPECT_NE(r.output.find(c.key), std::string::npos) << r.output;
+    EXPECT_EQ(r.output.find("part.cls"), std::string::npos) << r.output;
+    EXPECT_FALSE(fs::exists(out));
+  }
+}
+
+TEST(Cli, StatsAndVerifyCheckTheProgramWasWrittenForTheMachine) {
+  TempDir d;
+  const std::string cl = d.file("part.cls", kSmallCl);
+  const std::string nc = d.file("part.ngc");
+  auto r = run_command(kCli + " post " + q(cl) + " --machine trunnion-ac -o " + q(nc));
+  ASSERT_EQ(r.status, 0) << r.output;
+  // Letters the machine lacks (A on an X Y Z B C machine): an error at the first such word.
+  for (const std::string cmd :
+       {"stats " + q(nc), "verify " + q(nc) + " --cl " + q(cl), "backlash " + q(nc) + " --axis x --width-mm 0.01"}) {
+    r = run_command(kCli + " " + cmd + " --machine haas-umc750");
+    EXPECT_EQ(r.status, 2) << cmd << ": " << r.output;
+    EXPECT_NE(r.output.find("part.ngc:"), std::string::npos) << r.output;
+    EXPECT_NE(r.output.find("axis word 'A'"), std::string::npos) << r.output;
+    EXPECT_NE(r.output.find("'trunnion-ac', says its header"), std::string::npos) << r.output;
+  }
+  // Same letters, another machine named in the header: verify refuses, stats warns.
+  std::ifstream src(cscam::test::source_path("machines/trunnion-ac.yaml"));
+  std::string text((std::istreambuf_iterator<char>(src)), {});
+  const auto at = text.find("name: trunnion-ac");
+  ASSERT_NE(at, std::string::npos);
+  text.replace(at, 17, "name: other-mill");
+  const std::string other = d.file("other.yaml", text);
+  r = run_command(kCli + " verify " + q(nc) + " --cl " + q(cl) + " --machine " + q(other));
+  EXPECT_EQ(r.status, 2) << r.output;
+  EXPECT_NE(r.output.find("written for machine 'trunnion-ac'"), std::string::npos) << r.output;
+  r = run_command(kCli + " stats " + q(nc) + " --machine " + q(other));
+  EXPECT_EQ(r.status, 0) << r.output;
+  EXPECT_NE(r.output.find("warning: " + nc + ":"), std::string::npos) << r.output;
+  EXPECT_NE(r.output.find("written for machine 'trunnion-ac'"), std::string::npos) << r.output;
+  // The right machine: no complaint.
+  r = run_command(kCli + " verify " + q(nc) + " --cl " + q(cl) + " --machine trunnion-ac");
+  EXPECT_EQ(r.status, 0) << r.output;
+  r = run_command(kCli + " stats " + q(nc) + " --machine trunnion-ac");
+  EXPECT_EQ(r.output.find("warning"), std::string::npos) << r.output;
+}
+
+// Paths with quotes and backslashes give valid JSON everywhere (part 6).
+TEST(Cli, JsonSurvivesQuotesAndBackslashesInPaths) {
+  TempDir d;
+  const fs::path dir = d.path / "we\"ird\\dir";
+  fs::create_directories(dir);
+  const std::string cl = (dir / "pa\"rt.cls").string();
+  std::ofstream(cl) << kSmallCl;
+  const std::string nc = (dir / "pa\"rt.ngc").string();
+  auto r = run_command(kCli + " post " + q(cl) + " --machine trunnion-ac -o " + q(nc) + " --json");
+  ASSERT_EQ(r.status, 0) << r.output;
+  r = run_command(kCli + " backlash " + q(nc) + " --machine trunnion-ac --axis x --width-mm 0.01 --json 2>/dev/null");
+  ASSERT_EQ(r.status, 0) << r.output;
+  auto j = nlohmann::json::parse(r.output);
+  EXPECT_EQ(j[0]["nc"], nc);
+  EXPECT_EQ(j[0]["result"]["axis"], "x");
+  r = run_command(kCli + " stats " + q(nc) + " --machine trunnion-ac --json 2>/dev/null");
+  ASSERT_EQ(r.status, 0) << r.output;
+  EXPECT_EQ(nlohmann::json::parse(r.output).size(), 1u);
+  r = run_command(kCli + " verify " + q(nc) + " --cl " + q(cl) + " --machine trunnion-ac --json 2>/dev/null");
+  ASSERT_EQ(r.status, 0) << r.output;
+  EXPECT_EQ(nlohmann::json::parse(r.output)["ok"], true);
+  const std::string json = (dir / "c\"mp.json").string();
+  r = run_command(kCli + " compare " + q(cl) + " --machine trunnion-ac --json-out " + q(json));
+  ASSERT_EQ(r.status, 0) << r.output;
+  std::ifstream in(json);
+  j = nlohmann::json::parse(in);
+  EXPECT_EQ(j["cl"], cl);
+  EXPECT_EQ(j["machine"], "trunnion-ac");
 }

@@ -39,13 +39,13 @@ TEST(NcReader, ModalAxesUnitsAndFeedModes) {
 }
 
 TEST(NcReader, ReadsNxHaasOutput) {
-  const auto p = nc::read_file(test::shared_path("data/real/nx-haas-umc750/variable_axis.nx-post.nc"), xyzbc());
+  const auto p = nc::read_file(test::source_path("examples/nx-haas-umc750/variable_axis.nx-post.nc"), xyzbc());
   EXPECT_TRUE(p.tcp);  // G234
   ASSERT_GT(p.blocks.size(), 300u);
   // N70 G00 B-22.201 C1.05 is the first positioning block (G28 blocks are not positions).
   EXPECT_NEAR(rad2deg(p.blocks[0].axes[3]), -22.201, 1e-12);
   EXPECT_NEAR(rad2deg(p.blocks[0].axes[4]), 1.05, 1e-12);
-  const auto z = nc::read_file(test::shared_path("data/real/nx-haas-umc750/zigzag_smoothed.nx-post.nc"), xyzbc());
+  const auto z = nc::read_file(test::source_path("examples/nx-haas-umc750/zigzag_smoothed.nx-post.nc"), xyzbc());
   EXPECT_GT(z.blocks.size(), 50u);  // the listing header before '%' is skipped
 }
 
@@ -58,4 +58,26 @@ TEST(NcReader, MalformedNumberNamesLineAndColumn) {
   }
   EXPECT_THROW(nc::read_text("G1 X#1\n", "bad.ngc", xyzbc()), InputError);
   EXPECT_THROW(nc::read_file("/nonexistent.ngc", xyzbc()), InputError);
+}
+
+// The reader records which machine our header names and the axis words the given letters do not cover, so that
+// stats and verify can refuse another machine's program instead of silently ignoring its words.
+TEST(NcReader, HeaderMachineAndForeignAxisWords) {
+  const auto p = nc::read_text(
+      "%\n(CSCAM)\n(cscam post: machine trunnion-ac dialect linuxcnc strategy conventional)\nG21 G90\n"
+      "G0 X1 Y2 Z3 A10 C5\nG1 X2 A11 I3 J4 F100\nG1 U1\nM2\n%\n",
+      "t.ngc", xyzbc());
+  ASSERT_TRUE(p.header_machine.has_value());
+  EXPECT_EQ(*p.header_machine, "trunnion-ac");
+  EXPECT_EQ(p.header_line, 3);
+  ASSERT_EQ(p.foreign_axis_words.size(), 2u);  // each letter once, where it first appears; I J are not axes
+  EXPECT_EQ(p.foreign_axis_words[0].letter, 'A');
+  EXPECT_EQ(p.foreign_axis_words[0].line, 5);
+  EXPECT_EQ(p.foreign_axis_words[0].column, 13);
+  EXPECT_EQ(p.foreign_axis_words[1].letter, 'U');
+  EXPECT_EQ(p.foreign_axis_words[1].line, 7);
+  // NX's own Haas program: no header of ours, and every axis word is one of X Y Z B C.
+  const auto nx = nc::read_file(test::source_path("examples/nx-haas-umc750/variable_axis.nx-post.nc"), xyzbc());
+  EXPECT_FALSE(nx.header_machine.has_value());
+  EXPECT_TRUE(nx.foreign_axis_words.empty());
 }

@@ -121,7 +121,7 @@ TEST(Post, RealNxFilesConvertAndVerifyOnHaas) {
   const auto k = m.kinematics();
   for (const char* f : {"variable_axis.cls", "zigzag_smoothed.cls"}) {
     SCOPED_TRACE(f);
-    const cl::Program prog = cl::read_file(test::shared_path(std::string("data/real/nx-haas-umc750/") + f));
+    const cl::Program prog = cl::read_file(test::source_path(std::string("examples/nx-haas-umc750/") + f));
     const Posted p = post_program(prog, m, *k);
     expect_rs274_agrees(p.text, m, f);
     const auto v = verify_text(p.text, prog, m, *k);
@@ -134,9 +134,9 @@ TEST(Post, HaasAxisSensesReproduceNxPostAngles) {
   // and B/C for the following points. Our IK must have these among its solutions (C modulo 360).
   const auto m = load_machine("haas-umc750");
   const auto k = m.kinematics();
-  const cl::Program prog = cl::read_file(test::shared_path("data/real/nx-haas-umc750/variable_axis.cls"));
+  const cl::Program prog = cl::read_file(test::source_path("examples/nx-haas-umc750/variable_axis.cls"));
   const nc::Program nx =
-      nc::read_file(test::shared_path("data/real/nx-haas-umc750/variable_axis.nx-post.nc"), letters_of(m));
+      nc::read_file(test::source_path("examples/nx-haas-umc750/variable_axis.nx-post.nc"), letters_of(m));
   // Pair CL points and NX blocks by their (part-frame, TCPC) tip positions.
   int matched = 0;
   std::vector<kin::Solution> sols;

@@ -2,7 +2,10 @@
 #include <gtest/gtest.h>
 
 #include "cscam/core/units.hpp"
+#include "cscam/report/backlash.hpp"
+#include "cscam/report/json.hpp"
 #include "cscam/report/stats.hpp"
+#include "cscam/report/verify.hpp"
 #include "test_support.hpp"
 
 using namespace cscam;
@@ -35,6 +38,37 @@ TEST(Stats, TravelReversalsStepsAndSimultaneity) {
   EXPECT_EQ(st.segments[0].max_simultaneous, 2);
   EXPECT_EQ(st.blocks_by_simultaneous[1], 4);
   EXPECT_EQ(st.blocks_by_simultaneous[2], 1);
-  const std::string j = st.to_json();
-  EXPECT_NE(j.find("\"reversals\": 2"), std::string::npos);
+  const auto j = nlohmann::json::parse(st.to_json());
+  EXPECT_EQ(j["axes"][0]["reversals"], 2);
+  EXPECT_EQ(j["axes"][0]["travel"], 18.0);
+  EXPECT_EQ(j["axes"][3]["unit"], "deg");
+  EXPECT_EQ(j["feed_blocks_by_simultaneous_axes"][1], 4);
+}
+
+// Reports are JSON through a library: a path or a message with quotes, backslashes or control characters stays
+// valid JSON and parses back to the same text.
+TEST(ReportJson, QuotesAndBackslashesSurvive) {
+  const std::string nasty = "C:\\cam\\\"part\" 1\\x.ngc\ttab\nline";
+  report::Stats st;
+  st.source = nasty;
+  st.axes[0].name = "x\"";
+  auto j = nlohmann::json::parse(st.to_json());
+  EXPECT_EQ(j["source"], nasty);
+  EXPECT_EQ(j["axes"][0]["name"], "x\"");
+  report::VerifyResult v;
+  v.message = "FAILED: \"tip\" \\ deviation";
+  v.max_tip_deviation_mm = std::numeric_limits<double>::quiet_NaN();  // not a number: null, not "nan"
+  j = nlohmann::json::parse(v.to_json());
+  EXPECT_EQ(j["message"], v.message);
+  EXPECT_TRUE(j["max_tip_deviation_mm"].is_null());
+  EXPECT_EQ(j["ok"], false);
+  report::BacklashResult b;
+  b.axis_name = "q\\2\"";
+  b.width = 0.01;
+  b.reversals.push_back({});
+  j = nlohmann::json::parse(b.to_json());
+  EXPECT_EQ(j["axis"], b.axis_name);
+  EXPECT_EQ(j["width_mm"], 0.01);
+  ASSERT_EQ(j["reversals"].size(), 1u);
+  EXPECT_EQ(j["reversals"][0]["tip_mm"].size(), 3u);
 }

@@ -9,7 +9,6 @@
 namespace cscam::test {
 
 inline std::string source_path(const std::string& rel) { return std::string(CSCAM_SOURCE_DIR) + "/" + rel; }
-inline std::string shared_path(const std::string& rel) { return std::string(CSCAM_SHARED_DIR) + "/" + rel; }
 
 /// Every randomised test draws from this seed so failures reproduce.
 inline constexpr unsigned kSeed = 20261122u;

@@ -1,4 +1,4 @@
-// XMINI kinematics: the reference vectors of shared/spec/xmini-vectors.csv (nominal and perturbed),
+// XMINI kinematics: the reference vectors of tests/data/xmini-vectors.csv (nominal and perturbed),
 // home, IK -> FK round trips over the working volume, the analytic Jacobian against finite differences,
 // parameter derivatives through ceres::Jet, limits, the singular wrist and parasitic motion.
 #include "cscam/kin/xmini.hpp"
@@ -71,7 +71,7 @@ std::string trim(const std::string& s) {
 }
 
 VectorFile read_vectors() {
-  const std::string path = test::shared_path("spec/xmini-vectors.csv");
+  const std::string path = test::source_path("tests/data/xmini-vectors.csv");
   std::ifstream in(path);
   if (!in) throw std::runtime_error("cannot open " + path);
   VectorFile vf;

@@ -971,27 +971,115 @@ void advise_huge_pages([[maybe_unused]] const void* data, [[maybe_unused]] size_
 #endif
 }
 
+/// Where `text` stops looking like text: the first NUL byte in its first 64 KiB, or the first control character
+/// when more than 1 % of its first 4 KiB are control characters (other than tab, CR, LF, FF, VT, ^Z). CL files are
+/// text, and reading a binary file as APT would only produce a flood of "unknown record" warnings.
+std::optional<size_t> binary_offset(string_view text) {
+  const string_view head = text.substr(0, size_t{1} << 16);
+  if (const size_t nul = head.find('\0'); nul != string_view::npos) return nul;
+  const string_view sample = text.substr(0, 4096);
+  size_t controls = 0, first = string_view::npos;
+  for (size_t i = 0; i < sample.size(); ++i) {
+    const auto c = static_cast<unsigned char>(sample[i]);
+    // (0x1A: the end-of-file mark of old DOS editors, harmless)
+    if ((c < 0x20 && c != '\t' && c != '\n' && c != '\r' && c != '\f' && c != '\v' && c != 0x1A) || c == 0x7F) {
+      ++controls;
+      if (first == string_view::npos) first = i;
+    }
+  }
+  if (controls * 100 > sample.size()) return first;
+  return std::nullopt;
+}
+
+/// 1-based line and column of text[offset].
+std::pair<int, int> line_column(string_view text, size_t offset) {
+  const string_view before = text.substr(0, offset);
+  const size_t nl = before.rfind('\n');
+  const int line = 1 + static_cast<int>(std::count(before.begin(), before.end(), '\n'));
+  const int col = 1 + static_cast<int>(nl == string_view::npos ? offset : offset - nl - 1);
+  return {line, col};
+}
+
+/// Feed moves without a feed rate (none in the file, or before its first FEDRAT/): the default feed, or an error.
+void settle_feeds(Program& prog, const ReadOptions& opt) {
+  const auto unfed = [](const Move& m) { return m.kind == MotionKind::Feed && !(m.feed_mm_per_min > 0); };
+  const auto first = std::find_if(prog.moves.begin(), prog.moves.end(), unfed);
+  if (first == prog.moves.end()) return;
+  const bool any_feed = std::any_of(prog.moves.begin(), prog.moves.end(),
+                                    [](const Move& m) { return m.kind == MotionKind::Feed && m.feed_mm_per_min > 0; });
+  const SourceLoc where{prog.file, first->line, 0};
+  if (opt.default_feed_mm_per_min) {
+    const double f = *opt.default_feed_mm_per_min;
+    size_t n = 0;
+    for (Move& m : prog.moves)
+      if (unfed(m)) {
+        m.feed_mm_per_min = f;
+        ++n;
+      }
+    prog.warnings.push_back(
+        {where, fmt::format("{} feed moves without a feed rate ({}): using the default feed {} mm/min", n,
+                            any_feed ? "before the first FEDRAT/" : "no FEDRAT/ or CSV feed anywhere in the file", f)});
+    return;
+  }
+  if (!opt.require_feed) return;
+  if (any_feed)
+    throw InputError(where,
+                     "feed move before any feed rate (expected a FEDRAT/ before the first cutting move, "
+                     "or a default feed: --default-feed F in mm/min)");
+  throw InputError(where,
+                   "no feed rate anywhere in the file (expected FEDRAT/ or a CSV feed column, or a default "
+                   "feed: --default-feed F in mm/min)");
+}
+
 Program read_impl(string_view text, const std::string& name, const ReadOptions& opt) {
   if (!(opt.arc_tolerance_mm > 0) || !std::isfinite(opt.arc_tolerance_mm))
     throw InputError(fmt::format("arc tolerance must be a positive number of mm (got {})", opt.arc_tolerance_mm));
+  if (opt.default_feed_mm_per_min &&
+      (!(*opt.default_feed_mm_per_min > 0) || !std::isfinite(*opt.default_feed_mm_per_min)))
+    throw InputError(
+        fmt::format("default feed must be a positive number of mm/min (got {})", *opt.default_feed_mm_per_min));
   if (text.substr(0, 3) == "\xEF\xBB\xBF") text.remove_prefix(3);  // UTF-8 BOM
+  if (text.find_first_not_of(" \t\r\n\f\v") == string_view::npos)
+    throw InputError(SourceLoc{name, 1, 0},
+                     "no motion records: the file is empty (expected APT/CLDATA or CSV x,y,z,i,j,k[,feed])");
+  if (const auto at = binary_offset(text)) {
+    const auto [line, col] = line_column(text, *at);
+    throw InputError(SourceLoc{name, line, col},
+                     fmt::format("no motion records: this is a binary file, not CL text (byte 0x{:02X}; expected "
+                                 "APT/CLDATA or CSV x,y,z,i,j,k[,feed])",
+                                 static_cast<unsigned>(static_cast<unsigned char>(text[*at]))));
+  }
   Program prog;
   prog.file = name;
   // One move per line at most (arcs aside): reserving avoids regrowing a large vector.
   prog.moves.reserve(static_cast<size_t>(std::count(text.begin(), text.end(), '\n')) + 1);
   advise_huge_pages(prog.moves.data(), prog.moves.capacity() * sizeof(Move));
+  std::optional<LengthUnit> unit;
   if (looks_like_csv(text)) {
+    unit = opt.units;
     read_csv(text, prog, opt);
-    return prog;
+  } else {
+    unit = opt.units ? opt.units : scan_units(text);
+    prog.source_units = unit.value_or(LengthUnit::Millimetre);
+    AptReader reader(prog, opt, prog.source_units);
+    Splitter sp(text, 0, 1);
+    Statement st;
+    while (sp.next(st))
+      if (!reader.statement(st)) break;
+    reader.finish();
   }
-  const LengthUnit unit = opt.units ? *opt.units : scan_units(text).value_or(LengthUnit::Millimetre);
-  prog.source_units = unit;
-  AptReader reader(prog, opt, unit);
-  Splitter sp(text, 0, 1);
-  Statement st;
-  while (sp.next(st))
-    if (!reader.statement(st)) break;
-  reader.finish();
+  if (prog.moves.empty()) {
+    const int lines = static_cast<int>(std::count(text.begin(), text.end(), '\n')) + (text.back() == '\n' ? 0 : 1);
+    throw InputError(SourceLoc{name, lines, 0},
+                     "no motion records: the file ends without a GOTO/, FROM/ or GODLTA/ (expected at least one "
+                     "tool position)");
+  }
+  if (!unit)
+    prog.warnings.insert(prog.warnings.begin(),
+                         {SourceLoc{name, prog.moves.front().line, 0},
+                          "no UNITS/ and no FEDRAT/ naming IPM or MMPM: lengths are taken as mm (give --units inch "
+                          "if they are inches)"});
+  settle_feeds(prog, opt);
   return prog;
 }
 

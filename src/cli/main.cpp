@@ -22,6 +22,8 @@
 #include "cscam/report/stats.hpp"
 #include "cscam/report/verify.hpp"
 #include "plan_cmd.hpp"
+#include "sim_cmd.hpp"
+#include "calib_cmd.hpp"
 
 namespace fs = std::filesystem;
 using namespace cscam;
@@ -148,24 +150,24 @@ int cmd_verify(const VerifyArgs& a) {
   ro.units = parse_units(a.units);
   const cl::Program prog = cl::read_file(a.cl, ro);
   const nc::Program ncp = nc::read_file(a.nc, report::axis_letters(m));
+  // Another machine's program would be verified against the wrong kinematics: an error, not a verdict.
+  if (auto mismatch = report::check_machine_of(ncp, m)) throw *mismatch;
   if (ncp.tcp)
     throw InputError(SourceLoc{a.nc},
                      "this program uses TCP (G43.4/G234): its axis values are not machine coordinates, "
                      "verify needs a machine-coordinate program");
   const double L = a.tool_length >= 0 ? a.tool_length : ncp.tool_length_mm.value_or(m.default_tool_length_mm);
   const auto kin = m.make_kinematics(L);
-  report::VerifyOptions vo;
-  // Allow for the rounding of printed axis values on top of the post's tolerance.
-  vo.tip_tolerance_mm = a.tolerance > 0 ? a.tolerance : m.post.tolerance_mm + 0.002;
-  vo.axis_tolerance_deg = a.axis_tolerance > 0 ? a.axis_tolerance : m.post.axis_tolerance_deg + 0.01;
+  // The post's tolerances plus the slack for printed decimals (one place: report::verify_options_for); an explicit
+  // --tolerance / --axis-tolerance is the allowed deviation itself. A planned program may tilt within a cone: then
+  // the axis may deviate by the cone and a ball mill's centre (not its tip) is what stays on the CL path.
+  report::VerifyOptions vo = report::verify_options_for(m, 0.0, 0.0, a.cone);
+  if (a.tolerance > 0) vo.tip_tolerance_mm = a.tolerance;
+  if (a.axis_tolerance > 0) vo.axis_tolerance_deg = a.axis_tolerance + a.cone;
   vo.samples_per_block = a.samples;
-  // A planned program may tilt within a cone: then the axis may deviate by the cone and a ball mill's
-  // centre (not its tip) is what stays on the CL path.
-  vo.axis_tolerance_deg += a.cone;
-  vo.ball_centre = a.cone > 0;
   const auto r = report::verify(ncp, prog, *kin, vo);
   if (a.json)
-    std::cout << r.to_json() << "\n";
+    std::cout << r.json().dump(2) << "\n";
   else
     std::cout << r.message << "\n";
   return r.ok ? 0 : 1;
@@ -177,13 +179,15 @@ int cmd_stats(const std::vector<std::string>& files, const std::string& machine_
   std::vector<std::string> headers;
   for (const auto& f : files) {
     const nc::Program p = nc::read_file(f, report::axis_letters(m));
+    // Statistics count axis words: a letter the machine lacks is an error, another machine's header a warning.
+    if (const auto mismatch = report::check_machine_of(p, m)) std::cerr << "warning: " << mismatch->what() << "\n";
     cols.push_back(report::compute(p, names_of(m, true), rotary_of(m)));
     headers.push_back(fs::path(f).filename().string());
   }
   if (json) {
-    std::cout << "[";
-    for (size_t i = 0; i < cols.size(); ++i) std::cout << (i ? ",\n " : "") << cols[i].to_json();
-    std::cout << "]\n";
+    nlohmann::json all = nlohmann::json::array();
+    for (const auto& c : cols) all.push_back(c.json());
+    std::cout << all.dump(2) << "\n";
   } else {
     std::cout << report::table(cols, headers);
   }
@@ -214,6 +218,7 @@ int cmd_backlash(const BacklashArgs& a) {
   std::vector<report::BacklashResult> results;
   for (const auto& f : a.nc) {
     const nc::Program ncp = nc::read_file(f, report::axis_letters(m));
+    if (const auto mismatch = report::check_machine_of(ncp, m)) throw *mismatch;
     if (ncp.tcp)
       throw InputError(SourceLoc{f}, "this program uses TCP (G43.4/G234): its axis values are not machine coordinates");
     const double L = a.tool_length >= 0 ? a.tool_length : ncp.tool_length_mm.value_or(m.default_tool_length_mm);
@@ -221,11 +226,9 @@ int cmd_backlash(const BacklashArgs& a) {
     results.push_back(report::simulate_backlash(report::sample_nc(ncp, axis, step), *kin, axis, width));
   }
   if (a.json) {
-    std::cout << "[";
-    for (size_t i = 0; i < results.size(); ++i)
-      std::cout << (i ? ",\n " : "")
-                << fmt::format("{{\"nc\": \"{}\", \"result\": {}}}", a.nc[i], results[i].to_json());
-    std::cout << "]\n";
+    nlohmann::json all = nlohmann::json::array();
+    for (size_t i = 0; i < results.size(); ++i) all.push_back({{"nc", a.nc[i]}, {"result", results[i].json()}});
+    std::cout << all.dump(2) << "\n";
     return 0;
   }
   for (size_t i = 0; i < results.size(); ++i)
@@ -321,6 +324,8 @@ int main(int argc, char** argv) {
   backlash_cmd->add_flag("--json", ba.json, "print JSON");
 
   auto run_plan_commands = cli::add_plan_commands(app);
+  auto run_sim_commands = cli::add_sim_commands(app);
+  auto run_calib_commands = cli::add_calib_commands(app);
 
   try {
     app.parse(argc, argv);
@@ -333,6 +338,8 @@ int main(int argc, char** argv) {
     if (*stats_cmd) return cmd_stats(stat_files, stat_machine, stat_json);
     if (*backlash_cmd) return cmd_backlash(ba);
     if (const int rc = run_plan_commands(); rc >= 0) return rc;
+    if (const int rc = run_sim_commands(); rc >= 0) return rc;
+    if (const int rc = run_calib_commands(); rc >= 0) return rc;
   } catch (const InputError& e) {
     std::cerr << "error: " << e.what() << "\n";
     return 2;

@@ -20,6 +20,7 @@
 #include "cscam/gate/gate.hpp"
 #include "cscam/plan/plan.hpp"
 #include "cscam/post/post.hpp"
+#include "cscam/report/json.hpp"
 #include "cscam/report/letters.hpp"
 #include "cscam/report/stats.hpp"
 #include "cscam/report/svg.hpp"
@@ -165,10 +166,7 @@ gate::Options gate_options(const Setup& s, const PlanArgs& a, double cone_deg) {
 }
 
 report::VerifyResult verify_text(const Setup& s, const std::string& text, double cone_deg) {
-  report::VerifyOptions vo;
-  vo.tip_tolerance_mm = s.m.post.tolerance_mm + 0.002;
-  vo.axis_tolerance_deg = s.m.post.axis_tolerance_deg + 0.01 + cone_deg;
-  vo.ball_centre = cone_deg > 0;
+  const report::VerifyOptions vo = report::verify_options_for(s.m, 0.0, 0.0, cone_deg);
   return report::verify(nc::read_text(text, "planned.ngc", report::axis_letters(s.m)), s.prog, *s.kin, vo);
 }
 
@@ -270,22 +268,32 @@ int run_compare(const PlanArgs& a) {
   if (hp.n)
     std::cout << fmt::format("the planned program collides at {} CL points (first at CL line {}){}\n", hp.n,
                              hp.first_line, s->opt.cspace.check_collision ? "" : ": collision pruning was off");
-  const std::string json = fmt::format(
-      "{{\"cl\": \"{}\", \"machine\": \"{}\", \"cone_deg\": {}, \"resolution_deg\": {}, \"collision\": {},\n"
-      " \"conventional\": {{\"stats\": {}, \"blocks\": {}, \"verify_ok\": {}, \"colliding_points\": {}, \"seconds\": "
-      "{:.4f}}},\n"
-      " \"planner\": {{\"stats\": {}, \"blocks\": {}, \"verify_ok\": {}, \"colliding_points\": {}, \"seconds\": "
-      "{:.4f}, \"tiers\": [{}],\n"
-      "  \"queries\": {{\"cells\": {}, \"ik\": {}, \"stroke\": {}, \"collision\": {}}}}}}}\n",
-      a.cl, s->m.name, a.cone_deg, a.resolution_deg, s->opt.cspace.check_collision, stc.to_json(), sc.blocks, vc.ok,
-      conv_collisions, conv_s, stp.to_json(), sp.blocks, vp.ok, hp.n, p.seconds,
-      [&] {
-        std::string t;
-        for (std::size_t i = 0; i < p.segments.size(); ++i)
-          t += fmt::format("{}{}", i ? ", " : "", static_cast<int>(p.segments[i].tier));
-        return t;
-      }(),
-      p.counters.cells_enumerated, p.counters.ik, p.counters.stroke, p.counters.collision);
+  nlohmann::json tier_list = nlohmann::json::array();
+  for (const auto& g : p.segments) tier_list.push_back(static_cast<int>(g.tier));
+  const nlohmann::json jc = {{"cl", a.cl},
+                             {"machine", s->m.name},
+                             {"cone_deg", a.cone_deg},
+                             {"resolution_deg", a.resolution_deg},
+                             {"collision", s->opt.cspace.check_collision},
+                             {"conventional",
+                              {{"stats", stc.json()},
+                               {"blocks", sc.blocks},
+                               {"verify_ok", vc.ok},
+                               {"colliding_points", conv_collisions},
+                               {"seconds", report::rounded(conv_s, 4)}}},
+                             {"planner",
+                              {{"stats", stp.json()},
+                               {"blocks", sp.blocks},
+                               {"verify_ok", vp.ok},
+                               {"colliding_points", hp.n},
+                               {"seconds", report::rounded(p.seconds, 4)},
+                               {"tiers", std::move(tier_list)},
+                               {"queries",
+                                {{"cells", p.counters.cells_enumerated},
+                                 {"ik", p.counters.ik},
+                                 {"stroke", p.counters.stroke},
+                                 {"collision", p.counters.collision}}}}}};
+  const std::string json = jc.dump(2) + "\n";
   // Default: beside the working directory, never next to the (possibly read-only) input.
   const std::string json_path = a.json_out.empty() ? fs::path(a.cl).stem().string() + ".compare.json" : a.json_out;
   write_file_atomically(json_path, [&](std::ostream& os) { os << json; });

@@ -109,7 +109,7 @@ std::map<std::string, ModelLoader>& registry() {
 void load_post(const Reader& r, const YAML::Node& n, Machine& m) {
   r.only_keys(n, "post",
               {"dialect", "tcp", "letters", "decimals_linear", "decimals_rotary", "tolerance_mm", "axis_tolerance_deg",
-               "safe_z_mm", "start_branch", "branch_rule", "program_name"});
+               "safe_z_mm", "start_branch", "branch_rule", "program_name", "singularity"});
   PostSettings& p = m.post;
   if (n["dialect"]) p.dialect = r.string(n["dialect"], "post.dialect");
   if (n["tcp"]) p.tcp = r.boolean(n["tcp"], "post.tcp");
@@ -122,10 +122,29 @@ void load_post(const Reader& r, const YAML::Node& n, Machine& m) {
   if (p.decimals_rotary < 0 || p.decimals_rotary > 9)
     r.fail(n["decimals_rotary"], "post.decimals_rotary", "must be 0..9");
   if (n["tolerance_mm"]) p.tolerance_mm = r.number(n["tolerance_mm"], "post.tolerance_mm");
-  if (p.tolerance_mm <= 0) r.fail(n["tolerance_mm"], "post.tolerance_mm", "must be positive");
+  if (!(p.tolerance_mm > 0))
+    r.fail(n["tolerance_mm"], "post.tolerance_mm", fmt::format("must be positive (got {})", p.tolerance_mm));
   if (n["axis_tolerance_deg"]) p.axis_tolerance_deg = r.number(n["axis_tolerance_deg"], "post.axis_tolerance_deg");
+  if (!(p.axis_tolerance_deg > 0))
+    r.fail(n["axis_tolerance_deg"], "post.axis_tolerance_deg",
+           fmt::format("must be positive (got {})", p.axis_tolerance_deg));
   if (n["safe_z_mm"]) p.safe_z_mm = r.number(n["safe_z_mm"], "post.safe_z_mm");
   if (n["program_name"]) p.program_name = r.string(n["program_name"], "post.program_name");
+  if (const YAML::Node sg = n["singularity"]) {
+    if (!sg.IsMap()) r.fail(sg, "post.singularity", "expected a mapping with flip and retract_mm");
+    r.only_keys(sg, "post.singularity", {"flip", "retract_mm"});
+    auto& q = p.singularity;
+    if (sg["flip"]) {
+      q.flip = r.string(sg["flip"], "post.singularity.flip");
+      if (q.flip != "auto" && q.flip != "retract" && q.flip != "refuse")
+        r.fail(sg["flip"], "post.singularity.flip", fmt::format("expected auto, retract or refuse, got '{}'", q.flip));
+    }
+    if (sg["retract_mm"]) {
+      q.retract_mm = r.number(sg["retract_mm"], "post.singularity.retract_mm");
+      if (!(q.retract_mm > 0))
+        r.fail(sg["retract_mm"], "post.singularity.retract_mm", fmt::format("must be positive (got {})", q.retract_mm));
+    }
+  }
   if (n["branch_rule"]) {
     p.branch_rule = r.string(n["branch_rule"], "post.branch_rule");
     if (p.branch_rule != "start" && p.branch_rule != "always")
@@ -214,7 +233,11 @@ void load_serial(const Reader& r, const YAML::Node& root, Machine& m) {
     if (!(lim[0] < lim[1])) r.fail(a["limits"], path + ".limits", "expected [min, max] with min < max");
     info.min = lim[0] * scale;
     info.max = lim[1] * scale;
-    if (a["max_feed"]) info.max_feed = r.number(a["max_feed"], path + ".max_feed") * scale;
+    if (a["max_feed"]) {
+      info.max_feed = r.number(a["max_feed"], path + ".max_feed") * scale;
+      if (!(info.max_feed > 0))
+        r.fail(a["max_feed"], path + ".max_feed", fmt::format("must be positive (got {})", a["max_feed"].Scalar()));
+    }
     if (a["cyclic"]) info.cyclic = r.boolean(a["cyclic"], path + ".cyclic");
     if (info.cyclic && !info.rotary()) r.fail(a["cyclic"], path + ".cyclic", "only a rotary axis can be cyclic");
 
@@ -224,6 +247,9 @@ void load_serial(const Reader& r, const YAML::Node& root, Machine& m) {
     if (a["pivot_mm"]) {
       if (!info.rotary()) r.fail(a["pivot_mm"], path + ".pivot_mm", "only a rotary axis has a pivot");
       j.pivot_mm = r.vec<3>(a["pivot_mm"], path + ".pivot_mm");
+    } else if (info.rotary()) {
+      // No silent origin: a wrong pivot moves the tip by the pivot's distance from it.
+      r.fail(a, path + ".pivot_mm", "required key is missing (a rotary axis needs the point its axis passes through)");
     }
     if (a["offset"]) j.offset = r.number(a["offset"], path + ".offset") * scale;
     const std::string side = r.string(r.required(a, "side", path), path + ".side");
@@ -241,7 +267,16 @@ void load_serial(const Reader& r, const YAML::Node& root, Machine& m) {
     }
     m.axes.push_back(info);
   }
-  // Chains: from the base outward. Default: axes in file order, split by side.
+  // Chains: from the base outward. Both are required: the order of the axes on a side decides the kinematics, so
+  // it is not guessed from the file order.
+  const YAML::Node chains = root["chains"];
+  if (!chains || chains.IsNull())
+    r.fail(root, "chains",
+           "required key is missing (expected chains: {table: [...], head: [...]}, each axis on its side, from the "
+           "machine base outward)");
+  r.only_keys(chains, "chains", {"table", "head"});
+  for (const char* key : {"table", "head"})
+    if (!chains[key]) r.fail(chains, std::string("chains.") + key, "required key is missing (use [] for no axes)");
   auto chain = [&](const char* key, kin::Side side, std::vector<int>& out) {
     if (root["chains"] && root["chains"][key]) {
       const YAML::Node c = root["chains"][key];
@@ -259,7 +294,6 @@ void load_serial(const Reader& r, const YAML::Node& root, Machine& m) {
         if (g.joints[static_cast<size_t>(i)].side == side) out.push_back(i);
     }
   };
-  if (root["chains"]) r.only_keys(root["chains"], "chains", {"table", "head"});
   chain("table", kin::Side::Table, g.table_chain);
   chain("head", kin::Side::Head, g.head_chain);
   if (g.table_chain.size() + g.head_chain.size() != 5)
@@ -282,12 +316,83 @@ void load_serial(const Reader& r, const YAML::Node& root, Machine& m) {
   };
 }
 
+/// yaml-cpp keeps every pair of a mapping but `map[key]` finds only the first: a repeated key would be silently
+/// ignored (e.g. a second `tolerance_mm:` that the author thinks is in force). Every mapping is checked.
+void reject_duplicate_keys(const Reader& r, const YAML::Node& n, const std::string& path) {
+  if (n.IsMap()) {
+    std::map<std::string, int> seen;  // key -> 1-based line of its first use
+    for (const auto& kv : n) {
+      if (!kv.first.IsScalar()) continue;
+      const std::string k = kv.first.Scalar();
+      const std::string key = path.empty() ? k : path + "." + k;
+      const auto [it, fresh] = seen.emplace(k, kv.first.Mark().line + 1);
+      if (!fresh) r.fail(kv.first, key, fmt::format("duplicate key (already given at line {})", it->second));
+      reject_duplicate_keys(r, kv.second, key);
+    }
+  } else if (n.IsSequence()) {
+    for (std::size_t i = 0; i < n.size(); ++i) reject_duplicate_keys(r, n[i], fmt::format("{}[{}]", path, i));
+  }
+}
+
+/// Every axis needs its own letter, and a letter that G-code reads as an axis: a second 'A' would command two
+/// axes with one word, and 'F' or 'S' would be read as a feed or a spindle speed.
+void check_letters(const Reader& r, const YAML::Node& root, const Machine& m) {
+  const YAML::Node post = root["post"];
+  const YAML::Node letters = post && post.IsMap() ? post["letters"] : YAML::Node(YAML::NodeType::Undefined);
+  const bool given = letters.IsDefined() && letters.IsMap();
+  auto node_of = [&](std::size_t i) {
+    if (given && letters[m.axes[i].name]) return letters[m.axes[i].name];
+    if (given) return letters;
+    const YAML::Node axes = root["axes"];
+    return axes && axes.IsSequence() && i < axes.size() ? axes[i] : root;
+  };
+  for (std::size_t i = 0; i < m.axes.size() && i < 5; ++i) {
+    const std::string& l = m.post.letters[i];
+    const std::string key = "post.letters." + m.axes[i].name;
+    if (l.size() != 1 || std::string_view("XYZABCUVW").find(l[0]) == std::string_view::npos)
+      r.fail(node_of(i), key,
+             fmt::format("letter '{}' of axis '{}' is not an axis word (expected one of X Y Z A B C U V W{})", l,
+                         m.axes[i].name, given ? "" : "; give post.letters"));
+    for (std::size_t j = 0; j < i; ++j)
+      if (m.post.letters[j] == l)
+        r.fail(node_of(i), key,
+               fmt::format("duplicate axis letter '{}': axes '{}' and '{}' would share it (expected one letter per "
+                           "axis{})",
+                           l, m.axes[j].name, m.axes[i].name, given ? "" : "; give post.letters"));
+  }
+}
+
+/// Remembers where every key of the file is, so that later errors about a machine-file value (a dialect the post
+/// does not know, a safe plane the tool cannot reach) can name the machine file's line.
+void record_locations(const std::string& file, const YAML::Node& n, const std::string& path,
+                      std::map<std::string, SourceLoc>& out) {
+  if (n.IsMap()) {
+    for (const auto& kv : n) {
+      if (!kv.first.IsScalar()) continue;
+      const std::string key = path.empty() ? kv.first.Scalar() : path + "." + kv.first.Scalar();
+      out.emplace(key, SourceLoc{file, kv.first.Mark().line + 1, kv.first.Mark().column + 1});
+      record_locations(file, kv.second, key, out);
+    }
+  } else if (n.IsSequence()) {
+    for (std::size_t i = 0; i < n.size(); ++i) {
+      const std::string key = fmt::format("{}[{}]", path, i);
+      out.emplace(key, SourceLoc{file, n[i].Mark().line + 1, n[i].Mark().column + 1});
+      record_locations(file, n[i], key, out);
+    }
+  }
+}
+
 Machine load_node(const YAML::Node& root, const std::string& name) {
   const Reader r(name);
   if (!root.IsMap()) r.fail(root, "", "a machine file must be a YAML mapping");
+  if (root["kinematics"] && root["kinematics"].IsScalar() && root["kinematics"].Scalar() == "pcmm")
+    r.fail(root["kinematics"], "kinematics",
+           "a 'pcmm' file describes seed 001's parallel coordinate-measuring machine: `cscam calibrate` reads it, "
+           "but it has no 5-axis machine-tool kinematics to post, plan, verify or simulate with");
   r.only_keys(root, "",
               {"name", "description", "kinematics", "axes", "chains", "tool_direction", "spindle_gauge_mm",
-               "part_origin_mm", "default_tool_length_mm", "post", "geometry", "xmini"});
+               "part_origin_mm", "default_tool_length_mm", "post", "geometry", "xmini",
+               "effects"});  // effects: identified by `cscam diagnose`, parsed and applied by the sim module
   Machine m;
   m.file = name;
   m.name = r.string(r.required(root, "name", ""), "name");
@@ -328,11 +433,19 @@ Machine load_node(const YAML::Node& root, const std::string& name) {
       m.post.letters[i] = l;
     }
   if (root["post"]) load_post(r, root["post"], m);
+  // The machines we post for; a registered model (a measuring machine, say) may not write G-code at all.
+  if (kind == "serial" || kind == "xmini") check_letters(r, root, m);
   if (root["geometry"]) load_geometry(r, root["geometry"], m);
+  record_locations(name, root, "", m.key_locations);
   return m;
 }
 
 }  // namespace
+
+SourceLoc Machine::where(const std::string& key) const {
+  const auto it = key_locations.find(key);
+  return it != key_locations.end() ? it->second : SourceLoc{file};
+}
 
 int Machine::axis_index(const std::string& axis_name) const {
   for (size_t i = 0; i < axes.size(); ++i)
@@ -347,6 +460,7 @@ Machine load_text(const std::string& yaml, const std::string& name) {
   } catch (const YAML::ParserException& e) {
     throw InputError(SourceLoc{name, e.mark.line + 1, e.mark.column + 1}, "YAML syntax error: " + e.msg);
   }
+  reject_duplicate_keys(Reader(name), root, "");
   return load_node(root, name);
 }
 

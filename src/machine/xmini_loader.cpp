@@ -1,4 +1,4 @@
-// The `xmini:` section of a machine file (kinematics: xmini): parameters of spec/xmini.md, limits,
+// The `xmini:` section of a machine file (kinematics: xmini): parameters of docs/xmini.md, limits,
 // axis feeds and the tool length. The common keys (name, post, geometry, ...) are read by machine.cpp,
 // which applies `post:` after this function, so the XMINI's post defaults set here can be overridden.
 #include <fmt/format.h>

@@ -2,6 +2,7 @@
 
 #include <fmt/format.h>
 
+#include <algorithm>
 #include <cctype>
 #include <charconv>
 #include <cmath>
@@ -64,6 +65,19 @@ Program read_text(const std::string& text, const std::string& name, const AxisLe
       auto r = std::from_chars(v.data(), v.data() + v.size(), L);
       if (r.ec == std::errc()) prog.tool_length_mm = L;
     }
+    // Our post's header names the machine the program was written for.
+    if (!prog.header_machine) {
+      constexpr std::string_view kHeader = "(cscam post: machine ";
+      if (const auto p = s.find(kHeader); p != std::string_view::npos) {
+        const auto rest = s.substr(p + kHeader.size());
+        auto end = rest.find(" dialect ");
+        if (end == std::string_view::npos) end = rest.find(')');
+        if (end != std::string_view::npos) {
+          prog.header_machine = std::string(rest.substr(0, end));
+          prog.header_line = lineno;
+        }
+      }
+    }
     bool non_modal_skip = false, tcp_word = false;
     Block b = state;
     b.words = {};
@@ -90,6 +104,7 @@ Program read_text(const std::string& text, const std::string& name, const AxisLe
       }
       if (!std::isalpha(static_cast<unsigned char>(c))) fail(i, fmt::format("unexpected character '{}'", c));
       const char L = static_cast<char>(std::toupper(static_cast<unsigned char>(c)));
+      const int word_column = static_cast<int>(i) + 1;
       size_t j = i + 1;
       while (j < s.size() && s[j] == ' ') ++j;
       size_t k = j;
@@ -161,11 +176,17 @@ Program read_text(const std::string& text, const std::string& name, const AxisLe
         feed = v;
         continue;
       }
+      bool axis_word = false;
       for (int a = 0; a < 5; ++a)
         if (letters.letter[static_cast<size_t>(a)] == L) {
           b.words[static_cast<size_t>(a)] = true;
           word_val[static_cast<size_t>(a)] = v;
+          axis_word = true;
         }
+      if (!axis_word && std::string_view("XYZABCUVW").find(L) != std::string_view::npos &&
+          std::none_of(prog.foreign_axis_words.begin(), prog.foreign_axis_words.end(),
+                       [L](const Program::ForeignWord& f) { return f.letter == L; }))
+        prog.foreign_axis_words.push_back({L, lineno, word_column});
     }
     if (tcp_word) prog.tcp = true;
     bool any_axis = false;

@@ -7,6 +7,7 @@
 #include <stdexcept>
 
 #include "cscam/core/units.hpp"
+#include "cscam/report/json.hpp"
 
 namespace cscam::report {
 
@@ -175,20 +176,23 @@ std::string BacklashResult::text() const {
   return t;
 }
 
-std::string BacklashResult::to_json() const {
-  auto vec = [](const Eigen::Vector3d& v) { return fmt::format("[{:.7f}, {:.7f}, {:.7f}]", v.x(), v.y(), v.z()); };
-  std::string j = fmt::format("{{\"axis\": \"{}\", \"{}\": {:.7f}, \"feed_samples\": {}, ", axis_name,
-                              rotary ? "width_deg" : "width_mm", rotary ? rad2deg(width) : width, feed_samples);
-  j += fmt::format("\"max_abs_deviation_mm\": {}, \"max_deviation_nc_line\": [{}, {}, {}], ", vec(max_abs_deviation_mm),
-                   max_deviation_nc_line[0], max_deviation_nc_line[1], max_deviation_nc_line[2]);
-  j += fmt::format("\"max_abs_step_mm\": {}, \"reversals\": [", vec(max_abs_step_mm));
-  for (std::size_t k = 0; k < reversals.size(); ++k) {
-    const BacklashReversal& v = reversals[k];
-    j += fmt::format("{}{{\"nc_line\": {}, \"in_feed\": {}, \"tip_mm\": {}, \"step_mm\": {}}}", k ? ", " : "",
-                     v.nc_line, v.in_feed ? "true" : "false", vec(v.tip_mm), vec(v.step_mm));
-  }
-  j += "]}";
-  return j;
+nlohmann::json BacklashResult::json() const {
+  auto vec = [](const Eigen::Vector3d& v) {
+    return nlohmann::json::array({rounded(v.x(), 7), rounded(v.y(), 7), rounded(v.z(), 7)});
+  };
+  nlohmann::json revs = nlohmann::json::array();
+  for (const BacklashReversal& v : reversals)
+    revs.push_back(
+        {{"nc_line", v.nc_line}, {"in_feed", v.in_feed}, {"tip_mm", vec(v.tip_mm)}, {"step_mm", vec(v.step_mm)}});
+  return {{"axis", axis_name},
+          {rotary ? "width_deg" : "width_mm", rounded(rotary ? rad2deg(width) : width, 7)},
+          {"feed_samples", feed_samples},
+          {"max_abs_deviation_mm", vec(max_abs_deviation_mm)},
+          {"max_deviation_nc_line", max_deviation_nc_line},
+          {"max_abs_step_mm", vec(max_abs_step_mm)},
+          {"reversals", std::move(revs)}};
 }
+
+std::string BacklashResult::to_json() const { return json().dump(); }
 
 }  // namespace cscam::report

@@ -6,6 +6,7 @@
 
 #include "cscam/core/tolerances.hpp"
 #include "cscam/core/units.hpp"
+#include "cscam/report/json.hpp"
 
 namespace cscam::report {
 
@@ -159,29 +160,33 @@ Stats compute(const std::vector<kin::Axes>& path, const std::vector<bool>& rapid
   return compute_samples(s, names, rotary);
 }
 
-std::string Stats::to_json() const {
-  std::string j = fmt::format("{{\"source\": \"{}\", \"motion_blocks\": {}, \"feed_blocks\": {}, \"axes\": [", source,
-                              motion_blocks, feed_blocks);
-  for (size_t a = 0; a < 5; ++a) {
-    const auto& x = axes[a];
-    j += fmt::format(
-        "{}{{\"name\": \"{}\", \"unit\": \"{}\", \"travel\": {:.4f}, \"reversals\": {}, \"largest_step\": {:.4f}, "
-        "\"min\": {:.4f}, \"max\": {:.4f}}}",
-        a ? ", " : "", x.name, x.rotary ? "deg" : "mm", x.travel, x.reversals, x.largest_step, x.min, x.max);
-  }
-  j += "], \"segments\": [";
-  for (size_t i = 0; i < segments.size(); ++i) {
-    const auto& g = segments[i];
-    j += fmt::format(
-        "{}{{\"first_line\": {}, \"last_line\": {}, \"blocks\": {}, \"moving_axes\": {}, \"moving_rotaries\": {}, "
-        "\"max_simultaneous\": {}}}",
-        i ? ", " : "", g.first_line, g.last_line, g.blocks, g.moving_axes, g.moving_rotaries, g.max_simultaneous);
-  }
-  j += "], \"feed_blocks_by_simultaneous_axes\": [";
-  for (size_t k = 0; k < 6; ++k) j += fmt::format("{}{}", k ? ", " : "", blocks_by_simultaneous[k]);
-  j += "]}";
-  return j;
+nlohmann::json Stats::json() const {
+  nlohmann::json ax = nlohmann::json::array();
+  for (const auto& x : axes)
+    ax.push_back({{"name", x.name},
+                  {"unit", x.rotary ? "deg" : "mm"},
+                  {"travel", rounded(x.travel, 4)},
+                  {"reversals", x.reversals},
+                  {"largest_step", rounded(x.largest_step, 4)},
+                  {"min", rounded(x.min, 4)},
+                  {"max", rounded(x.max, 4)}});
+  nlohmann::json segs = nlohmann::json::array();
+  for (const auto& g : segments)
+    segs.push_back({{"first_line", g.first_line},
+                    {"last_line", g.last_line},
+                    {"blocks", g.blocks},
+                    {"moving_axes", g.moving_axes},
+                    {"moving_rotaries", g.moving_rotaries},
+                    {"max_simultaneous", g.max_simultaneous}});
+  return {{"source", source},
+          {"motion_blocks", motion_blocks},
+          {"feed_blocks", feed_blocks},
+          {"axes", std::move(ax)},
+          {"segments", std::move(segs)},
+          {"feed_blocks_by_simultaneous_axes", blocks_by_simultaneous}};
 }
+
+std::string Stats::to_json() const { return json().dump(); }
 
 std::string table(const std::vector<Stats>& cols, const std::vector<std::string>& headers) {
   std::string t;

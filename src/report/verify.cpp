@@ -89,6 +89,19 @@ VerifyResult verify(const nc::Program& nc, const cl::Program& cl, const kin::Kin
     return r;
   }
   auto nearest = [&](const Vec3& p, size_t& cursor, bool global, double& t) {
+    if (!global) {
+      // The path mostly advances segment by segment: within tolerance of the current or the next segment is
+      // enough to pass (the reported deviation is then an upper bound); only otherwise search the window.
+      for (size_t k = cursor; k < std::min(segs.size(), cursor + 2); ++k) {
+        double tk;
+        const double d = seg_distance(segs[k], p, tk);
+        if (d <= options.tip_tolerance_mm) {
+          cursor = k;
+          t = tk;
+          return d;
+        }
+      }
+    }
     size_t lo = global ? 0 : (cursor > 2 ? cursor - 2 : 0);
     size_t hi = global ? segs.size() : std::min(segs.size(), cursor + 64);
     double best = std::numeric_limits<double>::infinity();

@@ -75,10 +75,19 @@ struct ReadOptions {
   std::optional<LengthUnit> units;
   /// Chord tolerance for turning CIRCLE/ records into points, mm.
   double arc_tolerance_mm = 0.001;
+  /// Feed (mm/min) for feed moves that have no feed rate: none in the file, or before its first FEDRAT/.
+  /// Applied with a warning; must be positive. The CLI's `--default-feed`.
+  std::optional<double> default_feed_mm_per_min;
+  /// A feed move without a feed rate (and no default_feed_mm_per_min) is an error naming its line. The commands
+  /// that write NC turn this on; reading a CL file only to compare geometry with it (verify) does not need feeds.
+  bool require_feed = false;
 };
 
 /// Reads APT/CLDATA (NX CLSF, ISO 4343, CATIA flavours) or the CSV form x,y,z,i,j,k[,feed].
-/// The format is detected from the content. Throws InputError with file:line:column on malformed input.
+/// The format is detected from the content. Throws InputError with file:line:column on malformed input, and
+/// "no motion records" for an empty file, a binary file or a file without a single motion.
+/// Warns (Program::warnings) when the length unit is assumed: no UNITS/, no FEDRAT/ naming IPM or MMPM, no
+/// ReadOptions::units.
 Program read_file(const std::string& path, const ReadOptions& options = {});
 /// The same for text already in memory; `name` is used in messages.
 Program read_text(const std::string& text, const std::string& name, const ReadOptions& options = {});

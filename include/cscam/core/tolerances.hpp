@@ -24,3 +24,18 @@ inline constexpr double kVerifySlackMm = 0.002;
 inline constexpr double kVerifySlackDeg = 0.01;
 
 }  // namespace cscam::tol
+
+// Calibration (calib module and its tests).
+namespace cscam::tol {
+/// Noise-free recovery of injected parameter errors (file units: mm, deg).
+inline constexpr double kCalibRecoveryNoiseFree = 1e-8;
+/// Automatic vs central finite-difference Jacobian (relative to the column norm).
+inline constexpr double kCalibJacobianRel = 1e-6;
+/// A scaled singular value below this times the largest counts as zero (unidentifiable).
+inline constexpr double kCalibRankRel = 1e-7;
+}  // namespace cscam::tol
+
+// Diagnosis (tests/diagnose_test.cpp): a recovered effect parameter must lie within this fraction of the truth.
+namespace cscam::tol {
+inline constexpr double kDiagnoseParamRel = 0.2;
+}  // namespace cscam::tol

@@ -1,7 +1,7 @@
 #pragma once
 /// @file
 /// Kinematic model of the XMINI, an Exechon-type parallel kinematic machine (PKM), exactly as fixed
-/// in shared/spec/xmini.md.
+/// in docs/xmini.md.
 ///
 /// Three actuated legs (strokes q1, q2, q3) move a platform with three degrees of freedom, described
 /// by the platform state x = (alpha, beta, Eu, Ev). A serial C axis and A axis on the platform carry

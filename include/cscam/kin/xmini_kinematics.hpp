@@ -1,6 +1,6 @@
 #pragma once
 /// @file
-/// The XMINI parallel kinematic machine (spec/xmini.md, model in xmini.hpp) behind the generic
+/// The XMINI parallel kinematic machine (docs/xmini.md, model in xmini.hpp) behind the generic
 /// kin::Kinematics interface, so that the conventional post, the C-space planner and verification
 /// drive it like any serial machine.
 ///

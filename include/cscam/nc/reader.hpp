@@ -33,6 +33,17 @@ struct Program {
   std::optional<double> tool_length_mm;  ///< from a "(cscam tool_length_mm=...)" header comment
   bool tcp = false;                      ///< G43.4 / G234 / TCPM seen: axis values are part coordinates
   std::vector<std::string> notes;        ///< things skipped on purpose (G28/G53 blocks, arcs treated as chords)
+  /// The machine named by our post's header comment "(cscam post: machine NAME dialect ...)", if present.
+  std::optional<std::string> header_machine;
+  int header_line = 0;  ///< the line of that comment
+  /// Axis words (X Y Z A B C U V W) whose letter is none of the machine's: each letter once, where it first
+  /// appears (line, column). Such a program was written for another machine; the reader ignores these words.
+  struct ForeignWord {
+    char letter = 0;
+    int line = 0;
+    int column = 0;
+  };
+  std::vector<ForeignWord> foreign_axis_words;
 };
 
 /// Reads an NC file. Throws InputError with file:line:column on a malformed word.

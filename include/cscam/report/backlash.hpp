@@ -11,6 +11,7 @@
 /// deviation is reported per component (x, y, z of the part frame).
 #include <Eigen/Core>
 #include <array>
+#include <nlohmann/json_fwd.hpp>
 #include <string>
 #include <vector>
 
@@ -64,7 +65,8 @@ struct BacklashResult {
 
   /// A short report for a person: per component max deviation and max step, with NC lines and tips.
   [[nodiscard]] std::string text() const;
-  [[nodiscard]] std::string to_json() const;
+  [[nodiscard]] nlohmann::json json() const;
+  [[nodiscard]] std::string to_json() const;  ///< json().dump()
 };
 
 /// Applies a play of full width `width` (mm or rad) to axis `axis` of the sampled commanded path, runs

@@ -2,6 +2,7 @@
 /// @file
 /// Axis statistics of an NC program (or of a planned axis path): travel, reversals, steps, simultaneity.
 #include <array>
+#include <nlohmann/json_fwd.hpp>
 #include <string>
 #include <vector>
 
@@ -36,7 +37,8 @@ struct Stats {
   std::vector<SegmentStat> segments;
   std::array<int, 6> blocks_by_simultaneous{};  ///< feed blocks by number of moving axes (0..5)
 
-  [[nodiscard]] std::string to_json() const;
+  [[nodiscard]] nlohmann::json json() const;
+  [[nodiscard]] std::string to_json() const;  ///< json().dump()
 };
 
 /// Statistics of axis values read from an NC file.

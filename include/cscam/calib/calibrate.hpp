@@ -1,0 +1,158 @@
+#pragma once
+/// @file
+/// Geometric calibration: identifiability analysis of the column-scaled Jacobian, a Ceres
+/// least-squares solve with automatic differentiation through the model, covariance, robust loss,
+/// held-out validation and pose selection.
+///
+/// @code
+///   auto model = calib::load_model("machines/xmini.yaml");
+///   calib::Dataset data = calib::dataset_from(calib::read_recording("rec.csv"), *model);
+///   calib::Options opt;                       // every parameter a candidate
+///   calib::Result r = calib::calibrate(*model, data, opt);
+///   if (r.summary.converged) write(model->corrected_yaml(r.estimate));
+/// @endcode
+#include <Eigen/Core>
+#include <array>
+#include <cstdint>
+#include <map>
+#include <optional>
+#include <string>
+#include <vector>
+
+#include "cscam/calib/model.hpp"
+#include "cscam/calib/recording.hpp"
+
+namespace cscam::calib {
+
+/// Standard deviations of the measurement channels (the residual weights are 1/sigma).
+struct Sigmas {
+  double tip_mm = 0.001;
+  double ptip_mm = 0.001;
+  double dir = 1e-5;  ///< unit-vector components (~ rad)
+  double len_mm = 0.001;
+  bool given = false;  ///< true when they come from the recording or the caller (not defaults)
+};
+
+/// One static pose: commanded axes and the measured channels (model->channel_names() order, NaN where
+/// not measured).
+struct PoseData {
+  std::vector<double> q;
+  std::vector<double> meas;
+  int line = 0;  ///< source line in the recording (0 if synthetic)
+};
+
+/// The poses of a static recording, with the channel sigmas.
+struct Dataset {
+  std::string file;
+  std::vector<PoseData> poses;
+  Sigmas sigma;
+  /// Independent scalar measurements (a measured direction counts 2).
+  [[nodiscard]] std::size_t measurement_count() const;
+};
+
+/// Turns a recording into a dataset for `model`: checks the axes (InputError naming the column), sets
+/// the model's channels, reads optional `sigma.tip`, `sigma.ptip`, `sigma.dir`, `sigma.len` metadata.
+/// A trajectory recording is accepted (its samples are treated as poses).
+Dataset dataset_from(const Recording& rec, const Model& model);
+
+/// Simulates a static recording: `channels` (e.g. {"tip"}, {"ptip"}, {"tip","dir"}, {"len.link"})
+/// predicted with parameters `truth` at `poses`, plus Gaussian noise of `sigma` (seeded).
+Dataset simulate(const Model& model, const std::vector<double>& truth, const std::vector<std::vector<double>>& poses,
+                 const std::vector<std::string>& channels, const Sigmas& sigma, std::uint64_t seed);
+/// The same as a Recording (`kind: static`), for writing to a file.
+Recording to_recording(const Model& model, const Dataset& d, const std::string& machine_file);
+
+enum class Loss { None, Huber, Cauchy };
+
+struct Options {
+  std::vector<std::size_t> free;  ///< candidate parameters (indices); empty = all
+  Loss loss = Loss::None;
+  double loss_scale = 3.0;  ///< in units of sigma
+  /// A scaled singular value below rank_tolerance * sigma_max counts as zero (an unidentifiable
+  /// combination).
+  double rank_tolerance = 1e-7;
+  /// Instead of fixing unidentifiable parameters at nominal, keep them free with a prior
+  /// (deviation / prior_sigma, in file units) pulling them to nominal.
+  bool regularise = false;
+  double prior_sigma = 0.01;
+  int max_iterations = 100;
+  double function_tolerance = 1e-15;
+  double parameter_tolerance = 1e-12;
+  double gradient_tolerance = 1e-16;
+  /// Starting point (file units); empty = nominal.
+  std::vector<double> start;
+  bool covariance = true;
+};
+
+/// Identifiability of a parameter set for a dataset, from the SVD of the column-scaled Jacobian.
+struct Identifiability {
+  std::vector<std::size_t> candidates;    ///< the parameters analysed
+  std::vector<double> singular_values;    ///< of the scaled Jacobian, descending
+  double condition_number = 0;            ///< sigma_max / sigma_min (over the candidates)
+  double condition_identified = 0;        ///< sigma_max / sigma_min over the identifiable subset
+  double O1 = 0, O2 = 0, O3 = 0, O4 = 0;  ///< observability indices (of the candidates)
+  /// O1..O4 of the identifiable subset (what the solve actually works with).
+  std::array<double, 4> observability_identified{};
+  int rank = 0;
+  std::vector<std::size_t> identifiable;  ///< free after the analysis
+  std::vector<std::size_t> fixed;         ///< fixed at nominal (or regularised)
+  std::vector<std::string> messages;      ///< one per fixed parameter: what it cannot be told from
+  std::vector<std::string> combinations;  ///< the null-space vectors in words
+};
+
+/// What Ceres reported.
+struct SolverSummary {
+  bool converged = false;
+  std::string termination;  ///< Ceres' termination type (CONVERGENCE, NO_CONVERGENCE, FAILURE, ...)
+  std::string message;      ///< Ceres' message
+  int iterations = 0;
+  double initial_cost = 0, final_cost = 0;  ///< 0.5 * sum of squared weighted residuals
+  double time_s = 0;
+  std::vector<double> cost_history;  ///< per iteration
+  std::vector<double> step_history;  ///< max |parameter change| per iteration (file units)
+};
+
+/// RMS and maximum residual per channel group ("tip", "ptip", "dir", "len.<link>").
+struct ResidualStats {
+  std::map<std::string, double> rms, max;
+  std::map<std::string, std::size_t> count;
+};
+ResidualStats residual_stats(const Model& model, const Dataset& d, const std::vector<double>& p);
+
+struct Result {
+  Identifiability ident;
+  SolverSummary summary;
+  std::vector<double> estimate;  ///< all parameters (file units)
+  std::vector<double> stddev;    ///< per parameter; NaN for fixed ones
+  std::vector<std::pair<std::pair<std::size_t, std::size_t>, double>> correlations;  ///< |rho| > 0.9
+  double chi2_reduced = 0;  ///< sum (r/sigma)^2 / (m - free): ~1 when the sigmas are right
+  ResidualStats before, after;
+  struct Outlier {
+    std::size_t pose;
+    int line;
+    double normalised_rms;
+  };
+  std::vector<Outlier> outliers;
+};
+
+/// Identifiability analysis at parameters `p` (file units) for the candidates in `opt.free`.
+Identifiability analyse(const Model& model, const Dataset& d, const std::vector<double>& p, const Options& opt);
+
+/// The weighted Jacobian (rows: measured channels / sigma, columns: `cols`) at `p`, by automatic
+/// differentiation.
+Eigen::MatrixXd jacobian(const Model& model, const Dataset& d, const std::vector<double>& p,
+                         const std::vector<std::size_t>& cols);
+
+/// Identifies the parameters. Throws InputError when the data hold fewer independent measurements than
+/// free parameters (saying how many are needed). A solve that does not converge returns
+/// summary.converged = false with Ceres' termination reason.
+Result calibrate(const Model& model, const Dataset& d, const Options& opt);
+
+/// Pose selection: chooses `n` of `candidates` greedily to maximise log det(J^T J) of the scaled
+/// Jacobian (D-optimal) or the smallest singular value (O3) for the parameters `free`, measuring
+/// `channels`. Returns the indices of the chosen candidates.
+std::vector<std::size_t> select_poses(const Model& model, const std::vector<std::vector<double>>& candidates,
+                                      const std::vector<std::string>& channels, const std::vector<std::size_t>& free,
+                                      std::size_t n, bool o3 = false);
+
+}  // namespace cscam::calib

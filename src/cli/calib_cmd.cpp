@@ -1,0 +1,406 @@
+// `cscam calibrate`: identify a machine's geometric parameters from a static recording, say what the
+// data cannot determine, validate on held-out poses and write the corrected machine file.
+#include "calib_cmd.hpp"
+
+#include <fmt/format.h>
+
+#include <algorithm>
+#include <cmath>
+#include <filesystem>
+#include <fstream>
+#include <iostream>
+#include <memory>
+#include <nlohmann/json.hpp>
+#include <numeric>
+#include <random>
+#include <sstream>
+
+#include "cscam/calib/calibrate.hpp"
+#include "cscam/calib/model.hpp"
+#include "cscam/calib/recording.hpp"
+#include "cscam/core/atomic_file.hpp"
+#include "cscam/core/error.hpp"
+#include "plan_cmd.hpp"
+
+namespace fs = std::filesystem;
+
+namespace cscam::cli {
+
+namespace {
+
+struct CalibArgs {
+  std::string rec, machine, out, holdout, svg, loss, free, channels;
+  bool json = false, regularise = false, o3 = false;
+  int design = 0, candidates = 1000, max_iterations = 100;
+  double split = 0.2;
+  double tool_length = -1;
+  unsigned seed = 1;
+};
+
+std::vector<std::string> split_list(const std::string& s) {
+  std::vector<std::string> out;
+  std::stringstream ss(s);
+  std::string item;
+  while (std::getline(ss, item, ',')) {
+    item.erase(0, item.find_first_not_of(' '));
+    item.erase(item.find_last_not_of(' ') + 1);
+    if (!item.empty()) out.push_back(item);
+  }
+  return out;
+}
+
+nlohmann::json stats_json(const calib::ResidualStats& s) {
+  nlohmann::json j = nlohmann::json::object();
+  for (const auto& [g, v] : s.rms) j[g] = {{"rms", v}, {"max", s.max.at(g)}, {"count", s.count.at(g)}};
+  return j;
+}
+
+std::string stats_line(const calib::ResidualStats& b, const calib::ResidualStats& a) {
+  std::string out;
+  for (const auto& [g, v] : b.rms)
+    out += fmt::format("  {:<10} RMS {:.6f} -> {:.6f}   max {:.6f} -> {:.6f}\n", g, v,
+                       a.rms.count(g) ? a.rms.at(g) : NAN, b.max.at(g), a.max.count(g) ? a.max.at(g) : NAN);
+  return out;
+}
+
+/// Per-pose residual norm of every channel group, before and after, as a bar chart.
+void write_svg(const std::string& dir, const calib::Model& m, const calib::Dataset& d, const std::vector<double>& p0,
+               const std::vector<double>& p1, const calib::Identifiability& id) {
+  fs::create_directories(dir);
+  const std::size_t nch = 9 + m.links().size();
+  std::vector<double> before, after;
+  auto norm_res = [&](const std::vector<double>& p, std::vector<double>& out) {
+    auto s = m.make_scratch();
+    std::vector<double> pr(nch);
+    for (const auto& pose : d.poses) {
+      m.predict_channels(pose.q.data(), p.data(), pr.data(), s.get());
+      double r2 = 0;
+      for (std::size_t c = 0; c < nch; ++c)
+        if (!std::isnan(pose.meas[c])) r2 += (pose.meas[c] - pr[c]) * (pose.meas[c] - pr[c]);
+      out.push_back(std::sqrt(r2) * 1000.0);  // um
+    }
+  };
+  norm_res(p0, before);
+  norm_res(p1, after);
+  auto chart = [&](const std::string& file, const std::string& title, const std::vector<double>& v,
+                   const std::string& colour) {
+    const double W = 800, H = 300, L = 60, B = 40;
+    const double vmax = std::max(1e-12, *std::max_element(v.begin(), v.end()));
+    std::string s = fmt::format(
+        "<svg xmlns='http://www.w3.org/2000/svg' width='{}' height='{}' font-family='sans-serif' font-size='12'>\n"
+        "<text x='{}' y='16'>{}</text>\n",
+        W, H, L, title);
+    const double bw = (W - L - 10) / static_cast<double>(std::max<std::size_t>(v.size(), 1));
+    for (std::size_t i = 0; i < v.size(); ++i) {
+      const double h = (H - B - 30) * v[i] / vmax;
+      s += fmt::format("<rect x='{:.1f}' y='{:.1f}' width='{:.1f}' height='{:.1f}' fill='{}'/>\n", L + i * bw,
+                       H - B - h, std::max(bw - 1, 0.5), h, colour);
+    }
+    s += fmt::format("<line x1='{}' y1='{}' x2='{}' y2='{}' stroke='black'/>\n", L, H - B, W - 10, H - B);
+    s += fmt::format("<text x='5' y='{}'>{:.3g}</text><text x='5' y='{}'>0</text>\n", 35, vmax, H - B);
+    s += fmt::format("<text x='{}' y='{}'>pose (file order)</text></svg>\n", W / 2, H - 10);
+    write_file_atomically(dir + "/" + file, [&](std::ostream& o) { o << s; });
+  };
+  chart("residuals_before.svg", "|residual| per pose before calibration (nominal), um", before, "#c0392b");
+  chart("residuals_after.svg", "|residual| per pose after calibration, um", after, "#2471a3");
+  std::vector<double> logsv;
+  for (double s : id.singular_values) logsv.push_back(std::log10(std::max(s, 1e-20)) + 20);
+  chart("singular_values.svg", "scaled-Jacobian singular values (log10 + 20)", logsv, "#7d3c98");
+}
+
+int run_design(const CalibArgs& a, calib::Model& model, nlohmann::json& js) {
+  const std::vector<std::string> ch = a.channels.empty()
+                                          ? (model.kind() == "pcmm"    ? std::vector<std::string>{"len"}
+                                             : model.kind() == "xmini" ? std::vector<std::string>{"tip"}
+                                                                       : std::vector<std::string>{"ptip"})
+                                          : split_list(a.channels);
+  const auto cand = model.random_poses(static_cast<std::size_t>(a.candidates), a.seed);
+  calib::Sigmas sig;
+  const calib::Dataset all = calib::simulate(model, model.nominal(), cand, ch, sig, a.seed);
+  calib::Options o;
+  if (!a.free.empty()) o.free = model.select(split_list(a.free));
+  const calib::Identifiability id = calib::analyse(model, all, model.nominal(), o);
+  const std::size_t N = static_cast<std::size_t>(a.design);
+  const std::vector<std::size_t> chosen = calib::select_poses(model, cand, ch, id.identifiable, N, a.o3);
+  std::vector<std::vector<double>> dposes, rposes;
+  for (std::size_t i : chosen) dposes.push_back(cand[i]);
+  rposes = model.random_poses(N, a.seed + 7919);
+  // Compare: conditioning and the parameter errors of a simulated calibration (same truth, same noise).
+  std::mt19937_64 rng(a.seed + 17);
+  std::uniform_real_distribution<double> u(-0.05, 0.05);
+  std::vector<double> truth = model.nominal();
+  for (std::size_t i : id.identifiable) truth[i] += u(rng);
+  calib::Options fo;
+  fo.free = id.identifiable;
+  fo.rank_tolerance = 0;  // keep every identifiable parameter free, however weak
+  auto evaluate = [&](const std::vector<std::vector<double>>& poses, const char* label) {
+    const calib::Dataset d = calib::simulate(model, truth, poses, ch, sig, a.seed + 3);
+    const calib::Identifiability idd = calib::analyse(model, d, model.nominal(), fo);
+    double err2 = 0, sd2 = 0;
+    int k = 0;
+    nlohmann::json r = {
+        {"poses", poses.size()}, {"condition_number", idd.condition_number}, {"O1", idd.O1}, {"O3", idd.O3}};
+    try {
+      const calib::Result res = calib::calibrate(model, d, fo);
+      for (std::size_t i : id.identifiable) {
+        err2 += (res.estimate[i] - truth[i]) * (res.estimate[i] - truth[i]);
+        if (std::isfinite(res.stddev[i])) sd2 += res.stddev[i] * res.stddev[i];
+        ++k;
+      }
+      r["rms_parameter_error"] = std::sqrt(err2 / std::max(k, 1));
+      r["rms_parameter_stddev"] = std::sqrt(sd2 / std::max(k, 1));
+    } catch (const InputError& e) {
+      r["error"] = e.what();
+    }
+    if (!a.json)
+      std::cout << fmt::format(
+          "  {:<8} {:4d} poses: condition {:.4g}, O1 {:.4g}, O3 {:.4g}, RMS parameter error {:.3g} "
+          "(predicted sd {:.3g})\n",
+          label, poses.size(), idd.condition_number, idd.O1, idd.O3, r.value("rms_parameter_error", NAN),
+          r.value("rms_parameter_stddev", NAN));
+    return r;
+  };
+  if (!a.json) {
+    std::cout << fmt::format("design: {} of {} candidate poses, {} ({}), measuring {}\n", N, cand.size(),
+                             a.o3 ? "O3 (largest smallest singular value)" : "D-optimal (largest log det)",
+                             model.kind(), fmt::join(ch, ","));
+    std::cout << fmt::format("  {} identifiable parameters of {} candidates (rank of all candidates)\n",
+                             id.identifiable.size(), id.candidates.size());
+  }
+  js["design"] = {{"chosen", evaluate(dposes, "designed")}, {"random", evaluate(rposes, "random")}};
+  if (!a.out.empty()) {
+    calib::Recording r;
+    r.meta["kind"] = "static";
+    r.meta["machine"] = model.file();
+    r.meta["note"] = fmt::format("{} poses chosen by cscam calibrate --design", N);
+    for (const auto& ax : model.axis_names()) r.columns.push_back("cmd." + ax);
+    for (const auto& c : model.channel_names())
+      for (const auto& w : ch)
+        if (c == w || c.rfind(w + ".", 0) == 0) r.columns.push_back(c);
+    r.data = Eigen::MatrixXd::Constant(static_cast<Eigen::Index>(dposes.size()),
+                                       static_cast<Eigen::Index>(r.columns.size()), NAN);
+    for (std::size_t k = 0; k < dposes.size(); ++k)
+      for (std::size_t j = 0; j < dposes[k].size(); ++j)
+        r.data(static_cast<Eigen::Index>(k), static_cast<Eigen::Index>(j)) = dposes[k][j];
+    write_file_atomically(a.out, [&](std::ostream& o) { o << calib::format_recording(r); });
+    if (!a.json) std::cout << "wrote the chosen poses (to be measured) to " << a.out << "\n";
+  }
+  if (a.json) std::cout << js.dump(2) << "\n";
+  return 0;
+}
+
+int run_calibrate(const CalibArgs& a) {
+  nlohmann::json js;
+  std::optional<calib::Recording> rec;
+  if (!a.rec.empty()) rec = calib::read_recording(a.rec);
+  std::string mpath = a.machine;
+  if (mpath.empty() && rec) mpath = rec->machine_path();
+  if (mpath.empty())
+    throw InputError(SourceLoc{a.rec}, "no machine: give --machine or a '# machine:' line in the recording");
+  mpath = resolve_machine(mpath);
+  const std::shared_ptr<calib::Model> model = calib::load_model(mpath);
+  if (rec && rec->tool_length_mm()) model->set_tool_length_mm(*rec->tool_length_mm());
+  if (a.tool_length >= 0) model->set_tool_length_mm(a.tool_length);
+  js["machine"] = mpath;
+  js["kind"] = model->kind();
+  if (a.design > 0) return run_design(a, *model, js);
+  if (!rec) throw InputError("calibrate: give a recording (or --design N to choose poses)");
+  if (rec->kind() != "static" && !rec->kind().empty())
+    throw InputError(SourceLoc{a.rec},
+                     fmt::format("calibrate needs a static recording (kind: static), got '{}'", rec->kind()));
+
+  calib::Dataset data = calib::dataset_from(*rec, *model);
+  std::optional<calib::Dataset> hold;
+  std::string hold_label;
+  if (!a.holdout.empty()) {
+    hold = calib::dataset_from(calib::read_recording(a.holdout), *model);
+    hold_label = a.holdout;
+  }
+  calib::Options opt;
+  if (!a.free.empty()) opt.free = model->select(split_list(a.free));
+  opt.regularise = a.regularise;
+  opt.max_iterations = a.max_iterations;
+  if (a.loss == "huber")
+    opt.loss = calib::Loss::Huber;
+  else if (a.loss == "cauchy")
+    opt.loss = calib::Loss::Cauchy;
+  else if (!a.loss.empty())
+    throw InputError(fmt::format("--loss: expected huber or cauchy, got '{}'", a.loss));
+  const std::size_t nfree = opt.free.empty() ? model->size() : opt.free.size();
+  if (!hold && a.split > 0) {
+    // Hold out every k-th pose if the rest still has twice as many measurements as free parameters.
+    const std::size_t k = static_cast<std::size_t>(std::max(2.0, std::round(1.0 / a.split)));
+    calib::Dataset fit, h;
+    fit.file = h.file = data.file;
+    fit.sigma = h.sigma = data.sigma;
+    for (std::size_t i = 0; i < data.poses.size(); ++i) (i % k == k - 1 ? h : fit).poses.push_back(data.poses[i]);
+    if (fit.measurement_count() >= 2 * nfree && !h.poses.empty()) {
+      data = fit;
+      hold = h;
+      hold_label = fmt::format("every {}th pose of {}", k, a.rec);
+    }
+  }
+  const calib::Result r = calib::calibrate(*model, data, opt);
+  const auto& id = r.ident;
+  const auto& P = model->params();
+
+  // ---- report (text to stdout, or to stderr with --json) ----
+  std::ostringstream t;
+  t << fmt::format("calibrate {} ({} poses, {} measurements) on {} [{}]\n", a.rec, data.poses.size(),
+                   data.measurement_count(), mpath, model->kind());
+  t << fmt::format("identifiability of {} candidate parameters (column-scaled Jacobian):\n", id.candidates.size());
+  t << fmt::format("  rank {} of {}; condition number {:.4g} (identified subset {:.4g})\n", id.rank,
+                   id.candidates.size(), id.condition_number, id.condition_identified);
+  t << fmt::format("  observability O1 {:.4g}  O2 {:.4g}  O3 {:.4g}  O4 {:.4g}\n", id.O1, id.O2, id.O3, id.O4);
+  t << fmt::format("  identified subset ({}): O1 {:.4g}  O2 {:.4g}  O3 {:.4g}  O4 {:.4g}\n", id.identifiable.size(),
+                   id.observability_identified[0], id.observability_identified[1], id.observability_identified[2],
+                   id.observability_identified[3]);
+  for (const auto& m : id.messages) t << "  - " << m << "\n";
+  for (const auto& c : id.combinations) t << "  null space: " << c << "\n";
+  t << fmt::format("solver: {} after {} iterations ({}); cost {:.6g} -> {:.6g}; {:.3f} s\n", r.summary.termination,
+                   r.summary.iterations, r.summary.message, r.summary.initial_cost, r.summary.final_cost,
+                   r.summary.time_s);
+  t << fmt::format("  reduced chi^2 {:.4g} (about 1 when the recording's sigmas are right{})\n", r.chi2_reduced,
+                   data.sigma.given ? "" : "; sigmas not given: defaults, standard deviations rescaled");
+  t << "parameters (file units):\n";
+  t << fmt::format("  {:<8} {:<10} {:>16} {:>16} {:>12} {:>11}\n", "name", "group", "nominal", "estimate", "change",
+                   "std dev");
+  for (std::size_t i : id.candidates) {
+    const bool fixed = std::find(id.identifiable.begin(), id.identifiable.end(), i) == id.identifiable.end();
+    t << fmt::format("  {:<8} {:<10} {:>16.9f} {:>16.9f} {:>+12.3e} {:>11}\n", P[i].name, P[i].group, P[i].nominal,
+                     r.estimate[i], r.estimate[i] - P[i].nominal,
+                     fixed && !a.regularise ? std::string("fixed") : fmt::format("{:.3e}", r.stddev[i]));
+  }
+  if (!r.correlations.empty()) {
+    t << "correlations above 0.9:\n";
+    for (const auto& [ij, rho] : r.correlations)
+      t << fmt::format("  {} ~ {}: {:+.4f}\n", P[ij.first].name, P[ij.second].name, rho);
+  }
+  if (!r.outliers.empty()) {
+    t << "outlier poses (normalised RMS residual > 3):\n";
+    for (const auto& o : r.outliers) t << fmt::format("  {}:{}: {:.2f} sigma\n", a.rec, o.line, o.normalised_rms);
+  }
+  t << "residuals on the fitted poses (measured - predicted, before -> after):\n" << stats_line(r.before, r.after);
+  calib::ResidualStats hb, ha;
+  if (hold) {
+    hb = calib::residual_stats(*model, *hold, model->nominal());
+    ha = calib::residual_stats(*model, *hold, r.estimate);
+    t << fmt::format("held-out ({}, {} poses), before -> after:\n", hold_label, hold->poses.size())
+      << stats_line(hb, ha);
+  }
+
+  js["recording"] = a.rec;
+  js["poses"] = data.poses.size();
+  js["measurements"] = data.measurement_count();
+  js["identifiability"] = {{"candidates", id.candidates.size()},
+                           {"rank", id.rank},
+                           {"singular_values", id.singular_values},
+                           {"condition_number", id.condition_number},
+                           {"condition_identified", id.condition_identified},
+                           {"O1", id.O1},
+                           {"O2", id.O2},
+                           {"O3", id.O3},
+                           {"O4", id.O4},
+                           {"identified", id.identifiable.size()},
+                           {"observability_identified", id.observability_identified},
+                           {"unidentifiable", id.messages},
+                           {"null_space", id.combinations}};
+  js["solver"] = {{"converged", r.summary.converged},
+                  {"termination", r.summary.termination},
+                  {"message", r.summary.message},
+                  {"iterations", r.summary.iterations},
+                  {"initial_cost", r.summary.initial_cost},
+                  {"final_cost", r.summary.final_cost},
+                  {"time_s", r.summary.time_s},
+                  {"cost_history", r.summary.cost_history}};
+  nlohmann::json params = nlohmann::json::array();
+  for (std::size_t i : id.candidates) {
+    const bool fixed = std::find(id.identifiable.begin(), id.identifiable.end(), i) == id.identifiable.end();
+    params.push_back({{"name", P[i].name},
+                      {"group", P[i].group},
+                      {"unit", P[i].unit},
+                      {"nominal", P[i].nominal},
+                      {"estimate", r.estimate[i]},
+                      {"change", r.estimate[i] - P[i].nominal},
+                      {"identified", !fixed},
+                      {"stddev", std::isfinite(r.stddev[i]) ? nlohmann::json(r.stddev[i]) : nlohmann::json(nullptr)}});
+  }
+  js["parameters"] = params;
+  nlohmann::json corr = nlohmann::json::array();
+  for (const auto& [ij, rho] : r.correlations)
+    corr.push_back({{"a", P[ij.first].name}, {"b", P[ij.second].name}, {"rho", rho}});
+  js["correlations"] = corr;
+  nlohmann::json outl = nlohmann::json::array();
+  for (const auto& o : r.outliers) outl.push_back({{"line", o.line}, {"normalised_rms", o.normalised_rms}});
+  js["outliers"] = outl;
+  js["chi2_reduced"] = r.chi2_reduced;
+  js["fit"] = {{"before", stats_json(r.before)}, {"after", stats_json(r.after)}};
+  if (hold) js["heldout"] = {{"source", hold_label}, {"before", stats_json(hb)}, {"after", stats_json(ha)}};
+  // The `geometric` finding in the vocabulary of spec/recording.md.
+  {
+    nlohmann::json gp = nlohmann::json::object();
+    std::string target;
+    for (std::size_t i : id.identifiable) {
+      const double dv = r.estimate[i] - P[i].nominal;
+      if (std::isfinite(r.stddev[i]) && std::abs(dv) <= 3 * r.stddev[i]) continue;
+      gp[P[i].name + "_" + P[i].unit] = dv;
+      target += (target.empty() ? "" : ",") + P[i].name;
+    }
+    js["finding"] = {{"effect", "geometric"}, {"target", target}, {"parameters", gp}};
+  }
+
+  int rc = 0;
+  if (!r.summary.converged) {
+    t << fmt::format("not converged: Ceres ended with {} ({}); no corrected file written\n", r.summary.termination,
+                     r.summary.message);
+    rc = 1;
+  } else if (!a.out.empty()) {
+    const std::string text = model->corrected_yaml(r.estimate);
+    write_file_atomically(a.out, [&](std::ostream& o) { o << text; });
+    t << "wrote " << a.out << "\n";
+    js["output"] = a.out;
+  }
+  if (!a.svg.empty()) write_svg(a.svg, *model, data, model->nominal(), r.estimate, id);
+  if (a.json) {
+    std::cerr << t.str();
+    std::cout << js.dump(2) << "\n";
+  } else {
+    std::cout << t.str();
+  }
+  return rc;
+}
+
+}  // namespace
+
+std::function<int()> add_calib_commands(CLI::App& app) {
+  auto a = std::make_shared<CalibArgs>();
+  auto* c = app.add_subcommand("calibrate",
+                               "Identify a machine's geometric parameters from a static recording and write the "
+                               "corrected machine file");
+  c->add_option("recording", a->rec, "static recording (spec/recording.md)");
+  c->add_option("-m,--machine", a->machine, "machine file or bundled name (default: the recording's '# machine:')");
+  c->add_option("-o,--output", a->out, "corrected machine file to write (with --design: the chosen poses)");
+  c->add_option("--free", a->free, "candidate parameters: names and/or groups, comma-separated (default: all)");
+  c->add_option("--holdout", a->holdout, "a second recording for validation (default: every 5th pose held out)");
+  c->add_option("--split", a->split, "fraction of poses held out when --holdout is not given (0: none)")
+      ->check(CLI::Range(0.0, 0.5));
+  c->add_flag("--json", a->json, "print one JSON document on stdout (the text report goes to stderr)");
+  c->add_option("--svg", a->svg, "folder for residual and singular-value charts");
+  c->add_option("--loss", a->loss, "robust loss: huber or cauchy (scale 3 sigma)");
+  c->add_flag("--regularise", a->regularise, "keep unidentifiable parameters free with a prior instead of fixing them");
+  c->add_option("--design", a->design, "choose N poses from candidates in the working volume (D-optimal)");
+  c->add_flag("--o3", a->o3, "with --design: maximise the smallest singular value instead of log det");
+  c->add_option("--candidates", a->candidates, "with --design: number of random candidate poses")
+      ->check(CLI::Range(10, 100000));
+  c->add_option("--channels", a->channels, "with --design: measured channels, e.g. tip or ptip or len,tip");
+  c->add_option("--seed", a->seed, "random seed for --design and the comparison");
+  c->add_option("--max-iterations", a->max_iterations, "Levenberg-Marquardt iteration limit (default 100)")
+      ->check(CLI::Range(1, 100000));
+  c->add_option("--tool-length", a->tool_length, "tool length, mm (default: recording, then machine file)");
+  return [a, c]() -> int {
+    if (!*c) return -1;
+    return run_calibrate(*a);
+  };
+}
+
+}  // namespace cscam::cli

@@ -1,0 +1,215 @@
+// `cscam simulate` (program + machine + injected effects -> recording) and `cscam diagnose` (recording ->
+// findings, report, machine file with effects, LinuxCNC compensation).
+#include "sim_cmd.hpp"
+
+#include <fmt/format.h>
+
+#include <chrono>
+#include <filesystem>
+#include <fstream>
+#include <iostream>
+#include <memory>
+#include <sstream>
+
+#include "cscam/core/atomic_file.hpp"
+#include "cscam/core/error.hpp"
+#include "cscam/diagnose/diagnose.hpp"
+#include "cscam/machine/machine.hpp"
+#include "cscam/nc/reader.hpp"
+#include "cscam/report/letters.hpp"
+#include "cscam/sim/simulate.hpp"
+#include "plan_cmd.hpp"
+
+namespace fs = std::filesystem;
+
+namespace cscam::cli {
+
+namespace {
+
+struct SimArgs {
+  std::string program, machine, out, channels = "tip,enc", note;
+  double rate = 1000, accel = 2000, tool_length = -1, rpm = 0;
+  int flutes = 0, decimals = 6;
+  unsigned seed = 1;
+  std::vector<std::string> inject, noise;
+};
+
+struct DiagArgs {
+  std::string rec, machine, svg, write_model;
+  bool json = false;
+  std::size_t max_fit = 60000;
+};
+
+std::vector<std::string> split(const std::string& s, char sep) {
+  std::vector<std::string> out;
+  std::stringstream ss(s);
+  std::string item;
+  while (std::getline(ss, item, sep))
+    if (!item.empty()) out.push_back(item);
+  return out;
+}
+
+bool is_nc(const std::string& path) {
+  std::string ext = fs::path(path).extension().string();
+  for (auto& c : ext) c = static_cast<char>(std::tolower(static_cast<unsigned char>(c)));
+  return ext == ".ngc" || ext == ".nc" || ext == ".tap" || ext == ".gcode" || ext == ".cnc";
+}
+
+std::string read_text(const std::string& path) {
+  std::ifstream in(path);
+  if (!in) throw InputError(SourceLoc{path}, "cannot open");
+  std::stringstream ss;
+  ss << in.rdbuf();
+  return ss.str();
+}
+
+int cmd_simulate(const SimArgs& a) {
+  const std::string mpath = resolve_machine(a.machine);
+  const machine::Machine m = machine::load(mpath);
+  auto machine_fx = sim::load_machine_effects(mpath, m);
+  std::vector<std::unique_ptr<sim::Effect>> injected;
+  for (const auto& s : a.inject)
+    for (auto& e : sim::parse_effects(s, m)) injected.push_back(std::move(e));
+  std::vector<const sim::Effect*> fx;
+  for (const auto& e : machine_fx) fx.push_back(e.get());
+  for (const auto& e : injected) fx.push_back(e.get());
+
+  sim::SimulateOptions so;
+  so.channels = split(a.channels, ',');
+  for (const auto& s : a.noise) {
+    const auto c = s.find(':');
+    if (c == std::string::npos) throw InputError(fmt::format("--noise '{}': expected GROUP:SIGMA, e.g. tip:0.001", s));
+    sim::NoiseSpec ns;
+    ns.group = s.substr(0, c);
+    try {
+      ns.sigma = std::stod(s.substr(c + 1));
+    } catch (const std::exception&) {
+      throw InputError(fmt::format("--noise '{}': expected a number after the colon", s));
+    }
+    if (ns.sigma < 0) throw InputError(fmt::format("--noise '{}': sigma must not be negative", s));
+    so.noise.push_back(ns);
+  }
+  so.seed = a.seed;
+  so.spindle_rpm = a.rpm;
+  so.flutes = a.flutes;
+  so.note = a.note;
+  so.machine_ref = a.machine;
+  sim::ProfileOptions po;
+  po.rate_hz = a.rate;
+  po.accel = a.accel;
+  double L = a.tool_length >= 0 ? a.tool_length : m.default_tool_length_mm;
+  std::vector<sim::Block> blocks;
+  if (is_nc(a.program)) {
+    const nc::Program p = nc::read_file(a.program, report::axis_letters(m));
+    if (p.tcp)
+      throw InputError(SourceLoc{a.program}, "this program uses TCP: simulate needs machine-coordinate axis values");
+    if (a.tool_length < 0 && p.tool_length_mm) L = *p.tool_length_mm;
+    blocks = sim::blocks_from_nc(p, m);
+  } else {
+    blocks = sim::blocks_from_cl(a.program, m, L);
+  }
+  so.tool_length_mm = L;
+  const sim::Trajectory tr = sim::profile(blocks, po);
+  const sim::Recording rec = sim::simulate(tr, m, fx, so);
+  const std::string out = a.out.empty() ? fs::path(a.program).stem().string() + ".rec.csv" : a.out;
+  write_file_atomically(out, [&](std::ostream& os) { sim::write_recording(os, rec, a.decimals); });
+  std::cout << fmt::format("wrote {} ({} samples at {} Hz, {:.3f} s, channels {}, {} effect(s))\n", out, rec.rows(),
+                           a.rate, tr.t.empty() ? 0.0 : tr.t.back(), a.channels, fx.size());
+  return 0;
+}
+
+std::string machine_for_recording(const sim::Recording& rec, const std::string& opt) {
+  if (!opt.empty()) return resolve_machine(opt);
+  const auto mm = rec.meta_value("machine");
+  if (!mm) throw InputError(SourceLoc{rec.file}, "the recording names no machine (# machine: ...): give --machine");
+  const fs::path rel = fs::path(rec.file).parent_path() / *mm;
+  if (fs::exists(rel)) return rel.string();
+  return resolve_machine(*mm);
+}
+
+int cmd_diagnose(const DiagArgs& a) {
+  const auto t0 = std::chrono::steady_clock::now();
+  sim::Recording rec = sim::read_recording(a.rec);
+  const double t_read = std::chrono::duration<double>(std::chrono::steady_clock::now() - t0).count();
+  const std::string mpath = machine_for_recording(rec, a.machine);
+  const machine::Machine m = machine::load(mpath);
+  auto known = sim::load_machine_effects(mpath, m);
+  std::vector<const sim::Effect*> kv;
+  for (const auto& e : known) kv.push_back(e.get());
+  diagnose::Options o;
+  o.keep_plot_data = !a.svg.empty();
+  o.max_fit_samples = a.max_fit;
+  diagnose::Report r = diagnose::diagnose(rec, m, kv, o);
+  r.seconds.insert(r.seconds.begin(), {"read", t_read});
+  for (const auto& w : r.warnings) std::cerr << "warning: " << w << "\n";
+  if (!a.svg.empty()) {
+    fs::create_directories(a.svg);
+    for (const auto& pic : diagnose::svg_pictures(r))  // (clang 14 cannot capture structured bindings)
+      write_file_atomically((fs::path(a.svg) / pic.first).string(), [&](std::ostream& os) { os << pic.second; });
+  }
+  if (!a.write_model.empty()) {
+    std::vector<const sim::Effect*> all = kv;
+    for (const auto& f : r.findings) all.push_back(f.effect.get());
+    const std::string yaml = diagnose::model_yaml(read_text(mpath), all);
+    const fs::path outp(a.write_model);
+    const std::string prefix = (outp.parent_path() / outp.stem()).string();
+    std::map<std::string, std::string> comp;
+    const std::string ini = diagnose::linuxcnc_ini(m, all, fs::path(prefix).filename().string(), comp);
+    // Relative mesh paths in the machine file must still resolve from the new file's folder: the written
+    // file is meant to sit beside the original or be given by absolute path.
+    write_file_atomically(a.write_model, [&](std::ostream& os) { os << yaml; });
+    write_file_atomically(prefix + ".linuxcnc.ini", [&](std::ostream& os) { os << ini; });
+    for (const auto& table : comp)
+      write_file_atomically((outp.parent_path() / table.first).string(), [&](std::ostream& os) { os << table.second; });
+  }
+  if (a.json)
+    std::cout << r.to_json() << "\n";
+  else
+    std::cout << r.text();
+  return 0;
+}
+
+}  // namespace
+
+std::function<int()> add_sim_commands(CLI::App& app) {
+  auto sa = std::make_shared<SimArgs>();
+  auto* sim_cmd =
+      app.add_subcommand("simulate", "Simulate a program on a machine with injected effects: write a recording");
+  sim_cmd
+      ->add_option("program", sa->program, "NC file (.ngc/.nc/.tap) or CL file (posted with the conventional strategy)")
+      ->required();
+  sim_cmd->add_option("-m,--machine", sa->machine, "machine file or bundled machine name")->required();
+  sim_cmd->add_option("-o,--output", sa->out, "recording to write (CSV, spec/recording.md)");
+  sim_cmd->add_option("--rate", sa->rate, "sample rate, Hz (default 1000)");
+  sim_cmd->add_option("--accel", sa->accel, "path acceleration of the trapezoidal profile, mm/s^2 (default 2000)");
+  sim_cmd->add_option("--channels", sa->channels, "channel groups: tip,ptip,enc,acc,dir (default tip,enc)");
+  sim_cmd->add_option("--inject", sa->inject,
+                      "EFFECT:TARGET:PARAMS, e.g. backlash:q2:0.012 or vibration:tip.z:166.7:0.00322");
+  sim_cmd->add_option("--noise", sa->noise, "GROUP:SIGMA white measurement noise, e.g. tip:0.001");
+  sim_cmd->add_option("--seed", sa->seed, "random seed of the noise");
+  sim_cmd->add_option("--tool-length", sa->tool_length, "tool length, mm (default: NC header or machine)");
+  sim_cmd->add_option("--spindle-rpm", sa->rpm, "spindle speed to record in the metadata");
+  sim_cmd->add_option("--flutes", sa->flutes, "cutter flutes to record in the metadata");
+  sim_cmd->add_option("--note", sa->note, "free text for the metadata");
+  sim_cmd->add_option("--decimals", sa->decimals, "decimals of the written values (default 6)")
+      ->check(CLI::Range(3, 12));
+
+  auto da = std::make_shared<DiagArgs>();
+  auto* diag_cmd =
+      app.add_subcommand("diagnose", "Find where a recording departs from the model and which physics is missing");
+  diag_cmd->add_option("recording", da->rec, "recording (CSV, spec/recording.md)")->required();
+  diag_cmd->add_option("-m,--machine", da->machine, "machine file or bundled name (default: the recording's metadata)");
+  diag_cmd->add_flag("--json", da->json, "print the report as JSON");
+  diag_cmd->add_option("--svg", da->svg, "folder for pictures: residual vs time and feature, spectrum");
+  diag_cmd->add_option(
+      "--write-model", da->write_model,
+      "machine file to write with the identified effects (+ LinuxCNC .ini lines and COMP_FILE tables)");
+  diag_cmd->add_option("--max-fit-samples", da->max_fit, "samples used by the fits (default 60000)");
+  return [sim_cmd, diag_cmd, sa, da]() -> int {
+    if (*sim_cmd) return cmd_simulate(*sa);
+    if (*diag_cmd) return cmd_diagnose(*da);
+    return -1;
+  };
+}
+
+}  // namespace cscam::cli

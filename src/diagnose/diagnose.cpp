@@ -1,0 +1,1359 @@
+#include "cscam/diagnose/diagnose.hpp"
+
+#include <ceres/ceres.h>
+#include <fftw3.h>
+#include <fmt/format.h>
+
+#include <Eigen/Dense>
+#include <algorithm>
+#include <chrono>
+#include <cmath>
+#include <mutex>
+#include <nlohmann/json.hpp>
+#include <numeric>
+#include <sstream>
+#include <thread>
+
+#include "cscam/calib/model.hpp"
+#include "cscam/core/error.hpp"
+#include "cscam/sim/simulate.hpp"
+
+namespace cscam::diagnose {
+
+namespace {
+
+using sim::Context;
+using sim::Effect;
+using sim::Scope;
+constexpr double kNaN = std::numeric_limits<double>::quiet_NaN();
+/// No measurement system resolves below this (mm or deg): the floor of the noise estimate.
+constexpr double kNoiseFloor = 2e-5;
+
+enum class Kind { Tip, PTip, Dir, Enc, Acc };
+
+struct Comp {
+  std::string name, group;
+  Kind kind = Kind::Tip;
+  int idx = 0;  ///< xyz component or axis index
+  int col = -1;
+  double sigma = kNoiseFloor;
+  bool fit = true;
+  std::vector<double> res_full;  ///< measured - predicted at every row
+  std::vector<double> res;       ///< at the analysis samples
+};
+
+struct Peak {
+  double f = 0, amp = 0;
+};
+
+using Clock = std::chrono::steady_clock;
+double secs(Clock::time_point a) { return std::chrono::duration<double>(Clock::now() - a).count(); }
+
+/// Periodogram |X_k|^2 of x (mean removed) with FFTW; frequencies k * fs / n.
+std::vector<double> periodogram(const std::vector<double>& x) {
+  const size_t n = x.size();
+  if (n < 8) return {};
+  double mean = 0;
+  for (double v : x) mean += v;
+  mean /= static_cast<double>(n);
+  static std::mutex plan_mutex;  // FFTW planning is not thread-safe
+  double* in = fftw_alloc_real(n);
+  fftw_complex* out = fftw_alloc_complex(n / 2 + 1);
+  fftw_plan p;
+  {
+    std::lock_guard<std::mutex> lk(plan_mutex);
+    p = fftw_plan_dft_r2c_1d(static_cast<int>(n), in, out, FFTW_ESTIMATE);
+  }
+  for (size_t i = 0; i < n; ++i) in[i] = x[i] - mean;
+  fftw_execute(p);
+  std::vector<double> P(n / 2 + 1);
+  for (size_t k = 0; k <= n / 2; ++k) P[k] = out[k][0] * out[k][0] + out[k][1] * out[k][1];
+  {
+    std::lock_guard<std::mutex> lk(plan_mutex);
+    fftw_destroy_plan(p);
+  }
+  fftw_free(in);
+  fftw_free(out);
+  return P;
+}
+
+double median(std::vector<double> v) {
+  if (v.empty()) return 0;
+  auto mid = v.begin() + static_cast<std::ptrdiff_t>(v.size() / 2);
+  std::nth_element(v.begin(), mid, v.end());
+  return *mid;
+}
+
+/// White noise of variance s^2 gives E|X_k|^2 = n s^2 and a median of n s^2 ln 2: the noise from the
+/// median of the upper half of the band (smooth effects live at low frequencies, peaks are few).
+double noise_from_spectrum(const std::vector<double>& P, size_t n) {
+  if (P.size() < 8) return kNoiseFloor;
+  std::vector<double> hi(P.begin() + static_cast<std::ptrdiff_t>(P.size() / 2), P.end() - 1);
+  return std::max(kNoiseFloor, std::sqrt(median(hi) / (static_cast<double>(n) * std::log(2.0))));
+}
+
+/// Spectral peaks: local maxima far above the local median level, at least a few cycles per run.
+std::vector<Peak> find_peaks(const std::vector<double>& P, size_t n, double fs, double duration) {
+  std::vector<Peak> out;
+  if (P.size() < 16) return out;
+  const double gmed = median(std::vector<double>(P.begin() + 1, P.end()));
+  std::vector<size_t> cand;
+  const double fmin = std::max(1.0, 5.0 / std::max(duration, 1e-9));
+  for (size_t k = 2; k + 1 < P.size(); ++k) {
+    const double f = static_cast<double>(k) * fs / static_cast<double>(n);
+    if (f < fmin) continue;
+    if (P[k] > P[k - 1] && P[k] >= P[k + 1] && P[k] > 40 * gmed) cand.push_back(k);
+  }
+  std::sort(cand.begin(), cand.end(), [&](size_t a, size_t b) { return P[a] > P[b]; });
+  if (cand.size() > 60) cand.resize(60);
+  for (size_t k : cand) {
+    const size_t w = std::max<size_t>(20, k / 10);
+    const size_t a = k > w ? k - w : 1, b = std::min(P.size() - 1, k + w);
+    std::vector<double> loc(P.begin() + static_cast<std::ptrdiff_t>(a), P.begin() + static_cast<std::ptrdiff_t>(b));
+    if (P[k] < 40 * median(loc)) continue;
+    // Parabolic interpolation of the peak on log power.
+    const double l = std::log(P[k - 1] + 1e-300), c = std::log(P[k]), r = std::log(P[k + 1] + 1e-300);
+    const double den = l - 2 * c + r;
+    const double d = std::abs(den) > 1e-12 ? std::clamp(0.5 * (l - r) / den, -0.5, 0.5) : 0.0;
+    Peak pk;
+    pk.f = (static_cast<double>(k) + d) * fs / static_cast<double>(n);
+    pk.amp = 2.0 * std::sqrt(P[k]) / static_cast<double>(n);
+    bool dup = false;
+    for (const auto& q : out) dup |= std::abs(q.f - pk.f) < 3 * fs / static_cast<double>(n);
+    if (!dup) out.push_back(pk);
+    if (out.size() >= 4) break;
+  }
+  return out;
+}
+
+std::string fmt_um(double mm) { return fmt::format("{:.1f} um", mm * 1000); }
+
+std::string fmt_value(const std::string& unit_group, double v) {
+  return unit_group == "deg" ? fmt::format("{:.4f} deg", v) : fmt_um(v);
+}
+
+/// Everything the fits need, at the analysis samples.
+struct Fit {
+  const Context* ctx = nullptr;
+  std::vector<Comp>* comps = nullptr;
+  std::vector<int> fitc;                       ///< indices of fitted components
+  std::vector<Eigen::Matrix<double, 9, 5>> J;  ///< FK Jacobian per analysis sample
+  std::vector<char> held;                      ///< held-out flag per analysis sample
+  std::vector<double> off;                     ///< offset per component (index into comps)
+
+  [[nodiscard]] double sens(const Comp& c, const Effect& e, size_t k) const {
+    if (e.scope() == Scope::Channel) return c.name == e.channel ? 1.0 : 0.0;
+    if (e.scope() == Scope::Geometric) {
+      const auto& g = (*e.geo_sens)[k];
+      switch (c.kind) {
+        case Kind::Tip:
+          return g[static_cast<size_t>(c.idx)];
+        case Kind::PTip:
+          return g[3 + static_cast<size_t>(c.idx)];
+        case Kind::Dir:
+          return g[6 + static_cast<size_t>(c.idx)];
+        default:
+          return 0.0;
+      }
+    }
+    switch (c.kind) {
+      case Kind::Tip:
+        return J[k](c.idx, e.axis);
+      case Kind::PTip:
+        return J[k](3 + c.idx, e.axis);
+      case Kind::Dir:
+        return J[k](6 + c.idx, e.axis);
+      case Kind::Enc:
+        return (c.idx == e.axis && e.enc_visible) ? 1.0 : 0.0;
+      case Kind::Acc:
+        return 0.0;
+    }
+    return 0.0;
+  }
+  /// Does effect e reach component c at all?
+  [[nodiscard]] bool reaches(const Comp& c, const Effect& e) const {
+    if (e.scope() == Scope::Channel) return c.name == e.channel;
+    if (c.kind == Kind::Enc) return e.scope() == Scope::Axis && c.idx == e.axis && e.enc_visible;
+    return c.kind != Kind::Acc;
+  }
+};
+
+/// Residual after the model at analysis sample k for component c.
+double model_residual(const Fit& f, const std::vector<const Effect*>& fx, int ci, size_t k) {
+  const Comp& c = (*f.comps)[static_cast<size_t>(ci)];
+  double r = c.res[k] - f.off[static_cast<size_t>(ci)];
+  for (const Effect* e : fx)
+    if (f.reaches(c, *e)) r -= f.sens(c, *e, k) * e->value(*f.ctx, k, e->p.data());
+  return r;
+}
+
+/// Noise-weighted mean square on the held-out (held = 1) or training (held = 0) samples.
+double weighted_ms(const Fit& f, const std::vector<const Effect*>& fx, bool held) {
+  double s = 0;
+  size_t cnt = 0;
+  for (int ci : f.fitc) {
+    const Comp& c = (*f.comps)[static_cast<size_t>(ci)];
+    for (size_t k = 0; k < f.ctx->size(); ++k) {
+      if (static_cast<bool>(f.held[k]) != held || std::isnan(c.res[k])) continue;
+      const double r = model_residual(f, fx, ci, k) / c.sigma;
+      s += r * r;
+      ++cnt;
+    }
+  }
+  return cnt ? s / static_cast<double>(cnt) : 0.0;
+}
+
+/// Held-out RMS of a channel group (vector RMS for tip/ptip/dir) under a model.
+/// `mask` (optional) restricts it to the samples where an effect acts.
+double group_rms(const Fit& f, const std::vector<const Effect*>& fx, const std::string& group, bool held,
+                 const std::vector<char>* mask = nullptr) {
+  double s = 0;
+  std::vector<char> any(f.ctx->size(), 0);
+  for (int ci : f.fitc) {
+    const Comp& c = (*f.comps)[static_cast<size_t>(ci)];
+    if (c.group != group) continue;
+    for (size_t k = 0; k < f.ctx->size(); ++k) {
+      if (static_cast<bool>(f.held[k]) != held || std::isnan(c.res[k])) continue;
+      if (mask && !(*mask)[k]) continue;
+      const double r = model_residual(f, fx, ci, k);
+      s += r * r;
+      any[k] = 1;
+    }
+  }
+  const auto cnt = static_cast<double>(std::count(any.begin(), any.end(), 1));
+  return cnt > 0 ? std::sqrt(s / cnt) : 0.0;
+}
+
+/// Ceres cost over a chunk of training samples: weighted residuals of every fitted component.
+class ChunkCost final : public ceres::CostFunction {
+ public:
+  ChunkCost(const Fit& f, const std::vector<Effect*>& fx, std::vector<size_t> samples)
+      : f_(f), fx_(fx), s_(std::move(samples)) {
+    set_num_residuals(static_cast<int>(s_.size() * f_.fitc.size()));
+    for (const Effect* e : fx_) mutable_parameter_block_sizes()->push_back(static_cast<int>(e->p.size()));
+    mutable_parameter_block_sizes()->push_back(static_cast<int>(f_.comps->size()));
+  }
+  bool Evaluate(double const* const* params, double* residuals, double** jac) const override {
+    const size_t E = fx_.size(), nc = f_.fitc.size();
+    const size_t ncomp = f_.comps->size();
+    std::vector<double> val(E);
+    std::vector<std::array<double, 4>> grad(E);
+    const int nres = num_residuals();
+    if (jac)
+      for (size_t e = 0; e <= E; ++e)
+        if (jac[e]) {
+          const size_t w = e < E ? fx_[e]->p.size() : ncomp;
+          std::fill(jac[e], jac[e] + static_cast<size_t>(nres) * w, 0.0);
+        }
+    for (size_t si = 0; si < s_.size(); ++si) {
+      const size_t k = s_[si];
+      for (size_t e = 0; e < E; ++e) {
+        if (jac)
+          val[e] = fx_[e]->value_grad(*f_.ctx, k, params[e], grad[e].data());
+        else
+          val[e] = fx_[e]->value(*f_.ctx, k, params[e]);
+      }
+      for (size_t j = 0; j < nc; ++j) {
+        const int ci = f_.fitc[j];
+        const Comp& c = (*f_.comps)[static_cast<size_t>(ci)];
+        const size_t row = si * nc + j;
+        if (std::isnan(c.res[k])) {
+          residuals[row] = 0;
+          continue;
+        }
+        const double w = 1.0 / c.sigma;
+        double r = c.res[k] - params[E][ci];
+        for (size_t e = 0; e < E; ++e) {
+          if (!f_.reaches(c, *fx_[e])) continue;
+          const double s = f_.sens(c, *fx_[e], k);
+          r -= s * val[e];
+          if (jac && jac[e]) {
+            const size_t np = fx_[e]->p.size();
+            for (size_t q = 0; q < np; ++q) jac[e][row * np + q] = -w * s * grad[e][q];
+          }
+        }
+        residuals[row] = w * r;
+        if (jac && jac[E]) jac[E][row * ncomp + static_cast<size_t>(ci)] = -w;
+      }
+    }
+    return true;
+  }
+
+ private:
+  const Fit& f_;
+  std::vector<Effect*> fx_;
+  std::vector<size_t> s_;
+};
+
+/// Joint refit of all effects and the offsets on the training samples.
+void joint_fit(Fit& f, const std::vector<Effect*>& fx, size_t stride = 1) {
+  ceres::Problem::Options po;
+  po.cost_function_ownership = ceres::TAKE_OWNERSHIP;
+  ceres::Problem prob(po);
+  std::vector<size_t> train;
+  for (size_t k = 0; k < f.ctx->size(); k += stride)
+    if (!f.held[k]) train.push_back(k);
+  std::vector<double*> blocks;
+  for (Effect* e : fx) blocks.push_back(e->p.data());
+  blocks.push_back(f.off.data());
+  const size_t chunk = 256;
+  for (size_t a = 0; a < train.size(); a += chunk) {
+    std::vector<size_t> s(train.begin() + static_cast<std::ptrdiff_t>(a),
+                          train.begin() + static_cast<std::ptrdiff_t>(std::min(train.size(), a + chunk)));
+    prob.AddResidualBlock(new ChunkCost(f, fx, std::move(s)), nullptr, blocks);
+  }
+  for (Effect* e : fx) {
+    const auto names = e->internal_names();
+    if (e->name() == "vibration") {  // the frequency comes from the spectrum (the fit subsamples in time)
+      prob.SetManifold(e->p.data(), new ceres::SubsetManifold(3, {0}));
+    }
+    for (size_t q = 0; q < names.size(); ++q)
+      if (names[q] == "tau_s" || names[q] == "decay_s" || names[q] == "period") {
+        prob.SetParameterLowerBound(e->p.data(), static_cast<int>(q), e->p[q] * 0.05);
+        prob.SetParameterUpperBound(
+            e->p.data(), static_cast<int>(q),
+            names[q] == "decay_s" ? std::max(e->p[q], std::min(e->p[q] * 20, 1.0)) : e->p[q] * 20);
+      }
+  }
+  ceres::Solver::Options so;
+  so.linear_solver_type = ceres::DENSE_QR;
+  so.max_num_iterations = 40;
+  so.num_threads = 2;
+  so.logging_type = ceres::SILENT;
+  ceres::Solver::Summary sum;
+  ceres::Solve(so, &prob, &sum);
+}
+
+/// Physical plausibility: an explanation that needs, e.g., a 0.3 % scale error or a friction spike that decays
+/// over seconds is another effect in disguise (or one outside the library), not a finding.
+bool plausible(const Effect& e) {
+  const std::string n = e.name();
+  const double a = std::abs(e.p[0]);
+  if (n == "scale") return a <= 1000;                             // ppm
+  if (n == "squareness") return a <= 5000;                        // urad
+  if (n == "servo_lag") return a <= 0.5;                          // s
+  if (n == "backlash") return a <= 1.0;                           // mm or deg
+  if (n == "friction_spike") return e.p[1] > 0 && e.p[1] <= 1.0;  // decay, s
+  if (n == "thermal_drift") return e.p[1] > 0;
+  return true;
+}
+
+struct Candidate {
+  std::unique_ptr<Effect> e;
+  double gain = 0;
+};
+
+/// Screens one effect over its grid against the current residual: best grid point with its linear
+/// parameters fitted (offsets refitted: columns centred on the training samples); gain on held-out.
+Candidate screen(const Fit& f, const Effect& proto, const std::vector<size_t>& screen_idx,
+                 const std::vector<std::vector<double>>& cur, const sim::GridHints& hints) {
+  Candidate best;
+  const auto lin = proto.linear();
+  std::vector<int> L;
+  for (size_t q = 0; q < lin.size(); ++q)
+    if (lin[q]) L.push_back(static_cast<int>(q));
+  const size_t nl = L.size(), np = lin.size();
+  std::vector<int> comps;
+  for (int ci : f.fitc)
+    if (f.reaches((*f.comps)[static_cast<size_t>(ci)], proto)) comps.push_back(ci);
+  if (comps.empty()) return best;
+  const size_t ms = screen_idx.size();
+  std::vector<double> G(ms * nl), grad(np);
+  for (const auto& g : proto.grid(*f.ctx, hints)) {
+    for (size_t s = 0; s < ms; ++s) {
+      proto.value_grad(*f.ctx, screen_idx[s], g.data(), grad.data());
+      for (size_t l = 0; l < nl; ++l) G[s * nl + l] = grad[static_cast<size_t>(L[l])];
+    }
+    Eigen::MatrixXd A = Eigen::MatrixXd::Zero(static_cast<Eigen::Index>(nl), static_cast<Eigen::Index>(nl));
+    Eigen::VectorXd b = Eigen::VectorXd::Zero(static_cast<Eigen::Index>(nl));
+    // Per component: training means of columns and target (the offset refit), then normal equations.
+    std::vector<std::vector<double>> mcol(comps.size(), std::vector<double>(nl, 0.0));
+    std::vector<double> mr(comps.size(), 0.0);
+    for (size_t j = 0; j < comps.size(); ++j) {
+      const Comp& c = (*f.comps)[static_cast<size_t>(comps[j])];
+      const auto& cr = cur[static_cast<size_t>(comps[j])];
+      size_t cnt = 0;
+      for (size_t s = 0; s < ms; ++s) {
+        const size_t k = screen_idx[s];
+        if (f.held[k] || std::isnan(c.res[k])) continue;
+        const double sv = f.sens(c, proto, k);
+        for (size_t l = 0; l < nl; ++l) mcol[j][l] += sv * G[s * nl + l];
+        mr[j] += cr[s];
+        ++cnt;
+      }
+      if (cnt)
+        for (size_t l = 0; l < nl; ++l) mcol[j][l] /= static_cast<double>(cnt);
+      if (cnt) mr[j] /= static_cast<double>(cnt);
+      const double w2 = 1.0 / (c.sigma * c.sigma);
+      for (size_t s = 0; s < ms; ++s) {
+        const size_t k = screen_idx[s];
+        if (f.held[k] || std::isnan(c.res[k])) continue;
+        const double sv = f.sens(c, proto, k);
+        double col[4];
+        for (size_t l = 0; l < nl; ++l) col[l] = sv * G[s * nl + l] - mcol[j][l];
+        for (size_t l = 0; l < nl; ++l) {
+          b(static_cast<Eigen::Index>(l)) += w2 * col[l] * (cr[s] - mr[j]);
+          for (size_t m2 = 0; m2 < nl; ++m2)
+            A(static_cast<Eigen::Index>(l), static_cast<Eigen::Index>(m2)) += w2 * col[l] * col[m2];
+        }
+      }
+    }
+    if (A.trace() <= 0) continue;
+    A.diagonal().array() += 1e-12 * A.trace();
+    const Eigen::VectorXd x = A.ldlt().solve(b);
+    // Held-out gain (normalised by noise), counted over every fitted component's held-out values.
+    double before = 0, after = 0;
+    for (size_t j = 0; j < comps.size(); ++j) {
+      const Comp& c = (*f.comps)[static_cast<size_t>(comps[j])];
+      const auto& cr = cur[static_cast<size_t>(comps[j])];
+      for (size_t s = 0; s < ms; ++s) {
+        const size_t k = screen_idx[s];
+        if (!f.held[k] || std::isnan(c.res[k])) continue;
+        const double sv = f.sens(c, proto, k);
+        double m = 0;
+        for (size_t l = 0; l < nl; ++l) m += x(static_cast<Eigen::Index>(l)) * (sv * G[s * nl + l] - mcol[j][l]);
+        const double r0 = (cr[s] - mr[j]) / c.sigma, r1 = (cr[s] - mr[j] - m) / c.sigma;
+        before += r0 * r0;
+        after += r1 * r1;
+      }
+    }
+    const double gain = before - after;  // summed; normalised by the caller
+    if (!best.e || gain > best.gain) {
+      auto cand = proto.clone();
+      cand->p = g;
+      for (size_t l = 0; l < nl; ++l) cand->p[static_cast<size_t>(L[l])] = x(static_cast<Eigen::Index>(l));
+      if (!plausible(*cand)) continue;
+      best.e = std::move(cand);
+      best.gain = gain;
+    }
+  }
+  return best;
+}
+
+std::string source_of(double f, double rpm, int flutes) {
+  if (!(rpm > 0)) return "structural";
+  const double fs = rpm / 60.0, ft = flutes > 0 ? fs * flutes : 0;
+  auto near = [&](double base) {
+    if (!(base > 0)) return 0;
+    const double h = std::round(f / base);
+    return (h >= 1 && h <= 5 && std::abs(f - h * base) < std::max(0.02 * base, 0.5)) ? static_cast<int>(h) : 0;
+  };
+  if (near(ft) == 1) return "tooth_passing";
+  if (near(ft) > 1) return "tooth_passing";  // a harmonic of it
+  if (near(fs)) return "spindle";
+  return "structural";
+}
+
+std::string explain(const Effect& e, const std::string& dom) {
+  const auto rep = e.reported();
+  const std::string u = e.rotary ? "deg" : "mm";
+  const std::string n = e.name();
+  if (n == "backlash")
+    return fmt::format("step in {} at every reversal of {} (lost motion of {})", dom, e.target,
+                       fmt_value(u, rep[0].second));
+  if (n == "servo_lag")
+    return fmt::format("{} follows the velocity of {}: following error = velocity x {:.4f} s", dom, e.target,
+                       rep[0].second);
+  if (n == "thermal_drift")
+    return fmt::format("{} drifts by {} over the run (time constant {:.0f} s)", dom, fmt_um(rep[0].second),
+                       rep[1].second);
+  if (n == "vibration")
+    return fmt::format("sinusoid of {} at {:.1f} Hz in {}{}", fmt_um(rep[1].second), rep[0].second, dom,
+                       e.note.empty() ? "" : " (" + e.note + ")");
+  if (n == "scale")
+    return fmt::format("error in {} growing with the position of {} ({:.1f} ppm)", dom, e.target, rep[0].second);
+  if (n == "squareness")
+    return fmt::format("error in {} proportional to the position of the second axis of {} ({:.1f} urad)", dom, e.target,
+                       rep[0].second);
+  if (n == "cyclic")
+    return fmt::format("error in {} periodic in the position of {} (period {:.3f} {}, amplitude {})", dom, e.target,
+                       rep[0].second, u, fmt_value(u, rep[1].second));
+  if (n == "friction_spike")
+    return fmt::format("spike in {} after every reversal of {} (peak {}, decay {:.3f} s)", dom, e.target,
+                       fmt_value(u, rep[0].second), rep[1].second);
+  if (n == "compliance") return fmt::format("deflection in {} proportional to the acceleration of {}", dom, e.target);
+  if (n == "geometric")
+    return fmt::format("position-dependent error in {} reproduced by machine parameter {} off nominal by {:.6g} {}",
+                       dom, e.target, e.p[0], e.unit);
+  return e.signature();
+}
+
+std::string describe(const Effect& e) {
+  const auto rep = e.reported();
+  const std::string u = e.rotary ? "deg" : "mm";
+  const std::string n = e.name();
+  if (n == "backlash")
+    return fmt::format("lost motion of {} on {} at each {} reversal", fmt_value(u, rep[0].second), e.target, e.target);
+  if (n == "servo_lag") return fmt::format("servo lag of {:.2f} ms on {}", rep[0].second * 1000, e.target);
+  if (n == "thermal_drift")
+    return fmt::format("thermal drift of {} in {} (time constant {:.0f} s)", fmt_um(rep[0].second), e.target,
+                       rep[1].second);
+  if (n == "vibration")
+    return fmt::format("vibration of {} at {:.1f} Hz in {}{}", fmt_um(rep[1].second), rep[0].second, e.target,
+                       e.note.empty() ? "" : " (" + e.note + ")");
+  if (n == "scale") return fmt::format("scale error of {:.1f} ppm on {}", rep[0].second, e.target);
+  if (n == "squareness") return fmt::format("squareness error of {:.1f} urad between {}", rep[0].second, e.target);
+  if (n == "cyclic")
+    return fmt::format("cyclic error of {} (period {:.3f} {}) on {}", fmt_value(u, rep[1].second), rep[0].second, u,
+                       e.target);
+  if (n == "friction_spike")
+    return fmt::format("reversal spike of {} decaying in {:.0f} ms on {}", fmt_value(u, rep[0].second),
+                       rep[1].second * 1000, e.target);
+  if (n == "compliance") return fmt::format("compliance {:.3g} {} on {}", rep[0].second, rep[0].first, e.target);
+  if (n == "geometric")
+    return fmt::format("geometry: {} is {:.6g} {} instead of {:.6g}", e.target, e.nominal + e.p[0], e.unit, e.nominal);
+  return n + " on " + e.target;
+}
+
+}  // namespace
+
+Report diagnose(sim::Recording& rec, const machine::Machine& m, const std::vector<const sim::Effect*>& known,
+                const Options& o) {
+  Report R;
+  auto tstage = Clock::now();
+  R.recording = rec.file;
+  R.machine = m.file;
+  sim::validate_against(rec, m);
+  R.warnings = rec.warnings;
+  const size_t n = rec.rows();
+  R.samples = n;
+  const size_t kMinSamples = 120;
+  if (n < kMinSamples)
+    throw InputError(
+        SourceLoc{rec.file},
+        fmt::format("too little data to hold any out: {} samples, diagnosis needs at least {} ({} more) so "
+                    "that every one of {} time blocks has 10",
+                    n, kMinSamples, kMinSamples - n, o.time_blocks));
+  const int tcol = rec.column("t");
+  if (tcol < 0) throw InputError(SourceLoc{rec.file}, "diagnose needs a trajectory recording with a time column 't'");
+  const auto& t = rec.data[static_cast<size_t>(tcol)];
+  std::vector<kin::Axes> cmd(n);
+  for (int j = 0; j < 5; ++j) {
+    const auto& name = m.axes[static_cast<size_t>(j)].name;
+    const auto& col = rec.data[static_cast<size_t>(rec.column("cmd." + name))];
+    for (size_t i = 0; i < n; ++i) {
+      if (std::isnan(col[i]))
+        throw InputError(SourceLoc{rec.file, rec.row_line[i]},
+                         fmt::format("row {}: column 'cmd.{}' is empty", i + 1, name));
+      cmd[i][j] = col[i];
+    }
+  }
+  double L = m.default_tool_length_mm;
+  if (auto tl = rec.meta_value("tool_length")) {
+    try {
+      L = std::stod(*tl);
+    } catch (const std::exception&) {
+      throw InputError(SourceLoc{rec.file}, fmt::format("metadata tool_length: expected a number, got '{}'", *tl));
+    }
+  }
+  double rpm = 0;
+  int flutes = 0;
+  try {
+    if (auto v = rec.meta_value("spindle_rpm")) rpm = std::stod(*v);
+    if (auto v = rec.meta_value("flutes")) flutes = std::stoi(*v);
+  } catch (const std::exception&) {
+    throw InputError(SourceLoc{rec.file}, "metadata spindle_rpm / flutes: expected numbers");
+  }
+
+  // ---- 1. simulate and subtract -------------------------------------------------------------------
+  std::vector<Comp> comps;
+  const char* xyz = "xyz";
+  std::vector<std::string> groups;
+  auto add_group = [&](const std::string& g, Kind kind) {
+    bool any = false;
+    for (int c = 0; c < 3; ++c) {
+      const int col = rec.column(g + "." + xyz[c]);
+      if (col < 0) continue;
+      Comp cp;
+      cp.name = g + "." + xyz[c];
+      cp.group = g;
+      cp.kind = kind;
+      cp.idx = c;
+      cp.col = col;
+      cp.fit = kind != Kind::Acc;
+      comps.push_back(cp);
+      any = true;
+    }
+    if (any) groups.push_back(g);
+  };
+  add_group("tip", Kind::Tip);
+  add_group("ptip", Kind::PTip);
+  add_group("dir", Kind::Dir);
+  for (int j = 0; j < 5; ++j) {
+    const std::string nm = "enc." + m.axes[static_cast<size_t>(j)].name;
+    const int col = rec.column(nm);
+    if (col < 0) continue;
+    Comp cp;
+    cp.name = cp.group = nm;
+    cp.kind = Kind::Enc;
+    cp.idx = j;
+    cp.col = col;
+    comps.push_back(cp);
+    groups.push_back(nm);
+  }
+  add_group("acc", Kind::Acc);
+  if (comps.empty())
+    throw InputError(SourceLoc{rec.file},
+                     "no measured channel to compare with the model (tip.*, ptip.*, dir.*, enc.*, acc.*)");
+  sim::Trajectory traj{t, cmd};
+  sim::SimulateOptions so;
+  for (const auto& g : {"tip", "ptip", "dir", "acc"})
+    if (std::find(groups.begin(), groups.end(), g) != groups.end()) so.channels.emplace_back(g);
+  so.channels.erase(so.channels.begin(), so.channels.begin() + 2);  // drop the defaults ("tip", "enc")
+  so.channels.emplace_back("enc");
+  so.tool_length_mm = L;
+  const sim::Recording pred = sim::simulate(traj, m, known, so);
+  for (auto& c : comps) {
+    const auto& meas = rec.data[static_cast<size_t>(c.col)];
+    const auto& p = pred.data[static_cast<size_t>(pred.column(c.name))];
+    c.res_full.resize(n);
+    for (size_t i = 0; i < n; ++i) c.res_full[i] = meas[i] - p[i];
+  }
+  for (const auto& g : groups) {
+    double s = 0;
+    size_t cnt = 0;
+    std::vector<double> acc(n, 0.0);
+    std::vector<char> has(n, 0);
+    for (const auto& c : comps)
+      if (c.group == g)
+        for (size_t i = 0; i < n; ++i)
+          if (!std::isnan(c.res_full[i])) acc[i] += c.res_full[i] * c.res_full[i], has[i] = 1;
+    for (size_t i = 0; i < n; ++i)
+      if (has[i]) s += acc[i], ++cnt;
+    R.rms_before.emplace_back(g, cnt ? std::sqrt(s / static_cast<double>(cnt)) : 0.0);
+  }
+  R.seconds.emplace_back("simulate_and_subtract", secs(tstage));
+  tstage = Clock::now();
+
+  // ---- 2. noise first; spectra --------------------------------------------------------------------
+  const double duration = t.back() - t.front();
+  const double fs = static_cast<double>(n - 1) / std::max(duration, 1e-12);
+  std::vector<std::vector<Peak>> peaks(comps.size());
+  std::vector<std::vector<double>> spectra(comps.size());
+  {
+    std::vector<std::thread> th;
+    for (int w = 0; w < 2; ++w)
+      th.emplace_back([&, w] {
+        for (size_t ci = static_cast<size_t>(w); ci < comps.size(); ci += 2) {
+          std::vector<double> x = comps[ci].res_full;
+          for (auto& v : x)
+            if (std::isnan(v)) v = 0;
+          auto P = periodogram(x);
+          comps[ci].sigma = noise_from_spectrum(P, n);
+          peaks[ci] = find_peaks(P, n, fs, duration);
+          if (o.keep_plot_data) spectra[ci] = std::move(P);
+        }
+      });
+    for (auto& x : th) x.join();
+  }
+  for (const auto& g : groups) {
+    double s = 0;
+    for (const auto& c : comps)
+      if (c.group == g) s += c.sigma * c.sigma;
+    R.noise.emplace_back(g, std::sqrt(s));
+  }
+  R.seconds.emplace_back("noise_and_spectra", secs(tstage));
+  tstage = Clock::now();
+
+  // ---- analysis samples, Jacobians, time blocks ---------------------------------------------------
+  std::array<bool, 5> rot{};
+  for (int j = 0; j < 5; ++j) rot[j] = m.axes[static_cast<size_t>(j)].rotary();
+  const size_t stride = std::max<size_t>(1, (n + o.max_fit_samples - 1) / o.max_fit_samples);
+  const Context ctx = sim::make_context(t, cmd, rot, stride);
+  const size_t ma = ctx.size();
+  for (auto& c : comps) {
+    c.res.resize(ma);
+    for (size_t k = 0; k < ma; ++k) c.res[k] = c.res_full[ctx.index[k]];
+  }
+  Fit F;
+  F.ctx = &ctx;
+  F.comps = &comps;
+  for (size_t ci = 0; ci < comps.size(); ++ci)
+    if (comps[ci].fit) F.fitc.push_back(static_cast<int>(ci));
+  const bool need_j =
+      std::any_of(comps.begin(), comps.end(), [](const Comp& c) { return c.kind != Kind::Enc && c.kind != Kind::Acc; });
+  F.J.assign(ma, Eigen::Matrix<double, 9, 5>::Zero());
+  if (need_j) {
+    const sim::Predictor P(m, L);
+    std::vector<std::thread> th;
+    for (size_t w = 0; w < 2; ++w)
+      th.emplace_back([&, w] {
+        for (size_t k = ma * w / 2; k < ma * (w + 1) / 2; ++k) P.jacobian(cmd[ctx.index[k]], F.J[k]);
+      });
+    for (auto& x : th) x.join();
+  }
+  F.held.resize(ma);
+  const int K = std::max(3, o.time_blocks);
+  for (size_t k = 0; k < ma; ++k) {
+    const int b = std::min(K - 1, static_cast<int>((ctx.t[k] - ctx.t0) / std::max(duration, 1e-12) * K));
+    F.held[k] = static_cast<char>(b % 3 == 1);
+  }
+  F.off.assign(comps.size(), 0.0);
+  for (int ci : F.fitc) {  // offsets: training mean
+    double s = 0;
+    size_t cnt = 0;
+    for (size_t k = 0; k < ma; ++k)
+      if (!F.held[k] && !std::isnan(comps[static_cast<size_t>(ci)].res[k]))
+        s += comps[static_cast<size_t>(ci)].res[k], ++cnt;
+    F.off[static_cast<size_t>(ci)] = cnt ? s / static_cast<double>(cnt) : 0.0;
+  }
+  size_t n_held_values = 0;
+  for (int ci : F.fitc)
+    for (size_t k = 0; k < ma; ++k)
+      if (F.held[k] && !std::isnan(comps[static_cast<size_t>(ci)].res[k])) ++n_held_values;
+  R.seconds.emplace_back("jacobians", secs(tstage));
+  tstage = Clock::now();
+
+  // ---- 3. explain: greedy selection on held-out time blocks, joint refit ---------------------------
+  const size_t sstride = std::max<size_t>(1, (ma + o.max_screen_samples - 1) / o.max_screen_samples);
+  std::vector<size_t> sidx;
+  for (size_t k = 0; k < ma; k += sstride) sidx.push_back(k);
+  size_t n_held_screen = 0;
+  for (int ci : F.fitc)
+    for (size_t k : sidx)
+      if (F.held[k] && !std::isnan(comps[static_cast<size_t>(ci)].res[k])) ++n_held_screen;
+  // Thresholds on the held-out mean square (noise variance = 1): a gain of min_gain_sum noise variances in
+  // total (a localised effect, e.g. spikes at a few reversals, is significant when it stands out that much),
+  // and at least min_gain of the noise variance per held-out value.
+  const double thr = std::max(o.min_gain_sum, o.min_gain * static_cast<double>(n_held_values)) /
+                     std::max<double>(1.0, static_cast<double>(n_held_values));
+  const double thr_screen = std::max(o.min_gain_sum, o.min_gain * static_cast<double>(n_held_screen)) /
+                            std::max<double>(1.0, static_cast<double>(n_held_screen));
+
+  // Candidate prototypes.
+  std::vector<std::unique_ptr<Effect>> protos;
+  auto has_enc = [&](int j) {
+    return std::any_of(comps.begin(), comps.end(), [&](const Comp& c) { return c.kind == Kind::Enc && c.idx == j; });
+  };
+  const bool has_geom_channel = std::any_of(comps.begin(), comps.end(), [](const Comp& c) {
+    return c.kind == Kind::Tip || c.kind == Kind::PTip || c.kind == Kind::Dir;
+  });
+  for (int j = 0; j < 5; ++j) {
+    const std::string ax = m.axes[static_cast<size_t>(j)].name;
+    for (const char* name : {"backlash", "servo_lag", "scale", "cyclic", "friction_spike", "compliance"}) {
+      auto e = sim::make_effect(name, ax, m);
+      if (has_enc(j)) {
+        if (has_geom_channel) {
+          auto e2 = e->clone();
+          e2->enc_visible = !e->enc_visible;
+          protos.push_back(std::move(e2));
+        } else {
+          e->enc_visible = true;
+        }
+      } else if (!has_geom_channel) {
+        continue;
+      }
+      protos.push_back(std::move(e));
+    }
+  }
+  if (has_geom_channel)
+    for (int i = 0; i < 5; ++i)
+      for (int j = i + 1; j < 5; ++j)
+        if (!rot[i] && !rot[j])
+          protos.push_back(sim::make_effect(
+              "squareness", m.axes[static_cast<size_t>(i)].name + "," + m.axes[static_cast<size_t>(j)].name, m));
+  std::vector<sim::GridHints> hints(comps.size());
+  for (int ci : F.fitc) {
+    protos.push_back(sim::make_effect("thermal_drift", comps[static_cast<size_t>(ci)].name, m));
+    for (const auto& pk : peaks[static_cast<size_t>(ci)]) hints[static_cast<size_t>(ci)].frequencies_hz.push_back(pk.f);
+    if (!hints[static_cast<size_t>(ci)].frequencies_hz.empty())
+      protos.push_back(sim::make_effect("vibration", comps[static_cast<size_t>(ci)].name, m));
+  }
+
+  // Geometric candidates: one per machine-file parameter of the calibration model, with the channels'
+  // sensitivity to it (forward differences at anchor samples, interpolated between them).
+  if (has_geom_channel) {
+    std::shared_ptr<calib::Model> cm;
+    try {
+      cm = calib::load_model(m.file);
+    } catch (const std::exception& ex) {
+      R.warnings.push_back(fmt::format("geometric effects not tried: {}", ex.what()));
+    }
+    if (cm) {
+      cm->set_tool_length_mm(L);
+      const size_t np = cm->size(), nch = 9 + cm->links().size();
+      const auto p0 = cm->nominal();
+      const size_t astep = std::max<size_t>(1, ma / 1500);
+      std::vector<size_t> anchors;
+      for (size_t k = 0; k < ma; k += astep) anchors.push_back(k);
+      if (anchors.back() != ma - 1) anchors.push_back(ma - 1);
+      std::vector<std::vector<std::array<double, 9>>> at(np, std::vector<std::array<double, 9>>(anchors.size()));
+      std::vector<std::thread> th;
+      for (size_t w = 0; w < 2; ++w)
+        th.emplace_back([&, w] {
+          auto scratch = cm->make_scratch();
+          std::vector<double> base(nch), pert(nch), p = p0;
+          for (size_t a = w; a < anchors.size(); a += 2) {
+            const kin::Axes& q = cmd[ctx.index[anchors[a]]];
+            cm->predict_channels(q.data(), p.data(), base.data(), scratch.get());
+            for (size_t j = 0; j < np; ++j) {
+              const double h = 1e-5;
+              p[j] += h;
+              cm->predict_channels(q.data(), p.data(), pert.data(), scratch.get());
+              p[j] = p0[j];
+              auto& o = at[j][a];
+              for (int c = 0; c < 3; ++c) {  // calib order: tip, dir, ptip -> ours: tip, ptip, dir
+                o[static_cast<size_t>(c)] = (pert[static_cast<size_t>(c)] - base[static_cast<size_t>(c)]) / h;
+                o[3 + static_cast<size_t>(c)] =
+                    (pert[6 + static_cast<size_t>(c)] - base[6 + static_cast<size_t>(c)]) / h;
+                o[6 + static_cast<size_t>(c)] =
+                    (pert[3 + static_cast<size_t>(c)] - base[3 + static_cast<size_t>(c)]) / h;
+              }
+            }
+          }
+        });
+      for (auto& x : th) x.join();
+      for (size_t j = 0; j < np; ++j) {
+        auto tab = std::make_shared<std::vector<std::array<double, 9>>>(ma);
+        double mag = 0;
+        size_t a = 0;
+        for (size_t k = 0; k < ma; ++k) {
+          while (a + 1 < anchors.size() && anchors[a + 1] <= k) ++a;
+          const size_t b = std::min(a + 1, anchors.size() - 1);
+          const double f =
+              b > a ? static_cast<double>(k - anchors[a]) / static_cast<double>(anchors[b] - anchors[a]) : 0.0;
+          for (size_t r = 0; r < 9; ++r) {
+            (*tab)[k][r] = (1 - f) * at[j][a][r] + f * at[j][b][r];
+            mag = std::max(mag, std::abs((*tab)[k][r]));
+          }
+        }
+        if (!(mag > 1e-9) || !std::isfinite(mag)) continue;  // the channels do not see this parameter
+        const auto& pi = cm->params()[j];
+        auto e = sim::make_geometric(pi.name, pi.unit, pi.nominal, 0.0);
+        e->geo_sens = tab;
+        protos.push_back(std::move(e));
+      }
+    }
+  }
+
+  std::vector<std::unique_ptr<Effect>> model;
+  auto view = [](const std::vector<std::unique_ptr<Effect>>& v) {
+    std::vector<const Effect*> r;
+    for (const auto& e : v) r.push_back(e.get());
+    return r;
+  };
+  double held_ms = weighted_ms(F, {}, true);
+  const double held_ms_start = held_ms;
+  std::vector<std::vector<double>> cur(comps.size());
+  for (int step = 0; step < o.max_effects; ++step) {
+    const auto fx = view(model);
+    for (int ci : F.fitc) {
+      auto& v = cur[static_cast<size_t>(ci)];
+      v.resize(sidx.size());
+      for (size_t s = 0; s < sidx.size(); ++s) v[s] = model_residual(F, fx, ci, sidx[s]);
+    }
+    std::vector<Candidate> res(protos.size());
+    {
+      std::vector<std::thread> th;
+      for (size_t w = 0; w < 2; ++w)
+        th.emplace_back([&, w] {
+          for (size_t pi = w; pi < protos.size(); pi += 2) {
+            const Effect& pr = *protos[pi];
+            sim::GridHints h;
+            for (size_t ci = 0; ci < comps.size(); ++ci)
+              if (pr.scope() == Scope::Channel && comps[ci].name == pr.channel) h = hints[ci];
+            res[pi] = screen(F, pr, sidx, cur, h);
+          }
+        });
+      for (auto& x : th) x.join();
+    }
+    // A named effect of the library is the more specific explanation: a geometric parameter that explains
+    // the same (e.g. an axis direction vs squareness) must do clearly better (by 3 %) to be chosen.
+    auto score = [&](size_t pi) { return res[pi].gain * (res[pi].e->scope() == Scope::Geometric ? 0.97 : 1.0); };
+    // The best few by screening (each alone against the current residual) are refitted jointly with the
+    // effects already accepted (on the screening samples), and the one that leaves the smallest held-out
+    // residual wins: an effect that was partly absorbed by an earlier one gets its chance.
+    std::vector<size_t> order;
+    for (size_t pi = 0; pi < res.size(); ++pi)
+      if (res[pi].e && score(pi) / std::max<double>(1.0, static_cast<double>(n_held_screen)) > thr_screen) {
+        bool dup = false;
+        for (const auto& e : model) dup |= e->name() == res[pi].e->name() && e->target == res[pi].e->target;
+        if (!dup) order.push_back(pi);
+      }
+    if (order.empty()) break;
+    std::sort(order.begin(), order.end(), [&](size_t a, size_t b) { return score(a) > score(b); });
+    if (order.size() > 4) order.resize(4);
+    const auto off_save = F.off;
+    size_t bi = order.front();
+    if (order.size() > 1) {
+      double best_ms = std::numeric_limits<double>::infinity();
+      for (size_t pi : order) {
+        std::vector<std::unique_ptr<Effect>> tr;
+        for (const auto& e : model) tr.push_back(e->clone());
+        tr.push_back(res[pi].e->clone());
+        std::vector<Effect*> tp;
+        for (auto& e : tr) tp.push_back(e.get());
+        joint_fit(F, tp, sstride);
+        const bool ok = std::all_of(tr.begin(), tr.end(), [](const auto& e) { return plausible(*e); });
+        const double ms = weighted_ms(F, view(tr), true) * (res[pi].e->scope() == Scope::Geometric ? 1.03 : 1.0);
+        F.off = off_save;
+        if (ok && ms < best_ms) best_ms = ms, bi = pi;
+      }
+    }
+    std::vector<std::unique_ptr<Effect>> trial;
+    for (const auto& e : model) trial.push_back(e->clone());
+    trial.push_back(std::move(res[bi].e));
+    std::vector<Effect*> fxp;
+    for (auto& e : trial) fxp.push_back(e.get());
+    joint_fit(F, fxp);
+    const double new_ms = weighted_ms(F, view(trial), true);
+    const bool ok = std::all_of(trial.begin(), trial.end(), [](const auto& e) { return plausible(*e); });
+    if (!ok || held_ms - new_ms <= thr) {
+      F.off = off_save;
+      break;
+    }
+    held_ms = new_ms;
+    model = std::move(trial);
+  }
+  R.seconds.emplace_back("explain", secs(tstage));
+  tstage = Clock::now();
+
+  // ---- 4. findings, ranked by the held-out residual they explain ----------------------------------
+  const auto fx_all = view(model);
+  double total_gain = 0;
+  for (size_t i = 0; i < model.size(); ++i) {
+    std::vector<const Effect*> others;
+    for (size_t j = 0; j < model.size(); ++j)
+      if (j != i) others.push_back(model[j].get());
+    Finding fd;
+    fd.effect = model[i]->clone();
+    if (fd.effect->name() == "vibration") fd.effect->note = source_of(fd.effect->p[0], rpm, flutes);
+    // The group where it matters most, and its dominant component. Before/after are judged where the effect
+    // acts (its contribution above half the noise), so that a localised effect (spikes at reversals) is judged
+    // on the samples it explains, not diluted by the rest of the run.
+    double best = -1;
+    for (const auto& g : groups) {
+      std::vector<char> mask(ma, 0);
+      double sig = 0;
+      for (int ci : F.fitc)
+        if (comps[static_cast<size_t>(ci)].group == g) sig += std::pow(comps[static_cast<size_t>(ci)].sigma, 2);
+      sig = std::sqrt(sig);
+      size_t nmask = 0;
+      for (size_t k = 0; k < ma; ++k) {
+        double v2 = 0;
+        for (int ci : F.fitc) {
+          const Comp& c = comps[static_cast<size_t>(ci)];
+          if (c.group != g || !F.reaches(c, *model[i])) continue;
+          const double v = F.sens(c, *model[i], k) * model[i]->value(ctx, k, model[i]->p.data());
+          v2 += v * v;
+        }
+        if (std::sqrt(v2) > 0.5 * sig && F.held[k]) mask[k] = 1, ++nmask;
+      }
+      const std::vector<char>* mp = nmask >= 5 ? &mask : nullptr;
+      const double b = group_rms(F, others, g, true, mp), a = group_rms(F, fx_all, g, true, mp);
+      const double bw = group_rms(F, others, g, true), aw = group_rms(F, fx_all, g, true);
+      if (bw * bw - aw * aw > best)
+        best = bw * bw - aw * aw, fd.group = g, fd.heldout_rms_before = b, fd.heldout_rms_after = a;
+    }
+    std::string dom = fd.group;
+    double domv = -1;
+    for (int ci : F.fitc) {
+      const Comp& c = comps[static_cast<size_t>(ci)];
+      if (!F.reaches(c, *model[i])) continue;
+      double s = 0;
+      for (size_t k = 0; k < ma; k += sstride) {
+        const double v = F.sens(c, *model[i], k) * model[i]->value(ctx, k, model[i]->p.data()) / c.sigma;
+        s += v * v;
+      }
+      if (s > domv) domv = s, dom = c.name;
+    }
+    fd.explains = explain(*fd.effect, dom);
+    fd.share = weighted_ms(F, others, true) - held_ms;
+    total_gain += std::max(0.0, fd.share);
+    R.findings.push_back(std::move(fd));
+  }
+  for (auto& fd : R.findings) fd.share = total_gain > 0 ? std::max(0.0, fd.share) / total_gain : 0;
+  std::stable_sort(R.findings.begin(), R.findings.end(),
+                   [](const Finding& a, const Finding& b) { return a.share > b.share; });
+  R.heldout_rms_before = std::sqrt(held_ms_start);
+  R.heldout_rms_after = std::sqrt(held_ms);
+
+  // ---- 5. localisation ------------------------------------------------------------------------------
+  std::vector<std::vector<double>> rev_times(5);
+  for (int j = 0; j < 5; ++j) {
+    double dir = 0;  // reversal: the direction of motion changes (full-rate commanded positions)
+    for (size_t i = 1; i < n; ++i) {
+      const double dq = cmd[i][j] - cmd[i - 1][j];
+      if (std::abs(dq) > 1e-12) {
+        const double nd = dq > 0 ? 1 : -1;
+        if (dir != 0 && nd != dir) rev_times[static_cast<size_t>(j)].push_back(t[i - 1]);
+        dir = nd;
+      }
+    }
+  }
+  for (size_t ci = 0; ci < comps.size(); ++ci) {
+    const Comp& c = comps[ci];
+    double mean = 0, cnt = 0;
+    for (double v : c.res_full)
+      if (!std::isnan(v)) mean += v, cnt += 1;
+    if (cnt == 0) continue;
+    mean /= cnt;
+    double ms = 0;
+    for (double v : c.res_full)
+      if (!std::isnan(v)) ms += (v - mean) * (v - mean);
+    const double rms = std::sqrt(ms / cnt);
+    if (rms < 1.5 * c.sigma) continue;  // nothing beyond noise in this channel
+    // Windows in time where the residual is large.
+    const int W = 40;
+    std::vector<double> wr(W, 0.0), wc(W, 0.0);
+    for (size_t i = 0; i < n; ++i) {
+      if (std::isnan(c.res_full[i])) continue;
+      const int w = std::min(W - 1, static_cast<int>((t[i] - t.front()) / std::max(duration, 1e-12) * W));
+      wr[static_cast<size_t>(w)] += (c.res_full[i] - mean) * (c.res_full[i] - mean);
+      wc[static_cast<size_t>(w)] += 1;
+    }
+    for (int w = 0; w < W; ++w)
+      wr[static_cast<size_t>(w)] =
+          wc[static_cast<size_t>(w)] > 0 ? std::sqrt(wr[static_cast<size_t>(w)] / wc[static_cast<size_t>(w)]) : 0;
+    const double wmed = median(wr);
+    int emitted = 0;
+    for (int w = 0; w < W && emitted < 3; ++w) {
+      if (!(wr[static_cast<size_t>(w)] > 2.0 * wmed && wr[static_cast<size_t>(w)] > 3 * c.sigma)) continue;
+      int w2 = w;
+      double peak = wr[static_cast<size_t>(w)];
+      while (w2 + 1 < W && wr[static_cast<size_t>(w2 + 1)] > 2.0 * wmed)
+        peak = std::max(peak, wr[static_cast<size_t>(++w2)]);
+      Localization l;
+      l.channel = c.name;
+      l.t_start = t.front() + duration * w / W;
+      l.t_end = t.front() + duration * (w2 + 1) / W;
+      l.rms = peak;
+      std::string with;
+      for (int j = 0; j < 5; ++j)
+        for (double tr : rev_times[static_cast<size_t>(j)])
+          if (tr >= l.t_start - duration / W && tr <= l.t_end + duration / W) {
+            with += (with.empty() ? "reversal of " : ", ") + m.axes[static_cast<size_t>(j)].name;
+            break;
+          }
+      l.coincides_with = with.empty() ? "" : with;  // no reversal: filled with the best feature below
+      R.localization.push_back(l);
+      ++emitted;
+      w = w2;
+    }
+    // Correlation with features of the motion over the whole run.
+    std::string best_feat;
+    double best_r2 = 0;
+    auto corr = [&](const std::vector<double>& f, const std::string& name) {
+      double sx = 0, sy = 0, sxx = 0, syy = 0, sxy = 0, k = 0;
+      for (size_t a = 0; a < ma; ++a) {
+        const double y = c.res[a];
+        if (std::isnan(y)) continue;
+        sx += f[a], sy += y, sxx += f[a] * f[a], syy += y * y, sxy += f[a] * y, k += 1;
+      }
+      const double vx = sxx - sx * sx / k, vy = syy - sy * sy / k, cxy = sxy - sx * sy / k;
+      if (vx <= 1e-300 || vy <= 1e-300) return;
+      const double r2 = cxy * cxy / (vx * vy);
+      if (r2 > best_r2) best_r2 = r2, best_feat = name;
+    };
+    corr(ctx.t, "elapsed time");
+    for (int j = 0; j < 5; ++j) {
+      const auto& an = m.axes[static_cast<size_t>(j)].name;
+      corr(ctx.q[static_cast<size_t>(j)], "position along " + an);
+      corr(ctx.v[static_cast<size_t>(j)], "velocity of " + an);
+      corr(ctx.a[static_cast<size_t>(j)], "acceleration of " + an);
+      corr(ctx.dir[static_cast<size_t>(j)], "direction of motion of " + an + " (reversals)");
+    }
+    for (auto& l : R.localization)
+      if (l.channel == c.name && l.coincides_with.empty())
+        l.coincides_with = best_r2 > 0.2 ? fmt::format("no reversal there; the channel follows the {}", best_feat)
+                                         : "elapsed time (no reversal there)";
+    if (best_r2 > 0.2) {
+      Localization l;
+      l.channel = c.name;
+      l.t_start = t.front();
+      l.t_end = t.back();
+      l.rms = rms;
+      l.coincides_with = fmt::format("{} (R^2 = {:.2f})", best_feat, best_r2);
+      R.localization.push_back(l);
+    }
+    for (const auto& pk : peaks[ci]) {
+      Localization l;
+      l.channel = c.name;
+      l.t_start = t.front();
+      l.t_end = t.back();
+      l.rms = pk.amp / std::sqrt(2.0);
+      const std::string src = source_of(pk.f, rpm, flutes);
+      std::string rel =
+          src == "tooth_passing"
+              ? fmt::format(" = tooth passing ({} rpm x {} flutes / 60 = {:.1f} Hz{})", rpm, flutes, rpm * flutes / 60,
+                            std::round(pk.f / (rpm * flutes / 60)) > 1 ? ", harmonic" : "")
+          : src == "spindle" ? fmt::format(" = spindle rotation ({} rpm / 60 = {:.1f} Hz)", rpm, rpm / 60)
+                             : " (not related to the spindle)";
+      l.coincides_with = fmt::format("spectral peak at {:.1f} Hz{}", pk.f, rel);
+      R.localization.push_back(l);
+    }
+  }
+  R.seconds.emplace_back("localise_and_report", secs(tstage));
+
+  // ---- 6. verdict ------------------------------------------------------------------------------------
+  std::string fitted_groups;
+  double noise_total = 0;
+  for (const auto& [g, v] : R.noise)
+    if (g != "acc") noise_total = std::max(noise_total, v);
+  if (R.findings.empty()) {
+    std::string parts;
+    for (size_t i = 0; i < R.rms_before.size(); ++i)
+      if (R.rms_before[i].first != "acc")
+        parts += fmt::format("{}{} {:.2f} um RMS vs noise {:.2f} um", parts.empty() ? "" : ", ", R.rms_before[i].first,
+                             R.rms_before[i].second * 1000, R.noise[i].second * 1000);
+    R.verdict =
+        fmt::format("no missing physics found: the residual is consistent with measurement noise alone ({})", parts);
+  } else {
+    std::string parts;
+    for (const auto& fd : R.findings) parts += (parts.empty() ? "" : "; ") + describe(*fd.effect);
+    const auto& top = R.findings.front();
+    R.verdict = fmt::format("missing physics: {}; modelled, the held-out RMS of {} falls from {} to {}", parts,
+                            top.group, fmt_um(top.heldout_rms_before), fmt_um(top.heldout_rms_after));
+  }
+
+  // ---- plot data ---------------------------------------------------------------------------------------
+  if (o.keep_plot_data) {
+    int mci = F.fitc.empty() ? 0 : F.fitc.front();
+    double best = -1;
+    for (int ci : F.fitc) {
+      double s = 0;
+      for (size_t k = 0; k < ma; ++k)
+        if (!std::isnan(comps[static_cast<size_t>(ci)].res[k]))
+          s += std::pow((comps[static_cast<size_t>(ci)].res[k] - F.off[static_cast<size_t>(ci)]) /
+                            comps[static_cast<size_t>(ci)].sigma,
+                        2);
+      if (s > best) best = s, mci = ci;
+    }
+    const Comp& c = comps[static_cast<size_t>(mci)];
+    R.main_channel = c.name;
+    Series before{"before", {}, {}}, after{"after", {}, {}};
+    const size_t ps = std::max<size_t>(1, ma / 1500);
+    for (size_t k = 0; k < ma; k += ps) {
+      if (std::isnan(c.res[k])) continue;
+      before.x.push_back(ctx.t[k]);
+      before.y.push_back(c.res[k] - F.off[static_cast<size_t>(mci)]);
+      after.x.push_back(ctx.t[k]);
+      after.y.push_back(model_residual(F, fx_all, mci, k));
+    }
+    R.plots_time = {before, after};
+    // Feature: the axis position the residual correlates with best (or time).
+    R.feature_name = "elapsed time, s";
+    std::vector<double> feat = ctx.t;
+    if (!R.findings.empty() && R.findings.front().effect->axis >= 0) {
+      const int ax =
+          R.findings.front().effect->axis2 >= 0 ? R.findings.front().effect->axis2 : R.findings.front().effect->axis;
+      feat = ctx.q[static_cast<size_t>(ax)];
+      R.feature_name = "position of " + m.axes[static_cast<size_t>(ax)].name;
+    }
+    Series fb{"before", {}, {}}, fa{"after", {}, {}};
+    for (size_t k = 0; k < ma; k += ps) {
+      if (std::isnan(c.res[k])) continue;
+      fb.x.push_back(feat[k]);
+      fb.y.push_back(c.res[k] - F.off[static_cast<size_t>(mci)]);
+      fa.x.push_back(feat[k]);
+      fa.y.push_back(model_residual(F, fx_all, mci, k));
+    }
+    R.plots_feature = {fb, fa};
+    // Spectrum of the main channel (amplitude, mm) on a thinned frequency axis.
+    const auto& P = spectra[static_cast<size_t>(mci)];
+    Series sp{c.name, {}, {}};
+    const size_t fstep = std::max<size_t>(1, P.size() / 4000);
+    for (size_t k = 1; k < P.size(); k += fstep) {
+      double mx = 0;
+      for (size_t q = k; q < std::min(P.size(), k + fstep); ++q) mx = std::max(mx, P[q]);
+      sp.x.push_back(static_cast<double>(k) * fs / static_cast<double>(n));
+      sp.y.push_back(2.0 * std::sqrt(mx) / static_cast<double>(n));
+    }
+    R.plots_spectrum = {sp};
+    for (const auto& pk : peaks[static_cast<size_t>(mci)]) R.peak_freqs.push_back(pk.f);
+  }
+  return R;
+}
+
+std::string Report::to_json() const {
+  nlohmann::ordered_json j;
+  j["recording"] = recording;
+  j["machine"] = machine;
+  j["samples"] = samples;
+  j["rms_before"] = nlohmann::ordered_json::object();
+  for (const auto& [k, v] : rms_before) j["rms_before"][k] = v;
+  j["noise"] = nlohmann::ordered_json::object();
+  for (const auto& [k, v] : noise) j["noise"][k] = v;
+  j["localization"] = nlohmann::ordered_json::array();
+  for (const auto& l : localization)
+    j["localization"].push_back({{"channel", l.channel},
+                                 {"t_start", l.t_start},
+                                 {"t_end", l.t_end},
+                                 {"rms", l.rms},
+                                 {"coincides_with", l.coincides_with}});
+  j["findings"] = nlohmann::ordered_json::array();
+  for (const auto& f : findings) {
+    nlohmann::ordered_json p = nlohmann::ordered_json::object();
+    for (const auto& [k, v] : f.effect->reported()) p[k] = v;
+    if (f.effect->name() == "vibration" && !f.effect->note.empty()) p["source"] = f.effect->note;
+    nlohmann::ordered_json fj;
+    fj["effect"] = f.effect->name();
+    fj["target"] = f.effect->target;
+    fj["parameters"] = p;
+    fj["explains"] = f.explains;
+    fj["channel"] = f.group;
+    fj["share"] = f.share;
+    fj["heldout_rms_before"] = f.heldout_rms_before;
+    fj["heldout_rms_after"] = f.heldout_rms_after;
+    j["findings"].push_back(fj);
+  }
+  j["verdict"] = verdict;
+  j["seconds"] = nlohmann::ordered_json::object();
+  for (const auto& [k, v] : seconds) j["seconds"][k] = v;
+  if (!warnings.empty()) j["warnings"] = warnings;
+  return j.dump(2);
+}
+
+std::string Report::text() const {
+  std::ostringstream os;
+  os << fmt::format("recording {} ({} samples), machine {}\n", recording, samples, machine);
+  for (size_t i = 0; i < rms_before.size(); ++i)
+    os << fmt::format("  {:<10} residual RMS {:>10.4f}   noise {:>10.4f}\n", rms_before[i].first, rms_before[i].second,
+                      noise[i].second);
+  if (!localization.empty()) os << "where:\n";
+  for (const auto& l : localization)
+    os << fmt::format("  {:<8} t {:8.3f} .. {:8.3f} s  rms {:.4f}  {}\n", l.channel, l.t_start, l.t_end, l.rms,
+                      l.coincides_with);
+  if (!findings.empty()) os << "findings (largest share first; held-out RMS of the channel group before -> after):\n";
+  for (const auto& f : findings) {
+    std::string ps;
+    for (const auto& [k, v] : f.effect->reported()) ps += fmt::format(" {}={:.6g}", k, v);
+    os << fmt::format("  {:>3.0f}%  {} {}:{}\n        {}; {} {:.4f} -> {:.4f}\n", 100 * f.share, f.effect->name(),
+                      f.effect->target, ps, f.explains, f.group, f.heldout_rms_before, f.heldout_rms_after);
+  }
+  os << "verdict: " << verdict << "\n";
+  return os.str();
+}
+
+std::string model_yaml(const std::string& text, const std::vector<const sim::Effect*>& effects) {
+  // Drop an old top-level effects: block (its line and the indented/list lines that follow).
+  std::istringstream in(text);
+  std::string line, out;
+  bool skipping = false;
+  while (std::getline(in, line)) {
+    if (line.rfind("effects:", 0) == 0) {
+      skipping = true;
+      continue;
+    }
+    if (skipping && (line.empty() || line[0] == ' ' || line[0] == '-' || line[0] == '#')) continue;
+    skipping = false;
+    out += line + "\n";
+  }
+  out += "# Identified by cscam diagnose: applied by cscam simulate, part of the model in cscam diagnose.\n";
+  out += sim::effects_yaml(effects);
+  return out;
+}
+
+std::string linuxcnc_ini(const machine::Machine& m, const std::vector<const sim::Effect*>& effects,
+                         const std::string& comp_prefix, std::map<std::string, std::string>& comp_files) {
+  std::string ini = "# LinuxCNC compensation from cscam diagnose (joint numbers in the machine file's axis order)\n";
+  for (int j = 0; j < 5; ++j) {
+    double backlash = 0;
+    std::vector<const sim::Effect*> table;
+    for (const auto* e : effects) {
+      if (e->scope() != sim::Scope::Axis || e->axis != j || e->axis2 >= 0) continue;
+      if (e->name() == "backlash") backlash += e->p[0];
+      if (e->name() == "scale" || e->name() == "cyclic") table.push_back(e);
+    }
+    if (backlash == 0 && table.empty()) continue;
+    const auto& ax = m.axes[static_cast<size_t>(j)];
+    ini += fmt::format("[JOINT_{}]\n# axis {}\n", j, ax.name);
+    if (table.empty()) {
+      ini += fmt::format("BACKLASH = {:.6f}\n", backlash);
+      continue;
+    }
+    // COMP_FILE_TYPE 0: nominal, position while moving forward, position while moving in reverse.
+    const std::string file = fmt::format("{}.joint{}.comp", comp_prefix, j);
+    const double lo = ax.rotary() ? ax.min * 180 / 3.14159265358979323846 : ax.min;
+    const double hi = ax.rotary() ? ax.max * 180 / 3.14159265358979323846 : ax.max;
+    const double span = std::min(hi - lo, ax.rotary() ? 720.0 : 2000.0);
+    double step = span / 256;
+    for (const auto* e : table)
+      if (e->name() == "cyclic") step = std::min(step, e->p[0] / 8);
+    std::string tab = fmt::format("# {} {}: nominal forward reverse (COMP_FILE_TYPE 0)\n", m.name, ax.name);
+    const double c0 = std::max(lo, -span / 2), c1 = std::min(hi, span / 2);
+    sim::Context ctx;
+    for (double x = c0; x <= c1 + 1e-9; x += step) {
+      double dev = 0;
+      for (const auto* e : table) {
+        if (e->name() == "scale") dev += x * 1e-6 * e->p[0];
+        if (e->name() == "cyclic") {
+          const double ph = 2 * 3.14159265358979323846 * x / e->p[0];
+          dev += e->p[1] * std::sin(ph) + e->p[2] * std::cos(ph);
+        }
+      }
+      tab += fmt::format("{:.6f} {:.6f} {:.6f}\n", x, x + dev - backlash / 2, x + dev + backlash / 2);
+      if (tab.size() > 2'000'000) break;
+    }
+    comp_files[file] = tab;
+    ini += fmt::format("COMP_FILE = {}\nCOMP_FILE_TYPE = 0\n", file);
+    if (backlash != 0) ini += "# backlash is included in the table (BACKLASH must stay 0 with a COMP_FILE)\n";
+  }
+  return ini;
+}
+
+namespace {
+std::string svg_plot(const std::string& title, const std::string& xlabel, const std::string& ylabel,
+                     const std::vector<Series>& series, bool points, const std::vector<double>& marks = {}) {
+  const double W = 800, H = 360, ml = 70, mr = 20, mt = 30, mb = 45;
+  double x0 = 1e300, x1 = -1e300, y0 = 1e300, y1 = -1e300;
+  for (const auto& s : series)
+    for (size_t i = 0; i < s.x.size(); ++i)
+      x0 = std::min(x0, s.x[i]), x1 = std::max(x1, s.x[i]), y0 = std::min(y0, s.y[i]), y1 = std::max(y1, s.y[i]);
+  if (!(x1 > x0)) x1 = x0 + 1;
+  if (!(y1 > y0)) y1 = y0 + 1e-6;
+  auto X = [&](double x) { return ml + (x - x0) / (x1 - x0) * (W - ml - mr); };
+  auto Y = [&](double y) { return H - mb - (y - y0) / (y1 - y0) * (H - mt - mb); };
+  std::string s = fmt::format(
+      "<svg xmlns=\"http://www.w3.org/2000/svg\" width=\"{}\" height=\"{}\" font-family=\"sans-serif\" "
+      "font-size=\"12\">\n",
+      W, H);
+  s += fmt::format("<rect x=\"{}\" y=\"{}\" width=\"{}\" height=\"{}\" fill=\"none\" stroke=\"#444\"/>\n", ml, mt,
+                   W - ml - mr, H - mt - mb);
+  s += fmt::format("<text x=\"{}\" y=\"20\" font-size=\"14\">{}</text>\n", ml, title);
+  s += fmt::format("<text x=\"{}\" y=\"{}\" text-anchor=\"middle\">{}</text>\n", (W + ml) / 2, H - 8, xlabel);
+  s += fmt::format("<text x=\"14\" y=\"{}\" transform=\"rotate(-90 14 {})\" text-anchor=\"middle\">{}</text>\n", H / 2,
+                   H / 2, ylabel);
+  for (int i = 0; i <= 4; ++i) {
+    const double xv = x0 + (x1 - x0) * i / 4, yv = y0 + (y1 - y0) * i / 4;
+    s += fmt::format("<text x=\"{:.1f}\" y=\"{}\" text-anchor=\"middle\">{:.4g}</text>\n", X(xv), H - mb + 15, xv);
+    s += fmt::format("<text x=\"{}\" y=\"{:.1f}\" text-anchor=\"end\">{:.4g}</text>\n", ml - 4, Y(yv) + 4, yv);
+  }
+  const char* colors[] = {"#c0392b", "#2471a3", "#229954", "#7d3c98"};
+  for (size_t k = 0; k < series.size(); ++k) {
+    const auto& se = series[k];
+    if (points) {
+      for (size_t i = 0; i < se.x.size(); ++i)
+        s += fmt::format("<circle cx=\"{:.1f}\" cy=\"{:.1f}\" r=\"1.2\" fill=\"{}\"/>\n", X(se.x[i]), Y(se.y[i]),
+                         colors[k % 4]);
+    } else {
+      s += fmt::format("<polyline fill=\"none\" stroke=\"{}\" stroke-width=\"1\" points=\"", colors[k % 4]);
+      for (size_t i = 0; i < se.x.size(); ++i) s += fmt::format("{:.1f},{:.1f} ", X(se.x[i]), Y(se.y[i]));
+      s += "\"/>\n";
+    }
+    s += fmt::format("<text x=\"{}\" y=\"{}\" fill=\"{}\">{}</text>\n", W - mr - 120, mt + 16 + 14 * k, colors[k % 4],
+                     se.name);
+  }
+  for (double mk : marks)
+    s += fmt::format(
+        "<line x1=\"{0:.1f}\" x2=\"{0:.1f}\" y1=\"{1}\" y2=\"{2}\" stroke=\"#e67e22\" stroke-dasharray=\"4 3\"/>"
+        "<text x=\"{0:.1f}\" y=\"{3}\" fill=\"#e67e22\">{4:.1f} Hz</text>\n",
+        X(mk), mt, H - mb, mt + 12, mk);
+  s += "</svg>\n";
+  return s;
+}
+}  // namespace
+
+std::map<std::string, std::string> svg_pictures(const Report& r) {
+  std::map<std::string, std::string> out;
+  if (r.plots_time.empty()) return out;
+  out["residual_time.svg"] = svg_plot("residual of " + r.main_channel + " before and after the identified effects",
+                                      "time, s", r.main_channel + " residual", r.plots_time, false);
+  out["residual_feature.svg"] = svg_plot("residual of " + r.main_channel + " against " + r.feature_name, r.feature_name,
+                                         r.main_channel + " residual", r.plots_feature, true);
+  out["spectrum.svg"] = svg_plot("amplitude spectrum of the " + r.main_channel + " residual (identified peaks dashed)",
+                                 "frequency, Hz", "amplitude", r.plots_spectrum, false, r.peak_freqs);
+  return out;
+}
+
+}  // namespace cscam::diagnose

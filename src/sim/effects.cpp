@@ -1,0 +1,614 @@
+#include "cscam/sim/effects.hpp"
+
+#include <ceres/jet.h>
+#include <fmt/format.h>
+#include <yaml-cpp/yaml.h>
+
+#include <cmath>
+#include <functional>
+#include <map>
+#include <numbers>
+
+#include "cscam/calib/model.hpp"
+#include "cscam/core/error.hpp"
+#include "cscam/machine/machine.hpp"
+
+namespace cscam::sim {
+
+namespace {
+constexpr double kPi = std::numbers::pi;
+constexpr double kInf = std::numeric_limits<double>::infinity();
+}  // namespace
+
+Context make_context(const std::vector<double>& t, const std::vector<kin::Axes>& cmd, const std::array<bool, 5>& rotary,
+                     size_t stride) {
+  Context c;
+  const size_t n = t.size();
+  CSCAM_CHECK(cmd.size() == n, "make_context: t and cmd differ in length");
+  if (stride < 1) stride = 1;
+  c.rotary = rotary;
+  c.t0 = n ? t.front() : 0;
+  c.duration = n ? t.back() - t.front() : 0;
+  const size_t m = n ? (n - 1) / stride + 1 : 0;
+  c.t.reserve(m);
+  c.index.reserve(m);
+  for (size_t i = 0; i < n; i += stride) {
+    c.t.push_back(t[i]);
+    c.index.push_back(i);
+  }
+  for (int ax = 0; ax < 5; ++ax) {
+    auto& q = c.q[ax];
+    auto& v = c.v[ax];
+    auto& a = c.a[ax];
+    auto& d = c.dir[ax];
+    auto& s = c.since_rev[ax];
+    q.reserve(m), v.reserve(m), a.reserve(m), d.reserve(m), s.reserve(m);
+    // Direction of the last motion (initially that of the first motion) and time of the last reversal.
+    double dir = 0;
+    for (size_t i = 1; i < n && dir == 0; ++i) {
+      const double dq = cmd[i][ax] - cmd[i - 1][ax];
+      if (std::abs(dq) > 1e-12) dir = dq > 0 ? 1 : -1;
+    }
+    if (dir == 0) dir = 1;
+    double t_rev = -kInf;
+    for (size_t i = 0; i < n; ++i) {
+      if (i > 0) {
+        const double dq = cmd[i][ax] - cmd[i - 1][ax];
+        if (std::abs(dq) > 1e-12) {
+          const double nd = dq > 0 ? 1 : -1;
+          if (nd != dir) t_rev = t[i - 1];
+          dir = nd;
+        }
+      }
+      if (i % stride) continue;
+      q.push_back(cmd[i][ax]);
+      d.push_back(dir);
+      s.push_back(t[i] - t_rev);
+      // Velocity and acceleration by central differences (one-sided at the ends).
+      const size_t i0 = i > 0 ? i - 1 : i, i1 = i + 1 < n ? i + 1 : i;
+      v.push_back(i1 > i0 ? (cmd[i1][ax] - cmd[i0][ax]) / (t[i1] - t[i0]) : 0.0);
+      if (i > 0 && i + 1 < n) {
+        const double h0 = t[i] - t[i - 1], h1 = t[i + 1] - t[i];
+        a.push_back(2.0 * ((cmd[i + 1][ax] - cmd[i][ax]) / h1 - (cmd[i][ax] - cmd[i - 1][ax]) / h0) / (h0 + h1));
+      } else {
+        a.push_back(0.0);
+      }
+    }
+  }
+  return c;
+}
+
+std::vector<std::vector<double>> Effect::grid(const Context&, const GridHints&) const {
+  return {std::vector<double>(p.size(), 0.0)};
+}
+
+namespace {
+
+/// The one place each effect is written: Derived provides
+///   static constexpr int N; names, linear flags, signature; template <class T> T eval(ctx, i, p) const.
+template <class Derived, int N>
+class EffectImpl : public Effect {
+ public:
+  EffectImpl() { p.assign(N, 0.0); }
+  double value(const Context& ctx, size_t i, const double* pp) const override {
+    return static_cast<const Derived*>(this)->template eval<double>(ctx, i, pp);
+  }
+  double value_grad(const Context& ctx, size_t i, const double* pp, double* g) const override {
+    using J = ceres::Jet<double, N>;
+    std::array<J, N> pj;
+    for (int k = 0; k < N; ++k) pj[k] = J(pp[k], k);
+    const J v = static_cast<const Derived*>(this)->template eval<J>(ctx, i, pj.data());
+    for (int k = 0; k < N; ++k) g[k] = v.v[k];
+    return v.a;
+  }
+  std::unique_ptr<Effect> clone() const override {
+    return std::make_unique<Derived>(*static_cast<const Derived*>(this));
+  }
+};
+
+std::string unit_of(bool rotary) { return rotary ? "deg" : "mm"; }
+
+double get(const std::vector<std::pair<std::string, double>>& kv, const std::string& key, const std::string& effect,
+           std::optional<double> def = std::nullopt) {
+  for (const auto& [k, v] : kv)
+    if (k == key) return v;
+  if (def) return *def;
+  throw InputError(fmt::format("effect {}: parameter '{}' is missing", effect, key));
+}
+
+// ---- axis effects -------------------------------------------------------------------------------------
+
+class Backlash : public EffectImpl<Backlash, 1> {
+ public:
+  std::string name() const override { return "backlash"; }
+  Scope scope() const override { return Scope::Axis; }
+  std::vector<std::string> internal_names() const override { return {"width"}; }
+  std::vector<bool> linear() const override { return {true}; }
+  std::string signature() const override {
+    return fmt::format("step in the channels {} moves at every reversal of {}", target, target);
+  }
+  /// Lost motion of full width b: the axis trails the command by b/2 against its direction of motion.
+  template <class T>
+  T eval(const Context& c, size_t i, const T* pp) const {
+    return -0.5 * c.dir[axis][i] * pp[0];
+  }
+  std::vector<std::pair<std::string, double>> reported() const override {
+    return {{"magnitude_" + unit_of(rotary), p[0]}};
+  }
+  void set_reported(const std::vector<std::pair<std::string, double>>& kv) override {
+    p[0] = get(kv, "magnitude_" + unit_of(rotary), name());
+  }
+};
+
+class ServoLag : public EffectImpl<ServoLag, 1> {
+ public:
+  std::string name() const override { return "servo_lag"; }
+  Scope scope() const override { return Scope::Axis; }
+  std::vector<std::string> internal_names() const override { return {"lag_s"}; }
+  std::vector<bool> linear() const override { return {true}; }
+  std::string signature() const override {
+    return fmt::format("following error proportional to the velocity of {}", target);
+  }
+  template <class T>
+  T eval(const Context& c, size_t i, const T* pp) const {
+    return -c.v[axis][i] * pp[0];
+  }
+  std::vector<std::pair<std::string, double>> reported() const override { return {{"lag_s", p[0]}}; }
+  void set_reported(const std::vector<std::pair<std::string, double>>& kv) override { p[0] = get(kv, "lag_s", name()); }
+};
+
+class Scale : public EffectImpl<Scale, 1> {
+ public:
+  std::string name() const override { return "scale"; }
+  Scope scope() const override { return Scope::Axis; }
+  std::vector<std::string> internal_names() const override { return {"ppm"}; }
+  std::vector<bool> linear() const override { return {true}; }
+  std::string signature() const override { return fmt::format("error proportional to the position of {}", target); }
+  template <class T>
+  T eval(const Context& c, size_t i, const T* pp) const {
+    return c.q[axis][i] * 1e-6 * pp[0];
+  }
+  std::vector<std::pair<std::string, double>> reported() const override { return {{"ppm", p[0]}}; }
+  void set_reported(const std::vector<std::pair<std::string, double>>& kv) override { p[0] = get(kv, "ppm", name()); }
+};
+
+class Squareness : public EffectImpl<Squareness, 1> {
+ public:
+  std::string name() const override { return "squareness"; }
+  Scope scope() const override { return Scope::Axis; }
+  std::vector<std::string> internal_names() const override { return {"angle_urad"}; }
+  std::vector<bool> linear() const override { return {true}; }
+  std::string signature() const override {
+    return fmt::format("error of the first axis proportional to the position of the second ({})", target);
+  }
+  template <class T>
+  T eval(const Context& c, size_t i, const T* pp) const {
+    return c.q[axis2][i] * 1e-6 * pp[0];
+  }
+  std::vector<std::pair<std::string, double>> reported() const override { return {{"angle_urad", p[0]}}; }
+  void set_reported(const std::vector<std::pair<std::string, double>>& kv) override {
+    p[0] = get(kv, "angle_urad", name());
+  }
+};
+
+class Cyclic : public EffectImpl<Cyclic, 3> {
+ public:
+  std::string name() const override { return "cyclic"; }
+  Scope scope() const override { return Scope::Axis; }
+  std::vector<std::string> internal_names() const override { return {"period", "a_sin", "a_cos"}; }
+  std::vector<bool> linear() const override { return {false, true, true}; }
+  std::string signature() const override {
+    return fmt::format("error periodic in the position of {} (screw pitch, encoder interpolation)", target);
+  }
+  template <class T>
+  T eval(const Context& c, size_t i, const T* pp) const {
+    using std::cos, std::sin;
+    const T ph = 2.0 * kPi * c.q[axis][i] / pp[0];
+    return pp[1] * sin(ph) + pp[2] * cos(ph);
+  }
+  std::vector<std::pair<std::string, double>> reported() const override {
+    const std::string u = unit_of(rotary);
+    return {{"period_" + u, p[0]},
+            {"amplitude_" + u, std::hypot(p[1], p[2])},
+            {"phase_deg", std::atan2(p[2], p[1]) * 180 / kPi}};
+  }
+  void set_reported(const std::vector<std::pair<std::string, double>>& kv) override {
+    const std::string u = unit_of(rotary);
+    p[0] = get(kv, "period_" + u, name());
+    if (!(p[0] > 0)) throw InputError("effect cyclic: period must be positive");
+    const double amp = get(kv, "amplitude_" + u, name()), ph = get(kv, "phase_deg", name(), 0.0) * kPi / 180;
+    p[1] = amp * std::cos(ph);
+    p[2] = amp * std::sin(ph);
+  }
+  std::vector<std::vector<double>> grid(const Context& c, const GridHints&) const override {
+    std::vector<std::vector<double>> g;
+    double lo = kInf, hi = -kInf;
+    for (double q : c.q[axis]) lo = std::min(lo, q), hi = std::max(hi, q);
+    const double span = hi - lo;
+    const std::vector<double> periods =
+        rotary ? std::vector<double>{1, 2, 3, 4, 5, 6, 8, 10, 12, 15, 20, 30, 45, 60, 90}
+               : std::vector<double>{0.5, 1, 2, 2.5, 3, 4, 5, 6, 8, 10, 12, 16, 20, 25, 32, 40};
+    for (double per : periods)
+      if (span >= 1.5 * per) g.push_back({per, 0, 0});  // at least one and a half periods seen
+    return g;
+  }
+};
+
+class FrictionSpike : public EffectImpl<FrictionSpike, 2> {
+ public:
+  std::string name() const override { return "friction_spike"; }
+  Scope scope() const override { return Scope::Axis; }
+  std::vector<std::string> internal_names() const override { return {"peak", "decay_s"}; }
+  std::vector<bool> linear() const override { return {true, false}; }
+  std::string signature() const override {
+    return fmt::format("spike decaying after every reversal of {} (stick-slip, quadrant glitch)", target);
+  }
+  /// The axis lags by `peak` just after a reversal; the lag decays with time constant `decay_s`.
+  template <class T>
+  T eval(const Context& c, size_t i, const T* pp) const {
+    using std::exp;
+    const double s = c.since_rev[axis][i];
+    if (!std::isfinite(s)) return T(0.0);
+    return -c.dir[axis][i] * pp[0] * exp(-s / pp[1]);
+  }
+  std::vector<std::pair<std::string, double>> reported() const override {
+    return {{"peak_" + unit_of(rotary), p[0]}, {"decay_s", p[1]}};
+  }
+  void set_reported(const std::vector<std::pair<std::string, double>>& kv) override {
+    p[0] = get(kv, "peak_" + unit_of(rotary), name());
+    p[1] = get(kv, "decay_s", name());
+    if (!(p[1] > 0)) throw InputError("effect friction_spike: decay_s must be positive");
+  }
+  std::vector<std::vector<double>> grid(const Context&, const GridHints&) const override {
+    return {{0, 0.003}, {0, 0.01}, {0, 0.02}, {0, 0.05}, {0, 0.1}, {0, 0.2}, {0, 0.5}};
+  }
+};
+
+class Compliance : public EffectImpl<Compliance, 1> {
+ public:
+  std::string name() const override { return "compliance"; }
+  Scope scope() const override { return Scope::Axis; }
+  std::vector<std::string> internal_names() const override { return {"k"}; }
+  std::vector<bool> linear() const override { return {true}; }
+  std::string signature() const override {
+    return fmt::format("deflection proportional to the commanded acceleration of {} (inertial load)", target);
+  }
+  /// Deflection against the acceleration: -k a, a in m/s^2 (linear) or deg/s^2 (rotary).
+  template <class T>
+  T eval(const Context& c, size_t i, const T* pp) const {
+    return -(rotary ? c.a[axis][i] : c.a[axis][i] * 1e-3) * pp[0];
+  }
+  std::vector<std::pair<std::string, double>> reported() const override {
+    return {{rotary ? "deg_per_deg_s2" : "mm_per_m_s2", p[0]}};
+  }
+  void set_reported(const std::vector<std::pair<std::string, double>>& kv) override {
+    p[0] = get(kv, rotary ? "deg_per_deg_s2" : "mm_per_m_s2", name());
+  }
+};
+
+// ---- channel effects ----------------------------------------------------------------------------------
+
+class ThermalDrift : public EffectImpl<ThermalDrift, 2> {
+ public:
+  std::string name() const override { return "thermal_drift"; }
+  Scope scope() const override { return Scope::Channel; }
+  std::vector<std::string> internal_names() const override { return {"drift", "tau_s"}; }
+  std::vector<bool> linear() const override { return {true, false}; }
+  std::string signature() const override { return fmt::format("slow monotonic drift of {} with elapsed time", target); }
+  /// drift (1 - exp(-(t - t0)/tau)) / (1 - exp(-T/tau)): zero at the start, `drift` at the end of the run.
+  template <class T>
+  T eval(const Context& c, size_t i, const T* pp) const {
+    using std::exp;
+    const double T_run = std::max(c.duration, 1e-9);
+    return pp[0] * (1.0 - exp(-(c.t[i] - c.t0) / pp[1])) / (1.0 - exp(-T_run / pp[1]));
+  }
+  std::vector<std::pair<std::string, double>> reported() const override {
+    return {{"drift_mm", p[0]}, {"time_constant_s", p[1]}};
+  }
+  void set_reported(const std::vector<std::pair<std::string, double>>& kv) override {
+    p[0] = get(kv, "drift_mm", name());
+    p[1] = get(kv, "time_constant_s", name());
+    if (!(p[1] > 0)) throw InputError("effect thermal_drift: time_constant_s must be positive");
+  }
+  std::vector<std::vector<double>> grid(const Context& c, const GridHints&) const override {
+    std::vector<std::vector<double>> g;
+    for (double f : {0.05, 0.1, 0.2, 0.35, 0.5, 1.0, 2.0, 5.0}) g.push_back({0, f * std::max(c.duration, 1e-3)});
+    return g;
+  }
+};
+
+class Vibration : public EffectImpl<Vibration, 3> {
+ public:
+  std::string name() const override { return "vibration"; }
+  Scope scope() const override { return Scope::Channel; }
+  std::vector<std::string> internal_names() const override { return {"frequency_hz", "a_sin", "a_cos"}; }
+  std::vector<bool> linear() const override { return {false, true, true}; }
+  std::string signature() const override {
+    return fmt::format("sinusoid in {} at a fixed frequency (a spectral peak)", target);
+  }
+  template <class T>
+  T eval(const Context& c, size_t i, const T* pp) const {
+    using std::cos, std::sin;
+    const T ph = 2.0 * kPi * pp[0] * c.t[i];
+    return pp[1] * sin(ph) + pp[2] * cos(ph);
+  }
+  std::vector<std::pair<std::string, double>> reported() const override {
+    return {{"frequency_hz", p[0]},
+            {"amplitude_mm", std::hypot(p[1], p[2])},
+            {"phase_deg", std::atan2(p[2], p[1]) * 180 / kPi}};
+  }
+  void set_reported(const std::vector<std::pair<std::string, double>>& kv) override {
+    p[0] = get(kv, "frequency_hz", name());
+    if (!(p[0] > 0)) throw InputError("effect vibration: frequency_hz must be positive");
+    const double amp = get(kv, "amplitude_mm", name()), ph = get(kv, "phase_deg", name(), 0.0) * kPi / 180;
+    p[1] = amp * std::cos(ph);
+    p[2] = amp * std::sin(ph);
+  }
+  std::vector<std::vector<double>> grid(const Context&, const GridHints& h) const override {
+    std::vector<std::vector<double>> g;
+    for (double f : h.frequencies_hz) g.push_back({f, 0, 0});
+    return g;
+  }
+  std::string source() const override { return note; }
+};
+
+class Geometric : public EffectImpl<Geometric, 1> {
+ public:
+  std::string name() const override { return "geometric"; }
+  Scope scope() const override { return Scope::Geometric; }
+  std::vector<std::string> internal_names() const override { return {"deviation"}; }
+  std::vector<bool> linear() const override { return {true}; }
+  std::string signature() const override {
+    return fmt::format("position-dependent error of the tip that a change of machine parameter {} reproduces", target);
+  }
+  template <class T>
+  T eval(const Context&, size_t, const T* pp) const {
+    return pp[0];
+  }
+  std::vector<std::pair<std::string, double>> reported() const override { return {{target + "_" + unit, p[0]}}; }
+  void set_reported(const std::vector<std::pair<std::string, double>>& kv) override {
+    p[0] = get(kv, target + "_" + unit, name());
+  }
+};
+
+using Factory = std::function<std::unique_ptr<Effect>()>;
+const std::vector<std::pair<std::string, Factory>>& library() {
+  static const std::vector<std::pair<std::string, Factory>> lib{
+      {"backlash", [] { return std::make_unique<Backlash>(); }},
+      {"servo_lag", [] { return std::make_unique<ServoLag>(); }},
+      {"thermal_drift", [] { return std::make_unique<ThermalDrift>(); }},
+      {"vibration", [] { return std::make_unique<Vibration>(); }},
+      {"scale", [] { return std::make_unique<Scale>(); }},
+      {"squareness", [] { return std::make_unique<Squareness>(); }},
+      {"cyclic", [] { return std::make_unique<Cyclic>(); }},
+      {"friction_spike", [] { return std::make_unique<FrictionSpike>(); }},
+      {"compliance", [] { return std::make_unique<Compliance>(); }},
+  };
+  return lib;
+}
+
+bool valid_channel(const std::string& ch, const machine::Machine& m) {
+  const auto dot = ch.find('.');
+  if (dot == std::string::npos) return false;
+  const std::string g = ch.substr(0, dot), r = ch.substr(dot + 1);
+  if (g == "tip" || g == "ptip" || g == "dir" || g == "acc") return r == "x" || r == "y" || r == "z";
+  if (g == "enc") return m.axis_index(r) >= 0;
+  return false;
+}
+
+}  // namespace
+
+std::unique_ptr<Effect> make_geometric(const std::string& name, const std::string& unit, double nominal, double dev) {
+  auto e = std::make_unique<Geometric>();
+  e->target = name;
+  e->unit = unit;
+  e->nominal = nominal;
+  e->p[0] = dev;
+  e->enc_visible = false;
+  return e;
+}
+
+std::vector<std::string> effect_names() {
+  std::vector<std::string> n;
+  for (const auto& [k, f] : library()) n.push_back(k);
+  n.emplace_back("geometric");
+  return n;
+}
+
+std::unique_ptr<Effect> make_effect(const std::string& name, const std::string& target, const machine::Machine& m) {
+  for (const auto& [k, f] : library()) {
+    if (k != name) continue;
+    auto e = f();
+    e->target = target;
+    if (e->scope() == Scope::Channel) {
+      if (!valid_channel(target, m))
+        throw InputError(
+            fmt::format("effect {}: '{}' is not a channel of machine {} (expected tip.x|y|z, ptip.*, "
+                        "dir.*, acc.* or enc.<axis>)",
+                        name, target, m.name));
+      e->channel = target;
+      return e;
+    }
+    if (name == "squareness") {
+      const auto comma = target.find(',');
+      if (comma == std::string::npos)
+        throw InputError(fmt::format("effect squareness: target must be an axis pair like x,y, got '{}'", target));
+      e->axis = m.axis_index(target.substr(0, comma));
+      e->axis2 = m.axis_index(target.substr(comma + 1));
+      if (e->axis < 0 || e->axis2 < 0 || e->axis == e->axis2)
+        throw InputError(fmt::format("effect squareness: '{}' is not a pair of axes of machine {}", target, m.name));
+      e->enc_visible = false;
+    } else {
+      e->axis = m.axis_index(target);
+      if (e->axis < 0) throw InputError(fmt::format("effect {}: machine {} has no axis '{}'", name, m.name, target));
+      // Errors of the encoder's own scale or of the structure are invisible to the axis's encoder.
+      e->enc_visible = !(name == "scale" || name == "cyclic");
+    }
+    e->rotary = m.axes[static_cast<size_t>(e->axis)].rotary();
+    return e;
+  }
+  if (name == "geometric")
+    throw InputError("effect geometric: give it as geometric:PARAM=VALUE (absolute value in the machine file's units)");
+  std::string list;
+  for (const auto& n : effect_names()) list += (list.empty() ? "" : ", ") + n;
+  throw InputError(fmt::format("unknown effect '{}' (known: {})", name, list));
+}
+
+namespace {
+/// geometric:NAME=VALUE[,NAME=VALUE...] (absolute values, file units) -> one effect per parameter.
+std::unique_ptr<Effect> geometric_from(const std::string& name, double value, bool absolute,
+                                       const machine::Machine& m) {
+  const auto model = calib::load_model(m.file);
+  const size_t i = model->index(name);
+  const auto& pi = model->params()[i];
+  return make_geometric(pi.name, pi.unit, pi.nominal, absolute ? value - pi.nominal : value);
+}
+}  // namespace
+
+std::vector<std::unique_ptr<Effect>> parse_effects(const std::string& spec, const machine::Machine& m) {
+  std::vector<std::unique_ptr<Effect>> out;
+  if (spec.rfind("geometric:", 0) == 0) {
+    std::string rest = spec.substr(10);
+    size_t a = 0;
+    while (a < rest.size()) {
+      size_t b = rest.find_first_of(",:", a);
+      if (b == std::string::npos) b = rest.size();
+      const std::string item = rest.substr(a, b - a);
+      const auto eq = item.find('=');
+      if (eq == std::string::npos)
+        throw InputError(
+            fmt::format("--inject '{}': expected geometric:PARAM=VALUE (e.g. geometric:A1x=-150.06)", spec));
+      double v = 0;
+      try {
+        v = std::stod(item.substr(eq + 1));
+      } catch (const std::exception&) {
+        throw InputError(fmt::format("--inject '{}': expected a number after '{}='", spec, item.substr(0, eq)));
+      }
+      out.push_back(geometric_from(item.substr(0, eq), v, true, m));
+      a = b + 1;
+    }
+    return out;
+  }
+  out.push_back(parse_effect(spec, m));
+  return out;
+}
+
+std::unique_ptr<Effect> parse_effect(const std::string& spec, const machine::Machine& m) {
+  const auto c1 = spec.find(':');
+  if (c1 == std::string::npos)
+    throw InputError(fmt::format("--inject '{}': expected EFFECT:TARGET:PARAMS, e.g. backlash:q2:0.012", spec));
+  const std::string name = spec.substr(0, c1);
+  const auto c2 = spec.find(':', c1 + 1);
+  const std::string target = spec.substr(c1 + 1, c2 == std::string::npos ? std::string::npos : c2 - c1 - 1);
+  const std::string rest = c2 == std::string::npos ? "" : spec.substr(c2 + 1);
+  auto e = make_effect(name, target, m);
+  const auto keys = e->reported();
+  std::vector<std::pair<std::string, double>> kv;
+  auto number = [&](const std::string& s) {
+    try {
+      size_t used = 0;
+      const double v = std::stod(s, &used);
+      if (used != s.size()) throw std::invalid_argument(s);
+      return v;
+    } catch (const std::exception&) {
+      throw InputError(fmt::format("--inject '{}': expected a number, got '{}'", spec, s));
+    }
+  };
+  if (rest.find('=') != std::string::npos) {
+    size_t a = 0;
+    while (a <= rest.size()) {
+      size_t b = rest.find_first_of(",:", a);
+      if (b == std::string::npos) b = rest.size();
+      const std::string item = rest.substr(a, b - a);
+      const auto eq = item.find('=');
+      if (eq == std::string::npos)
+        throw InputError(fmt::format("--inject '{}': expected key=value, got '{}'", spec, item));
+      const std::string key = item.substr(0, eq);
+      bool known = false;
+      for (const auto& [k, v] : keys) known |= k == key;
+      if (!known) {
+        std::string list;
+        for (const auto& [k, v] : keys) list += (list.empty() ? "" : ", ") + k;
+        throw InputError(fmt::format("--inject '{}': {} has no parameter '{}' (expected {})", spec, name, key, list));
+      }
+      kv.emplace_back(key, number(item.substr(eq + 1)));
+      a = b + 1;
+    }
+  } else {
+    size_t a = 0, k = 0;
+    while (!rest.empty() && a <= rest.size()) {
+      size_t b = rest.find(':', a);
+      if (b == std::string::npos) b = rest.size();
+      if (k >= keys.size())
+        throw InputError(fmt::format("--inject '{}': {} takes at most {} values", spec, name, keys.size()));
+      kv.emplace_back(keys[k++].first, number(rest.substr(a, b - a)));
+      a = b + 1;
+    }
+  }
+  e->set_reported(kv);
+  return e;
+}
+
+std::vector<std::unique_ptr<Effect>> load_machine_effects(const std::string& machine_file, const machine::Machine& m) {
+  std::vector<std::unique_ptr<Effect>> out;
+  YAML::Node root;
+  try {
+    root = YAML::LoadFile(machine_file);
+  } catch (const YAML::Exception& ex) {
+    throw InputError(SourceLoc{machine_file, ex.mark.line + 1}, ex.what());
+  }
+  const YAML::Node fx = root["effects"];
+  if (!fx) return out;
+  if (!fx.IsSequence())
+    throw InputError(SourceLoc{machine_file, fx.Mark().line + 1},
+                     "effects: expected a list of {effect, target, parameters}");
+  for (const auto& item : fx) {
+    const SourceLoc where{machine_file, item.Mark().line + 1};
+    if (!item.IsMap() || !item["effect"] || !item["target"])
+      throw InputError(where, "effects: every entry needs 'effect' and 'target'");
+    std::unique_ptr<Effect> e;
+    try {
+      if (item["effect"].as<std::string>() == "geometric") {
+        const std::string name = item["target"].as<std::string>();
+        double dev = 0;
+        if (item["parameters"])
+          for (const auto& p : item["parameters"]) dev = p.second.as<double>();
+        out.push_back(geometric_from(name, dev, false, m));
+        continue;
+      }
+      e = make_effect(item["effect"].as<std::string>(), item["target"].as<std::string>(), m);
+      std::vector<std::pair<std::string, double>> kv;
+      if (item["parameters"])
+        for (const auto& p : item["parameters"]) kv.emplace_back(p.first.as<std::string>(), p.second.as<double>());
+      e->set_reported(kv);
+      if (item["enc_visible"]) e->enc_visible = item["enc_visible"].as<bool>();
+    } catch (const InputError& ex) {
+      throw InputError(where, ex.message());
+    } catch (const YAML::Exception& ex) {
+      throw InputError(where, std::string("effects: ") + ex.what());
+    }
+    out.push_back(std::move(e));
+  }
+  return out;
+}
+
+std::string effects_yaml(const std::vector<const Effect*>& effects) {
+  std::string s = "effects:\n";
+  for (const Effect* e : effects) {
+    s += fmt::format("  - effect: {}\n    target: \"{}\"\n", e->name(), e->target);
+    if (e->scope() == Scope::Axis) s += fmt::format("    enc_visible: {}\n", e->enc_visible ? "true" : "false");
+    if (e->scope() == Scope::Geometric)
+      s += fmt::format("    # deviation from the nominal {} {} (the corrected value is {:.9g})\n", e->nominal, e->unit,
+                       e->nominal + e->p[0]);
+    s += "    parameters: {";
+    bool first = true;
+    for (const auto& [k, v] : e->reported()) {
+      s += fmt::format("{}{}: {:.9g}", first ? "" : ", ", k, v);
+      first = false;
+    }
+    s += "}\n";
+  }
+  return s;
+}
+
+}  // namespace cscam::sim

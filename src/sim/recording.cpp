@@ -1,0 +1,210 @@
+#include "cscam/sim/recording.hpp"
+
+#include <fmt/format.h>
+
+#include <charconv>
+#include <cmath>
+#include <fstream>
+#include <limits>
+#include <set>
+#include <sstream>
+
+#include "cscam/core/error.hpp"
+#include "cscam/machine/machine.hpp"
+
+namespace cscam::sim {
+
+namespace {
+constexpr double kNaN = std::numeric_limits<double>::quiet_NaN();
+
+std::string trim(std::string_view s) {
+  size_t a = 0, b = s.size();
+  while (a < b && (s[a] == ' ' || s[a] == '\t' || s[a] == '\r')) ++a;
+  while (b > a && (s[b - 1] == ' ' || s[b - 1] == '\t' || s[b - 1] == '\r')) --b;
+  return std::string(s.substr(a, b - a));
+}
+}  // namespace
+
+int Recording::column(const std::string& name) const {
+  for (size_t i = 0; i < columns.size(); ++i)
+    if (columns[i] == name) return static_cast<int>(i);
+  return -1;
+}
+
+std::optional<std::string> Recording::meta_value(const std::string& key) const {
+  for (const auto& [k, v] : meta)
+    if (k == key) return v;
+  return std::nullopt;
+}
+
+void Recording::set_meta(const std::string& key, const std::string& value) {
+  for (auto& [k, v] : meta)
+    if (k == key) {
+      v = value;
+      return;
+    }
+  meta.emplace_back(key, value);
+}
+
+int Recording::add_column(const std::string& name, std::vector<double> values) {
+  if (values.empty()) values.assign(rows(), kNaN);
+  columns.push_back(name);
+  data.push_back(std::move(values));
+  return static_cast<int>(columns.size()) - 1;
+}
+
+Recording parse_recording(const std::string& text, const std::string& name) {
+  Recording rec;
+  rec.file = name;
+  size_t pos = 0;
+  int line = 0;
+  bool header_seen = false;
+  while (pos < text.size()) {
+    size_t end = text.find('\n', pos);
+    if (end == std::string::npos) end = text.size();
+    std::string_view ln(text.data() + pos, end - pos);
+    pos = end + 1;
+    ++line;
+    if (!ln.empty() && ln.back() == '\r') ln.remove_suffix(1);
+    if (ln.find_first_not_of(" \t") == std::string_view::npos) continue;
+    if (ln.front() == '#') {
+      if (header_seen) continue;  // a comment after the header
+      const auto body = ln.substr(1);
+      const auto colon = body.find(':');
+      if (colon == std::string_view::npos) continue;  // a plain comment
+      rec.meta.emplace_back(trim(body.substr(0, colon)), trim(body.substr(colon + 1)));
+      continue;
+    }
+    if (!header_seen) {
+      header_seen = true;
+      size_t a = 0;
+      std::set<std::string> seen;
+      while (true) {
+        const size_t b = ln.find(',', a);
+        const std::string col = trim(ln.substr(a, b == std::string_view::npos ? std::string_view::npos : b - a));
+        if (col.empty())
+          throw InputError(SourceLoc{name, line, static_cast<int>(a) + 1}, "empty column name in the header");
+        if (!seen.insert(col).second)
+          throw InputError(SourceLoc{name, line, static_cast<int>(a) + 1}, fmt::format("duplicate column '{}'", col));
+        rec.columns.push_back(col);
+        if (b == std::string_view::npos) break;
+        a = b + 1;
+      }
+      rec.data.assign(rec.columns.size(), {});
+      continue;
+    }
+    size_t a = 0, c = 0;
+    while (true) {
+      const size_t b = ln.find(',', a);
+      const size_t e = b == std::string_view::npos ? ln.size() : b;
+      if (c >= rec.columns.size())
+        throw InputError(SourceLoc{name, line, static_cast<int>(a) + 1},
+                         fmt::format("too many cells (the header has {} columns)", rec.columns.size()));
+      size_t s0 = a, s1 = e;
+      while (s0 < s1 && (ln[s0] == ' ' || ln[s0] == '\t')) ++s0;
+      while (s1 > s0 && (ln[s1 - 1] == ' ' || ln[s1 - 1] == '\t')) --s1;
+      double v = kNaN;
+      if (s1 > s0) {
+        const char* first = ln.data() + s0;
+        if (*first == '+') ++first;
+        const auto [ptr, ec] = std::from_chars(first, ln.data() + s1, v);
+        if (ec != std::errc() || ptr != ln.data() + s1 || !std::isfinite(v))
+          throw InputError(SourceLoc{name, line, static_cast<int>(s0) + 1},
+                           fmt::format("column {}: expected a number, got '{}'", rec.columns[c],
+                                       std::string(ln.substr(s0, s1 - s0))));
+      }
+      rec.data[c].push_back(v);
+      ++c;
+      if (b == std::string_view::npos) break;
+      a = b + 1;
+    }
+    if (c != rec.columns.size())
+      throw InputError(SourceLoc{name, line},
+                       fmt::format("expected {} cells, got {} (missing cells must be left empty between commas)",
+                                   rec.columns.size(), c));
+    rec.row_line.push_back(line);
+  }
+  if (!header_seen) throw InputError(SourceLoc{name}, "no header row (expected e.g. t,cmd.x,...,tip.x,tip.y,tip.z)");
+  const int tc = rec.column("t");
+  const auto kind = rec.meta_value("kind");
+  if (kind && *kind != "trajectory" && *kind != "static")
+    throw InputError(SourceLoc{name}, fmt::format("metadata kind: expected trajectory or static, got '{}'", *kind));
+  if (tc < 0 && (!kind || *kind == "trajectory"))
+    throw InputError(SourceLoc{name}, "a trajectory recording needs a time column 't'");
+  if (tc >= 0) {
+    const auto& t = rec.data[static_cast<size_t>(tc)];
+    for (size_t i = 0; i < t.size(); ++i) {
+      if (std::isnan(t[i]))
+        throw InputError(SourceLoc{name, rec.row_line[i]}, fmt::format("row {}: time 't' is empty", i + 1));
+      if (i > 0 && !(t[i] > t[i - 1]))
+        throw InputError(
+            SourceLoc{name, rec.row_line[i]},
+            fmt::format("row {}: time is not strictly increasing (t = {} after {})", i + 1, t[i], t[i - 1]));
+    }
+  }
+  return rec;
+}
+
+Recording read_recording(const std::string& path) {
+  std::ifstream in(path, std::ios::binary);
+  if (!in) throw InputError(SourceLoc{path}, "cannot open the recording");
+  std::stringstream ss;
+  ss << in.rdbuf();
+  return parse_recording(ss.str(), path);
+}
+
+void write_recording(std::ostream& os, const Recording& rec, int decimals) {
+  for (const auto& [k, v] : rec.meta) os << "# " << k << ": " << v << "\n";
+  for (size_t c = 0; c < rec.columns.size(); ++c) os << (c ? "," : "") << rec.columns[c];
+  os << "\n";
+  const size_t n = rec.rows();
+  std::string line;
+  for (size_t i = 0; i < n; ++i) {
+    line.clear();
+    for (size_t c = 0; c < rec.columns.size(); ++c) {
+      if (c) line += ',';
+      const double v = rec.data[c][i];
+      if (std::isnan(v)) continue;
+      const int d = rec.columns[c] == "t" ? 6 : decimals;
+      fmt::format_to(std::back_inserter(line), "{:.{}f}", v == 0.0 ? 0.0 : v, d);
+    }
+    line += '\n';
+    os << line;
+  }
+}
+
+void validate_against(Recording& rec, const machine::Machine& m) {
+  for (const auto& ax : m.axes)
+    if (rec.column("cmd." + ax.name) < 0)
+      throw InputError(SourceLoc{rec.file, rec.row_line.empty() ? 0 : rec.row_line.front() - 1},
+                       fmt::format("missing column 'cmd.{}' (machine {} has axis {}; every machine axis needs its "
+                                   "commanded position)",
+                                   ax.name, m.name, ax.name));
+  for (const auto& col : rec.columns) {
+    if (col == "t") continue;
+    const auto dot = col.find('.');
+    const std::string group = dot == std::string::npos ? col : col.substr(0, dot);
+    const std::string rest = dot == std::string::npos ? "" : col.substr(dot + 1);
+    const bool xyz = rest == "x" || rest == "y" || rest == "z";
+    if (group == "cmd" || group == "enc") {
+      if (m.axis_index(rest) < 0) {
+        if (group == "enc")
+          throw InputError(SourceLoc{rec.file}, fmt::format("column '{}': machine {} has no axis '{}', so it cannot "
+                                                            "predict this channel",
+                                                            col, m.name, rest));
+        rec.warnings.push_back(
+            fmt::format("{}: column '{}' ignored (machine {} has no axis '{}')", rec.file, col, m.name, rest));
+      }
+    } else if ((group == "tip" || group == "ptip" || group == "dir" || group == "acc") && xyz) {
+    } else if (group == "len") {
+      throw InputError(SourceLoc{rec.file}, fmt::format("column '{}': machine {} defines no passive link '{}', so "
+                                                        "it cannot predict this channel",
+                                                        col, m.name, rest));
+    } else if (group == "temp") {
+    } else {
+      rec.warnings.push_back(fmt::format("{}: unknown column '{}' ignored", rec.file, col));
+    }
+  }
+}
+
+}  // namespace cscam::sim

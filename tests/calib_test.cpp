@@ -1,0 +1,592 @@
+// Calibration: models, recordings, identifiability, recovery of injected errors, corrected files, CLI.
+#include <ceres/jet.h>
+#include <fmt/format.h>
+#include <gtest/gtest.h>
+
+#include <cmath>
+#include <filesystem>
+#include <fstream>
+#include <iostream>
+#include <random>
+#include <sstream>
+
+#include "cscam/calib/calibrate.hpp"
+#include "cscam/calib/model.hpp"
+#include "cscam/calib/recording.hpp"
+#include "cscam/core/error.hpp"
+#include "cscam/core/tolerances.hpp"
+#include "cscam/kin/xmini.hpp"
+#include "cscam/machine/machine.hpp"
+#include "test_support.hpp"
+
+using namespace cscam;
+using calib::Dataset;
+using calib::Model;
+using test::source_path;
+
+namespace {
+
+std::shared_ptr<Model> load(const std::string& name) {
+  return calib::load_model(source_path("machines/" + name + ".yaml"));
+}
+
+/// Nominal plus uniform errors of up to +-amp (mm or deg) on the parameters `idx`.
+std::vector<double> perturbed(const Model& m, const std::vector<std::size_t>& idx, double amp, unsigned salt) {
+  auto rng = test::rng(salt);
+  std::uniform_real_distribution<double> u(-amp, amp);
+  std::vector<double> p = m.nominal();
+  for (std::size_t i : idx) p[i] += u(rng);
+  return p;
+}
+
+std::vector<std::size_t> all(const Model& m) {
+  std::vector<std::size_t> v(m.size());
+  for (std::size_t i = 0; i < v.size(); ++i) v[i] = i;
+  return v;
+}
+
+/// Central finite differences of the weighted residuals vs the automatic Jacobian.
+void expect_jacobian_matches(const Model& m, const Dataset& d, const std::vector<double>& p) {
+  const Eigen::MatrixXd J = calib::jacobian(m, d, p, all(m));
+  for (std::size_t j = 0; j < m.size(); ++j) {
+    const double h = 1e-6;
+    std::vector<double> pp = p, pm = p;
+    pp[j] += h;
+    pm[j] -= h;
+    // Weighted residual = (meas - pred)/sigma: d/dp = -dpred/dp / sigma. Build it from predictions.
+    Eigen::VectorXd col(J.rows());
+    Eigen::Index r = 0;
+    auto sp = m.make_scratch(), sm = m.make_scratch();
+    std::vector<double> op(9 + m.links().size()), om(op.size());
+    for (const auto& pose : d.poses) {
+      m.predict_channels(pose.q.data(), pp.data(), op.data(), sp.get());
+      m.predict_channels(pose.q.data(), pm.data(), om.data(), sm.get());
+      for (std::size_t c = 0; c < op.size(); ++c) {
+        if (std::isnan(pose.meas[c])) continue;
+        const double s = c < 3 ? d.sigma.tip_mm : c < 6 ? d.sigma.dir : c < 9 ? d.sigma.ptip_mm : d.sigma.len_mm;
+        col[r++] = -(op[c] - om[c]) / (2 * h) / s;
+      }
+    }
+    ASSERT_EQ(r, J.rows());
+    const double scale = std::max(1.0, J.col(static_cast<Eigen::Index>(j)).norm());
+    EXPECT_LT((col - J.col(static_cast<Eigen::Index>(j))).norm() / scale, tol::kCalibJacobianRel) << m.params()[j].name;
+  }
+}
+
+}  // namespace
+
+// ---------------------------------------------------------------------------------------------------
+// Models
+// ---------------------------------------------------------------------------------------------------
+
+TEST(CalibModel, SerialNominalMatchesMachineKinematics) {
+  const auto m = load("trunnion-ac");
+  EXPECT_EQ(m->kind(), "serial");
+  for (const char* n : {"EX0C", "EY0C", "EA0C", "EB0C", "EC0C", "EY0A", "EZ0A", "EB0A", "EC0A", "EA0A"})
+    EXPECT_NO_THROW((void)m->index(n)) << n;
+  const machine::Machine mm = machine::load(source_path("machines/trunnion-ac.yaml"));
+  const auto k = mm.make_kinematics(m->tool_length_mm());
+  const std::vector<double> q{12.5, -30, 40, 20, 75};
+  const auto pred = m->predict(q, m->nominal());
+  kin::Axes qa;
+  qa << 12.5, -30, 40, deg2rad(20.0), deg2rad(75.0);
+  const kin::Posed pose = k->forward(qa);
+  EXPECT_LT((pred.ptip - pose.tip_mm).norm(), 1e-12);
+  // Tip in W: head side only.
+  EXPECT_LT((pred.tip - Eigen::Vector3d(12.5, -30, 40)).norm(), 1e-12);
+}
+
+TEST(CalibModel, XminiHomeAndPerturbedVectorsMatchSpec) {
+  const auto m = load("xmini");
+  ASSERT_EQ(m->size(), kin::kXminiParamCount);
+  EXPECT_EQ(m->params()[0].name, "pWB_x");
+  const auto pred = m->predict({154.669331, 158.276253, 154.669331, 0, 0}, m->nominal());
+  EXPECT_LT(pred.tip.norm(), 1e-5);
+  EXPECT_LT((pred.dir - Eigen::Vector3d::UnitZ()).norm(), 1e-8);
+  // The spec's reference vectors: FK of the listed joints gives the listed tip and direction.
+  std::ifstream in(source_path("tests/data/xmini-vectors.csv"));
+  ASSERT_TRUE(in);
+  std::string line, header;
+  std::vector<double> pert = m->nominal();
+  int checked = 0;
+  while (std::getline(in, line)) {
+    if (line.rfind("# theta0=", 0) == 0) {
+      std::stringstream ss(line.substr(2));
+      std::string kv;
+      while (std::getline(ss, kv, ';')) {
+        const auto eq = kv.find('=');
+        pert[m->index(kv.substr(0, eq))] = std::stod(kv.substr(eq + 1));
+      }
+      continue;
+    }
+    if (line.empty() || line[0] == '#' || line.rfind("case", 0) == 0) continue;
+    std::vector<std::string> c;
+    std::stringstream ss(line);
+    std::string cell;
+    while (std::getline(ss, cell, ',')) c.push_back(cell);
+    const bool is_pert = c[1] == "perturbed";
+    m->set_tool_length_mm(std::stod(c[2]));
+    const std::vector<double> q{std::stod(c[10]), std::stod(c[11]), std::stod(c[12]), std::stod(c[13]),
+                                std::stod(c[14])};
+    const auto pr = m->predict(q, is_pert ? pert : m->nominal());
+    EXPECT_LT((pr.tip - Eigen::Vector3d(std::stod(c[3]), std::stod(c[4]), std::stod(c[5]))).norm(), 1e-7) << line;
+    EXPECT_LT((pr.dir - Eigen::Vector3d(std::stod(c[6]), std::stod(c[7]), std::stod(c[8]))).norm(), 1e-9) << line;
+    ++checked;
+  }
+  EXPECT_GT(checked, 10);
+}
+
+TEST(CalibModel, JacobianMatchesFiniteDifferences) {
+  calib::Sigmas s;
+  for (const char* name : {"trunnion-ac", "xmini", "pcmm"}) {
+    const auto m = load(name);
+    const auto poses = m->random_poses(4, 7);
+    ASSERT_EQ(poses.size(), 4u) << name;
+    const std::vector<std::string> ch =
+        m->kind() == "pcmm" ? std::vector<std::string>{"tip", "len"} : std::vector<std::string>{"tip", "dir", "ptip"};
+    const Dataset d = calib::simulate(*m, m->nominal(), poses, ch, s, 1);
+    SCOPED_TRACE(name);
+    expect_jacobian_matches(*m, d, perturbed(*m, all(*m), 0.2, 3));
+  }
+}
+
+TEST(CalibModel, SelectByNameAndGroup) {
+  const auto m = load("xmini");
+  EXPECT_EQ(m->select({"wrist"}).size(), 10u);
+  EXPECT_EQ(m->select({"legs", "gz"}).size(), 4u);
+  try {
+    (void)m->select({"nonsense"});
+    FAIL();
+  } catch (const InputError& e) {
+    EXPECT_NE(std::string(e.what()).find("nonsense"), std::string::npos);
+  }
+}
+
+// ---------------------------------------------------------------------------------------------------
+// Recordings
+// ---------------------------------------------------------------------------------------------------
+
+TEST(CalibRecording, ParsesStaticAndTrajectory) {
+  const auto r = calib::parse_recording(
+      "# machine: machines/xmini.yaml\n# kind: static\n# tool_length: 50\n"
+      "cmd.q1,cmd.q2,cmd.q3,cmd.c,cmd.a,tip.x,tip.y,tip.z\n"
+      "1,2,3,4,5,0.1,,0.3\n# a comment\n6,7,8,9,10,1,2,3\n",
+      "rec.csv");
+  EXPECT_EQ(r.kind(), "static");
+  EXPECT_EQ(r.rows(), 2);
+  EXPECT_TRUE(std::isnan(r.data(0, 6)));
+  EXPECT_EQ(r.line_of_row[1], 7);
+  EXPECT_DOUBLE_EQ(*r.tool_length_mm(), 50.0);
+  const auto t = calib::parse_recording("# kind: trajectory\nt,cmd.x,tip.x\n0,1,2\n0.1,1,2\n", "traj.csv");
+  EXPECT_EQ(t.rows(), 2);
+}
+
+TEST(CalibRecording, ErrorsNameFileLineColumn) {
+  try {
+    (void)calib::parse_recording("# kind: static\ncmd.x,tip.x\n1,2\n1,abc\n", "bad.csv");
+    FAIL();
+  } catch (const InputError& e) {
+    EXPECT_EQ(e.where().file, "bad.csv");
+    EXPECT_EQ(e.where().line, 4);
+    EXPECT_EQ(e.where().column, 3);
+  }
+  try {
+    (void)calib::parse_recording("# kind: static\ncmd.x,tipp.x\n1,2\n", "bad.csv");
+    FAIL();
+  } catch (const InputError& e) {
+    EXPECT_EQ(e.where().line, 2);
+    EXPECT_EQ(e.where().column, 7);
+    EXPECT_NE(std::string(e.what()).find("tipp.x"), std::string::npos);
+  }
+}
+
+TEST(CalibRecording, ColumnNotMatchingAxesIsNamed) {
+  const auto m = load("xmini");
+  const auto r = calib::parse_recording(
+      "# kind: static\ncmd.q1,cmd.q2,cmd.q3,cmd.c,cmd.b,tip.x,tip.y,tip.z\n1,2,3,4,5,0.1,0.2,0.3\n", "r.csv");
+  try {
+    (void)calib::dataset_from(r, *m);
+    FAIL();
+  } catch (const InputError& e) {
+    EXPECT_NE(std::string(e.what()).find("cmd.b"), std::string::npos) << e.what();
+    EXPECT_EQ(e.where().line, 2);
+    EXPECT_EQ(e.where().column, 28);
+  }
+}
+
+TEST(CalibRecording, FewerMeasurementsThanParametersSaysHowMany) {
+  const auto m = load("xmini");
+  calib::Sigmas s;
+  const Dataset d = calib::simulate(*m, m->nominal(), m->random_poses(5, 3), {"tip"}, s, 1);
+  try {
+    (void)calib::calibrate(*m, d, calib::Options{});
+    FAIL();
+  } catch (const InputError& e) {
+    EXPECT_NE(std::string(e.what()).find("15 independent measurements for 38 free parameters: at least 38"),
+              std::string::npos)
+        << e.what();
+  }
+}
+
+// ---------------------------------------------------------------------------------------------------
+// Identifiability and recovery
+// ---------------------------------------------------------------------------------------------------
+
+TEST(CalibIdent, PcmmPassiveLinkOnlyIsRankDeficientTipFixesIt) {
+  const auto m = load("pcmm");
+  const auto poses = m->random_poses(45, 11);
+  ASSERT_EQ(poses.size(), 45u);
+  calib::Sigmas s;
+  const Dataset len = calib::simulate(*m, m->nominal(), poses, {"len"}, s, 1);
+  const calib::Identifiability a = calib::analyse(*m, len, m->nominal(), calib::Options{});
+  EXPECT_EQ(a.rank, 19);  // 26 - 7: base rotation (3) and height (1), stage frame in its plane (3)
+  EXPECT_EQ(a.fixed.size(), 7u);
+  EXPECT_EQ(a.combinations.size(), 7u);
+  // Probe-tip positions in W pin the base frame and the stage frame's shifts; what remains is the
+  // stage frame's rotation about the probe axis (a naming convention: the angles ths_i and (sx, sy)
+  // turn together).
+  const Dataset both = calib::simulate(*m, m->nominal(), poses, {"len", "tip"}, s, 1);
+  const calib::Identifiability b = calib::analyse(*m, both, m->nominal(), calib::Options{});
+  EXPECT_EQ(b.rank, 25);
+  ASSERT_EQ(b.combinations.size(), 1u);
+  for (const char* n : {"ths1", "ths2", "ths3"}) EXPECT_NE(b.combinations[0].find(n), std::string::npos) << n;
+  calib::Options o;
+  o.free = m->select({"all"});
+  o.free.erase(std::find(o.free.begin(), o.free.end(), m->index("ths1")));
+  const calib::Identifiability c = calib::analyse(*m, both, m->nominal(), o);
+  EXPECT_EQ(c.rank, 25);
+  EXPECT_TRUE(c.fixed.empty());
+}
+
+TEST(CalibIdent, PcmmTable1NoiseFreeRecoversAll26) {
+  const auto m = load("pcmm");
+  const std::vector<double> truth = perturbed(*m, all(*m), 0.5, 5);
+  const auto poses = m->random_poses(45, 11);
+  calib::Sigmas s;
+  s.tip_mm = s.len_mm = 1e-20;  // noise-free data; weights equal
+  Dataset d = calib::simulate(*m, truth, poses, {"len", "tip"}, s, 1);
+  d.sigma.tip_mm = d.sigma.len_mm = 0.001;
+  calib::Options o;
+  o.free = m->select({"all"});
+  o.free.erase(std::find(o.free.begin(), o.free.end(), m->index("ths1")));  // the stage frame's convention
+  const calib::Result r = calib::calibrate(*m, d, o);
+  ASSERT_TRUE(r.summary.converged) << r.summary.message;
+  // The truth in the convention ths1 = nominal: turn the stage frame by -delta about its z axis.
+  const double delta = truth[m->index("ths1")] - m->nominal()[m->index("ths1")];
+  std::vector<double> t = truth;
+  for (const char* n : {"ths1", "ths2", "ths3"}) t[m->index(n)] -= delta;
+  const double c = std::cos(deg2rad(-delta)), sn = std::sin(deg2rad(-delta));
+  t[m->index("sx")] = c * truth[m->index("sx")] - sn * truth[m->index("sy")];
+  t[m->index("sy")] = sn * truth[m->index("sx")] + c * truth[m->index("sy")];
+  for (std::size_t i = 0; i < m->size(); ++i)
+    EXPECT_NEAR(r.estimate[i], t[i], tol::kCalibRecoveryNoiseFree) << m->params()[i].name;
+}
+
+TEST(CalibIdent, XminiNamesUnidentifiableAndPredictsHeldOutWithinNoise) {
+  const auto m = load("xmini");
+  // Truth: spec/xmini-vectors.csv's perturbed set.
+  std::vector<double> truth = m->nominal();
+  const std::map<std::string, double> pert{
+      {"theta0", 0.02}, {"eps_y", -0.015}, {"A1x", -150.3}, {"A3x", 149.8}, {"l1", 0.2},   {"l3", -0.15},
+      {"A2x", 0.4},     {"A2y", 200.3},    {"A2z", -0.25},  {"b1x", -75.2}, {"b1z", 0.1},  {"b3x", 75.15},
+      {"b3z", -0.2},    {"c2x", 0.3},      {"c2y", 99.8},   {"c2z", 0.2},   {"phi", 0.3},  {"chi", -0.2},
+      {"L01", 450.4},   {"L02", 449.7},    {"L03", 450.2},  {"sCx", 0.2},   {"sCy", -0.1}, {"sCz", 150.3},
+      {"gC1", 0.01},    {"gC2", -0.02},    {"c0", 0.05},    {"e", 0.1},     {"f", -0.15},  {"psi", 0.03},
+      {"a0", -0.04},    {"gx", 0.05},      {"gy", -0.05},   {"gz", 100.2}};
+  for (const auto& [k, v] : pert) truth[m->index(k)] = v;
+  calib::Sigmas s;
+  s.tip_mm = 0.002;
+  const Dataset fit = calib::simulate(*m, truth, m->random_poses(150, 21), {"tip"}, s, 2);
+  const Dataset hold = calib::simulate(*m, truth, m->random_poses(60, 22), {"tip"}, s, 3);
+  const calib::Result r = calib::calibrate(*m, fit, calib::Options{});
+  ASSERT_TRUE(r.summary.converged) << r.summary.message;
+  EXPECT_GT(r.ident.fixed.size(), 0u);
+  EXPECT_FALSE(r.ident.messages.empty());
+  const auto before = calib::residual_stats(*m, hold, m->nominal());
+  const auto after = calib::residual_stats(*m, hold, r.estimate);
+  const double noise = s.tip_mm * std::sqrt(3.0);  // RMS of a 3-vector of sigma-noise
+  EXPECT_GT(before.rms.at("tip"), 100 * noise);
+  EXPECT_LT(after.rms.at("tip"), 2 * noise);
+}
+
+TEST(CalibIdent, TrunnionRotaryLocationErrorsFromTableProbing) {
+  const auto m = load("trunnion-ac");
+  const std::vector<std::string> loc{"EX0C", "EY0C", "EA0C", "EB0C", "EY0A", "EZ0A", "EB0A", "EC0A"};
+  std::vector<double> truth = m->nominal();
+  const double errs[] = {0.02, -0.015, 0.01, -0.008, 0.03, -0.01, 0.005, 0.012};
+  for (std::size_t i = 0; i < loc.size(); ++i) truth[m->index(loc[i])] = errs[i];
+  calib::Sigmas s;
+  s.ptip_mm = 0.0005;
+  const Dataset d = calib::simulate(*m, truth, m->random_poses(60, 5), {"ptip"}, s, 4);
+  calib::Options o;
+  o.free = m->select({"rotary_a", "rotary_c"});
+  const calib::Result r = calib::calibrate(*m, d, o);
+  ASSERT_TRUE(r.summary.converged);
+  for (std::size_t i = 0; i < loc.size(); ++i) {
+    const std::size_t k = m->index(loc[i]);
+    if (std::isnan(r.stddev[k])) continue;  // fixed: reported unidentifiable
+    EXPECT_NEAR(r.estimate[k], truth[k], 5 * r.stddev[k] + 1e-9) << loc[i];
+  }
+}
+
+TEST(CalibYaml, CorrectedFileRoundTripsAndMarksChanges) {
+  for (const char* name : {"xmini", "trunnion-ac", "pcmm"}) {
+    const auto m = load(name);
+    std::vector<double> p = m->nominal();
+    p[1] += 0.0123;
+    p[m->size() - 2] -= 0.0456;
+    const std::string text = m->corrected_yaml(p);
+    EXPECT_NE(text.find("# calibrated:"), std::string::npos) << name;
+    const std::string path = ::testing::TempDir() + std::string("/corrected-") + name + ".yaml";
+    { std::ofstream(path) << text; }
+    const auto m2 = calib::load_model(path);
+    // The corrected file's nominal predicts like the original model with p.
+    const auto poses = m->random_poses(3, 9);
+    for (const auto& q : poses) {
+      const auto a = m->predict(q, p);
+      const auto b = m2->predict(q, m2->nominal());
+      EXPECT_LT((a.ptip - b.ptip).norm(), 1e-8) << name << "\n" << text;
+    }
+  }
+}
+
+// ---------------------------------------------------------------------------------------------------
+// Command line
+// ---------------------------------------------------------------------------------------------------
+
+namespace {
+
+std::string tmp(const std::string& name) {
+  const std::string dir = ::testing::TempDir() + "/calib_cli";
+  std::filesystem::create_directories(dir);
+  return dir + "/" + name;
+}
+
+void write(const std::string& path, const std::string& text) { std::ofstream(path) << text; }
+
+std::vector<double> xmini_truth(const Model& m) {
+  std::vector<double> t = m.nominal();
+  const char* pert =
+      "theta0=0.02;eps_y=-0.015;A1x=-150.3;A3x=149.8;l1=0.2;l3=-0.15;A2x=0.4;A2y=200.3;A2z=-0.25;b1x=-75.2;b1z=0.1;"
+      "b3x=75.15;b3z=-0.2;c2x=0.3;c2y=99.8;c2z=0.2;phi=0.3;chi=-0.2;L01=450.4;L02=449.7;L03=450.2;sCx=0.2;sCy=-0.1;"
+      "sCz=150.3;gC1=0.01;gC2=-0.02;c0=0.05;e=0.1;f=-0.15;psi=0.03;a0=-0.04;gx=0.05;gy=-0.05;gz=100.2";
+  std::stringstream ss(pert);
+  std::string kv;
+  while (std::getline(ss, kv, ';')) {
+    const auto eq = kv.find('=');
+    t[m.index(kv.substr(0, eq))] = std::stod(kv.substr(eq + 1));
+  }
+  return t;
+}
+
+}  // namespace
+
+TEST(CalibCli, XminiEndToEndCorrectedFilePredictsUnseenPoses) {
+  const auto m = load("xmini");
+  const std::vector<double> truth = xmini_truth(*m);
+  calib::Sigmas s;
+  s.tip_mm = 0.002;
+  const std::string machine = source_path("machines/xmini.yaml");
+  const std::string rec = tmp("xmini-tracker.csv"), out = tmp("xmini-corrected.yaml");
+  write(rec, calib::format_recording(calib::to_recording(
+                 *m, calib::simulate(*m, truth, m->random_poses(200, 31), {"tip"}, s, 5), machine)));
+  std::filesystem::remove(out);
+  const auto r = test::run_command(fmt::format("{} calibrate {} -o {} --json", CSCAM_CLI, rec, out));
+  ASSERT_EQ(r.status, 0) << r.output;
+  EXPECT_NE(r.output.find("\"unidentifiable\""), std::string::npos);
+  ASSERT_TRUE(std::filesystem::exists(out));
+  // An independent reading of the corrected file: the machine loader, then FK on unseen poses.
+  const machine::Machine cm = machine::load(out);
+  const auto k = cm.kinematics();
+  const Dataset unseen = calib::simulate(*m, truth, m->random_poses(100, 77), {"tip"}, s, 6);
+  double sum = 0;
+  for (const auto& p : unseen.poses) {
+    kin::Axes q;
+    q << p.q[0], p.q[1], p.q[2], deg2rad(p.q[3]), deg2rad(p.q[4]);
+    sum += (k->forward(q).tip_mm - Eigen::Vector3d(p.meas[0], p.meas[1], p.meas[2])).squaredNorm();
+  }
+  const double rms = std::sqrt(sum / static_cast<double>(unseen.poses.size()));
+  EXPECT_LT(rms, 2 * s.tip_mm * std::sqrt(3.0)) << rms;
+}
+
+TEST(CalibCli, BadInputNamesWhereAndWritesNothing) {
+  const std::string out = tmp("never.yaml");
+  std::filesystem::remove(out);
+  const std::string machine = source_path("machines/xmini.yaml");
+  // A column that is no axis of the machine.
+  const std::string bad_axis = tmp("bad-axis.csv");
+  write(bad_axis, "# kind: static\ncmd.q1,cmd.q2,cmd.q3,cmd.c,cmd.b,tip.x,tip.y,tip.z\n1,2,3,4,5,6,7,8\n");
+  auto r = test::run_command(fmt::format("{} calibrate {} --machine {} -o {}", CSCAM_CLI, bad_axis, machine, out));
+  EXPECT_NE(r.status, 0);
+  EXPECT_NE(r.output.find(bad_axis + ":2:28"), std::string::npos) << r.output;
+  EXPECT_NE(r.output.find("cmd.b"), std::string::npos) << r.output;
+  // A malformed number: file, line and column.
+  const std::string bad_num = tmp("bad-num.csv");
+  write(bad_num,
+        "# kind: static\ncmd.q1,cmd.q2,cmd.q3,cmd.c,cmd.a,tip.x,tip.y,tip.z\n1,2,3,4,5,6,7,8\n1,2,3,4,5,6,x7,8\n");
+  r = test::run_command(fmt::format("{} calibrate {} --machine {} -o {}", CSCAM_CLI, bad_num, machine, out));
+  EXPECT_NE(r.status, 0);
+  EXPECT_NE(r.output.find(bad_num + ":4:13"), std::string::npos) << r.output;
+  // Too few measurements.
+  r = test::run_command(fmt::format("{} calibrate {} --machine {} -o {} --split 0", CSCAM_CLI,
+                                    source_path("machines/../tests/data/xmini-vectors.csv"), machine, out));
+  EXPECT_NE(r.status, 0);
+  const std::string few = tmp("few.csv");
+  write(few,
+        "# kind: "
+        "static\ncmd.q1,cmd.q2,cmd.q3,cmd.c,cmd.a,tip.x,tip.y,tip.z\n154.669331,158.276253,154.669331,0,0,0,0,0\n");
+  r = test::run_command(fmt::format("{} calibrate {} --machine {} -o {}", CSCAM_CLI, few, machine, out));
+  EXPECT_NE(r.status, 0);
+  EXPECT_NE(r.output.find("at least 38"), std::string::npos) << r.output;
+  EXPECT_FALSE(std::filesystem::exists(out));
+  // A solve that does not converge: Ceres' termination reason, exit 1, no file.
+  const auto m = load("xmini");
+  calib::Sigmas s;
+  s.tip_mm = 0.002;
+  const std::string rec = tmp("xmini-short.csv");
+  write(rec, calib::format_recording(calib::to_recording(
+                 *m, calib::simulate(*m, xmini_truth(*m), m->random_poses(60, 41), {"tip"}, s, 5), machine)));
+  r = test::run_command(fmt::format("{} calibrate {} -o {} --max-iterations 2", CSCAM_CLI, rec, out));
+  EXPECT_EQ(r.status, 1) << r.output;
+  EXPECT_NE(r.output.find("NO_CONVERGENCE"), std::string::npos) << r.output;
+  EXPECT_NE(r.output.find("no corrected file written"), std::string::npos) << r.output;
+  EXPECT_FALSE(std::filesystem::exists(out));
+}
+
+TEST(CalibIdent, RobustLossListsOutlierPoses) {
+  const auto m = load("trunnion-ac");
+  std::vector<double> truth = m->nominal();
+  truth[m->index("EX0C")] = 0.02;
+  truth[m->index("EZ0A")] = -0.01;
+  calib::Sigmas s;
+  s.ptip_mm = 0.0005;
+  Dataset d = calib::simulate(*m, truth, m->random_poses(40, 3), {"ptip"}, s, 7);
+  for (std::size_t k = 0; k < d.poses.size(); ++k) d.poses[k].line = static_cast<int>(k) + 3;
+  d.poses[5].meas[6] += 0.05;  // two gross probing errors (50 um)
+  d.poses[17].meas[8] -= 0.08;
+  calib::Options o;
+  o.free = m->select({"rotary_a", "rotary_c"});
+  o.loss = calib::Loss::Huber;
+  const calib::Result r = calib::calibrate(*m, d, o);
+  ASSERT_TRUE(r.summary.converged);
+  ASSERT_EQ(r.outliers.size(), 2u);
+  EXPECT_EQ(r.outliers[0].line, 8);
+  EXPECT_EQ(r.outliers[1].line, 20);
+  EXPECT_NEAR(r.estimate[m->index("EX0C")], 0.02, 0.002);
+}
+
+TEST(CalibCli, TrunnionTableProbingAndDesign) {
+  const auto m = load("trunnion-ac");
+  std::vector<double> truth = m->nominal();
+  truth[m->index("EX0C")] = 0.02;
+  truth[m->index("EY0A")] = -0.03;
+  truth[m->index("EB0A")] = 0.01;
+  calib::Sigmas s;
+  s.ptip_mm = 0.0005;
+  const std::string machine = source_path("machines/trunnion-ac.yaml");
+  const std::string rec = tmp("trunnion-probe.csv"), out = tmp("trunnion-corrected.yaml");
+  write(rec, calib::format_recording(
+                 calib::to_recording(*m, calib::simulate(*m, truth, m->random_poses(40, 3), {"ptip"}, s, 7), machine)));
+  auto r = test::run_command(
+      fmt::format("{} calibrate {} --machine {} -o {} --free rotary_a,rotary_c", CSCAM_CLI, rec, machine, out));
+  ASSERT_EQ(r.status, 0) << r.output;
+  EXPECT_NE(r.output.find("EX0C"), std::string::npos);
+  const auto m2 = calib::load_model(out);
+  for (const auto& q : m->random_poses(5, 99))
+    EXPECT_LT((m2->predict(q, m2->nominal()).ptip - m->predict(q, truth).ptip).norm(), 0.005);
+  r = test::run_command(fmt::format("{} calibrate --design 12 --machine {} --free rotary_a,rotary_c --candidates 300",
+                                    CSCAM_CLI, machine));
+  ASSERT_EQ(r.status, 0) << r.output;
+  EXPECT_NE(r.output.find("designed"), std::string::npos) << r.output;
+}
+
+TEST(CalibIdent, PcmmMonteCarloCoverageOf95PercentIntervals) {
+  // Gauge noise 0.5 um on the passive link and the probe tip; 100 seeded trials.
+  const auto m = load("pcmm");
+  std::vector<double> truth = perturbed(*m, all(*m), 0.5, 5);
+  truth[m->index("ths1")] = m->nominal()[m->index("ths1")];  // the stage frame's convention (see above)
+  const auto poses = m->random_poses(45, 11);
+  calib::Sigmas s;
+  s.tip_mm = s.len_mm = 0.0005;
+  calib::Options o;
+  o.free = m->select({"all"});
+  o.free.erase(std::find(o.free.begin(), o.free.end(), m->index("ths1")));
+  int inside = 0, total = 0;
+  for (int trial = 0; trial < 100; ++trial) {
+    const Dataset d = calib::simulate(*m, truth, poses, {"len", "tip"}, s, 1000 + static_cast<unsigned>(trial));
+    const calib::Result r = calib::calibrate(*m, d, o);
+    ASSERT_TRUE(r.summary.converged);
+    for (std::size_t i : o.free) {
+      ++total;
+      inside += std::abs(r.estimate[i] - truth[i]) <= 1.96 * r.stddev[i];
+    }
+  }
+  const double coverage = static_cast<double>(inside) / total;
+  EXPECT_GE(coverage, 0.90);
+  EXPECT_LE(coverage, 0.99);
+}
+
+TEST(CalibCli, XminiPostedWithCorrectedFilePutsTrueTipOnPath) {
+  // What the post does per CL point: IK of the machine file. With the corrected file, the true machine
+  // (the perturbed parameters) must put the tip on the CL points; with the nominal file it misses by mm.
+  const auto m = load("xmini");
+  const std::vector<double> truth = xmini_truth(*m);
+  calib::Sigmas s;
+  s.tip_mm = 0.002;
+  const Dataset d = calib::simulate(*m, truth, m->random_poses(200, 51), {"tip", "dir"}, s, 8);
+  calib::Dataset fit = d;
+  const calib::Result r = calib::calibrate(*m, fit, calib::Options{});
+  ASSERT_TRUE(r.summary.converged);
+  const std::string out = tmp("xmini-corrected-post.yaml");
+  write(out, m->corrected_yaml(r.estimate));
+  const auto corrected = machine::load(out).kinematics();
+  const auto nominal = machine::load(source_path("machines/xmini.yaml")).kinematics();
+  auto worst_on_path = [&](const kin::Kinematics& k) {
+    double worst = 0;
+    std::vector<kin::Solution> sols;
+    for (const auto& q0 : m->random_poses(40, 61)) {
+      const auto target = m->predict(q0, m->nominal());  // a CL point: tip and tool axis
+      k.inverse_branches(kin::Posed{target.tip, target.dir}, nullptr, sols);
+      EXPECT_FALSE(sols.empty());
+      if (sols.empty()) continue;
+      const kin::Axes& q = sols.front().axes;
+      const auto real = m->predict({q[0], q[1], q[2], rad2deg(q[3]), rad2deg(q[4])}, truth);
+      worst = std::max(worst, (real.tip - target.tip).norm());
+    }
+    return worst;
+  };
+  const double with_nominal = worst_on_path(*nominal), with_corrected = worst_on_path(*corrected);
+  EXPECT_GT(with_nominal, 1.0);
+  EXPECT_LT(with_corrected, 0.01) << "nominal " << with_nominal;
+  RecordProperty("worst_tip_error_nominal_mm", std::to_string(with_nominal));
+  RecordProperty("worst_tip_error_corrected_mm", std::to_string(with_corrected));
+  std::cout << "XMINI true tip off the CL points: nominal file " << with_nominal << " mm, corrected file "
+            << with_corrected << " mm\n";
+}
+
+TEST(CalibIdent, RegulariseKeepsUnidentifiableNearNominalAndHoldoutFileIsUsed) {
+  const auto m = load("xmini");
+  calib::Sigmas s;
+  s.tip_mm = 0.002;
+  const std::vector<double> truth = xmini_truth(*m);
+  const Dataset d = calib::simulate(*m, truth, m->random_poses(120, 71), {"tip"}, s, 9);
+  calib::Options o;
+  o.regularise = true;
+  const calib::Result r = calib::calibrate(*m, d, o);
+  ASSERT_TRUE(r.summary.converged);
+  ASSERT_FALSE(r.ident.fixed.empty());
+  for (std::size_t i : r.ident.fixed) {
+    EXPECT_TRUE(std::isfinite(r.stddev[i])) << m->params()[i].name;  // free, with a prior
+    EXPECT_LT(std::abs(r.estimate[i] - m->nominal()[i]), 0.1) << m->params()[i].name;
+  }
+  // The CLI with a separate held-out recording.
+  const std::string machine = source_path("machines/xmini.yaml");
+  const std::string fit = tmp("xmini-fit.csv"), hold = tmp("xmini-hold.csv");
+  write(fit, calib::format_recording(calib::to_recording(*m, d, machine)));
+  write(hold, calib::format_recording(calib::to_recording(
+                  *m, calib::simulate(*m, truth, m->random_poses(30, 72), {"tip"}, s, 10), machine)));
+  const auto c = test::run_command(fmt::format("{} calibrate {} --holdout {} --regularise", CSCAM_CLI, fit, hold));
+  ASSERT_EQ(c.status, 0) << c.output;
+  EXPECT_NE(c.output.find("held-out (" + hold + ", 30 poses)"), std::string::npos) << c.output;
+  EXPECT_NE(c.output.find("regularised toward nominal"), std::string::npos) << c.output;
+}

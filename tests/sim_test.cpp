@@ -1,0 +1,187 @@
+// The sim module: recordings (format, errors), the effect library (derivatives, parsing), motion profiles
+// and the simulator.
+#include <gtest/gtest.h>
+
+#include <cmath>
+#include <random>
+#include <sstream>
+
+#include "cscam/core/error.hpp"
+#include "cscam/core/tolerances.hpp"
+#include "cscam/machine/machine.hpp"
+#include "cscam/nc/reader.hpp"
+#include "cscam/report/letters.hpp"
+#include "cscam/sim/effects.hpp"
+#include "cscam/sim/recording.hpp"
+#include "cscam/sim/simulate.hpp"
+
+using namespace cscam;
+
+namespace {
+
+machine::Machine trunnion() { return machine::load(std::string(CSCAM_SOURCE_DIR) + "/machines/trunnion-ac.yaml"); }
+
+std::string error_of(const std::function<void()>& f) {
+  try {
+    f();
+  } catch (const InputError& e) {
+    return e.what();
+  }
+  return "(no error)";
+}
+
+/// A square on the trunnion at 600 mm/min: every linear axis reverses.
+sim::Trajectory square_path(const machine::Machine& m, double rate = 500) {
+  const std::string nc =
+      "G21 G90 G94\nG0 X0 Y0 Z0 A0 C0\nG1 X20 F600\nG1 Y20\nG1 X0\nG1 Y0\nG1 X20\nG1 Y20\nG1 X0\nG1 Y0\n";
+  const auto p = nc::read_text(nc, "square.ngc", report::axis_letters(m));
+  sim::ProfileOptions po;
+  po.rate_hz = rate;
+  return sim::profile(sim::blocks_from_nc(p, m), po);
+}
+
+}  // namespace
+
+TEST(SimRecording, RoundTripKeepsMetadataColumnsAndEmptyCells) {
+  sim::Recording r;
+  r.set_meta("machine", "machines/xmini.yaml");
+  r.set_meta("kind", "trajectory");
+  r.add_column("t", {0.0, 0.001, 0.002});
+  r.add_column("cmd.x", {1.0, 2.0, 3.0});
+  r.add_column("tip.x", {0.5, std::nan(""), 0.25});
+  std::ostringstream os;
+  sim::write_recording(os, r);
+  const auto back = sim::parse_recording(os.str(), "mem.csv");
+  EXPECT_EQ(back.meta_value("machine").value(), "machines/xmini.yaml");
+  ASSERT_EQ(back.columns.size(), 3u);
+  ASSERT_EQ(back.rows(), 3u);
+  EXPECT_DOUBLE_EQ(back.data[1][2], 3.0);
+  EXPECT_TRUE(std::isnan(back.data[2][1]));
+  EXPECT_EQ(back.row_line[0], 4);  // two metadata lines, the header, then the first row
+}
+
+TEST(SimRecording, ErrorsNameTheRowTheColumnOrTheCell) {
+  EXPECT_NE(error_of([] {
+              sim::parse_recording("t,cmd.x\n0,1\n0.2,1\n0.1,2\n", "r.csv");
+            }).find("r.csv:4: row 3: time is not strictly increasing"),
+            std::string::npos);
+  EXPECT_NE(error_of([] { sim::parse_recording("t,cmd.x\n0,1\n0.1,abc\n", "r.csv"); }).find("r.csv:3:5: column cmd.x"),
+            std::string::npos);
+  EXPECT_NE(error_of([] { sim::parse_recording("t,cmd.x\n0,1,2\n", "r.csv"); }).find("too many cells"),
+            std::string::npos);
+  EXPECT_NE(error_of([] { sim::parse_recording("cmd.x\n1\n", "r.csv"); }).find("time column 't'"), std::string::npos);
+  const auto m = trunnion();
+  auto rec = sim::parse_recording("t,cmd.x,cmd.y,cmd.z,cmd.a,tip.x\n0,0,0,0,0,0\n", "r.csv");
+  EXPECT_NE(error_of([&] { sim::validate_against(rec, m); }).find("missing column 'cmd.c'"), std::string::npos);
+  auto rec2 = sim::parse_recording("t,cmd.x,cmd.y,cmd.z,cmd.a,cmd.c,len.bar\n0,0,0,0,0,0,1\n", "r.csv");
+  EXPECT_NE(error_of([&] { sim::validate_against(rec2, m); }).find("column 'len.bar'"), std::string::npos);
+  auto rec3 = sim::parse_recording("t,cmd.x,cmd.y,cmd.z,cmd.a,cmd.c,foo,temp.spindle\n0,0,0,0,0,0,1,20\n", "r.csv");
+  sim::validate_against(rec3, m);
+  ASSERT_EQ(rec3.warnings.size(), 1u);
+  EXPECT_NE(rec3.warnings[0].find("unknown column 'foo'"), std::string::npos);
+}
+
+TEST(SimEffects, EveryEffectsAutodiffGradientMatchesFiniteDifferences) {
+  const auto m = trunnion();
+  const auto tr = square_path(m);
+  const auto ctx = sim::make_context(tr.t, tr.cmd, {false, false, false, true, true});
+  const std::vector<std::string> specs = {
+      "backlash:x:0.01",    "servo_lag:y:0.004",           "scale:x:30",
+      "squareness:x,y:50",  "cyclic:x:5:0.002:30",         "friction_spike:y:0.005:0.05",
+      "compliance:x:0.001", "thermal_drift:tip.z:0.02:40", "vibration:tip.z:37.5:0.003:20"};
+  std::mt19937 rng(7);
+  for (const auto& s : specs) {
+    auto e = sim::parse_effect(s, m);
+    for (int trial = 0; trial < 20; ++trial) {
+      const size_t i = std::uniform_int_distribution<size_t>(0, ctx.size() - 1)(rng);
+      std::vector<double> g(e->p.size());
+      const double v = e->value_grad(ctx, i, e->p.data(), g.data());
+      EXPECT_NEAR(v, e->value(ctx, i, e->p.data()), 1e-15) << s;
+      for (size_t k = 0; k < e->p.size(); ++k) {
+        auto p1 = e->p, p0 = e->p;
+        const double h = 1e-6 * std::max(1.0, std::abs(e->p[k]));
+        p1[k] += h;
+        p0[k] -= h;
+        const double fd = (e->value(ctx, i, p1.data()) - e->value(ctx, i, p0.data())) / (2 * h);
+        EXPECT_NEAR(g[k], fd, 1e-6 * std::max(1.0, std::abs(fd))) << s << " parameter " << k << " sample " << i;
+      }
+    }
+  }
+}
+
+TEST(SimEffects, ParsingFollowsTheSpecKeysAndRejectsBadInput) {
+  const auto m = trunnion();
+  auto b = sim::parse_effect("backlash:x:0.012", m);
+  ASSERT_EQ(b->reported().size(), 1u);
+  EXPECT_EQ(b->reported()[0].first, "magnitude_mm");
+  EXPECT_DOUBLE_EQ(b->reported()[0].second, 0.012);
+  auto bc = sim::parse_effect("backlash:c:0.01", m);
+  EXPECT_EQ(bc->reported()[0].first, "magnitude_deg");
+  auto v = sim::parse_effect("vibration:tip.z:frequency_hz=166.7,amplitude_mm=0.00322", m);
+  EXPECT_NEAR(v->reported()[1].second, 0.00322, 1e-12);
+  EXPECT_NE(error_of([&] { sim::parse_effect("wobble:x:1", m); }).find("unknown effect 'wobble'"), std::string::npos);
+  EXPECT_NE(error_of([&] { sim::parse_effect("backlash:q7:1", m); }).find("no axis 'q7'"), std::string::npos);
+  EXPECT_NE(error_of([&] { sim::parse_effect("vibration:tip.w:1:1", m); }).find("not a channel"), std::string::npos);
+  EXPECT_NE(error_of([&] { sim::parse_effect("servo_lag:x:lag=1", m); }).find("no parameter 'lag'"), std::string::npos);
+  // Sign conventions of recording.md: scale actual = cmd (1 + ppm 1e-6); squareness first += gamma * second.
+  const auto tr = square_path(m);
+  const auto ctx = sim::make_context(tr.t, tr.cmd, {false, false, false, true, true});
+  auto sc = sim::parse_effect("scale:x:100", m);
+  auto sq = sim::parse_effect("squareness:x,y:100", m);
+  for (size_t i = 0; i < ctx.size(); i += 97) {
+    EXPECT_NEAR(sc->value(ctx, i, sc->p.data()), ctx.q[0][i] * 100e-6, 1e-15);
+    EXPECT_NEAR(sq->value(ctx, i, sq->p.data()), ctx.q[1][i] * 100e-6, 1e-15);
+  }
+}
+
+TEST(SimProfile, TrapezoidReachesEveryBlockEndAtTheFeed) {
+  const auto m = trunnion();
+  const auto tr = square_path(m, 1000);
+  // 8 sides of 20 mm at 10 mm/s, plus one acceleration time (5 ms at 2000 mm/s^2) per block.
+  EXPECT_NEAR(tr.t.back(), 8 * (2.0 + 0.005), 0.01);
+  double vmax = 0;
+  for (size_t i = 1; i < tr.t.size(); ++i)
+    vmax = std::max(vmax, (tr.cmd[i] - tr.cmd[i - 1]).norm() / (tr.t[i] - tr.t[i - 1]));
+  EXPECT_NEAR(vmax, 10.0, 0.05);
+  EXPECT_NEAR(tr.cmd.back()[0], 0.0, 1e-12);
+  EXPECT_NEAR(tr.cmd.back()[1], 0.0, 1e-12);
+}
+
+TEST(SimSimulate, BacklashShowsInTheEncoderAndTheTipWithTheRightSign) {
+  const auto m = trunnion();
+  const auto tr = square_path(m);
+  auto b = sim::parse_effect("backlash:x:0.02", m);
+  sim::SimulateOptions so;
+  so.channels = {"tip", "ptip", "enc"};
+  const auto rec = sim::simulate(tr, m, {b.get()}, so);
+  const auto& cx = rec.data[static_cast<size_t>(rec.column("cmd.x"))];
+  const auto& ex = rec.data[static_cast<size_t>(rec.column("enc.x"))];
+  const auto& tx = rec.data[static_cast<size_t>(rec.column("tip.x"))];
+  // While x moves positive the axis trails by half the width, and the tip with it.
+  const size_t i = static_cast<size_t>(0.5 * 500);  // mid first side (x increasing)
+  EXPECT_NEAR(ex[i] - cx[i], -0.01, 1e-12);
+  EXPECT_NEAR(tx[i] - cx[i], -0.01, 1e-9);
+  // Noise is seeded: the same seed gives the same recording.
+  so.noise = {{"tip", 0.001}};
+  so.seed = 3;
+  const auto r1 = sim::simulate(tr, m, {}, so), r2 = sim::simulate(tr, m, {}, so);
+  EXPECT_EQ(r1.data[static_cast<size_t>(r1.column("tip.y"))], r2.data[static_cast<size_t>(r2.column("tip.y"))]);
+}
+
+TEST(SimSimulate, XminiCutFromTheClFileFollowsTheFeed) {
+  const auto m = machine::load(std::string(CSCAM_SOURCE_DIR) + "/machines/xmini.yaml");
+  const auto blocks = sim::blocks_from_cl(std::string(CSCAM_SOURCE_DIR) + "/examples/xmini/seed000_x_cut.cls", m, 50.0);
+  sim::ProfileOptions po;
+  po.rate_hz = 200;
+  const auto tr = sim::profile(blocks, po);
+  sim::SimulateOptions so;
+  so.channels = {"tip"};
+  so.tool_length_mm = 50;
+  const auto rec = sim::simulate(tr, m, {}, so);
+  const auto& tx = rec.data[static_cast<size_t>(rec.column("tip.x"))];
+  double lo = 1e9, hi = -1e9;
+  for (double x : tx) lo = std::min(lo, x), hi = std::max(hi, x);
+  EXPECT_NEAR(lo, -20.0, 1e-6);
+  EXPECT_NEAR(hi, 20.0, 1e-6);
+  EXPECT_GT(tr.t.back(), 40.0 / 2.5);  // 40 mm at 150 mm/min at least
+}
