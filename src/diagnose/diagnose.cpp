@@ -746,7 +746,8 @@ Report diagnose(sim::Recording& rec, const machine::Machine& m, const std::vecto
       protos.push_back(std::move(e));
     }
   }
-  if (has_geom_channel)
+  // Squareness is a property of Cartesian slides; between the legs of a parallel machine it means nothing.
+  if (has_geom_channel && m.kind == machine::ModelKind::Serial)
     for (int i = 0; i < 5; ++i)
       for (int j = i + 1; j < 5; ++j)
         if (!rot[i] && !rot[j])

@@ -102,6 +102,24 @@ VerifyResult verify(const nc::Program& nc, const cl::Program& cl, const kin::Kin
         }
       }
     }
+    if (global) {
+      // After a rapid the cut usually resumes at the next CL segments: try them before a full scan.
+      double best_local = std::numeric_limits<double>::infinity();
+      size_t arg_local = cursor;
+      for (size_t k = cursor; k < std::min(segs.size(), cursor + 64); ++k) {
+        double tk;
+        const double d = seg_distance(segs[k], p, tk);
+        if (d < best_local) {
+          best_local = d;
+          arg_local = k;
+          t = tk;
+        }
+      }
+      if (best_local <= options.tip_tolerance_mm) {
+        cursor = arg_local;
+        return best_local;
+      }
+    }
     size_t lo = global ? 0 : (cursor > 2 ? cursor - 2 : 0);
     size_t hi = global ? segs.size() : std::min(segs.size(), cursor + 64);
     double best = std::numeric_limits<double>::infinity();
