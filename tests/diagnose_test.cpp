@@ -219,6 +219,7 @@ TEST(Diagnose, CommittedExamples) {
     return diagnose::diagnose(rec, m, {});
   };
   const auto s0 = diag("seed000_xmini.csv", xmini());
+  expect_found(s0, "geometric", "A1x", "A1x_mm", -0.15);
   expect_found(s0, "backlash", "q2", "magnitude_mm", 0.015);
   ASSERT_NE(find(s0, "vibration", "tip.z"), nullptr) << s0.text();
   EXPECT_NEAR(param(*find(s0, "vibration", "tip.z"), "amplitude_mm"), 0.00322, 0.2 * 0.00322);

@@ -12,9 +12,9 @@ T=machines/trunnion-ac.yaml
 sim() { "$B/cscam" simulate "$@" --decimals 5; }
 
 # 1. Seed 000 on the XMINI: the X-direction cut, leg-2 lost motion, tooth-passing vibration, a geometric error.
-sim examples/xmini/seed000_x_cut.cls -m $X -o $D/seed000_xmini.csv --rate 350 --channels tip \
+sim examples/xmini/seed000_x_outback.cls -m $X -o $D/seed000_xmini.csv --rate 350 --channels tip \
   --inject backlash:q2:0.015 --inject vibration:tip.z:166.67:0.00322 --inject geometric:A1x=-150.15 \
-  --noise tip:0.001 --spindle-rpm 5000 --flutes 2 --seed 1 --note "seed 000 X cut, 150 mm/min"
+  --noise tip:0.001 --spindle-rpm 5000 --flutes 2 --seed 1 --note "seed 000 X out and back, 150 mm/min"
 # 2. Servo lag on one axis of the trunnion (ballbar circle, tip and encoders).
 sim $D/circle.ngc -m $T -o $D/servo_lag.csv --rate 100 --channels tip,enc --inject servo_lag:y:0.002 \
   --noise tip:0.001 --noise enc:0.0002 --seed 2

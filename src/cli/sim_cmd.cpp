@@ -5,6 +5,7 @@
 #include <fmt/format.h>
 
 #include <chrono>
+#include <cmath>
 #include <filesystem>
 #include <fstream>
 #include <iostream>
@@ -98,6 +99,50 @@ int cmd_simulate(const SimArgs& a) {
   po.rate_hz = a.rate;
   po.accel = a.accel;
   double L = a.tool_length >= 0 ? a.tool_length : m.default_tool_length_mm;
+  std::string ext = fs::path(a.program).extension().string();
+  for (auto& c : ext) c = static_cast<char>(std::tolower(static_cast<unsigned char>(c)));
+  if (ext == ".csv") {
+    // A static pose list (e.g. from `cscam calibrate --design`): measure every pose on the simulated
+    // machine (its effects, geometric deviations included) and write a static recording.
+    sim::Recording poses = sim::read_recording(a.program);
+    if (poses.meta_value("kind").value_or("") != "static")
+      throw InputError(SourceLoc{a.program, 1, 0},
+                       "a CSV input must be a static pose list ('# kind: static' with cmd.<axis> columns)");
+    sim::Trajectory tr;
+    std::vector<int> col(5);
+    for (size_t j = 0; j < 5; ++j) {
+      col[j] = poses.column("cmd." + m.axes[j].name);
+      if (col[j] < 0)
+        throw InputError(SourceLoc{a.program, 1, 0}, fmt::format("missing column cmd.{} for axis {} of machine {}",
+                                                                 m.axes[j].name, m.axes[j].name, m.name));
+    }
+    for (size_t i = 0; i < poses.rows(); ++i) {
+      kin::Axes q;
+      for (size_t j = 0; j < 5; ++j) {
+        q[static_cast<int>(j)] = poses.data[static_cast<size_t>(col[j])][i];
+        if (!std::isfinite(q[static_cast<int>(j)]))
+          throw InputError(SourceLoc{a.program, poses.row_line[i], 0},
+                           fmt::format("cmd.{} is empty: every pose needs every axis", m.axes[j].name));
+      }
+      tr.t.push_back(static_cast<double>(i));
+      tr.cmd.push_back(q);
+    }
+    if (tr.t.empty()) throw InputError(SourceLoc{a.program}, "no poses in the file");
+    if (a.tool_length < 0)
+      if (auto tl = poses.meta_value("tool_length")) L = std::stod(*tl);
+    so.tool_length_mm = L;
+    sim::Recording rec = sim::simulate(tr, m, fx, so);
+    rec.set_meta("kind", "static");
+    if (const int tc = rec.column("t"); tc >= 0) {  // poses have no time
+      rec.columns.erase(rec.columns.begin() + tc);
+      rec.data.erase(rec.data.begin() + tc);
+    }
+    const std::string out = a.out.empty() ? fs::path(a.program).stem().string() + ".rec.csv" : a.out;
+    write_file_atomically(out, [&](std::ostream& os) { sim::write_recording(os, rec, a.decimals); });
+    std::cout << fmt::format("wrote {} ({} static poses, channels {}, {} effect(s))\n", out, rec.rows(), a.channels,
+                             fx.size());
+    return 0;
+  }
   std::vector<sim::Block> blocks;
   if (is_nc(a.program)) {
     const nc::Program p = nc::read_file(a.program, report::axis_letters(m));
@@ -176,7 +221,9 @@ std::function<int()> add_sim_commands(CLI::App& app) {
   auto* sim_cmd =
       app.add_subcommand("simulate", "Simulate a program on a machine with injected effects: write a recording");
   sim_cmd
-      ->add_option("program", sa->program, "NC file (.ngc/.nc/.tap) or CL file (posted with the conventional strategy)")
+      ->add_option("program", sa->program,
+                   "NC file (.ngc/.nc/.tap), CL file (posted with the conventional strategy), or a static pose list "
+                   "(.csv, kind: static) to measure")
       ->required();
   sim_cmd->add_option("-m,--machine", sa->machine, "machine file or bundled machine name")->required();
   sim_cmd->add_option("-o,--output", sa->out, "recording to write (CSV, spec/recording.md)");
