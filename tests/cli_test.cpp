@@ -3,6 +3,7 @@
 
 #include <filesystem>
 #include <fstream>
+#include <map>
 #include <nlohmann/json.hpp>
 
 #include "cscam/cl/program.hpp"
@@ -336,4 +337,67 @@ TEST(Cli, JsonSurvivesQuotesAndBackslashesInPaths) {
   j = nlohmann::json::parse(in);
   EXPECT_EQ(j["cl"], cl);
   EXPECT_EQ(j["machine"], "trunnion-ac");
+}
+
+// Calibration end to end as a user runs it: choose poses, measure them on a simulated machine whose C axis
+// is 0.02 mm off and whose A axis is tilted 0.01 deg, identify, and write the corrected file. The oracle is
+// the injected truth (independent of the estimator).
+TEST(Cli, DesignSimulateCalibrateRecoversInjectedAxisErrors) {
+  TempDir d;
+  const std::string poses = d.file("poses.csv"), meas = d.file("meas.csv"), out = d.file("corrected.yaml");
+  auto r = run_command(kCli + " calibrate --design 40 --machine trunnion-ac --channels ptip --seed 4 -o " + poses);
+  ASSERT_EQ(r.status, 0) << r.output;
+  r = run_command(kCli + " simulate " + poses +
+                  " --machine trunnion-ac --channels ptip --inject geometric:EX0C=0.02 --inject geometric:EB0A=0.01 "
+                  "--noise ptip:0.0005 --seed 5 -o " +
+                  meas);
+  ASSERT_EQ(r.status, 0) << r.output;
+  r = run_command(kCli + " calibrate " + meas + " --machine trunnion-ac --json -o " + out);
+  ASSERT_EQ(r.status, 0) << r.output;
+  const auto j = nlohmann::json::parse(r.output.substr(r.output.find('{')));
+  std::map<std::string, std::pair<double, double>> est;  // name -> (change, sd)
+  for (const auto& p : j.at("parameters")) {
+    if (p.at("stddev").is_null()) continue;
+    est[p.at("name").get<std::string>()] = {p.at("change").get<double>(), p.at("stddev").get<double>()};
+  }
+  ASSERT_TRUE(est.count("EX0C") && est.count("EB0A")) << r.output.substr(0, 3000);
+  EXPECT_NEAR(est["EX0C"].first, 0.02, std::max(5 * est["EX0C"].second, 1e-3));
+  EXPECT_NEAR(est["EB0A"].first, 0.01, std::max(5 * est["EB0A"].second, 1e-3));
+  EXPECT_TRUE(fs::exists(out));
+}
+
+TEST(Cli, SimulateRefusesACsvThatIsNotAPoseList) {
+  TempDir d;
+  const std::string bad = d.file("traj.csv", "# kind: trajectory\nt,cmd.x\n0,0\n");
+  const auto r = run_command(kCli + " simulate " + bad + " --machine trunnion-ac -o " + d.file("o.csv"));
+  EXPECT_NE(r.status, 0) << r.output;
+  EXPECT_NE(r.output.find("static"), std::string::npos) << r.output;
+  EXPECT_FALSE(fs::exists(d.path / "o.csv"));
+}
+
+// Determinism: the parallel parts (simulate, diagnose) partition work by index, so their files are
+// byte-identical at any thread count.
+TEST(Cli, SimulateAndDiagnoseAreByteIdenticalAtAnyThreadCount) {
+  TempDir d;
+  const std::string cl = cscam::test::source_path("examples/xmini/seed000_x_outback.cls");
+  std::vector<std::string> recs, models;
+  for (const char* threads : {"1", "3"}) {
+    const std::string rec = d.file(std::string("rec") + threads + ".csv");
+    const std::string model = d.file(std::string("model") + threads + ".yaml");
+    auto r = run_command(std::string("CSCAM_THREADS=") + threads + " " + kCli + " simulate " + cl +
+                         " --machine xmini --rate 700 --channels tip,enc --inject backlash:q2:0.015 "
+                         "--noise tip:0.001 --seed 3 -o " +
+                         rec);
+    ASSERT_EQ(r.status, 0) << r.output;
+    r = run_command(std::string("CSCAM_THREADS=") + threads + " " + kCli + " diagnose " + rec + " --write-model " +
+                    model);
+    ASSERT_EQ(r.status, 0) << r.output;
+    std::ifstream a(rec), b(model);
+    recs.emplace_back(std::istreambuf_iterator<char>(a), std::istreambuf_iterator<char>());
+    models.emplace_back(std::istreambuf_iterator<char>(b), std::istreambuf_iterator<char>());
+  }
+  EXPECT_GT(recs[0].size(), 100000u);
+  EXPECT_EQ(recs[0], recs[1]);
+  EXPECT_EQ(models[0], models[1]);
+  EXPECT_NE(models[0].find("backlash"), std::string::npos);
 }

@@ -106,7 +106,8 @@ TEST(Gate, RefusesAnAxisBeyondItsLimit) {
   const int n = find_line(lines, "G1", 20);
   ASSERT_GT(n, 0);
   // The trunnion's A stops at -100/+50 deg: A100 is beyond it.
-  lines[static_cast<size_t>(n - 1)] = std::regex_replace(lines[static_cast<size_t>(n - 1)], std::regex(" A-?[0-9.]+"), "");
+  lines[static_cast<size_t>(n - 1)] =
+      std::regex_replace(lines[static_cast<size_t>(n - 1)], std::regex(" A-?[0-9.]+"), "");
   lines[static_cast<size_t>(n - 1)] += " A100.0";
   const auto s = f.run(join(lines));
   ASSERT_FALSE(s.ok);
@@ -226,8 +227,8 @@ TEST(PostFlips, CyclicLimitOnAHeadHeadMachineRetractsTurnsAndPlunges) {
   const auto k = m.make_kinematics(post::tool_length_for(m, 0));
   const Posted p = post_program(prog, m, *k);
   EXPECT_GE(p.summary.retracts, 1u);
-  const auto s = gate::check(p.text, "hh.ngc", prog, m, *k, gate::options_for(m, 0, 0, 0),
-                             &p.summary.cl_line_of_nc_line);
+  const auto s =
+      gate::check(p.text, "hh.ngc", prog, m, *k, gate::options_for(m, 0, 0, 0), &p.summary.cl_line_of_nc_line);
   EXPECT_TRUE(s.ok) << s.message;
   EXPECT_LT(largest_rotary_step_while_cutting(p.text, m, *k), 30.0);
   test::expect_rs274_agrees(p.text, m, "gate_hh");
@@ -256,8 +257,8 @@ TEST(PostFlips, XminiTurnsCInPlaceAtTheSingularPoint) {
   const Posted p = post_program(prog, m, *k);
   EXPECT_EQ(p.summary.reorientations, 1u);
   EXPECT_EQ(p.summary.retracts, 0u);
-  const auto s = gate::check(p.text, "x.ngc", prog, m, *k, gate::options_for(m, 0, 0, 0),
-                             &p.summary.cl_line_of_nc_line);
+  const auto s =
+      gate::check(p.text, "x.ngc", prog, m, *k, gate::options_for(m, 0, 0, 0), &p.summary.cl_line_of_nc_line);
   EXPECT_TRUE(s.ok) << s.message;
   EXPECT_LT(s.deviation.max_tip_deviation_mm, m.post.tolerance_mm);
 }

@@ -16,6 +16,7 @@
 
 #include "cscam/calib/model.hpp"
 #include "cscam/core/error.hpp"
+#include "cscam/core/threads.hpp"
 #include "cscam/sim/simulate.hpp"
 
 namespace cscam::diagnose {
@@ -318,7 +319,7 @@ void joint_fit(Fit& f, const std::vector<Effect*>& fx, size_t stride = 1) {
   ceres::Solver::Options so;
   so.linear_solver_type = ceres::DENSE_QR;
   so.max_num_iterations = 40;
-  so.num_threads = 2;
+  so.num_threads = static_cast<int>(worker_threads());
   so.logging_type = ceres::SILENT;
   ceres::Solver::Summary sum;
   ceres::Solve(so, &prob, &sum);
@@ -632,9 +633,10 @@ Report diagnose(sim::Recording& rec, const machine::Machine& m, const std::vecto
   std::vector<std::vector<double>> spectra(comps.size());
   {
     std::vector<std::thread> th;
-    for (int w = 0; w < 2; ++w)
-      th.emplace_back([&, w] {
-        for (size_t ci = static_cast<size_t>(w); ci < comps.size(); ci += 2) {
+    const int nt = static_cast<int>(worker_threads());
+    for (int w = 0; w < nt; ++w)
+      th.emplace_back([&, w, nt] {
+        for (size_t ci = static_cast<size_t>(w); ci < comps.size(); ci += static_cast<size_t>(nt)) {
           std::vector<double> x = comps[ci].res_full;
           for (auto& v : x)
             if (std::isnan(v)) v = 0;
@@ -676,9 +678,10 @@ Report diagnose(sim::Recording& rec, const machine::Machine& m, const std::vecto
   if (need_j) {
     const sim::Predictor P(m, L);
     std::vector<std::thread> th;
-    for (size_t w = 0; w < 2; ++w)
-      th.emplace_back([&, w] {
-        for (size_t k = ma * w / 2; k < ma * (w + 1) / 2; ++k) P.jacobian(cmd[ctx.index[k]], F.J[k]);
+    const size_t nt = worker_threads();
+    for (size_t w = 0; w < nt; ++w)
+      th.emplace_back([&, w, nt] {
+        for (size_t k = ma * w / nt; k < ma * (w + 1) / nt; ++k) P.jacobian(cmd[ctx.index[k]], F.J[k]);
       });
     for (auto& x : th) x.join();
   }
@@ -780,11 +783,12 @@ Report diagnose(sim::Recording& rec, const machine::Machine& m, const std::vecto
       if (anchors.back() != ma - 1) anchors.push_back(ma - 1);
       std::vector<std::vector<std::array<double, 9>>> at(np, std::vector<std::array<double, 9>>(anchors.size()));
       std::vector<std::thread> th;
-      for (size_t w = 0; w < 2; ++w)
-        th.emplace_back([&, w] {
+      const size_t nt = worker_threads();
+      for (size_t w = 0; w < nt; ++w)
+        th.emplace_back([&, w, nt] {
           auto scratch = cm->make_scratch();
           std::vector<double> base(nch), pert(nch), p = p0;
-          for (size_t a = w; a < anchors.size(); a += 2) {
+          for (size_t a = w; a < anchors.size(); a += nt) {
             const kin::Axes& q = cmd[ctx.index[anchors[a]]];
             cm->predict_channels(q.data(), p.data(), base.data(), scratch.get());
             for (size_t j = 0; j < np; ++j) {
@@ -846,9 +850,10 @@ Report diagnose(sim::Recording& rec, const machine::Machine& m, const std::vecto
     std::vector<Candidate> res(protos.size());
     {
       std::vector<std::thread> th;
-      for (size_t w = 0; w < 2; ++w)
-        th.emplace_back([&, w] {
-          for (size_t pi = w; pi < protos.size(); pi += 2) {
+      const size_t nt = worker_threads();
+      for (size_t w = 0; w < nt; ++w)
+        th.emplace_back([&, w, nt] {
+          for (size_t pi = w; pi < protos.size(); pi += nt) {
             const Effect& pr = *protos[pi];
             sim::GridHints h;
             for (size_t ci = 0; ci < comps.size(); ++ci)

@@ -68,8 +68,7 @@ std::string axis_value(const kin::AxisInfo& a, double v) {
 
 }  // namespace
 
-Options options_for(const machine::Machine& machine, double tolerance_mm, double axis_tolerance_deg,
-                    double cone_deg) {
+Options options_for(const machine::Machine& machine, double tolerance_mm, double axis_tolerance_deg, double cone_deg) {
   Options o;
   const report::VerifyOptions vo = report::verify_options_for(machine, tolerance_mm, axis_tolerance_deg, cone_deg);
   o.tip_tolerance_mm = vo.tip_tolerance_mm;
@@ -91,8 +90,8 @@ Summary check(const std::string& nc_text, const std::string& nc_name, const cl::
   };
 
   // Tool-tip control: the program says so (G43.4 / G234 / TCPM words, or our Cartesian header).
-  const bool tip_words = contains(nc_text, "(cartesian:") || contains(nc_text, "G43.4") ||
-                         contains(nc_text, "G234") || contains(nc_text, "TCPM") || contains(nc_text, "TRAORI");
+  const bool tip_words = contains(nc_text, "(cartesian:") || contains(nc_text, "G43.4") || contains(nc_text, "G234") ||
+                         contains(nc_text, "TCPM") || contains(nc_text, "TRAORI");
   nc::AxisLetters letters = report::axis_letters(machine);
   if (tip_words) {
     int k = 0;
@@ -103,7 +102,8 @@ Summary check(const std::string& nc_text, const std::string& nc_name, const cl::
   try {
     ncp = nc::read_text(nc_text, nc_name, letters);
   } catch (const InputError& e) {
-    add(Violation::Kind::Unreadable, e.where().line, 0, fmt::format("the program cannot be read back: {}", e.message()));
+    add(Violation::Kind::Unreadable, e.where().line, 0,
+        fmt::format("the program cannot be read back: {}", e.message()));
     s.message = s.violations.front().message;
     return s;
   }
@@ -167,9 +167,8 @@ Summary check(const std::string& nc_text, const std::string& nc_name, const cl::
     const kin::Axes& qb = joints[bi];
     const bool rapid = b.motion == nc::Motion::Rapid;
     double span = 0.0;
-    for (int i = 0; i < 5; ++i) span = std::max(span, std::abs(qb[i] - qa[i]) / (ax[static_cast<size_t>(i)].rotary()
-                                                                                     ? deg2rad(1.0)
-                                                                                     : 1.0));
+    for (int i = 0; i < 5; ++i)
+      span = std::max(span, std::abs(qb[i] - qa[i]) / (ax[static_cast<size_t>(i)].rotary() ? deg2rad(1.0) : 1.0));
     const int n = std::clamp(static_cast<int>(std::ceil(span / std::max(options.collision_step, 1e-6))), 1, 4000);
     for (int k = 1; k < n; ++k) {
       const kin::Axes q = qa + (static_cast<double>(k) / n) * (qb - qa);
@@ -247,8 +246,8 @@ Summary check(const std::string& nc_text, const std::string& nc_name, const cl::
   vo.axis_tolerance_deg = options.axis_tolerance_deg;
   vo.samples_per_block = options.samples_per_block;
   vo.ball_centre = options.ball_centre;
-  s.deviation = report::verify(ncp, cl, s.tool_tip_control ? static_cast<const kin::Kinematics&>(tip_kin) : kinematics,
-                               vo);
+  s.deviation =
+      report::verify(ncp, cl, s.tool_tip_control ? static_cast<const kin::Kinematics&>(tip_kin) : kinematics, vo);
   const auto& d = s.deviation;
   if (d.max_tip_deviation_mm > vo.tip_tolerance_mm)
     add(Violation::Kind::Deviation, d.max_tip_nc_line, d.max_tip_cl_line,

@@ -506,7 +506,8 @@ class Writer {
         emit_feed_to(q0, q0n, 0.0, feed_mm_min);
         ++sum_.reorientations;
         sum_.warnings.push_back(fmt::format(
-            "{}: rotaries turned in place at CL line {} ({} {:.3f} -> {:.3f} deg, {} {:.3f} -> {:.3f} deg), the tool held",
+            "{}: rotaries turned in place at CL line {} ({} {:.3f} -> {:.3f} deg, {} {:.3f} -> {:.3f} deg), the tool "
+            "held",
             where.str(), m0.line, m_.axes[static_cast<size_t>(rp[0])].name, rad2deg(q0[rp[0]]), rad2deg(q0n[rp[0]]),
             m_.axes[static_cast<size_t>(rp[1])].name, rad2deg(q0[rp[1]]), rad2deg(q0n[rp[1]])));
         return q0n;
@@ -536,9 +537,10 @@ class Writer {
     m_back.line = m1.line;
     feed_linear(m_up, up1, m_back, q0n);  // and straight back in
     ++sum_.retracts;
-    sum_.warnings.push_back(fmt::format("{}: rotaries flip or unwind at CL line {} ({}): retract {:.1f} mm along the "
-                                        "tool axis, turn, plunge",
-                                        where.str(), m0.line, describe(), d));
+    sum_.warnings.push_back(
+        fmt::format("{}: rotaries flip or unwind at CL line {} ({}): retract {:.1f} mm along the "
+                    "tool axis, turn, plunge",
+                    where.str(), m0.line, describe(), d));
     return q0n;
   }
 

@@ -11,6 +11,7 @@
 #include "cscam/calib/model.hpp"
 #include "cscam/cl/program.hpp"
 #include "cscam/core/error.hpp"
+#include "cscam/core/threads.hpp"
 #include "cscam/core/units.hpp"
 #include "cscam/nc/reader.hpp"
 #include "cscam/post/post.hpp"
@@ -48,7 +49,7 @@ void path_length(const kin::Axes& d, const machine::Machine& m, double& lin, dou
 
 template <class F>
 void parallel_for(size_t n, F&& f) {
-  const size_t nt = n > 20000 ? 2 : 1;
+  const size_t nt = n > 20000 ? worker_threads() : 1;
   if (nt == 1) {
     f(size_t{0}, n);
     return;

@@ -26,9 +26,9 @@ namespace cscam::gate {
 struct Options {
   double tip_tolerance_mm = 0.012;  ///< post tolerance + printing slack
   double axis_tolerance_deg = 0.31;
-  bool ball_centre = false;    ///< compare ball centres (a planner that tilts a ball mill keeps those)
-  int samples_per_block = 8;   ///< FK samples inside every feed block
-  double feed_slack = 1e-3;    ///< relative slack on max_feed (printed F words are rounded)
+  bool ball_centre = false;   ///< compare ball centres (a planner that tilts a ball mill keeps those)
+  int samples_per_block = 8;  ///< FK samples inside every feed block
+  double feed_slack = 1e-3;   ///< relative slack on max_feed (printed F words are rounded)
   /// Largest joint step between collision samples of rapid/reorientation moves (mm or rad).
   double collision_step = 0.5;
   /// Optional collision check of a machine configuration against the part/fixture: returns a
@@ -38,8 +38,7 @@ struct Options {
 
 /// Options for a program posted with `tolerance_mm` / `axis_tolerance_deg` (0: the machine file's)
 /// and planned within a cone of `cone_deg` (0: the CL orientation exactly).
-Options options_for(const machine::Machine& machine, double tolerance_mm, double axis_tolerance_deg,
-                    double cone_deg);
+Options options_for(const machine::Machine& machine, double tolerance_mm, double axis_tolerance_deg, double cone_deg);
 
 /// One broken rule.
 struct Violation {
