@@ -11,5 +11,12 @@ echo "== with collision pruning (cone 25 deg)"
   --json-out out/groove/compare.json -o out/groove/planned.ngc --svg out/groove/svg
 "$B/cscam" verify out/groove/planned.ngc --machine trunnion-ac --cl examples/groove/groove.cls --cone 25
 echo "== without collision pruning: the same search, meshes ignored"
-"$B/cscam" compare examples/groove/groove.cls --machine trunnion-ac --part examples/groove/groove.stl --cone 25 \
-  --no-collision --json-out out/groove/compare-nocollision.json -o out/groove/planned-nocollision.ngc
+# The planned program then drives the tool through the lip; the safety gate checks it against the mesh and
+# refuses to write it (exit status 2, no file): that refusal is the expected outcome here.
+if "$B/cscam" compare examples/groove/groove.cls --machine trunnion-ac --part examples/groove/groove.stl \
+  --cone 25 --no-collision --json-out out/groove/compare-nocollision.json -o out/groove/planned-nocollision.ngc; then
+  echo "unexpected: the colliding program was written" >&2
+  exit 1
+fi
+test ! -e out/groove/planned-nocollision.ngc
+echo "(refused, as it must be)"
