@@ -1188,7 +1188,36 @@ std::string Report::to_json() const {
                                  {"rms", l.rms},
                                  {"coincides_with", l.coincides_with}});
   j["findings"] = nlohmann::ordered_json::array();
+  // recording.md: one `geometric` finding whose target lists the parameters that moved (comma-separated),
+  // one key per parameter. It takes the place of the largest geometric finding; its share is their sum and
+  // its held-out figures the conservative ones (largest before, largest after).
+  int geo_at = -1;
   for (const auto& f : findings) {
+    if (f.effect->name() == "geometric") {
+      if (geo_at < 0) {
+        geo_at = static_cast<int>(j["findings"].size());
+        nlohmann::ordered_json fj;
+        fj["effect"] = "geometric";
+        fj["target"] = f.effect->target;
+        fj["parameters"] = nlohmann::ordered_json::object();
+        fj["explains"] = f.explains;
+        fj["channel"] = f.group;
+        fj["share"] = 0.0;
+        fj["heldout_rms_before"] = f.heldout_rms_before;
+        fj["heldout_rms_after"] = f.heldout_rms_after;
+        j["findings"].push_back(fj);
+      } else {
+        auto& g = j["findings"][static_cast<size_t>(geo_at)];
+        g["target"] = g["target"].get<std::string>() + "," + f.effect->target;
+        g["explains"] = g["explains"].get<std::string>() + "; " + f.explains;
+        g["heldout_rms_before"] = std::max(g["heldout_rms_before"].get<double>(), f.heldout_rms_before);
+        g["heldout_rms_after"] = std::max(g["heldout_rms_after"].get<double>(), f.heldout_rms_after);
+      }
+      auto& g = j["findings"][static_cast<size_t>(geo_at)];
+      for (const auto& [k, v] : f.effect->reported()) g["parameters"][k] = v;
+      g["share"] = g["share"].get<double>() + f.share;
+      continue;
+    }
     nlohmann::ordered_json p = nlohmann::ordered_json::object();
     for (const auto& [k, v] : f.effect->reported()) p[k] = v;
     if (f.effect->name() == "vibration" && !f.effect->note.empty()) p["source"] = f.effect->note;
