@@ -174,3 +174,13 @@ TEST(Machine, KeyLocationsForLaterErrors) {
 }
 
 TEST(Machine, MissingFileIsAnInputError) { EXPECT_THROW(machine::load("/nonexistent/m.yaml"), InputError); }
+
+// Found by fuzz/machine_fuzz: a mapping key that is not a scalar made yaml-cpp throw past the loader.
+TEST(MachineFuzzRegressions, NonScalarKeyIsAnInputError) {
+  try {
+    machine::load(test::source_path("tests/data/fuzz-regressions/machine-nonscalar-key.yaml"));
+    FAIL() << "accepted";
+  } catch (const InputError& e) {
+    EXPECT_NE(std::string(e.what()).find("machine-nonscalar-key.yaml:"), std::string::npos) << e.what();
+  }
+}

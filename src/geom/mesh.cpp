@@ -206,6 +206,33 @@ Mesh load_mesh(const std::string& path, double scale_to_mm, bool require_closed)
   {
     std::ifstream probe(path, std::ios::binary);
     if (!probe) throw InputError(where, "cannot open mesh file");
+    // assimp 5.2's PLY reader loops forever on a header without end_header (found by fuzz/mesh_fuzz): a
+    // PLY file must close its header within the first 64 KiB before assimp sees it.
+    std::string head(65536, '\0');
+    probe.read(head.data(), static_cast<std::streamsize>(head.size()));
+    head.resize(static_cast<size_t>(probe.gcount()));
+    // OFF is a text format; assimp 5.2 aborts in post-processing on some malformed binary bytes in it.
+    if (head.rfind("OFF", 0) == 0 || head.rfind("COFF", 0) == 0 || head.rfind("NOFF", 0) == 0) {
+      std::ifstream all(path, std::ios::binary);
+      int line = 1;
+      for (char c; all.get(c);) {
+        if (c == '\n')
+          ++line;
+        else if (c != '\r' && c != '\t' && (static_cast<unsigned char>(c) < 32 || static_cast<unsigned char>(c) > 126))
+          throw InputError(SourceLoc{path, line, 0}, "OFF mesh contains a byte that is not text");
+      }
+    }
+    if (head.rfind("ply", 0) == 0) {
+      const size_t end = head.find("end_header");
+      if (end == std::string::npos)
+        throw InputError(where, "PLY header has no end_header line within its first 64 KiB");
+      for (size_t i = 0; i < end; ++i)
+        if (head[i] != '\n' && head[i] != '\r' && (head[i] < 32 || head[i] > 126))
+          throw InputError(
+              SourceLoc{path, 1 + static_cast<int>(std::count(head.begin(), head.begin() + static_cast<long>(i), '\n')),
+                        0},
+              "PLY header contains a byte that is not printable text");
+    }
   }
   Assimp::Importer importer;
   importer.SetPropertyInteger(AI_CONFIG_PP_RVC_FLAGS, aiComponent_NORMALS | aiComponent_TANGENTS_AND_BITANGENTS |

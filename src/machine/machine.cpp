@@ -460,8 +460,15 @@ Machine load_text(const std::string& yaml, const std::string& name) {
   } catch (const YAML::ParserException& e) {
     throw InputError(SourceLoc{name, e.mark.line + 1, e.mark.column + 1}, "YAML syntax error: " + e.msg);
   }
-  reject_duplicate_keys(Reader(name), root, "");
-  return load_node(root, name);
+  // Any YAML value of the wrong shape that a specific check did not catch (e.g. a mapping key that is a
+  // sequence) still becomes an error with the file, line and column (found by fuzz/machine_fuzz).
+  try {
+    reject_duplicate_keys(Reader(name), root, "");
+    return load_node(root, name);
+  } catch (const YAML::Exception& e) {
+    throw InputError(SourceLoc{name, e.mark.line + 1, e.mark.column + 1},
+                     "unexpected YAML value: " + (e.msg.empty() ? std::string(e.what()) : e.msg));
+  }
 }
 
 Machine load(const std::string& path) {
