@@ -528,7 +528,6 @@ class Writer {
                                           "tool cannot retract {:.1f} mm along its axis inside the limits "
                                           "(post.singularity.retract_mm)",
                                           m0.line, m1.line, describe(), d));
-    (void)feed_mm_min;
     feed_linear(m0, q0, m_up, up0);  // straight out along the tool axis (linearised: a PKM's joints are not)
     at_cut_ = false;                 // already out
     rapid(up1, m1);
@@ -686,18 +685,13 @@ class Writer {
     return true;
   }
 
-  /// IK for `pose`: the solution nearest to `near` inside every limit (kin::nearest_solution).
-  bool try_solve_near(const kin::Posed& pose, const kin::Axes& near, kin::Axes& out) const {
-    return kin::nearest_solution(kin_, pose, near, out);
-  }
-
   /// Joint values with the tip of q moved along its tool axis to the safe plane, the axis kept (by IK).
   kin::Axes pkm_retracted(const kin::Axes& q, const SourceLoc& where) {
     const kin::Posed p = kin_.forward(q);
     Vec3 up;
     if (!retract_point(p.tip_mm, p.axis, up)) return q;
     kin::Axes out;
-    if (!try_solve_near(kin::Posed{up, p.axis}, q, out))
+    if (!kin::nearest_solution(kin_, kin::Posed{up, p.axis}, q, out))
       throw InputError(where, fmt::format("cannot retract the tool along its axis to the safe plane z = {:.3f} mm "
                                           "(post.safe_z_mm): no axis values inside the limits put the tip at "
                                           "({:.3f}, {:.3f}, {:.3f}) with this tool axis",
@@ -749,7 +743,7 @@ class Writer {
       const kin::Axes up = pkm_retracted(cur_, where);
       const kin::Posed at_up = kin_.forward(up), target = kin_.forward(q);
       kin::Axes turned = up;  // if the new axis cannot be had there, turn on the way to the point above q
-      if (!try_solve_near(kin::Posed{at_up.tip_mm, target.axis}, above, turned)) turned = up;
+      if (!kin::nearest_solution(kin_, kin::Posed{at_up.tip_mm, target.axis}, above, turned)) turned = up;
       emit_g0(up);
       emit_g0(turned);
     }
@@ -838,7 +832,6 @@ class Writer {
   kin::Axes cur_ = kin::Axes::Zero();
   std::string buf_;
   size_t scanned_ = 0;  ///< bytes of buf_ already attributed to a CL line
-  std::vector<kin::Solution> sols_;
   std::vector<Piece> stack_;
 };
 
