@@ -10,6 +10,8 @@ CC=clang CXX=clang++ cmake -S . -B build-asan -G Ninja -DCMAKE_BUILD_TYPE=RelWit
   -DCSCAM_FUZZ=ON >/dev/null
 cmake --build build-asan -j"$(nproc)"
 export ASAN_OPTIONS=detect_leaks=1:abort_on_error=1 UBSAN_OPTIONS=print_stacktrace=1:halt_on_error=1
+# A mesh that hangs assimp is stopped by the loader after this many seconds (below the fuzzers' -timeout).
+export CSCAM_MESH_TIMEOUT_S=3
 secs=${FUZZ_SECONDS:-0}
 for t in cl nc machine mesh; do
   opts=(-timeout=10 -rss_limit_mb=2048 -print_final_stats=1 -artifact_prefix="build-asan/${t}_")
@@ -41,4 +43,5 @@ for t in cl nc machine mesh; do
     exit 1
   fi
 done
+unset CSCAM_MESH_TIMEOUT_S
 ctest --test-dir build-asan --output-on-failure -j"$(nproc)"

@@ -3,13 +3,20 @@
 #include <assimp/postprocess.h>
 #include <assimp/scene.h>
 #include <fmt/format.h>
+#include <poll.h>
+#include <signal.h>
+#include <sys/wait.h>
+#include <unistd.h>
 
 #include <algorithm>
 #include <array>
 #include <assimp/Importer.hpp>
 #include <bit>
+#include <cerrno>
+#include <chrono>
 #include <cmath>
 #include <cstdint>
+#include <cstdlib>
 #include <cstring>
 #include <fstream>
 #include <unordered_map>
@@ -199,7 +206,9 @@ void Mesh::append(const Mesh& other) {
   for (const auto& t : other.triangles) triangles.emplace_back(t.array() + base);
 }
 
-Mesh load_mesh(const std::string& path, double scale_to_mm, bool require_closed) {
+namespace {
+
+Mesh load_mesh_here(const std::string& path, double scale_to_mm, bool require_closed) {
   const SourceLoc where{path};
   if (!(scale_to_mm > 0.0) || !std::isfinite(scale_to_mm))
     throw InputError(where, fmt::format("scale to mm must be a positive number, got {}", scale_to_mm));
@@ -265,6 +274,123 @@ Mesh load_mesh(const std::string& path, double scale_to_mm, bool require_closed)
     std::string why;
     if (!mesh.is_closed(&why)) throw InputError(where, why);
   }
+  return mesh;
+}
+
+// The child's answer on the pipe: 'M' + mesh, or 'E' + line, column, message (an InputError).
+void put(std::string& out, const void* p, size_t n) { out.append(static_cast<const char*>(p), n); }
+template <typename T>
+bool get(const std::string& in, size_t& at, T& v) {
+  if (at + sizeof(T) > in.size()) return false;
+  std::memcpy(&v, in.data() + at, sizeof(T));
+  at += sizeof(T);
+  return true;
+}
+
+}  // namespace
+
+Mesh load_mesh(const std::string& path, double scale_to_mm, bool require_closed) {
+  // assimp runs in a child process: a third-party reader that hangs or aborts on a hostile file (fuzzing found
+  // both) must end in a file error, not a hung or crashed cscam. Bounded in time by CSCAM_MESH_TIMEOUT_S (60).
+  int fd[2];
+  if (::pipe(fd) != 0) return load_mesh_here(path, scale_to_mm, require_closed);
+  const pid_t pid = ::fork();
+  if (pid < 0) {
+    ::close(fd[0]);
+    ::close(fd[1]);
+    return load_mesh_here(path, scale_to_mm, require_closed);
+  }
+  if (pid == 0) {
+    ::close(fd[0]);
+    std::string out;
+    try {
+      const Mesh m = load_mesh_here(path, scale_to_mm, require_closed);
+      out.push_back('M');
+      const uint64_t nv = m.vertices_mm.size(), nt = m.triangles.size();
+      put(out, &nv, sizeof nv);
+      for (const auto& v : m.vertices_mm) put(out, v.data(), 3 * sizeof(double));
+      put(out, &nt, sizeof nt);
+      for (const auto& t : m.triangles) put(out, t.data(), 3 * sizeof(int));
+    } catch (const InputError& e) {
+      out.assign(1, 'E');
+      const int32_t line = e.where().line, col = e.where().column;
+      put(out, &line, sizeof line);
+      put(out, &col, sizeof col);
+      out += e.message();
+    } catch (const std::exception& e) {
+      out.assign(1, 'E');
+      const int32_t zero = 0;
+      put(out, &zero, sizeof zero);
+      put(out, &zero, sizeof zero);
+      out += std::string("cannot read mesh: ") + e.what();
+    }
+    for (size_t done = 0; done < out.size();) {
+      const ssize_t w = ::write(fd[1], out.data() + done, out.size() - done);
+      if (w <= 0) break;
+      done += static_cast<size_t>(w);
+    }
+    ::_exit(0);
+  }
+  ::close(fd[1]);
+  double limit_s = 60.0;
+  if (const char* e = std::getenv("CSCAM_MESH_TIMEOUT_S")) limit_s = std::max(0.1, std::atof(e));
+  const auto deadline = std::chrono::steady_clock::now() + std::chrono::duration<double>(limit_s);
+  std::string in;
+  bool timed_out = false;
+  for (;;) {
+    const auto left =
+        std::chrono::duration_cast<std::chrono::milliseconds>(deadline - std::chrono::steady_clock::now());
+    if (left.count() <= 0) {
+      timed_out = true;
+      break;
+    }
+    pollfd pfd{fd[0], POLLIN, 0};
+    const int r = ::poll(&pfd, 1, static_cast<int>(std::min<long long>(left.count(), 1000)));
+    if (r < 0 && errno == EINTR) continue;
+    if (r <= 0) continue;
+    char buf[65536];
+    const ssize_t n = ::read(fd[0], buf, sizeof buf);
+    if (n < 0 && errno == EINTR) continue;
+    if (n <= 0) break;
+    in.append(buf, static_cast<size_t>(n));
+  }
+  ::close(fd[0]);
+  int status = 0;
+  if (timed_out) ::kill(pid, SIGKILL);
+  while (::waitpid(pid, &status, 0) < 0 && errno == EINTR) {
+  }
+  const SourceLoc where{path};
+  if (timed_out)
+    throw InputError(where, fmt::format("the mesh reader (assimp) did not finish within {:.0f} s: the file is "
+                                        "malformed or too large (CSCAM_MESH_TIMEOUT_S sets the limit)",
+                                        limit_s));
+  if (WIFSIGNALED(status))
+    throw InputError(where, fmt::format("the mesh reader (assimp) crashed on this file (signal {}): it is malformed",
+                                        WTERMSIG(status)));
+  size_t at = 1;
+  if (!in.empty() && in[0] == 'E') {
+    int32_t line = 0, col = 0;
+    get(in, at, line);
+    get(in, at, col);
+    throw InputError(SourceLoc{path, line, col}, in.substr(std::min(at, in.size())));
+  }
+  Mesh mesh;
+  mesh.source = path;
+  uint64_t nv = 0, nt = 0;
+  bool ok = !in.empty() && in[0] == 'M' && get(in, at, nv) && nv < (1ull << 32);
+  for (uint64_t i = 0; ok && i < nv; ++i) {
+    Eigen::Vector3d v;
+    ok = get(in, at, v[0]) && get(in, at, v[1]) && get(in, at, v[2]);
+    mesh.vertices_mm.push_back(v);
+  }
+  ok = ok && get(in, at, nt) && nt < (1ull << 32);
+  for (uint64_t i = 0; ok && i < nt; ++i) {
+    Eigen::Vector3i t;
+    ok = get(in, at, t[0]) && get(in, at, t[1]) && get(in, at, t[2]);
+    mesh.triangles.push_back(t);
+  }
+  if (!ok || at != in.size())
+    throw InputError(where, "the mesh reader (assimp) ended without an answer: the file is malformed");
   return mesh;
 }
 
