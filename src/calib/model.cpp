@@ -26,6 +26,20 @@ namespace cscam::calib {
 
 using detail::fmt_num;
 
+namespace {
+/// A machine file whose flat `parameters:` mapping (XMINI, PCMM) gets every value that moved, each marked
+/// with the nominal it replaces.
+std::string patch_flat_parameters(const std::string& text, const YAML::Node& parameters,
+                                  const std::vector<ParamInfo>& info, const std::vector<double>& p) {
+  detail::YamlPatcher patch(text);
+  for (std::size_t i = 0; i < info.size(); ++i) {
+    if (std::abs(p[i] - info[i].nominal) <= 1e-13) continue;
+    patch.set(parameters, info[i].name, fmt_num(p[i]), "calibrated: was " + fmt_num(info[i].nominal));
+  }
+  return patch.str();
+}
+}  // namespace
+
 // ---------------------------------------------------------------------------------------------------
 // Model (common part)
 // ---------------------------------------------------------------------------------------------------
@@ -403,16 +417,11 @@ class XminiCalModel final : public Model {
 
   std::string corrected_yaml(const std::vector<double>& p) const override {
     const YAML::Node root = parse_yaml(text_, file_);
-    detail::YamlPatcher patch(text_);
     const YAML::Node x = root["xmini"];
     if (!x || !x["parameters"])
       throw InputError(SourceLoc{file_}, "cannot write the corrected file: it has no 'xmini.parameters' section");
     const YAML::Node ps = x["parameters"];
-    for (std::size_t i = 0; i < params_.size(); ++i) {
-      if (std::abs(p[i] - params_[i].nominal) <= 1e-13) continue;
-      patch.set(ps, params_[i].name, fmt_num(p[i]), "calibrated: was " + fmt_num(params_[i].nominal));
-    }
-    return patch.str();
+    return patch_flat_parameters(text_, ps, params_, p);
   }
 
  private:
@@ -497,13 +506,8 @@ class PcmmCalModel final : public Model {
 
   std::string corrected_yaml(const std::vector<double>& p) const override {
     const YAML::Node root = parse_yaml(text_, file_);
-    detail::YamlPatcher patch(text_);
     const YAML::Node ps = root["pcmm"]["parameters"];
-    for (std::size_t i = 0; i < params_.size(); ++i) {
-      if (std::abs(p[i] - params_[i].nominal) <= 1e-13) continue;
-      patch.set(ps, params_[i].name, fmt_num(p[i]), "calibrated: was " + fmt_num(params_[i].nominal));
-    }
-    return patch.str();
+    return patch_flat_parameters(text_, ps, params_, p);
   }
 
  private:
