@@ -13,7 +13,7 @@ export ASAN_OPTIONS=detect_leaks=1:abort_on_error=1 UBSAN_OPTIONS=print_stacktra
 # A mesh that hangs assimp is stopped by the loader after this many seconds (below the fuzzers' -timeout).
 export CSCAM_MESH_TIMEOUT_S=3
 secs=${FUZZ_SECONDS:-0}
-for t in cl nc machine mesh; do
+for t in cl nc machine mesh recording; do
   opts=(-timeout=10 -rss_limit_mb=2048 -print_final_stats=1 -artifact_prefix="build-asan/${t}_")
   # assimp (not instrumented, not ours) leaks on some malformed files' error paths: leaks are not
   # checked for the mesh target; crashes, hangs and our own code's leaks are.
