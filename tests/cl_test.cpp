@@ -8,6 +8,7 @@
 #include <cstdio>
 #include <cstdlib>
 #include <fstream>
+#include <iterator>
 #include <sstream>
 #include <string>
 #include <vector>
@@ -586,6 +587,25 @@ TEST(ClErrors, FileLineColumn) {
   expect_error_at("FEDRAT/IPM,1.0.0\n", "1:12", "malformed number");
   expect_error_at("CUTTER/abc\n", "1:8", "malformed number");
   expect_error_at("UNITS/FEET\n", "1:7", "unknown unit");
+  // A circle no machine can travel, and end points that do not lie on the circle at all (fuzzing found the
+  // first: a few bytes expanded into half a million points).
+  expect_error_at("GOTO/40,20,6\nCIRCLE/40,15,6,0,0,-1,500000000\nGOTO/40,20,6\n", "2:23", "beyond any machine");
+  expect_error_at("FEDRAT/100\nGOTO/10,0,0\nCIRCLE/0,0,0,0,0,1,5\nGOTO/0,-5,0\n", "3:1", "off the circle");
+}
+
+// Inputs found by fuzz/cl_fuzz (tests/data/fuzz-regressions): each is refused quickly with a located error.
+TEST(ClErrors, FuzzRegressions) {
+  for (const char* file : {"cl-huge-circle.cls"}) {
+    std::ifstream in(test::source_path(std::string("tests/data/fuzz-regressions/") + file), std::ios::binary);
+    ASSERT_TRUE(in) << file;
+    const std::string text((std::istreambuf_iterator<char>(in)), std::istreambuf_iterator<char>());
+    try {
+      (void)read_text(text, file);
+      ADD_FAILURE() << file << ": read without an error";
+    } catch (const InputError& e) {
+      EXPECT_GT(e.where().line, 0) << e.what();
+    }
+  }
 }
 
 TEST(ClErrors, ErrorCarriesLocation) {

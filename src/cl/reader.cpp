@@ -42,6 +42,12 @@ constexpr int kMaxArcPoints = 1'000'000;
 constexpr double kFullCircleRad = 1e-12;
 /// A CIRCLE/ whose start or end is farther than this from the circle is suspect (NX's printed rounding is ~1 um).
 constexpr double kArcEndOffCircleMm = 0.01;
+/// Beyond this the end points do not lie on the circle at all: the record is inconsistent, and drawing it anyway
+/// would invent a path (rs274 likewise refuses an arc whose end is off its circle).
+constexpr double kArcEndOffCircleErrorMm = 1.0;
+/// No machine travels a circle larger than this; a larger radius is a corrupt record (and, expanded within the
+/// tolerance, it would blow a few bytes up into a million points: fuzzing found it).
+constexpr double kMaxArcRadiusMm = 1e5;
 
 bool is_space(char c) { return c == ' ' || c == '\t' || c == '\r' || c == '\f' || c == '\v'; }
 char to_upper(char c) { return (c >= 'a' && c <= 'z') ? static_cast<char>(c - 'a' + 'A') : c; }
@@ -577,6 +583,11 @@ void AptReader::emit_arc(const Circle& c, const Vector3d& end_mm, const Vector3d
   }
   const double r = c.radius_mm;
   const double off_circle_mm = std::max(std::abs(up.norm() - r), std::abs(wp.norm() - r));
+  if (off_circle_mm > kArcEndOffCircleErrorMm)
+    throw InputError(SourceLoc{prog_.file, c.line, c.column},
+                     fmt::format("CIRCLE/ start or end lies {:.4f} mm off the circle of radius {} mm (at most {} mm): "
+                                 "the arc does not join its end points",
+                                 off_circle_mm, r, kArcEndOffCircleErrorMm));
   if (off_circle_mm > kArcEndOffCircleMm)
     prog_.warnings.push_back({SourceLoc{prog_.file, c.line, c.column},
                               fmt::format("CIRCLE/ start or end lies {:.4f} mm off the circle", off_circle_mm)});
@@ -743,6 +754,9 @@ bool AptReader::statement(const Statement& st) {
       fail(st, h.args_offset + h.args.size(),
            fmt::format("too few values on CIRCLE/ (expected xc,yc,zc,i,j,k,r[,...], got {})", n));
     if (!(v[6] > 0)) fail(st, offs[6], fmt::format("circle radius must be positive (got {})", v[6]));
+    if (v[6] * scale_ > kMaxArcRadiusMm)
+      fail(st, offs[6], fmt::format("circle radius {} mm is beyond any machine (at most {} mm)", v[6] * scale_,
+                                    kMaxArcRadiusMm));
     const auto [line, col] = st.where(h.keyword_offset);
     circle_ = Circle{Vector3d(v[0], v[1], v[2]) * scale_, unit_vector(st, v + 3, offs[3], "circle axis"), v[6] * scale_,
                      line, col};

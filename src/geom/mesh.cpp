@@ -302,6 +302,9 @@ Mesh load_mesh(const std::string& path, double scale_to_mm, bool require_closed)
   }
   if (pid == 0) {
     ::close(fd[0]);
+    // The parent's crash handlers (a host application's, a fuzzer's) must not run here: a reader that aborts is
+    // the parent's to report, as a file error, from the child's exit signal.
+    for (const int sig : {SIGABRT, SIGSEGV, SIGBUS, SIGFPE, SIGILL}) ::signal(sig, SIG_DFL);
     std::string out;
     try {
       const Mesh m = load_mesh_here(path, scale_to_mm, require_closed);
