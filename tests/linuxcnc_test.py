@@ -25,6 +25,9 @@ import tempfile
 HERE = os.path.dirname(os.path.abspath(__file__))
 RUN_PROGRAM = os.path.join(HERE, "..", "scripts", "linuxcnc", "run_program.py")
 SKIP = 77
+# TCP mode: LinuxCNC's xyzac-trt-kins world position against cscam's FK of the same joints (both models of the
+# one machine; halsampler prints 6 decimals).
+WORLD_MATCH_TCP_MM = 1e-3
 
 
 def run(cmd, **kw):
@@ -104,6 +107,11 @@ def main():
         for b in r["worst_blocks"]:
             print(f"  NC line {b['nc_line']}: {b['max_tip_deviation_mm']:.4f} mm ({b['samples']} samples)")
         lines = program.splitlines()
+        print(f"controller world vs cscam: {r['max_world_mismatch_mm']:.6f} mm over all samples, "
+              f"{r['max_world_mismatch_tcp_mm']:.6f} mm over {r['tcp_samples']} TCP samples")
+        if args.tcp and (r["tcp_samples"] == 0 or r["max_world_mismatch_tcp_mm"] > WORLD_MATCH_TCP_MM):
+            print(f"FAIL: with TCP the controller's world X Y Z must be cscam's FK tip within {WORLD_MATCH_TCP_MM} mm")
+            return 1
         if args.expect == "pass":
             if not r["ok"]:
                 print("FAIL: expected the sampled path within tolerance")

@@ -123,9 +123,10 @@ struct TraceFixture {
   static std::string to_text(const std::vector<report::TraceSample>& samples) {
     std::string t;
     for (const auto& s : samples) {
-      t += fmt::format("{} {:.6f} {:.6f} {:.6f} {:.6f} {:.6f} 0 0 0 0 0 {} {} 1.0\n", s.index, s.joints[0],
-                       s.joints[1], s.joints[2], rad2deg(s.joints[3]), rad2deg(s.joints[4]), s.nc_line,
-                       s.motion == report::TraceMotion::Feed ? 2 : 1);
+      // Joint mode: the controller's world position is the joints themselves.
+      t += fmt::format("{0} {1:.6f} {2:.6f} {3:.6f} {4:.6f} {5:.6f} {1:.6f} {2:.6f} {3:.6f} {4:.6f} {5:.6f} {6} {7} 1.0 0\n",
+                       s.index, s.joints[0], s.joints[1], s.joints[2], rad2deg(s.joints[3]), rad2deg(s.joints[4]),
+                       s.nc_line, s.motion == report::TraceMotion::Feed ? 2 : 1);
     }
     return t;
   }
@@ -144,6 +145,30 @@ TEST(Trace, ExactPathPassesThroughTheHalsamplerFormat) {
   EXPECT_LT(r.max_tip_deviation_mm, 1e-5);
   EXPECT_LT(r.max_uncovered_cl_mm, 1e-5);
   EXPECT_GT(r.feed_samples, 3000u);
+  EXPECT_LT(r.max_world_mismatch_mm, 1e-9);
+  EXPECT_EQ(r.world_lag_samples, 0);
+  EXPECT_EQ(r.tcp_samples, 0u);
+}
+
+// In TCP mode the controller's world X Y Z is the tip in the part frame: a world column that is our FK tip two
+// cycles late matches at lag 2; one that is off by 0.03 mm (another pivot in the controller) shows 0.03 mm.
+TEST(Trace, WorldPositionAgainstOurKinematics) {
+  TraceFixture f;
+  report::Trace tr;
+  tr.file = "tcp";
+  tr.samples = f.exact();
+  for (size_t i = 0; i < tr.samples.size(); ++i) {
+    tr.samples[i].kinematics = 1;
+    tr.samples[i].world_mm = f.kin->forward(tr.samples[std::min(i + 2, tr.samples.size() - 1)].joints).tip_mm;
+  }
+  auto r = report::check_trace(tr, f.cl, *f.kin, report::TraceCheckOptions{});
+  EXPECT_TRUE(r.ok) << r.message;
+  EXPECT_EQ(r.world_lag_samples, 2);
+  EXPECT_EQ(r.tcp_samples, tr.samples.size());
+  EXPECT_LT(r.max_world_mismatch_tcp_mm, 1e-9);
+  for (auto& s : tr.samples) s.world_mm.y() += 0.03;
+  r = report::check_trace(tr, f.cl, *f.kin, report::TraceCheckOptions{});
+  EXPECT_NEAR(r.max_world_mismatch_tcp_mm, 0.03, 1e-9);
 }
 
 TEST(Trace, OffsetInOneBlockIsFoundWithItsLine) {
@@ -195,13 +220,15 @@ TEST(Trace, TruncatedRunFailsCoverage) {
 
 TEST(Trace, ReaderRejectsLostSamplesAndBadLines) {
   const std::array<bool, 5> rot{false, false, false, true, true};
-  const std::string ok = "0 1 2 3 4 5 6 7 8 9 10 7 2 1.5\n1 1 2 3 4 5 6 7 8 9 10 7 2 1.5\n";
+  const std::string ok = "0 1 2 3 4 5 6 7 8 9 10 7 2 1.5 0\n1 1 2 3 4 5 6 7 8 9 10 7 2 1.5 1\n";
   const auto tr = report::read_halsampler_text(ok, "ok.txt", rot);
   ASSERT_EQ(tr.samples.size(), 2u);
   EXPECT_DOUBLE_EQ(tr.samples[0].joints[2], 3.0);
   EXPECT_NEAR(tr.samples[0].joints[3], deg2rad(4.0), 1e-15);
   EXPECT_EQ(tr.samples[1].nc_line, 7);
   EXPECT_EQ(tr.samples[1].motion, report::TraceMotion::Feed);
+  EXPECT_EQ(tr.samples[1].kinematics, 1);
+  EXPECT_DOUBLE_EQ(tr.samples[0].world_mm.x(), 6.0);
   auto message_of = [&](const std::string& text) {
     try {
       report::read_halsampler_text(text, "s.txt", rot);
@@ -210,10 +237,10 @@ TEST(Trace, ReaderRejectsLostSamplesAndBadLines) {
     }
     return std::string("no error");
   };
-  EXPECT_NE(message_of("0 1 2 3 4 5 6 7 8 9 10 7 2 1.5\n2 1 2 3 4 5 6 7 8 9 10 7 2 1.5\n").find("s.txt:2"),
+  EXPECT_NE(message_of("0 1 2 3 4 5 6 7 8 9 10 7 2 1.5 0\n2 1 2 3 4 5 6 7 8 9 10 7 2 1.5 0\n").find("s.txt:2"),
             std::string::npos);
-  EXPECT_NE(message_of("0 1 2 3 4 5 6 7 8 9 10 7 2 1.5\noverrun\n").find("overran"), std::string::npos);
-  EXPECT_NE(message_of("0 1 2 3 4 5 6 7 8 9 10 7 2 1.5\n1 1 2 x 4 5 6 7 8 9 10 7 2 1.5\n").find("s.txt:2:"),
+  EXPECT_NE(message_of("0 1 2 3 4 5 6 7 8 9 10 7 2 1.5 0\noverrun\n").find("overran"), std::string::npos);
+  EXPECT_NE(message_of("0 1 2 3 4 5 6 7 8 9 10 7 2 1.5 0\n1 1 2 x 4 5 6 7 8 9 10 7 2 1.5 0\n").find("s.txt:2:"),
             std::string::npos);
   EXPECT_NE(message_of("0 1 2 3\n").find("s.txt:1"), std::string::npos);
   EXPECT_NE(message_of("").find("no samples"), std::string::npos);

@@ -39,8 +39,9 @@ double seg_distance(const Vec3& p0, const Vec3& p1, const Vec3& p, double& t) {
   return (p0 + t * ab - p).norm();
 }
 
-// halsampler's columns (trunnion-ac.hal): sample number, 5 joints, 5 world axes, line, motion type, velocity.
-constexpr int kColumns = 14;
+// halsampler's columns (trunnion-ac.hal): sample number, 5 joints, 5 world axes, line, motion type, velocity,
+// kinematics type.
+constexpr int kColumns = 15;
 
 TraceMotion motion_of(int type) {
   switch (type) {
@@ -89,6 +90,7 @@ Trace read_halsampler_text(const std::string& text, const std::string& name, con
     smp.world_mm = Vec3(v[6], v[7], v[8]);
     smp.nc_line = static_cast<int>(std::lround(v[11]));
     smp.motion = motion_of(static_cast<int>(std::lround(v[12])));
+    smp.kinematics = static_cast<int>(std::lround(v[14]));
     tr.samples.push_back(smp);
   }
   if (tr.samples.empty()) throw InputError(SourceLoc{name}, "no samples (the sampler recorded nothing)");
@@ -147,6 +149,30 @@ TraceCheckResult check_trace(const Trace& trace, const cl::Program& cl, const ki
     if (local <= options.tip_tolerance_mm) return local;
     return scan(0, segs.size());
   };
+
+  // The controller's world position against the joints (joint mode) or our FK (TCP), at the best lag.
+  {
+    auto expected = [&](size_t i) -> Vec3 {
+      const TraceSample& s = trace.samples[i];
+      return s.kinematics == 1 ? pose[i].tip_mm : Vec3(s.joints[0], s.joints[1], s.joints[2]);
+    };
+    double best = std::numeric_limits<double>::infinity();
+    for (int lag = 0; lag <= 8; ++lag) {
+      double worst = 0.0, worst_tcp = 0.0;
+      for (size_t i = static_cast<size_t>(lag); i < trace.samples.size(); ++i) {
+        const double d = (trace.samples[i - static_cast<size_t>(lag)].world_mm - expected(i)).norm();
+        worst = std::max(worst, d);
+        if (trace.samples[i].kinematics == 1) worst_tcp = std::max(worst_tcp, d);
+      }
+      if (worst < best) {
+        best = worst;
+        r.max_world_mismatch_mm = worst;
+        r.max_world_mismatch_tcp_mm = worst_tcp;
+        r.world_lag_samples = lag;
+      }
+    }
+    for (const auto& s : trace.samples) r.tcp_samples += s.kinematics == 1 ? 1 : 0;
+  }
 
   // The program's departures along the tool axis: NC lines whose samples are not compared.
   std::set<int> departures;
@@ -262,10 +288,12 @@ TraceCheckResult check_trace(const Trace& trace, const cl::Program& cl, const ki
   r.message = fmt::format(
       "{}: {} {} servo samples ({} at feed compared, {} departure blocks not): tip within {:.4f} mm of the CL path (99% within {:.4f}), "
       "largest at NC line {} near CL line {}, sample {}, tip ({:.4f}, {:.4f}, {:.4f}); tool axis within {:.4f} "
-      "deg; every CL point within {:.4f} mm of the path (CL line {}); tolerance {:.4f} mm / {:.3f} deg",
+      "deg; every CL point within {:.4f} mm of the path (CL line {}); tolerance {:.4f} mm / {:.3f} deg; "
+      "controller's world X Y Z within {:.6f} mm of ours ({} TCP samples, lag {} cycles)",
       trace.file, r.ok ? "OK" : "FAILED", r.samples, r.feed_samples, r.departure_blocks, r.max_tip_deviation_mm, r.p99_tip_deviation_mm,
       r.max_tip_nc_line, r.max_tip_cl_line, r.max_tip_sample, w.x(), w.y(), w.z(), r.max_axis_deviation_deg,
-      r.max_uncovered_cl_mm, r.max_uncovered_cl_line, options.tip_tolerance_mm, options.axis_tolerance_deg);
+      r.max_uncovered_cl_mm, r.max_uncovered_cl_line, options.tip_tolerance_mm, options.axis_tolerance_deg,
+      r.max_world_mismatch_mm, r.tcp_samples, r.world_lag_samples);
   return r;
 }
 
@@ -291,6 +319,10 @@ nlohmann::json TraceCheckResult::json() const {
           {"max_uncovered_cl_line", max_uncovered_cl_line},
           {"worst_blocks", worst},
           {"departure_blocks", departure_blocks},
+          {"tcp_samples", tcp_samples},
+          {"max_world_mismatch_mm", rounded(max_world_mismatch_mm, 6)},
+          {"max_world_mismatch_tcp_mm", rounded(max_world_mismatch_tcp_mm, 6)},
+          {"world_lag_samples", world_lag_samples},
           {"message", message}};
 }
 

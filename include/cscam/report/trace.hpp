@@ -26,6 +26,7 @@ struct TraceSample {
   Eigen::Vector3d world_mm;    ///< the controller's commanded X Y Z (machine or TCP coordinates)
   int nc_line = 0;             ///< program line the controller was executing (1-based)
   TraceMotion motion = TraceMotion::Idle;
+  int kinematics = 0;          ///< LinuxCNC's switchkins type: 0 identity (joint mode), 1 the machine's (TCP)
 };
 
 struct Trace {
@@ -34,7 +35,8 @@ struct Trace {
 };
 
 /// Reads `halsampler -t` output of scripts/linuxcnc/config/trunnion-ac.hal's sampler: per line the sample
-/// number, joints 0-4, world X Y Z and two more world axes, program line, motion type, velocity. Rotary
+/// number, joints 0-4, world X Y Z and two more world axes, program line, motion type, velocity, kinematics
+/// type. Rotary
 /// joints (`rotary[i]`) are in degrees in the file. A gap in the sample numbers or an `overrun` line (the
 /// FIFO lost samples) and a malformed line are InputErrors with file and line.
 Trace read_halsampler(const std::string& path, const std::array<bool, 5>& rotary);
@@ -68,7 +70,14 @@ struct TraceCheckResult {
   double max_uncovered_cl_mm = 0.0;   ///< largest distance from a CL feed point to the sampled tip path
   int max_uncovered_cl_line = 0;
   std::vector<TraceBlock> worst_blocks;  ///< up to 5
-  size_t departure_blocks = 0;  ///< feed blocks of the program that leave the CL path along the tool axis
+  size_t departure_blocks = 0;
+  /// The controller's own world X Y Z against ours: in joint mode the joints, in TCP mode the FK tip (LinuxCNC's
+  /// kinematics module against the machine file). The world position leads the joints by a few servo cycles
+  /// (interpolation); the lag that fits best is used. Reported, not part of ok (work offsets would move it).
+  double max_world_mismatch_mm = 0.0;
+  double max_world_mismatch_tcp_mm = 0.0;  ///< the same over the TCP samples only
+  size_t tcp_samples = 0;
+  int world_lag_samples = 0;  ///< feed blocks of the program that leave the CL path along the tool axis
   [[nodiscard]] nlohmann::json json() const;
 };
 
