@@ -35,6 +35,40 @@ def run(cmd, **kw):
     return subprocess.run(cmd, text=True, capture_output=True, **kw)
 
 
+def tcp_program_from_cl(cl_text, joint_program, feed):
+    """A stand-in for the post's LinuxCNC TCP form (until it writes one): M428, then every CL feed point's tip as
+    world X Y Z with the rotary angles the posted joint-mode program chose for it. Valid only where the post
+    inserted no points (one feed block per CL point): anything else is an error."""
+    tips, kinds, kind = [], [], "rapid"
+    for line in cl_text.splitlines():
+        if line.startswith("RAPID"):
+            kind = "rapid"
+        elif line.startswith("FEDRAT"):
+            kind = "feed"
+        elif line.startswith("GOTO/"):
+            tips.append([float(v) for v in line[5:].split(",")[:3]])
+            kinds.append(kind)
+            kind = "feed" if kind == "rapid" else kind  # RAPID applies to one motion
+    angles, start = [], None
+    for line in joint_program.splitlines():
+        m = re.search(r"\bA(-?[0-9.]+)\s+C(-?[0-9.]+)", line) or re.search(r"\bC(-?[0-9.]+)\s+A(-?[0-9.]+)", line)
+        if not m:
+            continue
+        a, c = (m.group(1), m.group(2)) if "A" + m.group(1) in line.replace(" ", "") else (m.group(2), m.group(1))
+        if line.startswith("G0"):
+            start = (a, c) if start is None else start
+        else:
+            angles.append((a, c))
+    if kinds.count("rapid") != 1 or kinds[0] != "rapid" or start is None or len(angles) != len(tips) - 2:
+        raise ValueError("TCP stand-in: needs one rapid approach and one feed block per CL point")
+    out = ["%", "(TCP stand-in for the harness: CL tips in world coordinates after M428)",
+           "G21 G90 G94 G17 G40 G49 G80", "T1 M6", "G43 H1", "M429", "G0 Z250", f"G0 A{start[0]} C{start[1]}",
+           "M428", "G0 X%.4f Y%.4f Z%.4f" % tuple(tips[0]), "G1 X%.4f Y%.4f Z%.4f F%g" % (*tips[1], feed)]
+    out += ["G1 X%.4f Y%.4f Z%.4f A%s C%s" % (*t, a, c) for t, (a, c) in zip(tips[2:], angles)]
+    out += ["M429", "G0 Z250", "M2", "%"]
+    return "\n".join(out) + "\n"
+
+
 def main():
     ap = argparse.ArgumentParser()
     ap.add_argument("--cscam", required=True)
@@ -42,7 +76,9 @@ def main():
     ap.add_argument("--machine", default="trunnion-ac")
     ap.add_argument("--feed", type=float, help="replace every FEDRAT/MMPM of the CL with this feed")
     ap.add_argument("--tcp", action="store_true", help="post with TCP on (LinuxCNC: M428 world coordinates)")
-    ap.add_argument("--mdi", default="")
+    ap.add_argument("--mdi", default="", help="MDI command before the program, e.g. 'G64 P0.01'")
+    ap.add_argument("--tcp-stand-in", action="store_true",
+                    help="run a TCP (M428) program built from the CL tips and the joint program's angles")
     ap.add_argument("--drop-g64p", action="store_true",
                     help="remove a G64 P word the post wrote (the controller then blends without a tolerance)")
     ap.add_argument("--expect", choices=["pass", "fail"], required=True)
@@ -83,6 +119,12 @@ def main():
         if args.tcp and "M428" not in program:
             print("FAIL: --tcp program for LinuxCNC without M428")
             return 1
+        if args.tcp_stand_in:
+            with open(cl) as f:
+                program = tcp_program_from_cl(f.read(), program, args.feed or 1000)
+            with open(nc, "w") as f:
+                f.write(program)
+            args.tcp = True
         if args.drop_g64p:
             program = re.sub(r"G64\s*P[0-9.]+(\s*Q[0-9.]+)?", "", program)
             with open(nc, "w") as f:
@@ -98,7 +140,10 @@ def main():
             print("FAIL: the program did not run to its end in LinuxCNC")
             return 1
 
-        p = run([args.cscam, "trace", samples, "--machine", args.machine, "--cl", cl, "--nc", nc, "--json"])
+        trace = [args.cscam, "trace", samples, "--machine", args.machine, "--cl", cl, "--json"]
+        if not args.tcp_stand_in:  # ours has no cscam header (machine, tool length)
+            trace += ["--nc", nc]
+        p = run(trace)
         if p.returncode not in (0, 1):
             print(p.stdout + p.stderr)
             return 1

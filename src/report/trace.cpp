@@ -156,10 +156,19 @@ TraceCheckResult check_trace(const Trace& trace, const cl::Program& cl, const ki
       const TraceSample& s = trace.samples[i];
       return s.kinematics == 1 ? pose[i].tip_mm : Vec3(s.joints[0], s.joints[1], s.joints[2]);
     };
+    // Samples within the lag window of a kinematics switch compare a world position of one mode with the
+    // joints of the other: left out.
+    constexpr int kMaxLag = 8;
+    std::vector<char> settled(trace.samples.size(), 0);
+    for (size_t i = kMaxLag, last_switch = 0; i < trace.samples.size(); ++i) {
+      if (trace.samples[i].kinematics != trace.samples[i - 1].kinematics) last_switch = i;
+      settled[i] = i >= last_switch + kMaxLag ? 1 : 0;
+    }
     double best = std::numeric_limits<double>::infinity();
-    for (int lag = 0; lag <= 8; ++lag) {
+    for (int lag = 0; lag <= kMaxLag; ++lag) {
       double worst = 0.0, worst_tcp = 0.0;
       for (size_t i = static_cast<size_t>(lag); i < trace.samples.size(); ++i) {
+        if (!settled[i]) continue;
         const double d = (trace.samples[i - static_cast<size_t>(lag)].world_mm - expected(i)).norm();
         worst = std::max(worst, d);
         if (trace.samples[i].kinematics == 1) worst_tcp = std::max(worst_tcp, d);
