@@ -33,7 +33,8 @@ CONFIG = os.path.join(HERE, "config")
 INI = "trunnion-ac.ini"
 # LinuxCNC's own single-instance lock; ours serialises runs so that one never sees another's.
 LINUXCNC_LOCK = "/tmp/linuxcnc.lock"
-HOST_LOCK = os.path.join(tempfile.gettempdir(), "cscam-linuxcnc.flock")
+# Fixed like LinuxCNC's own lock (not $TMPDIR): every run on the host must see the same one.
+HOST_LOCK = "/tmp/cscam-linuxcnc.flock"
 
 
 def fail(code, msg):
@@ -55,7 +56,12 @@ def stop_group(proc):
             pass
 
 
+def on_sigterm(signum, frame):
+    raise KeyboardInterrupt  # the same cleanup as Ctrl-C (a test runner's timeout sends SIGTERM)
+
+
 def main():
+    signal.signal(signal.SIGTERM, on_sigterm)
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[1])
     ap.add_argument("program")
     ap.add_argument("-o", "--samples", required=True, help="output: one line per servo cycle")
@@ -142,7 +148,7 @@ def main():
     except (RuntimeError, TimeoutError, OSError) as e:
         message = f"{program}: {e}"
     except KeyboardInterrupt:
-        message = "interrupted"
+        message = f"{program}: interrupted"
     finally:
         if proc is not None and proc.poll() is None:
             stop_group(proc)
