@@ -4,9 +4,8 @@
 
 #include <iostream>
 #include <memory>
-#include <optional>
-
 #include <nlohmann/json.hpp>
+#include <optional>
 
 #include "cscam/cl/program.hpp"
 #include "cscam/core/error.hpp"

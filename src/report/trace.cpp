@@ -45,11 +45,16 @@ constexpr int kColumns = 15;
 
 TraceMotion motion_of(int type) {
   switch (type) {
-    case 0: return TraceMotion::Idle;
-    case 1: return TraceMotion::Rapid;
-    case 2: return TraceMotion::Feed;
-    case 3: return TraceMotion::Arc;
-    default: return TraceMotion::Other;
+    case 0:
+      return TraceMotion::Idle;
+    case 1:
+      return TraceMotion::Rapid;
+    case 2:
+      return TraceMotion::Feed;
+    case 3:
+      return TraceMotion::Arc;
+    default:
+      return TraceMotion::Other;
   }
 }
 
@@ -84,8 +89,8 @@ Trace read_halsampler_text(const std::string& text, const std::string& name, con
     TraceSample smp;
     smp.index = std::lround(v[0]);
     if (!tr.samples.empty() && smp.index != tr.samples.back().index + 1)
-      throw InputError(where, fmt::format("sample {} follows sample {}: samples were lost", smp.index,
-                                          tr.samples.back().index));
+      throw InputError(
+          where, fmt::format("sample {} follows sample {}: samples were lost", smp.index, tr.samples.back().index));
     for (int a = 0; a < 5; ++a) smp.joints[a] = rotary[static_cast<size_t>(a)] ? deg2rad(v[1 + a]) : v[1 + a];
     smp.world_mm = Vec3(v[6], v[7], v[8]);
     smp.nc_line = static_cast<int>(std::lround(v[11]));
@@ -114,8 +119,8 @@ TraceCheckResult check_trace(const Trace& trace, const cl::Program& cl, const ki
     const auto& a = cl.moves[i - 1];
     const auto& b = cl.moves[i];
     if (b.kind != cl::MotionKind::Feed) continue;
-    segs.push_back({a.tip_in_part_mm, b.tip_in_part_mm, a.axis_in_part.normalized(), b.axis_in_part.normalized(),
-                    b.line});
+    segs.push_back(
+        {a.tip_in_part_mm, b.tip_in_part_mm, a.axis_in_part.normalized(), b.axis_in_part.normalized(), b.line});
   }
   if (segs.empty()) {
     r.message = "the CL program has no feed moves: nothing to compare";
@@ -246,7 +251,8 @@ TraceCheckResult check_trace(const Trace& trace, const cl::Program& cl, const ki
     return r;
   }
   std::sort(devs.begin(), devs.end());
-  r.p99_tip_deviation_mm = devs[std::min(devs.size() - 1, static_cast<size_t>(0.99 * static_cast<double>(devs.size())))];
+  r.p99_tip_deviation_mm =
+      devs[std::min(devs.size() - 1, static_cast<size_t>(0.99 * static_cast<double>(devs.size())))];
   for (const auto& [line, b] : blocks) r.worst_blocks.push_back(b);
   std::sort(r.worst_blocks.begin(), r.worst_blocks.end(),
             [](const TraceBlock& a, const TraceBlock& b) { return a.max_tip_deviation_mm > b.max_tip_deviation_mm; });
@@ -295,44 +301,45 @@ TraceCheckResult check_trace(const Trace& trace, const cl::Program& cl, const ki
   r.ok = tip_ok && axis_ok && cover_ok;
   const Vec3& w = r.max_tip_in_part_mm;
   r.message = fmt::format(
-      "{}: {} {} servo samples ({} at feed compared, {} departure blocks not): tip within {:.4f} mm of the CL path (99% within {:.4f}), "
+      "{}: {} {} servo samples ({} at feed compared, {} departure blocks not): tip within {:.4f} mm of the CL path "
+      "(99% within {:.4f}), "
       "largest at NC line {} near CL line {}, sample {}, tip ({:.4f}, {:.4f}, {:.4f}); tool axis within {:.4f} "
       "deg; every CL point within {:.4f} mm of the path (CL line {}); tolerance {:.4f} mm / {:.3f} deg; "
       "controller's world X Y Z within {:.6f} mm of ours ({} TCP samples, lag {} cycles)",
-      trace.file, r.ok ? "OK" : "FAILED", r.samples, r.feed_samples, r.departure_blocks, r.max_tip_deviation_mm, r.p99_tip_deviation_mm,
-      r.max_tip_nc_line, r.max_tip_cl_line, r.max_tip_sample, w.x(), w.y(), w.z(), r.max_axis_deviation_deg,
-      r.max_uncovered_cl_mm, r.max_uncovered_cl_line, options.tip_tolerance_mm, options.axis_tolerance_deg,
-      r.max_world_mismatch_mm, r.tcp_samples, r.world_lag_samples);
+      trace.file, r.ok ? "OK" : "FAILED", r.samples, r.feed_samples, r.departure_blocks, r.max_tip_deviation_mm,
+      r.p99_tip_deviation_mm, r.max_tip_nc_line, r.max_tip_cl_line, r.max_tip_sample, w.x(), w.y(), w.z(),
+      r.max_axis_deviation_deg, r.max_uncovered_cl_mm, r.max_uncovered_cl_line, options.tip_tolerance_mm,
+      options.axis_tolerance_deg, r.max_world_mismatch_mm, r.tcp_samples, r.world_lag_samples);
   return r;
 }
 
 nlohmann::json TraceCheckResult::json() const {
   nlohmann::json worst = nlohmann::json::array();
   for (const auto& b : worst_blocks)
-    worst.push_back({{"nc_line", b.nc_line},
-                     {"max_tip_deviation_mm", rounded(b.max_tip_deviation_mm, 6)},
-                     {"samples", b.samples}});
-  return {{"ok", ok},
-          {"samples", samples},
-          {"feed_samples", feed_samples},
-          {"max_tip_deviation_mm", rounded(max_tip_deviation_mm, 6)},
-          {"p99_tip_deviation_mm", rounded(p99_tip_deviation_mm, 6)},
-          {"max_tip_sample", max_tip_sample},
-          {"max_tip_nc_line", max_tip_nc_line},
-          {"max_tip_cl_line", max_tip_cl_line},
-          {"max_tip_in_part_mm",
-           {rounded(max_tip_in_part_mm.x(), 6), rounded(max_tip_in_part_mm.y(), 6), rounded(max_tip_in_part_mm.z(), 6)}},
-          {"max_axis_deviation_deg", rounded(max_axis_deviation_deg, 6)},
-          {"max_axis_nc_line", max_axis_nc_line},
-          {"max_uncovered_cl_mm", rounded(max_uncovered_cl_mm, 6)},
-          {"max_uncovered_cl_line", max_uncovered_cl_line},
-          {"worst_blocks", worst},
-          {"departure_blocks", departure_blocks},
-          {"tcp_samples", tcp_samples},
-          {"max_world_mismatch_mm", rounded(max_world_mismatch_mm, 6)},
-          {"max_world_mismatch_tcp_mm", rounded(max_world_mismatch_tcp_mm, 6)},
-          {"world_lag_samples", world_lag_samples},
-          {"message", message}};
+    worst.push_back(
+        {{"nc_line", b.nc_line}, {"max_tip_deviation_mm", rounded(b.max_tip_deviation_mm, 6)}, {"samples", b.samples}});
+  return {
+      {"ok", ok},
+      {"samples", samples},
+      {"feed_samples", feed_samples},
+      {"max_tip_deviation_mm", rounded(max_tip_deviation_mm, 6)},
+      {"p99_tip_deviation_mm", rounded(p99_tip_deviation_mm, 6)},
+      {"max_tip_sample", max_tip_sample},
+      {"max_tip_nc_line", max_tip_nc_line},
+      {"max_tip_cl_line", max_tip_cl_line},
+      {"max_tip_in_part_mm",
+       {rounded(max_tip_in_part_mm.x(), 6), rounded(max_tip_in_part_mm.y(), 6), rounded(max_tip_in_part_mm.z(), 6)}},
+      {"max_axis_deviation_deg", rounded(max_axis_deviation_deg, 6)},
+      {"max_axis_nc_line", max_axis_nc_line},
+      {"max_uncovered_cl_mm", rounded(max_uncovered_cl_mm, 6)},
+      {"max_uncovered_cl_line", max_uncovered_cl_line},
+      {"worst_blocks", worst},
+      {"departure_blocks", departure_blocks},
+      {"tcp_samples", tcp_samples},
+      {"max_world_mismatch_mm", rounded(max_world_mismatch_mm, 6)},
+      {"max_world_mismatch_tcp_mm", rounded(max_world_mismatch_tcp_mm, 6)},
+      {"world_lag_samples", world_lag_samples},
+      {"message", message}};
 }
 
 }  // namespace cscam::report

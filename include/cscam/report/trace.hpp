@@ -2,12 +2,11 @@
 /// @file
 /// A controller's servo trace (LinuxCNC's motion controller, recorded by halsampler every servo cycle)
 /// against the CL path: forward kinematics of the sampled joints, the tip's deviation from the path.
-#include <nlohmann/json_fwd.hpp>
+#include <Eigen/Core>
 #include <array>
+#include <nlohmann/json_fwd.hpp>
 #include <string>
 #include <vector>
-
-#include <Eigen/Core>
 
 #include "cscam/cl/program.hpp"
 #include "cscam/kin/kinematics.hpp"
@@ -21,12 +20,12 @@ enum class TraceMotion { Idle, Rapid, Feed, Arc, Other };
 
 /// One servo cycle.
 struct TraceSample {
-  long index = 0;              ///< halsampler's sample number
-  kin::Axes joints;            ///< commanded machine axes, canonical order (mm, rad)
-  Eigen::Vector3d world_mm;    ///< the controller's commanded X Y Z (machine or TCP coordinates)
-  int nc_line = 0;             ///< program line the controller was executing (1-based)
+  long index = 0;            ///< halsampler's sample number
+  kin::Axes joints;          ///< commanded machine axes, canonical order (mm, rad)
+  Eigen::Vector3d world_mm;  ///< the controller's commanded X Y Z (machine or TCP coordinates)
+  int nc_line = 0;           ///< program line the controller was executing (1-based)
   TraceMotion motion = TraceMotion::Idle;
-  int kinematics = 0;          ///< LinuxCNC's switchkins type: 0 identity (joint mode), 1 the machine's (TCP)
+  int kinematics = 0;  ///< LinuxCNC's switchkins type: 0 identity (joint mode), 1 the machine's (TCP)
 };
 
 struct Trace {
@@ -57,17 +56,17 @@ struct TraceBlock {
 struct TraceCheckResult {
   bool ok = false;
   std::string message;
-  size_t samples = 0;        ///< every servo cycle of the trace
-  size_t feed_samples = 0;   ///< those at feed (linear or arc): the compared ones
+  size_t samples = 0;       ///< every servo cycle of the trace
+  size_t feed_samples = 0;  ///< those at feed (linear or arc): the compared ones
   double max_tip_deviation_mm = 0.0;
   double p99_tip_deviation_mm = 0.0;  ///< 99th percentile over the feed samples
   long max_tip_sample = -1;           ///< halsampler sample number (servo cycles since the run started)
   int max_tip_nc_line = 0;
-  int max_tip_cl_line = 0;            ///< the CL segment nearest to that sample (its end point's line)
+  int max_tip_cl_line = 0;  ///< the CL segment nearest to that sample (its end point's line)
   Eigen::Vector3d max_tip_in_part_mm = Eigen::Vector3d::Zero();
   double max_axis_deviation_deg = 0.0;
   int max_axis_nc_line = 0;
-  double max_uncovered_cl_mm = 0.0;   ///< largest distance from a CL feed point to the sampled tip path
+  double max_uncovered_cl_mm = 0.0;  ///< largest distance from a CL feed point to the sampled tip path
   int max_uncovered_cl_line = 0;
   std::vector<TraceBlock> worst_blocks;  ///< up to 5
   size_t departure_blocks = 0;
