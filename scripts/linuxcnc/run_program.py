@@ -78,6 +78,12 @@ def main():
     if not os.path.isfile(program):
         fail(2, f"{args.program}: no such file")
 
+    uid = None
+    if os.geteuid() == 0:
+        try:
+            uid = int(os.environ.get("RTAPI_UID") or pwd.getpwnam("nobody").pw_uid)
+        except (KeyError, ValueError):
+            fail(2, "as root, rtapi_app needs an unprivileged uid: set RTAPI_UID (there is no user `nobody`)")
     run_dir = tempfile.mkdtemp(prefix="cscam-lcnc-")
     env = dict(os.environ)
     env.pop("DISPLAY", None)  # no X: LinuxCNC must not try any GUI
@@ -91,8 +97,7 @@ def main():
         CSCAM_LCNC_TIMEOUT_S=str(args.timeout),
         CSCAM_LCNC_MDI="\n".join(args.mdi),
     )
-    if os.geteuid() == 0:
-        uid = int(env.get("RTAPI_UID") or pwd.getpwnam("nobody").pw_uid)
+    if uid is not None:
         env["RTAPI_UID"] = str(uid)
         fifo = os.path.join(run_dir, "rtapi_fifo")
         os.mkdir(fifo)
