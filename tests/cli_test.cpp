@@ -448,3 +448,19 @@ TEST(Cli, CalibratedXminiPostsOnThePathOfTheTrueMachine) {
   r = run_command(kCli + " verify " + nc_nom + " --machine " + true_file + " --cl " + cl);
   EXPECT_EQ(r.status, 1) << r.output;
 }
+
+// `cscam trace`: a sample file that lost samples is an input error with its line (exit 2), not a verdict.
+TEST(Cli, TraceRejectsLostSamplesWithLocation) {
+  TempDir d;
+  const std::string cl = cscam::test::source_path("examples/groove/groove.cls");
+  const std::string samples =
+      d.file("s.txt", "0 0 0 250 0 0 0 0 250 0 0 14 1 0 0\n1 0 0 250 0 0 0 0 250 0 0 14 1 0 0\noverrun\n");
+  auto r = run_command(kCli + " trace " + samples + " --machine trunnion-ac --cl " + cl);
+  EXPECT_EQ(r.status, 2) << r.output;
+  EXPECT_NE(r.output.find("s.txt:3"), std::string::npos) << r.output;
+  // Well-formed but the tool never cut: a failed check (exit 1) that says so.
+  const std::string idle = d.file("idle.txt", "0 0 0 250 0 0 0 0 250 0 0 14 1 0 0\n1 0 0 250 0 0 0 0 250 0 0 14 1 0 0\n");
+  r = run_command(kCli + " trace " + idle + " --machine trunnion-ac --cl " + cl);
+  EXPECT_EQ(r.status, 1) << r.output;
+  EXPECT_NE(r.output.find("did not cut"), std::string::npos) << r.output;
+}

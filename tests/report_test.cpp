@@ -5,8 +5,16 @@
 #include "cscam/report/backlash.hpp"
 #include "cscam/report/json.hpp"
 #include "cscam/report/stats.hpp"
+#include "cscam/report/trace.hpp"
 #include "cscam/report/verify.hpp"
 #include "test_support.hpp"
+
+#include <fmt/format.h>
+
+#include "cscam/cl/program.hpp"
+#include "cscam/core/error.hpp"
+#include "cscam/kin/track.hpp"
+#include "cscam/machine/machine.hpp"
 
 using namespace cscam;
 
@@ -71,4 +79,169 @@ TEST(ReportJson, QuotesAndBackslashesSurvive) {
   EXPECT_EQ(j["width_mm"], 0.01);
   ASSERT_EQ(j["reversals"].size(), 1u);
   EXPECT_EQ(j["reversals"][0]["tip_mm"].size(), 3u);
+}
+
+// ---- Servo traces (LinuxCNC's motion controller via halsampler) against the CL path ----
+
+namespace {
+
+// A trace that follows the CL path exactly: IK at 20 points along every feed segment (tip interpolated
+// linearly, axis by slerp), written as halsampler -t text (degrees, 6 decimals) and read back.
+struct TraceFixture {
+  machine::Machine m = machine::load(test::source_path("machines/trunnion-ac.yaml"));
+  std::shared_ptr<const kin::Kinematics> kin = m.make_kinematics(0.0);
+  cl::Program cl = cl::read_file(test::source_path("examples/groove/groove.cls"));
+  std::array<bool, 5> rotary{false, false, false, true, true};
+
+  std::vector<report::TraceSample> exact() const {
+    std::vector<report::TraceSample> out;
+    kin::Axes near = kin::Axes::Zero();
+    for (size_t i = 1; i < cl.moves.size(); ++i) {
+      const auto& a = cl.moves[i - 1];
+      const auto& b = cl.moves[i];
+      const bool last = i + 1 == cl.moves.size();
+      for (int k = 0; k <= (last ? 20 : 19); ++k) {  // the last segment up to its end point
+        const double s = k / 20.0;
+        kin::Posed p;
+        p.tip_mm = (1 - s) * a.tip_in_part_mm + s * b.tip_in_part_mm;
+        const Eigen::Vector3d ua = a.axis_in_part.normalized(), ub = b.axis_in_part.normalized();
+        p.axis = ((1 - s) * ua + s * ub).normalized();  // on the great circle between them, as slerp
+        kin::Axes q;
+        EXPECT_TRUE(kin::nearest_solution(*kin, p, near, q));
+        near = q;
+        report::TraceSample smp;
+        smp.index = static_cast<long>(out.size());
+        smp.joints = q;
+        smp.nc_line = 100 + static_cast<int>(i);
+        smp.motion = b.kind == cl::MotionKind::Feed ? report::TraceMotion::Feed : report::TraceMotion::Rapid;
+        out.push_back(smp);
+      }
+    }
+    return out;
+  }
+
+  static std::string to_text(const std::vector<report::TraceSample>& samples) {
+    std::string t;
+    for (const auto& s : samples) {
+      // Joint mode: the controller's world position is the joints themselves.
+      t += fmt::format("{0} {1:.6f} {2:.6f} {3:.6f} {4:.6f} {5:.6f} {1:.6f} {2:.6f} {3:.6f} {4:.6f} {5:.6f} {6} {7} 1.0 0\n",
+                       s.index, s.joints[0], s.joints[1], s.joints[2], rad2deg(s.joints[3]), rad2deg(s.joints[4]),
+                       s.nc_line, s.motion == report::TraceMotion::Feed ? 2 : 1);
+    }
+    return t;
+  }
+};
+
+}  // namespace
+
+TEST(Trace, ExactPathPassesThroughTheHalsamplerFormat) {
+  TraceFixture f;
+  const auto samples = f.exact();
+  const report::Trace tr = report::read_halsampler_text(TraceFixture::to_text(samples), "exact.txt", f.rotary);
+  ASSERT_EQ(tr.samples.size(), samples.size());
+  const auto r = report::check_trace(tr, f.cl, *f.kin, report::TraceCheckOptions{});
+  EXPECT_TRUE(r.ok) << r.message;
+  // 6 printed decimals (1e-6 mm, 1e-6 deg at < 100 mm from the pivots) are all that separates it from the path.
+  EXPECT_LT(r.max_tip_deviation_mm, 1e-5);
+  EXPECT_LT(r.max_uncovered_cl_mm, 1e-5);
+  EXPECT_GT(r.feed_samples, 3000u);
+  EXPECT_LT(r.max_world_mismatch_mm, 1e-9);
+  EXPECT_EQ(r.world_lag_samples, 0);
+  EXPECT_EQ(r.tcp_samples, 0u);
+}
+
+// In TCP mode the controller's world X Y Z is the tip in the part frame: a world column that is our FK tip two
+// cycles late matches at lag 2; one that is off by 0.03 mm (another pivot in the controller) shows 0.03 mm.
+TEST(Trace, WorldPositionAgainstOurKinematics) {
+  TraceFixture f;
+  report::Trace tr;
+  tr.file = "tcp";
+  tr.samples = f.exact();
+  for (size_t i = 0; i < tr.samples.size(); ++i) {
+    tr.samples[i].kinematics = 1;
+    tr.samples[i].world_mm = f.kin->forward(tr.samples[std::min(i + 2, tr.samples.size() - 1)].joints).tip_mm;
+  }
+  auto r = report::check_trace(tr, f.cl, *f.kin, report::TraceCheckOptions{});
+  EXPECT_TRUE(r.ok) << r.message;
+  EXPECT_EQ(r.world_lag_samples, 2);
+  EXPECT_EQ(r.tcp_samples, tr.samples.size());
+  EXPECT_LT(r.max_world_mismatch_tcp_mm, 1e-9);
+  for (auto& s : tr.samples) s.world_mm.y() += 0.03;
+  r = report::check_trace(tr, f.cl, *f.kin, report::TraceCheckOptions{});
+  EXPECT_NEAR(r.max_world_mismatch_tcp_mm, 0.03, 1e-9);
+}
+
+TEST(Trace, OffsetInOneBlockIsFoundWithItsLine) {
+  TraceFixture f;
+  auto samples = f.exact();
+  // A 0.05 mm excursion of X in the samples of one block: the tip leaves the path by 0.05 mm there.
+  const int bad_line = 100 + 80;
+  // Oracle: machine X turned into the part frame by the table, less its part along the (straight) CL segment.
+  const Eigen::Vector3d dir = (f.cl.moves[80].tip_in_part_mm - f.cl.moves[79].tip_in_part_mm).normalized();
+  double expected = 0.0;
+  for (auto& s : samples)
+    if (s.nc_line == bad_line) {
+      const Eigen::Vector3d before = f.kin->forward(s.joints).tip_mm;
+      s.joints[0] += 0.05;
+      const Eigen::Vector3d delta = f.kin->forward(s.joints).tip_mm - before;
+      expected = std::max(expected, (delta - delta.dot(dir) * dir).norm());
+    }
+  ASSERT_GT(expected, 0.015);
+  report::Trace tr;
+  tr.file = "offset";
+  tr.samples = samples;
+  report::TraceCheckOptions o;
+  o.tip_tolerance_mm = 0.012;
+  const auto r = report::check_trace(tr, f.cl, *f.kin, o);
+  EXPECT_FALSE(r.ok);
+  EXPECT_EQ(r.max_tip_nc_line, bad_line);
+  EXPECT_NEAR(r.max_tip_deviation_mm, expected, 1e-4);
+  ASSERT_FALSE(r.worst_blocks.empty());
+  EXPECT_EQ(r.worst_blocks.front().nc_line, bad_line);
+  // Rapid samples are not compared: the same excursion in a rapid passes.
+  for (auto& s : tr.samples)
+    if (s.nc_line == bad_line) s.motion = report::TraceMotion::Rapid;
+  const auto r2 = report::check_trace(tr, f.cl, *f.kin, o);
+  EXPECT_TRUE(r2.ok) << r2.message;
+}
+
+TEST(Trace, TruncatedRunFailsCoverage) {
+  TraceFixture f;
+  auto samples = f.exact();
+  samples.resize(samples.size() / 2);  // the controller stopped half-way: every sample is on the path
+  report::Trace tr;
+  tr.file = "half";
+  tr.samples = samples;
+  const auto r = report::check_trace(tr, f.cl, *f.kin, report::TraceCheckOptions{});
+  EXPECT_LT(r.max_tip_deviation_mm, 1e-9);
+  EXPECT_FALSE(r.ok);
+  EXPECT_GT(r.max_uncovered_cl_mm, 10.0);
+}
+
+TEST(Trace, ReaderRejectsLostSamplesAndBadLines) {
+  const std::array<bool, 5> rot{false, false, false, true, true};
+  const std::string ok = "0 1 2 3 4 5 6 7 8 9 10 7 2 1.5 0\n1 1 2 3 4 5 6 7 8 9 10 7 2 1.5 1\n";
+  const auto tr = report::read_halsampler_text(ok, "ok.txt", rot);
+  ASSERT_EQ(tr.samples.size(), 2u);
+  EXPECT_DOUBLE_EQ(tr.samples[0].joints[2], 3.0);
+  EXPECT_NEAR(tr.samples[0].joints[3], deg2rad(4.0), 1e-15);
+  EXPECT_EQ(tr.samples[1].nc_line, 7);
+  EXPECT_EQ(tr.samples[1].motion, report::TraceMotion::Feed);
+  EXPECT_EQ(tr.samples[1].kinematics, 1);
+  EXPECT_DOUBLE_EQ(tr.samples[0].world_mm.x(), 6.0);
+  auto message_of = [&](const std::string& text) {
+    try {
+      report::read_halsampler_text(text, "s.txt", rot);
+    } catch (const InputError& e) {
+      return std::string(e.what());
+    }
+    return std::string("no error");
+  };
+  EXPECT_NE(message_of("0 1 2 3 4 5 6 7 8 9 10 7 2 1.5 0\n2 1 2 3 4 5 6 7 8 9 10 7 2 1.5 0\n").find("s.txt:2"),
+            std::string::npos);
+  EXPECT_NE(message_of("0 1 2 3 4 5 6 7 8 9 10 7 2 1.5 0\noverrun\n").find("overran"), std::string::npos);
+  EXPECT_NE(message_of("0 1 2 3 4 5 6 7 8 9 10 7 2 1.5 0\n1 1 2 x 4 5 6 7 8 9 10 7 2 1.5 0\n").find("s.txt:2:"),
+            std::string::npos);
+  EXPECT_NE(message_of("0 1 2 3\n").find("s.txt:1"), std::string::npos);
+  EXPECT_NE(message_of("").find("no samples"), std::string::npos);
 }

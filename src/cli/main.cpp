@@ -23,6 +23,7 @@
 #include "cscam/report/verify.hpp"
 #include "plan_cmd.hpp"
 #include "sim_cmd.hpp"
+#include "trace_cmd.hpp"
 #include "calib_cmd.hpp"
 
 namespace fs = std::filesystem;
@@ -326,6 +327,7 @@ int main(int argc, char** argv) {
   auto run_plan_commands = cli::add_plan_commands(app);
   auto run_sim_commands = cli::add_sim_commands(app);
   auto run_calib_commands = cli::add_calib_commands(app);
+  auto run_trace_commands = cli::add_trace_commands(app);
 
   try {
     app.parse(argc, argv);
@@ -340,6 +342,7 @@ int main(int argc, char** argv) {
     if (const int rc = run_plan_commands(); rc >= 0) return rc;
     if (const int rc = run_sim_commands(); rc >= 0) return rc;
     if (const int rc = run_calib_commands(); rc >= 0) return rc;
+    if (const int rc = run_trace_commands(); rc >= 0) return rc;
   } catch (const InputError& e) {
     std::cerr << "error: " << e.what() << "\n";
     return 2;
