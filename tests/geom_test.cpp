@@ -584,15 +584,19 @@ TEST(GeomQuery, ConcurrentQueriesWithPerThreadWorkspacesAgreeWithSerial) {
   EXPECT_EQ(total.collision_queries, poses.size());
 }
 
-// Inputs found by fuzz/mesh_fuzz (tests/data/fuzz-regressions): assimp 5.2 hung on the first and aborted on
-// the second. The loader must answer both with an InputError naming the file.
+// Inputs found by fuzz/mesh_fuzz (tests/data/fuzz-regressions): assimp 5.2 hung on the first, aborted on the
+// second and the last, and tried to allocate tens of GB for the huge-count headers. The loader must answer each
+// with an InputError naming the file.
 TEST(MeshFuzzRegressions, MalformedPlyAndOffAreInputErrors) {
   namespace fs = std::filesystem;
   // The third hangs assimp itself: the loader's child process is stopped at the time limit.
   ::setenv("CSCAM_MESH_TIMEOUT_S", "3", 1);
   const std::pair<const char*, const char*> cases[] = {{"mesh-ply-no-end-header.bin", ".ply"},
                                                        {"mesh-off-binary-bytes.bin", ".off"},
-                                                       {"mesh-ply-end-header-in-token.bin", ".ply"}};
+                                                       {"mesh-ply-end-header-in-token.bin", ".ply"},
+                                                       {"mesh-off-huge-count.bin", ".off"},
+                                                       {"mesh-ply-huge-count.bin", ".ply"},
+                                                       {"mesh-off-triangulate-abort.bin", ".off"}};
   for (const auto& [file, ext] : cases) {
     SCOPED_TRACE(file);
     std::ifstream in(test::source_path(std::string("tests/data/fuzz-regressions/") + file), std::ios::binary);

@@ -18,7 +18,10 @@
 #include <cstdint>
 #include <cstdlib>
 #include <cstring>
+#include <cctype>
 #include <fstream>
+#include <sstream>
+#include <vector>
 #include <unordered_map>
 
 #include "cscam/core/atomic_file.hpp"
@@ -208,6 +211,53 @@ void Mesh::append(const Mesh& other) {
 
 namespace {
 
+/// Element counts an OFF header declares (vertices, faces, edges), after the keyword; comments skipped.
+std::vector<double> off_counts(const std::string& head) {
+  std::vector<double> counts;
+  size_t i = head.find_first_of(" \t\r\n");  // past the keyword
+  while (i != std::string::npos && i < head.size() && counts.size() < 3) {
+    if (head[i] == '#') {
+      i = head.find('\n', i);
+      continue;
+    }
+    if (std::isspace(static_cast<unsigned char>(head[i]))) {
+      ++i;
+      continue;
+    }
+    const size_t j = std::min(head.find_first_of(" \t\r\n#", i), head.size());
+    char* stop = nullptr;
+    const std::string token = head.substr(i, j - i);
+    const double v = std::strtod(token.c_str(), &stop);
+    if (stop == token.c_str()) break;  // not a count: assimp will say what is wrong
+    counts.push_back(v);
+    i = j;
+  }
+  return counts;
+}
+
+/// Element counts a PLY header declares ("element <name> <count>").
+std::vector<double> ply_counts(const std::string& header) {
+  std::vector<double> counts;
+  std::istringstream in(header);
+  for (std::string line; std::getline(in, line);) {
+    std::istringstream words(line);
+    std::string kw, name, count;
+    if (words >> kw >> name >> count && kw == "element") counts.push_back(std::strtod(count.c_str(), nullptr));
+  }
+  return counts;
+}
+
+/// Every declared element takes at least one byte in any encoding, so counts beyond the file's size are a
+/// corrupt header; assimp would try to allocate them first (fuzzing found 0x620cd9558-byte requests).
+void check_declared_counts(const std::string& path, const std::vector<double>& counts, double file_bytes) {
+  double total = 0.0;
+  for (const double c : counts) total += std::max(0.0, c);
+  if (total > file_bytes)
+    throw InputError(SourceLoc{path, 1, 0}, fmt::format("mesh header declares {:.0f} elements, more than the file's "
+                                                        "{:.0f} bytes can hold: the header is corrupt",
+                                                        total, file_bytes));
+}
+
 Mesh load_mesh_here(const std::string& path, double scale_to_mm, bool require_closed) {
   const SourceLoc where{path};
   if (!(scale_to_mm > 0.0) || !std::isfinite(scale_to_mm))
@@ -221,7 +271,11 @@ Mesh load_mesh_here(const std::string& path, double scale_to_mm, bool require_cl
     probe.read(head.data(), static_cast<std::streamsize>(head.size()));
     head.resize(static_cast<size_t>(probe.gcount()));
     // OFF is a text format; assimp 5.2 aborts in post-processing on some malformed binary bytes in it.
-    if (head.rfind("OFF", 0) == 0 || head.rfind("COFF", 0) == 0 || head.rfind("NOFF", 0) == 0) {
+    const bool is_off = head.rfind("OFF", 0) == 0 || head.rfind("COFF", 0) == 0 || head.rfind("NOFF", 0) == 0;
+    probe.clear();
+    probe.seekg(0, std::ios::end);
+    const double file_bytes = static_cast<double>(probe.tellg());
+    if (is_off) {
       std::ifstream all(path, std::ios::binary);
       int line = 1;
       for (char c; all.get(c);) {
@@ -231,6 +285,7 @@ Mesh load_mesh_here(const std::string& path, double scale_to_mm, bool require_cl
           throw InputError(SourceLoc{path, line, 0}, "OFF mesh contains a byte that is not text");
       }
     }
+    if (is_off) check_declared_counts(path, off_counts(head), file_bytes);
     if (head.rfind("ply", 0) == 0) {
       const size_t end = head.find("end_header");
       if (end == std::string::npos)
@@ -241,6 +296,7 @@ Mesh load_mesh_here(const std::string& path, double scale_to_mm, bool require_cl
               SourceLoc{path, 1 + static_cast<int>(std::count(head.begin(), head.begin() + static_cast<long>(i), '\n')),
                         0},
               "PLY header contains a byte that is not printable text");
+      check_declared_counts(path, ply_counts(head.substr(0, end)), file_bytes);
     }
   }
   Assimp::Importer importer;
