@@ -2,6 +2,7 @@
 
 #include <fmt/format.h>
 
+#include <algorithm>
 #include <cmath>
 #include <stdexcept>
 
@@ -246,6 +247,40 @@ bool SerialKinematics::head_in_part(const Axes& q, Eigen::Isometry3d& T) const {
       else
         p = detail::axis_angle<double>(j.direction, v).transpose() * (p - j.pivot_mm) + j.pivot_mm;
     }
+    return Vec3(p - g.part_origin_home_mm);
+  };
+  const Vec3 o = map(Vec3::Zero());
+  T.setIdentity();
+  for (int c = 0; c < 3; ++c) T.linear().col(c) = map(Vec3::Unit(c)) - o;
+  T.translation() = o;
+  return true;
+}
+
+bool SerialKinematics::link_in_part(int axis, const Axes& q, Eigen::Isometry3d& T) const {
+  const auto& g = geometry_;
+  // The joints from the base up to and including `axis` on its chain move the link (none for the base).
+  const std::vector<int>* chain = nullptr;
+  std::size_t upto = 0;
+  if (axis >= 0) {
+    for (const std::vector<int>* c : {&g.head_chain, &g.table_chain}) {
+      const auto it = std::find(c->begin(), c->end(), axis);
+      if (it != c->end()) {
+        chain = c;
+        upto = static_cast<std::size_t>(it - c->begin()) + 1;
+      }
+    }
+    if (!chain) return false;
+  }
+  auto apply = [&](int idx, Vec3 p, bool inverse) {
+    const auto& j = g.joints[static_cast<size_t>(idx)];
+    const double v = q[idx] + j.offset;
+    if (j.type == AxisType::Linear) return Vec3(p + (inverse ? -v : v) * j.direction);
+    const Eigen::Matrix3d R = detail::axis_angle<double>(j.direction, v);
+    return Vec3((inverse ? R.transpose() : R) * (p - j.pivot_mm) + j.pivot_mm);
+  };
+  auto map = [&](Vec3 p) {
+    for (std::size_t k = upto; k-- > 0;) p = apply((*chain)[k], p, false);  // home -> base frame
+    for (int idx : g.table_chain) p = apply(idx, p, true);                  // base -> part frame
     return Vec3(p - g.part_origin_home_mm);
   };
   const Vec3 o = map(Vec3::Zero());
