@@ -47,6 +47,10 @@ Space::Space(std::shared_ptr<const kin::Kinematics> kinematics, const geom::Scen
     throw InputError(fmt::format("minimum tilt {:.3f} deg exceeds the cone {:.3f} deg: no orientation is allowed",
                                  rad2deg(opt_.min_tilt_rad), rad2deg(opt_.cone_rad)));
   links_ = std::max(scene_ ? scene_->link_count() : 0, head_ ? head_->link_count() : 0);
+  for (const geom::Scene* sc : {scene_, head_})
+    if (sc)
+      for (std::size_t i = 0; i < sc->obstacle_count(); ++i)
+        if (sc->obstacle_link(i) >= 0) used_links_ |= 1u << sc->obstacle_link(i);
   if (links_ > 0) {
     CSCAM_CHECK(links_ <= kMaxLinks, "machine link index out of range");
     // A certificate (same axis, tip moved < margin) covers a machine body only if the body keeps its pose in the
@@ -55,10 +59,11 @@ Space::Space(std::shared_ptr<const kin::Kinematics> kinematics, const geom::Scen
     for (std::size_t i = 0; i < kin_->axes().size(); ++i)
       if (kin_->axes()[i].type == kin::AxisType::Linear) q1[static_cast<int>(i)] = 37.0;
     LinkPoses a, b;
-    if (!place_links(*kin_, q0, links_, a) || !place_links(*kin_, q1, links_, b))
+    if (!place_links(*kin_, q0, links_, a, used_links_) || !place_links(*kin_, q1, links_, b, used_links_))
       throw InputError("the machine's kinematics cannot place its machine bodies (link poses unavailable)");
     for (int l = 0; l < (scene_ ? scene_->link_count() : 0); ++l)
-      if (!a[static_cast<std::size_t>(l)].isApprox(b[static_cast<std::size_t>(l)], 1e-12)) certify_links_ = false;
+      if (((used_links_ >> l) & 1u) && !a[static_cast<std::size_t>(l)].isApprox(b[static_cast<std::size_t>(l)], 1e-12))
+        certify_links_ = false;
   }
   const auto rp = kin_->rotary_pair();
   rot1_ = rp[0];
@@ -315,15 +320,17 @@ std::string Space::collision_at_axes(const kin::Axes& q, geom::QueryWorkspace& w
                      scene_->obstacle_name(static_cast<std::size_t>(h.obstacle)));
 }
 
-bool Space::place_links(const kin::Kinematics& k, const kin::Axes& q, int n, LinkPoses& T) {
+bool Space::place_links(const kin::Kinematics& k, const kin::Axes& q, int n, LinkPoses& T, unsigned used) {
   for (int l = 0; l < n; ++l)
-    if (!k.link_in_part(l - 1, q, T[static_cast<std::size_t>(l)])) return false;
+    if (((used >> l) & 1u) && !k.link_in_part(l - 1, q, T[static_cast<std::size_t>(l)])) return false;
   return true;
 }
 
 const geom::CheckOptions& Space::with_links(const kin::Axes& q, LinkPoses& links, geom::CheckOptions& scratch) const {
-  if (links_ == 0) return opt_.collision;
-  CSCAM_CHECK(place_links(*kin_, q, links_, links), "machine link poses unavailable");
+  // Nothing to place: no linked obstacle, or only fixed ones and the options leave machine obstacles out.
+  if (links_ == 0 || (!head_ && !(opt_.collision.roles & static_cast<unsigned>(geom::ObstacleRole::Machine))))
+    return opt_.collision;
+  CSCAM_CHECK(place_links(*kin_, q, links_, links, used_links_), "machine link poses unavailable");
   scratch = opt_.collision;
   scratch.links_in_part = links.data();
   return scratch;

@@ -271,22 +271,25 @@ bool SerialKinematics::link_in_part(int axis, const Axes& q, Eigen::Isometry3d& 
     }
     if (!chain) return false;
   }
-  auto apply = [&](int idx, Vec3 p, bool inverse) {
+  // The same joint motions as serial_forward, as rigid transforms (x -> R (x - pivot) + pivot, or a shift).
+  auto joint = [&](int idx) {
     const auto& j = g.joints[static_cast<size_t>(idx)];
     const double v = q[idx] + j.offset;
-    if (j.type == AxisType::Linear) return Vec3(p + (inverse ? -v : v) * j.direction);
-    const Eigen::Matrix3d R = detail::axis_angle<double>(j.direction, v);
-    return Vec3((inverse ? R.transpose() : R) * (p - j.pivot_mm) + j.pivot_mm);
+    Eigen::Isometry3d J = Eigen::Isometry3d::Identity();
+    if (j.type == AxisType::Linear) {
+      J.translation() = v * j.direction;
+    } else {
+      J.linear() = detail::axis_angle<double>(j.direction, v);
+      J.translation() = j.pivot_mm - J.linear() * j.pivot_mm;
+    }
+    return J;
   };
-  auto map = [&](Vec3 p) {
-    for (std::size_t k = upto; k-- > 0;) p = apply((*chain)[k], p, false);  // home -> base frame
-    for (int idx : g.table_chain) p = apply(idx, p, true);                  // base -> part frame
-    return Vec3(p - g.part_origin_home_mm);
-  };
-  const Vec3 o = map(Vec3::Zero());
-  T.setIdentity();
-  for (int c = 0; c < 3; ++c) T.linear().col(c) = map(Vec3::Unit(c)) - o;
-  T.translation() = o;
+  Eigen::Isometry3d part_from_base = Eigen::Isometry3d::Identity();  // undo the table chain from the base outward
+  for (int idx : g.table_chain) part_from_base = joint(idx).inverse() * part_from_base;
+  part_from_base.pretranslate(-g.part_origin_home_mm);
+  Eigen::Isometry3d base_from_link = Eigen::Isometry3d::Identity();  // home -> base frame
+  for (std::size_t k = 0; k < upto; ++k) base_from_link = base_from_link * joint((*chain)[k]);
+  T = part_from_base * base_from_link;
   return true;
 }
 

@@ -99,7 +99,8 @@ class Space {
   /// Stroke and collision of a cell (the orientation test must have passed). Fills status, axes, detail.
   void evaluate(const kin::Posed& cl_pose, Cell& cell, geom::QueryWorkspace& ws, Counters& c,
                 Certificate* certificate = nullptr) const;
-  /// Collision of an arbitrary tool pose (for reorientation moves). Empty string if free.
+  /// Collision of an arbitrary tool pose (for reorientation moves). Empty string if free. Without axis values
+  /// it cannot place machine bodies (linked obstacles) or the head: use collision_at_axes() when q is known.
   [[nodiscard]] std::string collision_at(const kin::Posed& tool_pose, geom::QueryWorkspace& ws, Counters& c) const;
   /// Whether a feasible cell stays free with `margin_mm` more clearance (a cheap measure of room for
   /// tie-breaking: collision queries only, no distance query).
@@ -120,7 +121,8 @@ class Space {
   using LinkPoses = std::array<Eigen::Isometry3d, kMaxLinks>;
   int links_ = 0;               // machine links used by the obstacles (0: none)
   bool certify_links_ = true;   // certificates stay sound with the linked obstacles
-  static bool place_links(const kin::Kinematics& k, const kin::Axes& q, int n, LinkPoses& T);
+  unsigned used_links_ = 0;     // bit l: an obstacle uses link l
+  static bool place_links(const kin::Kinematics& k, const kin::Axes& q, int n, LinkPoses& T, unsigned used);
   /// opt_.collision, or a copy in `scratch` with the link poses for q when obstacles have links.
   const geom::CheckOptions& with_links(const kin::Axes& q, LinkPoses& links, geom::CheckOptions& scratch) const;
   int rot1_ = 0, rot2_ = 0;
