@@ -3,6 +3,7 @@
 #include <gtest/gtest.h>
 #include <unistd.h>
 
+#include <array>
 #include <cmath>
 #include <filesystem>
 #include <fstream>
@@ -829,4 +830,72 @@ TEST(GeomMeshCheck, LoadCheckedRepairsAFlippedStlThatTheLoaderRejects) {
   const std::string msg = message_of([&] { (void)load_checked_mesh(p2); });
   EXPECT_EQ(msg.rfind(p2 + ": ", 0), 0u) << msg;
   EXPECT_NE(msg.find("open after repair"), std::string::npos) << msg;
+}
+
+// ---------------------------------------------------------------------------------------------------
+// Primitives for machine bodies, and obstacles placed per machine link
+// ---------------------------------------------------------------------------------------------------
+
+TEST(GeomPrimitives, CylinderPrismIsClosedOutwardAndCircumscribed) {
+  const Eigen::Vector3d a(10, -5, 3), b(40, 15, 63);
+  const double d = 50.0, L = (b - a).norm();
+  const int n = 32;
+  const Mesh c = cylinder_mesh(a, b, d, n);
+  std::string why;
+  EXPECT_TRUE(c.is_closed(&why)) << why;
+  EXPECT_EQ(euler_characteristic(c), 2);
+  // Volume of the circumscribed regular n-gon prism: n rc^2 sin(2 pi / n) / 2 * L, rc = r / cos(pi / n).
+  const double pi = 3.14159265358979323846, rc = 0.5 * d / std::cos(pi / n);
+  EXPECT_NEAR(c.signed_volume_mm3(), 0.5 * n * rc * rc * std::sin(2 * pi / n) * L, 1e-6 * L * d * d);
+  // Every point of the true cylinder's rim is inside: its distance to the axis is below the polygon's
+  // inradius, which is the cylinder radius itself (tangent sides).
+  const Eigen::Vector3d w = (b - a) / L;
+  for (const auto& v : c.vertices_mm) {
+    const Eigen::Vector3d r = (v - a) - (v - a).dot(w) * w;
+    if (r.norm() > 1e-9) EXPECT_NEAR(r.norm(), rc, 1e-9);
+  }
+  EXPECT_THROW((void)cylinder_mesh(a, a, d), InputError);
+  EXPECT_THROW((void)box_mesh({0, 0, 0}, {1, 0, 1}), InputError);
+  EXPECT_NEAR(box_mesh({0, 0, 0}, {1, 2, 3}).signed_volume_mm3(), 6.0, 1e-12);
+}
+
+TEST(GeomQuery, LinkedMachineObstaclesArePlacedByTheirLinkPose) {
+  // A 20 mm cube given at the origin of its link; the tool stands at x = 100. Link pose: shift by +100 in x
+  // -> the cube surrounds the tool; identity -> far away. Without link poses the obstacle is not tested.
+  Scene scene;
+  scene.add("cube", ObstacleRole::Machine, make_box({-10, -10, -10}, {10, 10, 10}), /*link=*/1);
+  scene.build(false);
+  EXPECT_EQ(scene.link_count(), 2);
+  EXPECT_EQ(scene.obstacle_link(0), 1);
+  const ToolShape tool = ToolShape::from_cutter(6, 0, 18);
+  QueryWorkspace ws;
+  std::array<Eigen::Isometry3d, 2> links{Eigen::Isometry3d::Identity(), Eigen::Isometry3d::Identity()};
+  CheckOptions o;
+  o.links_in_part = links.data();
+  const kin::Posed p = pose({100, 0, -30}, {0, 0, 1});
+  EXPECT_FALSE(check(scene, tool, p, o, ws).collides);
+  links[1].translation() = Eigen::Vector3d(100, 0, 0);
+  EXPECT_TRUE(check(scene, tool, p, o, ws).collides);
+  o.machine_in_part.translation() = Eigen::Vector3d(100, 0, 0);  // not used for a linked obstacle
+  links[1].translation() = Eigen::Vector3d(-100, 0, 0);
+  EXPECT_FALSE(check(scene, tool, p, o, ws).collides);
+  o.links_in_part = nullptr;
+  EXPECT_FALSE(check(scene, tool, p, o, ws).collides);
+
+  // Head side: a moving scene's linked obstacle uses the link pose, not moving_in_part.
+  Scene head;
+  head.add("nose", ObstacleRole::Machine, make_box({-5, -5, 0}, {5, 5, 10}), /*link=*/0);
+  head.build(false);
+  std::array<Eigen::Isometry3d, 2> hl{Eigen::Isometry3d::Identity(), Eigen::Isometry3d::Identity()};
+  hl[0].translation() = Eigen::Vector3d(100, 0, 5);  // the nose box (z 5..15) now straddles the cube's top face
+  links[1].translation() = Eigen::Vector3d(100, 0, 0);
+  // Both scenes read the same array: link 0 for the nose, link 1 for the cube.
+  std::array<Eigen::Isometry3d, 2> both{hl[0], links[1]};
+  o.links_in_part = both.data();
+  int which = -1;
+  const CollisionResult r = check_meshes(head, Eigen::Isometry3d::Identity(), scene, o, ws, &which);
+  EXPECT_TRUE(r.collides);
+  EXPECT_EQ(which, 0);
+  both[0].translation() = Eigen::Vector3d(100, 0, 50);
+  EXPECT_FALSE(check_meshes(head, Eigen::Isometry3d::Identity(), scene, o, ws).collides);
 }

@@ -72,8 +72,8 @@ struct MeshCheckReport {
 };
 
 /// Validates `mesh` and repairs it in place (unless options.repair is false). Never throws for a bad mesh:
-/// the verdict is in the report (error). Cost: O(n log n), about 1 s for 200k triangles (the
-/// self-intersection test dominates).
+/// the verdict is in the report (error). Cost: O(n log n); measured 0.27 s for 20k and 3.2 s for 200k
+/// triangles (the benchmark part) on the shared 2-core sandbox under load.
 /// @throws InputError only for a vertex index out of range or a non-finite vertex (names mesh.source).
 [[nodiscard]] MeshCheckReport check_and_repair(Mesh& mesh, const MeshCheckOptions& options = {});
 
