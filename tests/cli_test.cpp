@@ -158,6 +158,52 @@ TEST(Cli, PlanRejectsAnOpenMeshNamingTheFile) {
   EXPECT_FALSE(fs::exists(out));
 }
 
+TEST(Cli, MachineGeometryRulesOutTheClAxisAndRepairedMeshesAreReported) {
+  // examples/machine-limits: only the Haas platter and spindle nose forbid the horizontal CL axis.
+  TempDir d;
+  const std::string cl = cscam::test::source_path("examples/machine-limits/wall.cls");
+  const std::string part = cscam::test::source_path("examples/machine-limits/block.stl");
+  // The block as a fixture again, with three triangles wound the wrong way: repaired, said so.
+  std::ifstream in(part);
+  std::string stl((std::istreambuf_iterator<char>(in)), {});
+  const std::string flipped = d.file("flipped.stl", [&] {
+    std::string t = stl;
+    std::size_t at = 0;
+    for (int k = 0; k < 3; ++k) {  // swap the 2nd and 3rd vertex lines of the first three facets
+      at = t.find("outer loop", at);
+      const std::size_t v1 = t.find("vertex", t.find("vertex", at) + 1), v2 = t.find("vertex", v1 + 1);
+      const std::size_t e1 = t.find('\n', v1), e2 = t.find('\n', v2);
+      const std::string a = t.substr(v1, e1 - v1), b = t.substr(v2, e2 - v2);
+      t.replace(v2, b.size(), a);
+      t.replace(v1, a.size(), b);
+      at = e2;
+    }
+    return t;
+  }());
+  const std::string json = d.file("m.json"), out = d.file("m.ngc");
+  auto r = run_command(kCli + " compare " + cl + " --machine haas-umc750 --part " + part + " --fixture " + flipped +
+                       " --cone 60 --json-out " + json + " -o " + out);
+  ASSERT_EQ(r.status, 0) << r.output;
+  EXPECT_NE(r.output.find("warning: " + flipped + ": repaired: reversed the winding of 3 of 12 triangles"),
+            std::string::npos)
+      << r.output;
+  std::ifstream j(json);
+  const auto parsed = nlohmann::json::parse(j);
+  EXPECT_EQ(parsed["machine_bodies"], 9);
+  EXPECT_EQ(parsed["planner"]["colliding_points"], 0);
+  EXPECT_EQ(parsed["conventional"]["colliding_points"], 62);
+  ASSERT_EQ(parsed["meshes"].size(), 2u);
+  EXPECT_EQ(parsed["meshes"][1]["faces_reoriented"], 3);
+  EXPECT_TRUE(fs::exists(out));
+  // The planner told to ignore the machine keeps the CL axis; the gate still checks the machine and refuses.
+  const std::string out2 = d.file("n.ngc");
+  r = run_command(kCli + " compare " + cl + " --machine haas-umc750 --part " + part +
+                  " --cone 60 --no-machine-geometry --json-out " + d.file("n.json") + " -o " + out2);
+  EXPECT_EQ(r.status, 2) << r.output;
+  EXPECT_NE(r.output.find("hits machine platter"), std::string::npos) << r.output;
+  EXPECT_FALSE(fs::exists(out2));
+}
+
 TEST(Cli, PlanWithNoFeasibleCellWritesNothing) {
   TempDir d;
   const std::string cl =

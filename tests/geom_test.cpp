@@ -3,15 +3,18 @@
 #include <gtest/gtest.h>
 #include <unistd.h>
 
+#include <array>
 #include <cmath>
 #include <filesystem>
 #include <fstream>
+#include <set>
 #include <thread>
 
 #include "cscam/core/error.hpp"
 #include "cscam/core/units.hpp"
 #include "cscam/geom/groove.hpp"
 #include "cscam/geom/mesh.hpp"
+#include "cscam/geom/mesh_check.hpp"
 #include "cscam/geom/scene.hpp"
 #include "test_support.hpp"
 
@@ -614,4 +617,289 @@ TEST(MeshFuzzRegressions, MalformedPlyAndOffAreInputErrors) {
     fs::remove(p);
   }
   ::unsetenv("CSCAM_MESH_TIMEOUT_S");
+}
+
+// ---------------------------------------------------------------------------------------------------
+// Mesh validation and repair (CGAL). Oracles independent of CGAL: the divergence-theorem volume,
+// the Euler characteristic from our own edge count, Mesh::is_closed and FCL queries.
+// ---------------------------------------------------------------------------------------------------
+
+namespace {
+
+/// V - E + F over the vertices that triangles use (2 for a closed genus-0 surface).
+long euler_characteristic(const Mesh& m) {
+  std::set<std::pair<int, int>> edges;
+  std::set<int> used;
+  for (const auto& t : m.triangles)
+    for (int k = 0; k < 3; ++k) {
+      const int a = t[k], b = t[(k + 1) % 3];
+      edges.insert({std::min(a, b), std::max(a, b)});
+      used.insert(a);
+    }
+  return static_cast<long>(used.size()) - static_cast<long>(edges.size()) + static_cast<long>(m.triangles.size());
+}
+
+/// The box as an unwelded triangle soup: every triangle has its own three vertices (what STL stores).
+Mesh soup_of(const Mesh& m) {
+  Mesh s;
+  s.source = m.source;
+  for (const auto& t : m.triangles) {
+    const int base = static_cast<int>(s.vertices_mm.size());
+    for (int k = 0; k < 3; ++k) s.vertices_mm.push_back(m.vertices_mm[static_cast<std::size_t>(t[k])]);
+    s.triangles.emplace_back(base, base + 1, base + 2);
+  }
+  return s;
+}
+
+void flip(Mesh& m, std::size_t t) { std::swap(m.triangles[t][1], m.triangles[t][2]); }
+
+}  // namespace
+
+TEST(GeomMeshCheck, CleanBoxIsTrustedAndUnchanged) {
+  Mesh box = make_box({0, 0, 0}, {10, 20, 30});
+  const Mesh before = box;
+  const MeshCheckReport r = check_and_repair(box);
+  EXPECT_TRUE(r.trusted()) << r.error;
+  EXPECT_FALSE(r.repaired());
+  EXPECT_TRUE(r.closed);
+  EXPECT_EQ(r.components, 1u);
+  EXPECT_EQ(r.self_intersections, 0u);
+  EXPECT_NEAR(r.volume_mm3, 6000.0, 1e-9);
+  EXPECT_EQ(box.triangle_count(), before.triangle_count());
+  EXPECT_NEAR(box.signed_volume_mm3(), 6000.0, 1e-9);
+  EXPECT_TRUE(box.is_closed());
+}
+
+TEST(GeomMeshCheck, DuplicatedVerticesAreMergedIntoAClosedGenusZeroSurface) {
+  Mesh soup = soup_of(make_box({-1, -2, -3}, {4, 5, 6}));
+  ASSERT_EQ(soup.vertices_mm.size(), 36u);
+  ASSERT_FALSE(soup.is_closed());  // unwelded: every edge is a boundary edge
+  const MeshCheckReport r = check_and_repair(soup);
+  ASSERT_TRUE(r.trusted()) << r.error;
+  EXPECT_EQ(r.duplicate_vertices_merged, 28u);
+  EXPECT_EQ(soup.vertices_mm.size(), 8u);
+  EXPECT_EQ(soup.triangle_count(), 12u);
+  std::string why;
+  EXPECT_TRUE(soup.is_closed(&why)) << why;
+  EXPECT_EQ(euler_characteristic(soup), 2);
+  EXPECT_NEAR(soup.signed_volume_mm3(), 5.0 * 7.0 * 9.0, 1e-9);
+  ASSERT_FALSE(r.repairs.empty());
+  EXPECT_NE(r.repairs[0].find("merged 28 duplicate vertices"), std::string::npos) << r.repairs[0];
+}
+
+TEST(GeomMeshCheck, FlippedAndInvertedFacesAreOrientedOutward) {
+  Mesh some = make_box({0, 0, 0}, {2, 3, 4});
+  for (std::size_t t : {1u, 4u, 9u}) flip(some, t);
+  ASSERT_FALSE(some.is_closed());
+  MeshCheckReport r = check_and_repair(some);
+  ASSERT_TRUE(r.trusted()) << r.error;
+  EXPECT_EQ(r.faces_reoriented, 3u);
+  EXPECT_TRUE(some.is_closed());
+  EXPECT_NEAR(some.signed_volume_mm3(), 24.0, 1e-9);
+
+  Mesh inverted = make_box({0, 0, 0}, {2, 3, 4});
+  for (std::size_t t = 0; t < inverted.triangle_count(); ++t) flip(inverted, t);
+  ASSERT_TRUE(inverted.is_closed());  // consistent, but inward
+  ASSERT_NEAR(inverted.signed_volume_mm3(), -24.0, 1e-9);
+  r = check_and_repair(inverted);
+  ASSERT_TRUE(r.trusted()) << r.error;
+  EXPECT_EQ(r.faces_reoriented, 12u);
+  EXPECT_NEAR(inverted.signed_volume_mm3(), 24.0, 1e-9);
+  EXPECT_NEAR(r.volume_mm3, 24.0, 1e-9);
+
+  // A hollow solid (outer shell and a cavity): the cavity must face inward, so the volume is the difference.
+  Mesh hollow = make_box({0, 0, 0}, {10, 10, 10});
+  hollow.append(make_box({2, 2, 2}, {8, 8, 8}));  // wrongly outward, as a careless exporter writes it
+  r = check_and_repair(hollow);
+  ASSERT_TRUE(r.trusted()) << r.error;
+  EXPECT_EQ(r.components, 2u);
+  EXPECT_EQ(r.faces_reoriented, 12u);
+  EXPECT_NEAR(hollow.signed_volume_mm3(), 1000.0 - 216.0, 1e-9);
+}
+
+TEST(GeomMeshCheck, OpenBoxIsUntrustedAsASolidNamingTheFile) {
+  Mesh open = make_box({0, 0, 0}, {2, 2, 2});
+  open.source = "fixture_open.stl";
+  open.triangles.resize(10);  // the face x = 2 is missing
+  Mesh copy = open;
+  const MeshCheckReport r = check_and_repair(copy);
+  EXPECT_FALSE(r.trusted());
+  EXPECT_EQ(r.border_edges, 4u);
+  EXPECT_NE(r.error.find("open after repair: 4 border edges"), std::string::npos) << r.error;
+  EXPECT_EQ(copy.triangle_count(), 10u);  // an untrusted mesh is left as it was
+  const std::string msg = message_of([&] { (void)require_trusted(open); });
+  EXPECT_EQ(msg.rfind("fixture_open.stl: ", 0), 0u) << msg;
+
+  // As a surface it is accepted with a warning.
+  const MeshCheckReport s = check_and_repair(open, {MeshUse::Surface, true});
+  EXPECT_TRUE(s.trusted()) << s.error;
+  ASSERT_FALSE(s.warnings.empty());
+  EXPECT_NE(s.warnings.back().find("open surface: 4 border edges"), std::string::npos);
+}
+
+TEST(GeomMeshCheck, DegenerateTrianglesAreRemovedWithoutOpeningTheSurface) {
+  // A box whose front face has a vertex m in the middle of edge 0-1 (a T-junction), closed by the zero-area
+  // triangle (0, 1, m), plus a triangle that names a vertex twice.
+  Mesh m = make_box({0, 0, 0}, {4, 2, 2});
+  const int mid = static_cast<int>(m.vertices_mm.size());
+  m.vertices_mm.emplace_back(2, 0, 0);
+  bool replaced = false;
+  for (auto& t : m.triangles)
+    if (t == Eigen::Vector3i(0, 1, 5)) {
+      t = Eigen::Vector3i(0, mid, 5);
+      replaced = true;
+    }
+  ASSERT_TRUE(replaced);
+  m.triangles.emplace_back(mid, 1, 5);
+  m.triangles.emplace_back(0, 1, mid);  // zero area
+  m.triangles.emplace_back(3, 3, 7);    // repeated index
+  const double volume = 16.0;
+  ASSERT_NEAR(m.signed_volume_mm3(), volume, 1e-12);
+  const MeshCheckReport r = check_and_repair(m);
+  ASSERT_TRUE(r.trusted()) << r.error;
+  EXPECT_EQ(r.repeated_index_faces_removed, 1u);
+  EXPECT_GE(r.degenerate_faces_removed, 1u);
+  EXPECT_EQ(r.degenerate_faces_left, 0u);
+  std::string why;
+  EXPECT_TRUE(m.is_closed(&why)) << why;
+  EXPECT_EQ(euler_characteristic(m), 2);
+  EXPECT_NEAR(m.signed_volume_mm3(), volume, 1e-9);
+  for (const auto& t : m.triangles) {
+    const Eigen::Vector3d a = m.vertices_mm[static_cast<std::size_t>(t[0])];
+    EXPECT_GT((m.vertices_mm[static_cast<std::size_t>(t[1])] - a).cross(m.vertices_mm[static_cast<std::size_t>(t[2])] - a).norm(), 1e-9);
+  }
+}
+
+TEST(GeomMeshCheck, SelfIntersectingSolidIsUntrustedButOverlappingSolidsAreKept) {
+  // One vertex of the top pushed through the bottom: the top triangles cross the bottom ones.
+  Mesh crossed = make_box({0, 0, 0}, {10, 10, 10});
+  crossed.source = "crossed.stl";
+  crossed.vertices_mm[7] = Eigen::Vector3d(10, 10, -5);
+  const MeshCheckReport r = check_and_repair(crossed);
+  EXPECT_FALSE(r.trusted());
+  EXPECT_GT(r.self_intersections, 0u);
+  EXPECT_NE(r.error.find("crosses itself"), std::string::npos) << r.error;
+  EXPECT_THROW((void)require_trusted(crossed), InputError);
+
+  // Two closed boxes overlapping (a bolt through a plate): a union the checker handles; warned.
+  Mesh pair = make_box({0, 0, 0}, {10, 10, 2});
+  pair.append(make_box({4, 4, -3}, {6, 6, 5}));
+  for (std::size_t t = 0; t < 12; ++t) flip(pair, 12 + t);  // and the bolt inward
+  const MeshCheckReport p = check_and_repair(pair);
+  ASSERT_TRUE(p.trusted()) << p.error;
+  EXPECT_EQ(p.components, 2u);
+  EXPECT_GT(p.component_overlaps, 0u);
+  EXPECT_EQ(p.faces_reoriented, 12u);
+  ASSERT_FALSE(p.warnings.empty());
+  EXPECT_NE(p.warnings[0].find("overlap"), std::string::npos);
+  EXPECT_NEAR(pair.signed_volume_mm3(), 200.0 + 32.0, 1e-9);  // each solid counted outward
+}
+
+TEST(GeomMeshCheck, RepairOffMakesANeededRepairAnError) {
+  Mesh soup = soup_of(make_box({0, 0, 0}, {1, 1, 1}));
+  const MeshCheckReport r = check_and_repair(soup, {MeshUse::Solid, /*repair=*/false});
+  EXPECT_FALSE(r.trusted());
+  EXPECT_NE(r.error.find("repair is off"), std::string::npos) << r.error;
+  EXPECT_EQ(soup.vertices_mm.size(), 36u);
+}
+
+TEST(GeomMeshCheck, LoadCheckedRepairsAFlippedStlThatTheLoaderRejects) {
+  const fs::path dir = temp_dir();
+  Mesh box = make_box({0, 0, 0}, {20, 20, 20});
+  for (std::size_t t : {0u, 5u}) flip(box, t);
+  const std::string path = (dir / "flipped.stl").string();
+  save_stl(box, path);
+  EXPECT_THROW((void)load_mesh(path), InputError);  // the strict loader: inconsistently oriented
+  MeshCheckReport report;
+  const Mesh m = load_checked_mesh(path, 1.0, {}, &report);
+  EXPECT_EQ(report.faces_reoriented, 2u);
+  EXPECT_EQ(report.source, path);
+  EXPECT_TRUE(m.is_closed());
+  EXPECT_NEAR(m.signed_volume_mm3(), 8000.0, 1e-6);
+
+  // FCL oracle: a tool plunged into the top face hits, one beside the box does not, as for the clean box.
+  Scene scene;
+  scene.add("box", ObstacleRole::Part, m);
+  scene.build(false);
+  QueryWorkspace ws;
+  const ToolShape tool = ToolShape::from_cutter(6, 3, 18);
+  CheckOptions o;
+  EXPECT_TRUE(check(scene, tool, pose({10, 10, 10}, {0, 0, 1}), o, ws).collides);
+  EXPECT_FALSE(check(scene, tool, pose({40, 10, 10}, {0, 0, 1}), o, ws).collides);
+
+  Mesh open = make_box({0, 0, 0}, {2, 2, 2});
+  open.triangles.resize(10);
+  const std::string p2 = (dir / "open_for_check.stl").string();
+  save_stl(open, p2);
+  const std::string msg = message_of([&] { (void)load_checked_mesh(p2); });
+  EXPECT_EQ(msg.rfind(p2 + ": ", 0), 0u) << msg;
+  EXPECT_NE(msg.find("open after repair"), std::string::npos) << msg;
+}
+
+// ---------------------------------------------------------------------------------------------------
+// Primitives for machine bodies, and obstacles placed per machine link
+// ---------------------------------------------------------------------------------------------------
+
+TEST(GeomPrimitives, CylinderPrismIsClosedOutwardAndCircumscribed) {
+  const Eigen::Vector3d a(10, -5, 3), b(40, 15, 63);
+  const double d = 50.0, L = (b - a).norm();
+  const int n = 32;
+  const Mesh c = cylinder_mesh(a, b, d, n);
+  std::string why;
+  EXPECT_TRUE(c.is_closed(&why)) << why;
+  EXPECT_EQ(euler_characteristic(c), 2);
+  // Volume of the circumscribed regular n-gon prism: n rc^2 sin(2 pi / n) / 2 * L, rc = r / cos(pi / n).
+  const double pi = 3.14159265358979323846, rc = 0.5 * d / std::cos(pi / n);
+  EXPECT_NEAR(c.signed_volume_mm3(), 0.5 * n * rc * rc * std::sin(2 * pi / n) * L, 1e-6 * L * d * d);
+  // Every point of the true cylinder's rim is inside: its distance to the axis is below the polygon's
+  // inradius, which is the cylinder radius itself (tangent sides).
+  const Eigen::Vector3d w = (b - a) / L;
+  for (const auto& v : c.vertices_mm) {
+    const Eigen::Vector3d r = (v - a) - (v - a).dot(w) * w;
+    if (r.norm() > 1e-9) EXPECT_NEAR(r.norm(), rc, 1e-9);
+  }
+  EXPECT_THROW((void)cylinder_mesh(a, a, d), InputError);
+  EXPECT_THROW((void)box_mesh({0, 0, 0}, {1, 0, 1}), InputError);
+  EXPECT_NEAR(box_mesh({0, 0, 0}, {1, 2, 3}).signed_volume_mm3(), 6.0, 1e-12);
+}
+
+TEST(GeomQuery, LinkedMachineObstaclesArePlacedByTheirLinkPose) {
+  // A 20 mm cube given at the origin of its link; the tool stands at x = 100. Link pose: shift by +100 in x
+  // -> the cube surrounds the tool; identity -> far away. Without link poses the obstacle is not tested.
+  Scene scene;
+  scene.add("cube", ObstacleRole::Machine, make_box({-10, -10, -10}, {10, 10, 10}), /*link=*/1);
+  scene.build(false);
+  EXPECT_EQ(scene.link_count(), 2);
+  EXPECT_EQ(scene.obstacle_link(0), 1);
+  const ToolShape tool = ToolShape::from_cutter(6, 0, 18);
+  QueryWorkspace ws;
+  std::array<Eigen::Isometry3d, 2> links{Eigen::Isometry3d::Identity(), Eigen::Isometry3d::Identity()};
+  CheckOptions o;
+  o.links_in_part = links.data();
+  const kin::Posed p = pose({100, 0, -30}, {0, 0, 1});
+  EXPECT_FALSE(check(scene, tool, p, o, ws).collides);
+  links[1].translation() = Eigen::Vector3d(100, 0, 0);
+  EXPECT_TRUE(check(scene, tool, p, o, ws).collides);
+  o.machine_in_part.translation() = Eigen::Vector3d(100, 0, 0);  // not used for a linked obstacle
+  links[1].translation() = Eigen::Vector3d(-100, 0, 0);
+  EXPECT_FALSE(check(scene, tool, p, o, ws).collides);
+  o.links_in_part = nullptr;
+  EXPECT_FALSE(check(scene, tool, p, o, ws).collides);
+
+  // Head side: a moving scene's linked obstacle uses the link pose, not moving_in_part.
+  Scene head;
+  head.add("nose", ObstacleRole::Machine, make_box({-5, -5, 0}, {5, 5, 10}), /*link=*/0);
+  head.build(false);
+  std::array<Eigen::Isometry3d, 2> hl{Eigen::Isometry3d::Identity(), Eigen::Isometry3d::Identity()};
+  hl[0].translation() = Eigen::Vector3d(100, 0, 5);  // the nose box (z 5..15) now straddles the cube's top face
+  links[1].translation() = Eigen::Vector3d(100, 0, 0);
+  // Both scenes read the same array: link 0 for the nose, link 1 for the cube.
+  std::array<Eigen::Isometry3d, 2> both{hl[0], links[1]};
+  o.links_in_part = both.data();
+  int which = -1;
+  const CollisionResult r = check_meshes(head, Eigen::Isometry3d::Identity(), scene, o, ws, &which);
+  EXPECT_TRUE(r.collides);
+  EXPECT_EQ(which, 0);
+  both[0].translation() = Eigen::Vector3d(100, 0, 50);
+  EXPECT_FALSE(check_meshes(head, Eigen::Isometry3d::Identity(), scene, o, ws).collides);
 }

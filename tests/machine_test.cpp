@@ -5,6 +5,7 @@
 #include <gtest/gtest.h>
 
 #include <filesystem>
+#include <random>
 
 #include "cscam/core/error.hpp"
 #include "cscam/core/units.hpp"
@@ -182,5 +183,102 @@ TEST(MachineFuzzRegressions, NonScalarKeyIsAnInputError) {
     FAIL() << "accepted";
   } catch (const InputError& e) {
     EXPECT_NE(std::string(e.what()).find("machine-nonscalar-key.yaml:"), std::string::npos) << e.what();
+  }
+}
+
+// ---------------------------------------------------------------------------------------------------
+// Machine bodies (geometry.bodies) and the link poses that place them
+// ---------------------------------------------------------------------------------------------------
+
+TEST(MachineBodies, BundledMachinesShipBodiesWithSourcesOnBothSides) {
+  for (const auto& path : bundled_machines()) {
+    const machine::Machine m = machine::load(path);
+    if (m.kind != machine::ModelKind::Serial) continue;
+    SCOPED_TRACE(path);
+    ASSERT_FALSE(m.geometry.bodies.empty());
+    bool head = false, fixed = false;
+    for (const auto& b : m.geometry.bodies) {
+      EXPECT_FALSE(b.source.empty()) << b.name;
+      EXPECT_GT(b.where.line, 0) << b.name;
+      (b.side == machine::BodySide::Head ? head : fixed) = true;
+    }
+    EXPECT_TRUE(head);
+    EXPECT_TRUE(fixed);
+  }
+  const machine::Machine haas = machine::load(test::source_path("machines/haas-umc750.yaml"));
+  const auto& platter = haas.geometry.bodies.front();
+  EXPECT_EQ(platter.name, "platter");
+  EXPECT_EQ(platter.shape, machine::BodyShape::Cylinder);
+  EXPECT_DOUBLE_EQ(platter.diameter_mm, 500.0);  // Haas UMC-750 data sheet
+  EXPECT_EQ(platter.axis, haas.axis_index("c"));
+  EXPECT_EQ(platter.side, machine::BodySide::Table);
+}
+
+TEST(MachineBodies, BadBodiesNameTheLineAndTheKey) {
+  const std::string g = std::string(kGood) + "geometry:\n  bodies:\n";
+  expect_error(g + "    - {name: p, attach: q, box: {min_mm: [0, 0, 0], max_mm: [1, 1, 1]}, source: s}\n",
+               {"bad.yaml:", "geometry.bodies[0].attach", "no axis 'q'"});
+  expect_error(g + "    - {name: p, attach: c, box: {min_mm: [0, 0, 0], max_mm: [1, 1, 1]}}\n",
+               {"geometry.bodies[0].source", "required key is missing"});
+  expect_error(g + "    - {name: p, attach: c, source: s, box: {min_mm: [0, 0, 0], max_mm: [1, 1, 1]},\n"
+                   "       cylinder: {from_mm: [0, 0, 0], to_mm: [0, 0, 1], diameter_mm: 3}}\n",
+               {"geometry.bodies[0]", "exactly one of box, cylinder, mesh"});
+  expect_error(g + "    - {name: p, attach: c, source: s, box: {min_mm: [0, 0, 0], max_mm: [1, -1, 1]}}\n",
+               {"bad.yaml:11:", "min_mm must be below max_mm"});
+  expect_error(g + "    - {name: p, attach: x, source: s, cylinder: {from_mm: [0, 0, 0], to_mm: [0, 0, 1], diameter_mm: 0}}\n",
+               {"cylinder.diameter_mm", "must be positive"});
+  expect_error(g + "    - {name: p, attach: base, source: s, mesh: {file: nowhere.stl}}\n", {"mesh.file", "not found"});
+  expect_error(g + "    - {name: p, attach: base, source: s, box: {min_mm: [0, 0, 0], max_mm: [1, 1, 1]}}\n" +
+                   "    - {name: p, attach: a, source: s, box: {min_mm: [0, 0, 0], max_mm: [1, 1, 1]}}\n",
+               {"geometry.bodies[1].name", "used twice"});
+  const machine::Machine ok = machine::load_text(
+      g + "    - {name: fork, attach: a, source: s, box: {min_mm: [0, 0, 0], max_mm: [1, 1, 1]}}\n", "ok.yaml");
+  ASSERT_EQ(ok.geometry.bodies.size(), 1u);
+  EXPECT_EQ(ok.geometry.bodies[0].side, machine::BodySide::Table);
+}
+
+TEST(MachineBodies, LinkPosesAgreeWithForwardKinematics) {
+  // Oracles: FK (serial_forward) for the head's end link, rigidity of the table chain for its links.
+  std::mt19937 rng(11);
+  std::uniform_real_distribution<double> U(-1.0, 1.0);
+  for (const auto& path : bundled_machines()) {
+    const machine::Machine m = machine::load(path);
+    if (m.kind != machine::ModelKind::Serial) continue;
+    SCOPED_TRACE(path);
+    const auto kk = m.make_kinematics(m.default_tool_length_mm);
+    const auto& g = *m.serial;
+    const Vec3 tip_home = g.gauge_home_mm - m.default_tool_length_mm * g.tool_direction_home;
+    for (int trial = 0; trial < 20; ++trial) {
+      kin::Axes q;
+      for (int i = 0; i < 5; ++i) q[i] = m.axes[static_cast<size_t>(i)].rotary() ? 1.5 * U(rng) : 200.0 * U(rng);
+      const kin::Posed fk = kk->forward(q);
+      // The last head link carries the tool: it maps the home tip and axis to FK's.
+      Eigen::Isometry3d Th;
+      const int last_head = g.head_chain.empty() ? -1 : g.head_chain.back();
+      ASSERT_TRUE(kk->link_in_part(last_head, q, Th));
+      EXPECT_LT((Th * tip_home - fk.tip_mm).norm(), 1e-9);
+      EXPECT_LT((Th.linear() * g.tool_direction_home - fk.axis).norm(), 1e-12);
+      // The last table link carries the part: fixed in the part frame (up to the part origin).
+      Eigen::Isometry3d Tt;
+      const int last_table = g.table_chain.empty() ? -1 : g.table_chain.back();
+      ASSERT_TRUE(kk->link_in_part(last_table, q, Tt));
+      EXPECT_LT((Tt.translation() + g.part_origin_home_mm).norm(), 1e-9);
+      EXPECT_LT((Tt.linear() - Eigen::Matrix3d::Identity()).norm(), 1e-12);
+      // A point on a table joint's axis is shared by the link before it and the link it drives.
+      Eigen::Isometry3d Tprev;
+      ASSERT_TRUE(kk->link_in_part(-1, q, Tprev));
+      for (int idx : g.table_chain) {
+        const auto& j = g.joints[static_cast<size_t>(idx)];
+        Eigen::Isometry3d Tj;
+        ASSERT_TRUE(kk->link_in_part(idx, q, Tj));
+        if (j.type == kin::AxisType::Rotary) {
+          const Vec3 p = j.pivot_mm + 37.0 * j.direction;
+          EXPECT_LT((Tj * p - Tprev * p).norm(), 1e-9);
+        }
+        Tprev = Tj;
+      }
+    }
+    Eigen::Isometry3d T;
+    EXPECT_FALSE(kk->link_in_part(7, kin::Axes::Zero(), T));  // no such joint
   }
 }

@@ -10,6 +10,7 @@
 #include "cscam/cl/program.hpp"
 #include "cscam/core/error.hpp"
 #include "cscam/core/units.hpp"
+#include "cscam/cspace/machine_scene.hpp"
 #include "cscam/geom/mesh.hpp"
 #include "cscam/geom/scene.hpp"
 #include "cscam/machine/machine.hpp"
@@ -300,4 +301,74 @@ TEST(Planner, MachineHeadAgainstTheTableRulesOutSteepTilts) {
   // Without the head mesh the same point is fine: the pruning above is the head's.
   const plan::Planner no_head(m, k, &scene, &tool, o);
   EXPECT_NO_THROW(no_head.run(at_tilt(65)));
+}
+
+// ---------------------------------------------------------------------------------------------------
+// Machine geometry (issue 11, part 2): examples/machine-limits, where only the machine rules cells out
+// ---------------------------------------------------------------------------------------------------
+
+namespace {
+
+/// Lowest z (part frame) of a tool-axis cylinder stage [s0, s1] of radius r above the tip, for an axis
+/// pointing up (a_z >= 0): the lower end's rim, on the side facing down. Closed form, no FCL.
+double lowest_z(const kin::Posed& fk, double s0, double r) {
+  const Vec3 a = fk.axis.normalized();
+  return fk.tip_mm.z() + s0 * a.z() - r * std::sqrt(std::max(0.0, 1.0 - a.z() * a.z()));
+}
+
+}  // namespace
+
+TEST(PlannerMachineGeometry, OnlyTheMachineRulesOutTheHorizontalAxis) {
+  // A 25 mm block on the Haas UMC-750 platter, its +X wall finished with a D8 ball mill and a horizontal CL
+  // axis at z = 8 and 16 mm. The part never touches the tool (it lies behind the ball); the holder (r 10 + 0.5,
+  // 40..80 mm above the tip) and the spindle nose (r 90, from 80 mm) reach below the platter face z = 0.
+  const auto m = machine::load(test::source_path("machines/haas-umc750.yaml"));
+  const auto k = m.make_kinematics(0.0);
+  const cl::Program prog = cl::read_file(test::source_path("examples/machine-limits/wall.cls"));
+  const auto tool = geom::ToolShape::from_cutter(8, 4, 24);  // flute 3 D, shank 2 D, holder 2.5 D x 40
+  ASSERT_DOUBLE_EQ(tool.gauge_length_mm(), 80.0);
+  const geom::Mesh block = geom::load_mesh(test::source_path("examples/machine-limits/block.stl"));
+  geom::Scene part_only, with_machine, head;
+  part_only.add("block", geom::ObstacleRole::Part, block);
+  part_only.build(false);
+  with_machine.add("block", geom::ObstacleRole::Part, block);
+  const auto added = cspace::add_machine_bodies(m, tool.gauge_length_mm(), with_machine, head);
+  EXPECT_EQ(added.head_bodies, 2u);
+  EXPECT_EQ(added.fixed_bodies, m.geometry.bodies.size() - 2);
+  with_machine.build(false);
+  head.build(false);
+  plan::Options o;
+  o.cspace.cone_rad = deg2rad(60.0);
+  o.cspace.ball_radius_mm = 4.0;
+  o.cspace.check_collision = true;
+  o.cspace.collision.clearance_mm = 0.5;
+  const plan::Plan without = plan::Planner(m, k, &part_only, &tool, o).run(prog);
+  const plan::Plan with = plan::Planner(m, k, &with_machine, &tool, o, &head).run(prog);
+
+  const double holder_r = 10.0 + 0.5, nose_r = 90.0;
+  int without_hits = 0;
+  for (std::size_t i = 0; i < prog.moves.size(); ++i) {
+    SCOPED_TRACE(prog.moves[i].line);
+    const kin::Posed fw = k->forward(with.axes[i]), fn = k->forward(without.axes[i]);
+    // Without the machine: the CL axis itself (nothing in the part forbids it), and by the closed form the
+    // holder or the nose is below the platter face, inside the platter's 250 mm radius.
+    EXPECT_LT(std::acos(std::min(1.0, fn.axis.dot(prog.moves[i].axis_in_part.normalized()))), deg2rad(1.0));
+    const double zn = std::min(lowest_z(fn, 40.0, holder_r), lowest_z(fn, 80.0, nose_r));
+    const Vec3 holder_end = fn.tip_mm + 40.0 * fn.axis;
+    if (zn < 0.0 && holder_end.head<2>().norm() < 250.0) ++without_hits;
+    // With the machine: holder and nose above the platter face, by the same closed form, within the cone.
+    EXPECT_GT(lowest_z(fw, 40.0, holder_r), 0.0);
+    EXPECT_GT(lowest_z(fw, 80.0, nose_r), 0.0);
+    EXPECT_LE(std::acos(std::min(1.0, fw.axis.dot(prog.moves[i].axis_in_part.normalized()))), deg2rad(60.0) + 1e-9);
+    EXPECT_GT(fw.axis.z(), 0.5) << "tilted up, away from the platter";
+  }
+  EXPECT_EQ(without_hits, static_cast<int>(prog.moves.size()));
+  // The C-space with the machine names the piece that rules the CL axis out.
+  geom::QueryWorkspace ws;
+  cspace::Counters c;
+  cspace::Options co = o.cspace;
+  const cspace::Space space(k, &with_machine, &tool, co, &head);
+  const std::string hit = space.collision_at_axes(without.axes[1], ws, c);
+  EXPECT_NE(hit.find("machine platter"), std::string::npos) << hit;
+  EXPECT_TRUE(space.collision_at_axes(with.axes[1], ws, c).empty());
 }

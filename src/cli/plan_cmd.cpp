@@ -3,6 +3,7 @@
 #include <fmt/format.h>
 
 #include <chrono>
+#include <cmath>
 #include <filesystem>
 #include <fstream>
 #include <iostream>
@@ -13,7 +14,9 @@
 #include "cscam/core/atomic_file.hpp"
 #include "cscam/core/error.hpp"
 #include "cscam/core/units.hpp"
+#include "cscam/cspace/machine_scene.hpp"
 #include "cscam/geom/mesh.hpp"
+#include "cscam/geom/mesh_check.hpp"
 #include "cscam/geom/scene.hpp"
 #include "cscam/machine/machine.hpp"
 #include "cscam/nc/reader.hpp"
@@ -39,6 +42,7 @@ struct PlanArgs {
   double max_step_deg = 0, mesh_scale = 1.0, tilt_step_deg = 0;
   double default_feed = 0;  ///< mm/min for feed moves without a feed rate; 0: such a CL file is an error
   bool no_collision = false, json = false;
+  bool no_machine_geometry = false;  ///< leave the machine file's bodies out of the scene
 };
 
 /// Everything a planning run needs, loaded once from the arguments.
@@ -53,7 +57,43 @@ struct Setup {
   plan::Options opt;
   double tool_length = 0;
   bool has_meshes = false;
+  std::vector<geom::MeshCheckReport> mesh_reports;  ///< validation of every mesh file loaded
+  std::size_t machine_bodies = 0;
+  bool planner_ignores_machine = false;  ///< --no-machine-geometry
+  /// The head scene the planner sees.
+  [[nodiscard]] const geom::Scene* planner_head() const { return has_head && !planner_ignores_machine ? &head : nullptr; }
 };
+
+/// A part, fixture or machine mesh file, validated and repaired; repairs and warnings go to stderr.
+geom::Mesh checked_mesh(Setup& s, const std::string& path, double scale) {
+  geom::MeshCheckReport r;
+  geom::Mesh mesh = geom::load_checked_mesh(path, scale, {}, &r);
+  for (const auto& line : r.repairs) std::cerr << "warning: " << path << ": repaired: " << line << "\n";
+  for (const auto& line : r.warnings) std::cerr << "warning: " << path << ": " << line << "\n";
+  s.mesh_reports.push_back(std::move(r));
+  return mesh;
+}
+
+nlohmann::json mesh_reports_json(const Setup& s) {
+  nlohmann::json out = nlohmann::json::array();
+  for (const auto& r : s.mesh_reports)
+    out.push_back({{"source", r.source},
+                   {"triangles_in", r.triangles_in},
+                   {"triangles_out", r.triangles_out},
+                   {"closed", r.closed},
+                   {"components", r.components},
+                   {"volume_mm3", std::isfinite(r.volume_mm3) ? nlohmann::json(report::rounded(r.volume_mm3, 3))
+                                                              : nlohmann::json(nullptr)},
+                   {"duplicate_vertices_merged", r.duplicate_vertices_merged},
+                   {"degenerate_faces_removed", r.degenerate_faces_removed + r.repeated_index_faces_removed},
+                   {"duplicate_faces_removed", r.duplicate_faces_removed},
+                   {"border_edges_stitched", r.border_edges_stitched},
+                   {"faces_reoriented", r.faces_reoriented},
+                   {"component_overlaps", r.component_overlaps},
+                   {"repairs", r.repairs},
+                   {"warnings", r.warnings}});
+  return out;
+}
 
 std::unique_ptr<Setup> setup(const PlanArgs& a) {
   auto s = std::make_unique<Setup>();
@@ -67,24 +107,22 @@ std::unique_ptr<Setup> setup(const PlanArgs& a) {
   s->tool_length = post::tool_length_for(s->m, a.tool_length);
   s->kin = s->m.make_kinematics(s->tool_length);
   for (const auto& p : a.parts)
-    s->scene.add(fs::path(p).filename().string(), geom::ObstacleRole::Part, geom::load_mesh(p, a.mesh_scale));
+    s->scene.add(fs::path(p).filename().string(), geom::ObstacleRole::Part, checked_mesh(*s, p, a.mesh_scale));
   for (const auto& p : a.fixtures)
-    s->scene.add(fs::path(p).filename().string(), geom::ObstacleRole::Fixture, geom::load_mesh(p, a.mesh_scale));
+    s->scene.add(fs::path(p).filename().string(), geom::ObstacleRole::Fixture, checked_mesh(*s, p, a.mesh_scale));
   // Machine meshes from the machine file: the table moves with the part (fixed in the part frame), the head
   // moves with the spindle. Both are given in the machine frame at home.
   if (!s->m.geometry.table_mesh.empty()) {
-    geom::Mesh table = geom::load_mesh(s->m.geometry.table_mesh);
+    geom::Mesh table = checked_mesh(*s, s->m.geometry.table_mesh, 1.0);
     Eigen::Isometry3d T = Eigen::Isometry3d::Identity();
     if (s->m.serial) T.translation() = -s->m.serial->part_origin_home_mm;
     table.transform(T);
     s->scene.add("machine table", geom::ObstacleRole::Fixture, std::move(table));
   }
   if (!s->m.geometry.head_mesh.empty()) {
-    s->head.add("machine head", geom::ObstacleRole::Machine, geom::load_mesh(s->m.geometry.head_mesh));
-    s->head.build(false);
+    s->head.add("machine head", geom::ObstacleRole::Machine, checked_mesh(*s, s->m.geometry.head_mesh, 1.0));
     s->has_head = true;
   }
-  s->scene.build(false);  // collision only: nothing asks for distances
   // The tool: from the CL (first tool), the rest from the machine file's holder settings.
   const cl::Tool* t = nullptr;
   for (const auto& tt : s->prog.tools)
@@ -103,12 +141,6 @@ std::unique_ptr<Setup> setup(const PlanArgs& a) {
   if (s->m.kind == machine::ModelKind::Xmini)
     for (int i = 0; i < 5; ++i)
       if (!s->m.axes[static_cast<size_t>(i)].rotary()) o.monotone_axes.push_back(i);
-  const bool meshes = !a.parts.empty() || !a.fixtures.empty() || !s->m.geometry.table_mesh.empty() || s->has_head;
-  s->has_meshes = meshes;
-  o.cspace.check_collision = meshes && !a.no_collision;
-  if (meshes && !t)
-    throw InputError(SourceLoc{a.cl},
-                     "collision checking needs the cutter size: the CL file has no CUTTER/ or TLDATA/");
   if (t) {
     geom::ToolDefaults d;
     if (s->m.geometry.holder_diameter_mm > 0) d.holder_diameter_mm = s->m.geometry.holder_diameter_mm;
@@ -120,6 +152,37 @@ std::unique_ptr<Setup> setup(const PlanArgs& a) {
         std::make_unique<geom::ToolShape>(geom::ToolShape::from_cutter(t->diameter_mm, t->corner_radius_mm, flute, d));
     if (t->is_ball()) o.cspace.ball_radius_mm = 0.5 * t->diameter_mm;
   }
+  // Machine bodies (geometry.bodies). The head is lifted to where the checked tool shape's holder ends when
+  // that is above the kinematic gauge point (tool length 0 on a table-table machine: the control compensates).
+  // With --no-machine-geometry the planner ignores them, but the report's independent collision count and the
+  // safety gate still check against them (as with --no-collision).
+  if (!s->m.geometry.bodies.empty() && !s->tool)
+    std::cerr << "warning: " << a.cl << ": no CUTTER/ or TLDATA/: the machine's bodies are not checked\n";
+  if (!s->m.geometry.bodies.empty() && s->tool) {
+    const double lift = std::max(0.0, s->tool->gauge_length_mm() - s->tool_length);
+    auto bodies = cspace::add_machine_bodies(s->m, lift, s->scene, s->head);
+    for (auto& r : bodies.mesh_reports) {
+      for (const auto& line : r.repairs) std::cerr << "warning: " << r.source << ": repaired: " << line << "\n";
+      for (const auto& line : r.warnings) std::cerr << "warning: " << r.source << ": " << line << "\n";
+      s->mesh_reports.push_back(std::move(r));
+    }
+    s->machine_bodies = bodies.fixed_bodies + bodies.head_bodies;
+    if (bodies.head_bodies) s->has_head = true;
+  }
+  if (s->has_head) s->head.build(false);
+  s->scene.build(false);  // collision only: nothing asks for distances
+  const bool meshes = !a.parts.empty() || !a.fixtures.empty() || !s->m.geometry.table_mesh.empty() || s->has_head ||
+                      s->machine_bodies > 0;
+  s->has_meshes = meshes;
+  o.cspace.check_collision = meshes && !a.no_collision;
+  if (a.no_machine_geometry) {
+    o.cspace.collision.roles = static_cast<unsigned>(geom::ObstacleRole::Part) |
+                               static_cast<unsigned>(geom::ObstacleRole::Fixture);
+    s->planner_ignores_machine = true;
+  }
+  if (meshes && !t)
+    throw InputError(SourceLoc{a.cl},
+                     "collision checking needs the cutter size: the CL file has no CUTTER/ or TLDATA/");
   return s;
 }
 
@@ -157,6 +220,7 @@ gate::Options gate_options(const Setup& s, const PlanArgs& a, double cone_deg) {
   if (s.has_meshes && s.tool) {
     cspace::Options co = s.opt.cspace;
     co.check_collision = true;
+    co.collision.roles = geom::kAllRoles;
     auto space = std::make_shared<const cspace::Space>(s.kin, &s.scene, s.tool.get(), co, s.has_head ? &s.head : nullptr);
     auto ws = std::make_shared<geom::QueryWorkspace>();
     auto cc = std::make_shared<cspace::Counters>();
@@ -193,7 +257,7 @@ void write_svgs(const Setup& s, const plan::Planner& planner, const plan::Plan& 
 
 int run_plan(const PlanArgs& a) {
   auto s = setup(a);
-  const plan::Planner planner(s->m, s->kin, &s->scene, s->tool.get(), s->opt, s->has_head ? &s->head : nullptr);
+  const plan::Planner planner(s->m, s->kin, &s->scene, s->tool.get(), s->opt, s->planner_head());
   const plan::Plan p = planner.run(s->prog);
   post::Summary sum;
   const std::string text = post_to_string(*s, p.program, p.axes, a, "cspace-planner", sum);
@@ -216,7 +280,7 @@ int run_compare(const PlanArgs& a) {
   post::Summary sc;
   const std::string conv_text = post_to_string(*s, s->prog, conv, a, "conventional", sc);
   const double conv_s = std::chrono::duration<double>(std::chrono::steady_clock::now() - t0).count();
-  const plan::Planner planner(s->m, s->kin, &s->scene, s->tool.get(), s->opt, s->has_head ? &s->head : nullptr);
+  const plan::Planner planner(s->m, s->kin, &s->scene, s->tool.get(), s->opt, s->planner_head());
   const plan::Plan p = planner.run(s->prog);
   post::Summary sp;
   const std::string plan_text = post_to_string(*s, p.program, p.axes, a, "cspace-planner", sp);
@@ -235,6 +299,7 @@ int run_compare(const PlanArgs& a) {
     if (!s->has_meshes || !s->tool) return h;
     cspace::Options co = s->opt.cspace;
     co.check_collision = true;
+    co.collision.roles = geom::kAllRoles;
     geom::QueryWorkspace ws;
     cspace::Counters cc;
     const cspace::Space space_h(s->kin, &s->scene, s->tool.get(), co, s->has_head ? &s->head : nullptr);
@@ -253,6 +318,9 @@ int run_compare(const PlanArgs& a) {
   tiers = fmt::format("{} / {} / {} / {}", counts[1], counts[2], counts[3], counts[4]);
   std::cout << fmt::format("cone {:.2f} deg, resolution {:.3f} deg, collision {}\n", a.cone_deg, a.resolution_deg,
                            s->opt.cspace.check_collision ? "on" : "off");
+  if (s->machine_bodies)
+    std::cout << fmt::format("machine bodies: {}{}\n", s->machine_bodies,
+                             s->planner_ignores_machine ? " (ignored by the planner, still checked below)" : "");
   std::cout << report::table({stc, stp}, {"conventional", "planner"});
   std::cout << fmt::format("{:<28}{:>22}{:>22}\n", "NC blocks", sc.blocks, sp.blocks);
   std::cout << fmt::format("{:<28}{:>22}{:>22}\n", "verify", vc.ok ? "ok" : "FAILED", vp.ok ? "ok" : "FAILED");
@@ -275,6 +343,8 @@ int run_compare(const PlanArgs& a) {
                              {"cone_deg", a.cone_deg},
                              {"resolution_deg", a.resolution_deg},
                              {"collision", s->opt.cspace.check_collision},
+                             {"machine_bodies", s->machine_bodies},
+                             {"meshes", mesh_reports_json(*s)},
                              {"conventional",
                               {{"stats", stc.json()},
                                {"blocks", sc.blocks},
@@ -327,6 +397,8 @@ void common_options(CLI::App* c, PlanArgs& a) {
       ->check(CLI::PositiveNumber);
   c->add_option("--svg", a.svg_dir, "write C-space and axis pictures into this directory");
   c->add_flag("--no-collision", a.no_collision, "ignore the meshes (to show what the plan would hit)");
+  c->add_flag("--no-machine-geometry", a.no_machine_geometry,
+              "leave the machine file's bodies (geometry.bodies) out of the collision scene");
 }
 
 }  // namespace

@@ -46,6 +46,25 @@ Space::Space(std::shared_ptr<const kin::Kinematics> kinematics, const geom::Scen
   if (opt_.min_tilt_rad > opt_.cone_rad && opt_.cone_rad > 0)
     throw InputError(fmt::format("minimum tilt {:.3f} deg exceeds the cone {:.3f} deg: no orientation is allowed",
                                  rad2deg(opt_.min_tilt_rad), rad2deg(opt_.cone_rad)));
+  links_ = std::max(scene_ ? scene_->link_count() : 0, head_ ? head_->link_count() : 0);
+  for (const geom::Scene* sc : {scene_, head_})
+    if (sc)
+      for (std::size_t i = 0; i < sc->obstacle_count(); ++i)
+        if (sc->obstacle_link(i) >= 0) used_links_ |= 1u << sc->obstacle_link(i);
+  if (links_ > 0) {
+    CSCAM_CHECK(links_ <= kMaxLinks, "machine link index out of range");
+    // A certificate (same axis, tip moved < margin) covers a machine body only if the body keeps its pose in the
+    // part frame when only the linear axes change: true unless the table chain has a linear joint.
+    kin::Axes q0 = kin::Axes::Zero(), q1 = kin::Axes::Zero();
+    for (std::size_t i = 0; i < kin_->axes().size(); ++i)
+      if (kin_->axes()[i].type == kin::AxisType::Linear) q1[static_cast<int>(i)] = 37.0;
+    LinkPoses a, b;
+    if (!place_links(*kin_, q0, links_, a, used_links_) || !place_links(*kin_, q1, links_, b, used_links_))
+      throw InputError("the machine's kinematics cannot place its machine bodies (link poses unavailable)");
+    for (int l = 0; l < (scene_ ? scene_->link_count() : 0); ++l)
+      if (((used_links_ >> l) & 1u) && !a[static_cast<std::size_t>(l)].isApprox(b[static_cast<std::size_t>(l)], 1e-12))
+        certify_links_ = false;
+  }
   const auto rp = kin_->rotary_pair();
   rot1_ = rp[0];
   rot2_ = rp[1];
@@ -204,20 +223,24 @@ void Space::evaluate(const kin::Posed& cl, Cell& cell, geom::QueryWorkspace& ws,
     return;
   }
   if (opt_.check_collision && scene_ && tool_) {
+    LinkPoses links;
+    geom::CheckOptions linked;
+    const geom::CheckOptions& co = with_links(q, links, linked);
+    const bool certify = !head_ && certify_links_;
     // A certificate from a neighbouring point covers this pose: same axis, moved less than the margin.
-    if (cert && cert->valid && !head_ && pose.axis.dot(cert->axis) > 1.0 - 1e-15 &&
+    if (cert && cert->valid && certify && pose.axis.dot(cert->axis) > 1.0 - 1e-15 &&
         (pose.tip_mm - cert->tip_mm).norm() < cert->margin_mm) {
       ++c.certified;
       cell.status = Status::Feasible;
       return;
     }
-    if (cert && !head_) {
+    if (cert && certify) {
       // Probe with a margin; on success this pose certifies its neighbours. The cutter body is extended
       // toward the tip by the margin (less relief) so that a translation along the axis is covered too.
       const double r = tool_->cutter.corner_radius_mm;
       const double relief = opt_.collision.relief_mm >= 0 ? opt_.collision.relief_mm : (r > 0 ? 0.2 * r : 0.5);
       const double m = std::min(1.0, relief);
-      geom::CheckOptions o = opt_.collision;
+      geom::CheckOptions o = co;
       o.clearance_mm += m;
       o.cutter_clearance_mm += m;
       o.relief_mm = relief - m;
@@ -230,7 +253,7 @@ void Space::evaluate(const kin::Posed& cl, Cell& cell, geom::QueryWorkspace& ws,
       cert->valid = false;
     }
     ++c.collision;
-    const geom::CollisionResult r = geom::check(*scene_, *tool_, pose, opt_.collision, ws);
+    const geom::CollisionResult r = geom::check(*scene_, *tool_, pose, co, ws);
     if (r.collides) {
       cell.status = Status::Collision;
       cell.detail =
@@ -242,11 +265,12 @@ void Space::evaluate(const kin::Posed& cl, Cell& cell, geom::QueryWorkspace& ws,
     if (head_) {
       Eigen::Isometry3d T;
       if (kin_->head_in_part(q, T)) {
-        const geom::CollisionResult h = geom::check_meshes(*head_, T, *scene_, opt_.collision, ws);
+        int hm = -1;
+        const geom::CollisionResult h = geom::check_meshes(*head_, T, *scene_, co, ws, &hm);
         if (h.collides) {
           cell.status = Status::Collision;
-          cell.detail =
-              fmt::format("machine head hits {}", scene_->obstacle_name(static_cast<std::size_t>(h.obstacle)));
+          cell.detail = fmt::format("{} hits {}", head_->obstacle_name(static_cast<std::size_t>(hm)),
+                                    scene_->obstacle_name(static_cast<std::size_t>(h.obstacle)));
           return;
         }
       }
@@ -267,7 +291,9 @@ std::string Space::collision_at(const kin::Posed& pose, geom::QueryWorkspace& ws
 bool Space::free_with_margin(const kin::Posed& cl, const Cell& cell, double margin_mm, geom::QueryWorkspace& ws,
                              Counters& c) const {
   if (!opt_.check_collision || !scene_ || !tool_) return true;
-  geom::CheckOptions o = opt_.collision;
+  LinkPoses links;
+  geom::CheckOptions linked;
+  geom::CheckOptions o = with_links(cell.axes, links, linked);
   o.clearance_mm += margin_mm;
   o.cutter_clearance_mm += margin_mm;
   ++c.collision;
@@ -275,13 +301,39 @@ bool Space::free_with_margin(const kin::Posed& cl, const Cell& cell, double marg
 }
 
 std::string Space::collision_at_axes(const kin::Axes& q, geom::QueryWorkspace& ws, Counters& c) const {
-  std::string hit = collision_at(kin_->forward(q), ws, c);
-  if (!hit.empty() || !head_ || !opt_.check_collision || !scene_) return hit;
+  if (!opt_.check_collision || !scene_ || !tool_) return {};
+  LinkPoses links;
+  geom::CheckOptions linked;
+  const geom::CheckOptions& co = with_links(q, links, linked);
+  ++c.collision;
+  const geom::CollisionResult r = geom::check(*scene_, *tool_, kin_->forward(q), co, ws);
+  if (r.collides)
+    return fmt::format("{} hits {}", geom::to_string(r.part),
+                       r.obstacle >= 0 ? scene_->obstacle_name(static_cast<std::size_t>(r.obstacle)) : std::string("?"));
+  if (!head_) return {};
   Eigen::Isometry3d T;
   if (!kin_->head_in_part(q, T)) return {};
-  const geom::CollisionResult h = geom::check_meshes(*head_, T, *scene_, opt_.collision, ws);
+  int hm = -1;
+  const geom::CollisionResult h = geom::check_meshes(*head_, T, *scene_, co, ws, &hm);
   if (!h.collides) return {};
-  return fmt::format("machine head hits {}", scene_->obstacle_name(static_cast<std::size_t>(h.obstacle)));
+  return fmt::format("{} hits {}", head_->obstacle_name(static_cast<std::size_t>(hm)),
+                     scene_->obstacle_name(static_cast<std::size_t>(h.obstacle)));
+}
+
+bool Space::place_links(const kin::Kinematics& k, const kin::Axes& q, int n, LinkPoses& T, unsigned used) {
+  for (int l = 0; l < n; ++l)
+    if (((used >> l) & 1u) && !k.link_in_part(l - 1, q, T[static_cast<std::size_t>(l)])) return false;
+  return true;
+}
+
+const geom::CheckOptions& Space::with_links(const kin::Axes& q, LinkPoses& links, geom::CheckOptions& scratch) const {
+  // Nothing to place: no linked obstacle, or only fixed ones and the options leave machine obstacles out.
+  if (links_ == 0 || (!head_ && !(opt_.collision.roles & static_cast<unsigned>(geom::ObstacleRole::Machine))))
+    return opt_.collision;
+  CSCAM_CHECK(place_links(*kin_, q, links_, links, used_links_), "machine link poses unavailable");
+  scratch = opt_.collision;
+  scratch.links_in_part = links.data();
+  return scratch;
 }
 
 }  // namespace cscam::cspace

@@ -198,6 +198,58 @@ double Mesh::area_mm2() const {
   return 0.5 * a2;
 }
 
+Mesh box_mesh(const Eigen::Vector3d& lo, const Eigen::Vector3d& hi, const std::string& source) {
+  if (!lo.allFinite() || !hi.allFinite() || !((hi - lo).array() > 0.0).all())
+    throw InputError(SourceLoc{source}, fmt::format("box needs min < max on every axis, got min {} max {}",
+                                                    fmt_point(lo), fmt_point(hi)));
+  Mesh m;
+  m.source = source;
+  for (int i = 0; i < 8; ++i)
+    m.vertices_mm.emplace_back(i & 1 ? hi.x() : lo.x(), i & 2 ? hi.y() : lo.y(), i & 4 ? hi.z() : lo.z());
+  // Quads counter-clockwise seen from outside, two triangles each.
+  const int q[6][4] = {{0, 2, 3, 1}, {4, 5, 7, 6}, {0, 1, 5, 4}, {2, 6, 7, 3}, {0, 4, 6, 2}, {1, 3, 7, 5}};
+  for (const auto& f : q) {
+    m.triangles.emplace_back(f[0], f[1], f[2]);
+    m.triangles.emplace_back(f[0], f[2], f[3]);
+  }
+  return m;
+}
+
+Mesh cylinder_mesh(const Eigen::Vector3d& from, const Eigen::Vector3d& to, double diameter_mm, int sides,
+                   const std::string& source) {
+  const Eigen::Vector3d axis = to - from;
+  const double length = axis.norm();
+  if (!from.allFinite() || !to.allFinite() || !(length > 0.0) || !(diameter_mm > 0.0) || !std::isfinite(diameter_mm) ||
+      sides < 3)
+    throw InputError(SourceLoc{source},
+                     fmt::format("cylinder needs a positive diameter ({}) and length ({}) and >= 3 sides ({})",
+                                 diameter_mm, length, sides));
+  const Eigen::Vector3d w = axis / length;
+  const Eigen::Vector3d u = w.unitOrthogonal(), v = w.cross(u);
+  const double pi = 3.14159265358979323846;
+  const double rc = 0.5 * diameter_mm / std::cos(pi / sides);  // circumscribed
+  Mesh m;
+  m.source = source;
+  for (int k = 0; k < sides; ++k) {
+    const double a = 2.0 * pi * k / sides;
+    const Eigen::Vector3d d = rc * (std::cos(a) * u + std::sin(a) * v);
+    m.vertices_mm.push_back(from + d);
+    m.vertices_mm.push_back(to + d);
+  }
+  const int c0 = 2 * sides, c1 = c0 + 1;
+  m.vertices_mm.push_back(from);
+  m.vertices_mm.push_back(to);
+  for (int k = 0; k < sides; ++k) {
+    const int a0 = 2 * k, a1 = a0 + 1, b0 = 2 * ((k + 1) % sides), b1 = b0 + 1;
+    // (u, v, w) is right-handed, so the side quad a0 b0 b1 a1 is counter-clockwise seen from outside.
+    m.triangles.emplace_back(a0, b0, b1);
+    m.triangles.emplace_back(a0, b1, a1);
+    m.triangles.emplace_back(c0, b0, a0);  // bottom cap faces -w
+    m.triangles.emplace_back(c1, a1, b1);  // top cap faces +w
+  }
+  return m;
+}
+
 void Mesh::transform(const Eigen::Isometry3d& T) {
   for (auto& v : vertices_mm) v = T * v;
 }

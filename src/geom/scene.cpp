@@ -182,6 +182,7 @@ std::vector<ToolSegment> checked_segments(const ToolShape& tool, const CheckOpti
 struct Obstacle {
   std::string name;
   ObstacleRole role = ObstacleRole::Part;
+  int link = -1;  // Machine obstacles: index into CheckOptions::links_in_part
   Mesh mesh;
   Eigen::AlignedBox3d box;
   std::shared_ptr<CollideBvh> collide_bvh;
@@ -201,7 +202,7 @@ Scene::~Scene() = default;
 Scene::Scene(Scene&&) noexcept = default;
 Scene& Scene::operator=(Scene&&) noexcept = default;
 
-std::size_t Scene::add(std::string name, ObstacleRole role, Mesh mesh) {
+std::size_t Scene::add(std::string name, ObstacleRole role, Mesh mesh, int link) {
   if (impl_->built) throw std::logic_error("geom::Scene::add after build()");
   const SourceLoc where{mesh.source.empty() ? name : mesh.source};
   if (mesh.triangles.empty()) throw InputError(where, fmt::format("obstacle '{}' has no triangles", name));
@@ -214,6 +215,7 @@ std::size_t Scene::add(std::string name, ObstacleRole role, Mesh mesh) {
   Obstacle o;
   o.name = std::move(name);
   o.role = role;
+  o.link = role == ObstacleRole::Machine ? std::max(link, -1) : -1;
   o.box = mesh.bounding_box();
   o.mesh = std::move(mesh);
   impl_->obstacles.push_back(std::move(o));
@@ -245,6 +247,12 @@ bool Scene::supports_distance() const { return impl_->distance; }
 std::size_t Scene::obstacle_count() const { return impl_->obstacles.size(); }
 const std::string& Scene::obstacle_name(std::size_t i) const { return impl_->obstacles.at(i).name; }
 ObstacleRole Scene::obstacle_role(std::size_t i) const { return impl_->obstacles.at(i).role; }
+int Scene::obstacle_link(std::size_t i) const { return impl_->obstacles.at(i).link; }
+int Scene::link_count() const {
+  int n = 0;
+  for (const auto& o : impl_->obstacles) n = std::max(n, o.link + 1);
+  return n;
+}
 const Mesh& Scene::obstacle_mesh(std::size_t i) const { return impl_->obstacles.at(i).mesh; }
 const Eigen::AlignedBox3d& Scene::obstacle_bounds(std::size_t i) const { return impl_->obstacles.at(i).box; }
 std::size_t Scene::triangle_count() const {
@@ -281,6 +289,7 @@ struct QueryWorkspace::Impl {
 
   // Per-query scratch.
   std::vector<Eigen::AlignedBox3d> boxes;      // obstacle boxes in the part frame
+  std::vector<char> skip;                      // linked obstacle without link poses
   std::vector<Eigen::Isometry3d> obstacle_tf;  // obstacle pose in the part frame
   std::vector<Eigen::Isometry3d, Eigen::aligned_allocator<Eigen::Isometry3d>> seg_tf;
   std::vector<Eigen::AlignedBox3d> seg_box;
@@ -337,11 +346,13 @@ struct QueryWorkspace::Impl {
     }
     boxes.resize(scene.obstacles.size());
     obstacle_tf.resize(scene.obstacles.size());
+    skip.assign(scene.obstacles.size(), 0);
     for (std::size_t j = 0; j < scene.obstacles.size(); ++j) {
       const Obstacle& ob = scene.obstacles[j];
       if (ob.role == ObstacleRole::Machine) {
-        obstacle_tf[j] = o.machine_in_part;
-        boxes[j] = transformed_box(ob.box, o.machine_in_part);
+        skip[j] = ob.link >= 0 && !o.links_in_part;
+        obstacle_tf[j] = ob.link >= 0 && o.links_in_part ? o.links_in_part[ob.link] : o.machine_in_part;
+        boxes[j] = transformed_box(ob.box, obstacle_tf[j]);
       } else {
         obstacle_tf[j] = Eigen::Isometry3d::Identity();
         boxes[j] = ob.box;
@@ -363,6 +374,21 @@ namespace {
 
 bool selected(const Obstacle& o, unsigned roles) { return (static_cast<unsigned>(o.role) & roles) != 0u; }
 
+/// Pose of an obstacle in the part frame; false when it has a link and no link poses are given.
+bool obstacle_pose(const Obstacle& o, const CheckOptions& opt, Eigen::Isometry3d& T) {
+  if (o.role != ObstacleRole::Machine) {
+    T.setIdentity();
+    return true;
+  }
+  if (o.link < 0) {
+    T = opt.machine_in_part;
+    return true;
+  }
+  if (!opt.links_in_part) return false;
+  T = opt.links_in_part[o.link];
+  return true;
+}
+
 struct Nearest {
   double d = kInf;
   ToolPart part = ToolPart::CutterBody;
@@ -376,7 +402,7 @@ Nearest nearest(const Scene::Impl& scene, const CheckOptions& o, QueryWorkspace&
   for (std::size_t i = 0; i < w.segs.size(); ++i) {
     for (std::size_t j = 0; j < scene.obstacles.size(); ++j) {
       const Obstacle& ob = scene.obstacles[j];
-      if (!selected(ob, o.roles)) continue;
+      if (!selected(ob, o.roles) || w.skip[j]) continue;
       if (aabb_gap(w.seg_box[i], w.boxes[j]) >= best.d) {  // a lower bound that cannot improve the best
         ++ws.stats.aabb_rejects;
         continue;
@@ -407,7 +433,7 @@ CollisionResult check(const Scene& scene, const ToolShape& tool, const kin::Pose
   for (std::size_t i = 0; i < w.segs.size() && !out.collides; ++i) {
     for (std::size_t j = 0; j < sc.obstacles.size(); ++j) {
       const Obstacle& ob = sc.obstacles[j];
-      if (!selected(ob, o.roles)) continue;
+      if (!selected(ob, o.roles) || w.skip[j]) continue;
       if (!w.seg_box[i].intersects(w.boxes[j])) {
         ++ws.stats.aabb_rejects;
         continue;
@@ -453,7 +479,7 @@ double clearance(const Scene& scene, const ToolShape& tool, const kin::Posed& po
 }
 
 CollisionResult check_meshes(const Scene& moving, const Eigen::Isometry3d& moving_in_part, const Scene& fixed,
-                             const CheckOptions& o, QueryWorkspace& ws) {
+                             const CheckOptions& o, QueryWorkspace& ws, int* moving_obstacle) {
   const Scene::Impl& mv = moving.impl();
   const Scene::Impl& fx = fixed.impl();
   CSCAM_CHECK(mv.built && fx.built, "geom::check_meshes() before Scene::build()");
@@ -461,24 +487,31 @@ CollisionResult check_meshes(const Scene& moving, const Eigen::Isometry3d& movin
   CollisionResult out;
   fcl::CollisionRequestd req(1, false);
   fcl::CollisionResultd res;
-  const fcl::Transform3d Tm(moving_in_part.matrix());
-  for (const Obstacle& m : mv.obstacles) {
-    const Eigen::AlignedBox3d mbox = transformed_box(m.box, moving_in_part);
+  for (std::size_t i = 0; i < mv.obstacles.size(); ++i) {
+    const Obstacle& m = mv.obstacles[i];
+    Eigen::Isometry3d Tm = moving_in_part;
+    if (m.link >= 0) {
+      if (!o.links_in_part) continue;
+      Tm = o.links_in_part[m.link];
+    }
+    const Eigen::AlignedBox3d mbox = transformed_box(m.box, Tm);
     for (std::size_t j = 0; j < fx.obstacles.size(); ++j) {
       const Obstacle& f = fx.obstacles[j];
-      if (!selected(f, o.roles)) continue;
-      const Eigen::Isometry3d Tf = f.role == ObstacleRole::Machine ? o.machine_in_part : Eigen::Isometry3d::Identity();
+      Eigen::Isometry3d Tf;
+      if (!selected(f, o.roles) || !obstacle_pose(f, o, Tf)) continue;
       if (!mbox.intersects(transformed_box(f.box, Tf))) {
         ++ws.stats.aabb_rejects;
         continue;
       }
       res.clear();
       ++ws.stats.fcl_collide_calls;
-      fcl::collide(m.collide_bvh.get(), Tm, f.collide_bvh.get(), fcl::Transform3d(Tf.matrix()), req, res);
+      fcl::collide(m.collide_bvh.get(), fcl::Transform3d(Tm.matrix()), f.collide_bvh.get(),
+                   fcl::Transform3d(Tf.matrix()), req, res);
       if (res.isCollision()) {
         out.collides = true;
         out.part = ToolPart::Spindle;
         out.obstacle = static_cast<int>(j);
+        if (moving_obstacle) *moving_obstacle = static_cast<int>(i);
         return out;
       }
     }

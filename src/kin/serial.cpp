@@ -2,6 +2,7 @@
 
 #include <fmt/format.h>
 
+#include <algorithm>
 #include <cmath>
 #include <stdexcept>
 
@@ -252,6 +253,43 @@ bool SerialKinematics::head_in_part(const Axes& q, Eigen::Isometry3d& T) const {
   T.setIdentity();
   for (int c = 0; c < 3; ++c) T.linear().col(c) = map(Vec3::Unit(c)) - o;
   T.translation() = o;
+  return true;
+}
+
+bool SerialKinematics::link_in_part(int axis, const Axes& q, Eigen::Isometry3d& T) const {
+  const auto& g = geometry_;
+  // The joints from the base up to and including `axis` on its chain move the link (none for the base).
+  const std::vector<int>* chain = nullptr;
+  std::size_t upto = 0;
+  if (axis >= 0) {
+    for (const std::vector<int>* c : {&g.head_chain, &g.table_chain}) {
+      const auto it = std::find(c->begin(), c->end(), axis);
+      if (it != c->end()) {
+        chain = c;
+        upto = static_cast<std::size_t>(it - c->begin()) + 1;
+      }
+    }
+    if (!chain) return false;
+  }
+  // The same joint motions as serial_forward, as rigid transforms (x -> R (x - pivot) + pivot, or a shift).
+  auto joint = [&](int idx) {
+    const auto& j = g.joints[static_cast<size_t>(idx)];
+    const double v = q[idx] + j.offset;
+    Eigen::Isometry3d J = Eigen::Isometry3d::Identity();
+    if (j.type == AxisType::Linear) {
+      J.translation() = v * j.direction;
+    } else {
+      J.linear() = detail::axis_angle<double>(j.direction, v);
+      J.translation() = j.pivot_mm - J.linear() * j.pivot_mm;
+    }
+    return J;
+  };
+  Eigen::Isometry3d part_from_base = Eigen::Isometry3d::Identity();  // undo the table chain from the base outward
+  for (int idx : g.table_chain) part_from_base = joint(idx).inverse() * part_from_base;
+  part_from_base.pretranslate(-g.part_origin_home_mm);
+  Eigen::Isometry3d base_from_link = Eigen::Isometry3d::Identity();  // home -> base frame
+  for (std::size_t k = 0; k < upto; ++k) base_from_link = base_from_link * joint((*chain)[k]);
+  T = part_from_base * base_from_link;
   return true;
 }
 

@@ -3,6 +3,7 @@
 #include <fmt/format.h>
 #include <yaml-cpp/yaml.h>
 
+#include <algorithm>
 #include <filesystem>
 #include <fstream>
 #include <mutex>
@@ -181,10 +182,83 @@ void load_post(const Reader& r, const YAML::Node& n, Machine& m) {
   }
 }
 
+SourceLoc loc(const Reader& r, const YAML::Node& n) {
+  SourceLoc where{r.file()};
+  if (n.IsDefined() && n.Mark().line >= 0) {
+    where.line = n.Mark().line + 1;
+    where.column = n.Mark().column + 1;
+  }
+  return where;
+}
+
+void load_bodies(const Reader& r, const YAML::Node& list, Machine& m) {
+  if (!list.IsSequence()) r.fail(list, "geometry.bodies", "expected a list of bodies");
+  const std::filesystem::path dir = std::filesystem::path(r.file()).parent_path();
+  std::set<std::string> names;
+  for (std::size_t i = 0; i < list.size(); ++i) {
+    const YAML::Node n = list[i];
+    const std::string key = fmt::format("geometry.bodies[{}]", i);
+    r.only_keys(n, key, {"name", "attach", "box", "cylinder", "mesh", "source"});
+    MachineBody b;
+    b.where = loc(r, n);
+    b.name = r.string(r.required(n, "name", key), key + ".name");
+    if (b.name.empty() || !names.insert(b.name).second)
+      r.fail(n["name"], key + ".name", fmt::format("body name '{}' is empty or used twice", b.name));
+    // Provenance is required: a dimension nobody can trace is a collision answer nobody can trust.
+    b.source = r.string(r.required(n, "source", key), key + ".source");
+    if (b.source.empty()) r.fail(n["source"], key + ".source", "say where the dimensions come from");
+    const std::string attach = r.string(r.required(n, "attach", key), key + ".attach");
+    if (attach != "base") {
+      b.axis = m.axis_index(attach);
+      if (b.axis < 0)
+        r.fail(n["attach"], key + ".attach", fmt::format("no axis '{}' in this machine (or 'base')", attach));
+    }
+    if (!m.serial) r.fail(n, key, "machine bodies are supported on serial kinematics only");
+    const auto& g = *m.serial;
+    auto in = [&](const std::vector<int>& chain) { return std::find(chain.begin(), chain.end(), b.axis) != chain.end(); };
+    b.side = b.axis < 0 ? BodySide::Base : in(g.head_chain) ? BodySide::Head : BodySide::Table;
+    if (b.axis >= 0 && !in(g.head_chain) && !in(g.table_chain))
+      r.fail(n["attach"], key + ".attach", fmt::format("axis '{}' is in neither chain", attach));
+    const int shapes = (n["box"] ? 1 : 0) + (n["cylinder"] ? 1 : 0) + (n["mesh"] ? 1 : 0);
+    if (shapes != 1) r.fail(n, key, "give exactly one of box, cylinder, mesh");
+    if (const YAML::Node box = n["box"]) {
+      r.only_keys(box, key + ".box", {"min_mm", "max_mm"});
+      b.shape = BodyShape::Box;
+      b.min_mm = r.vec<3>(r.required(box, "min_mm", key + ".box"), key + ".box.min_mm");
+      b.max_mm = r.vec<3>(r.required(box, "max_mm", key + ".box"), key + ".box.max_mm");
+      if (!((b.max_mm - b.min_mm).array() > 0.0).all())
+        r.fail(box, key + ".box", "min_mm must be below max_mm on every axis");
+    } else if (const YAML::Node cyl = n["cylinder"]) {
+      r.only_keys(cyl, key + ".cylinder", {"from_mm", "to_mm", "diameter_mm"});
+      b.shape = BodyShape::Cylinder;
+      b.from_mm = r.vec<3>(r.required(cyl, "from_mm", key + ".cylinder"), key + ".cylinder.from_mm");
+      b.to_mm = r.vec<3>(r.required(cyl, "to_mm", key + ".cylinder"), key + ".cylinder.to_mm");
+      b.diameter_mm = r.number(r.required(cyl, "diameter_mm", key + ".cylinder"), key + ".cylinder.diameter_mm");
+      if (!(b.diameter_mm > 0.0)) r.fail(cyl["diameter_mm"], key + ".cylinder.diameter_mm", "must be positive");
+      if ((b.to_mm - b.from_mm).norm() <= 0.0) r.fail(cyl, key + ".cylinder", "from_mm and to_mm must differ");
+    } else {
+      const YAML::Node mesh = n["mesh"];
+      r.only_keys(mesh, key + ".mesh", {"file", "scale"});
+      b.shape = BodyShape::Mesh;
+      std::filesystem::path p = r.string(r.required(mesh, "file", key + ".mesh"), key + ".mesh.file");
+      if (p.is_relative()) p = dir / p;
+      if (!std::filesystem::exists(p))
+        r.fail(mesh["file"], key + ".mesh.file", fmt::format("mesh file '{}' not found", p.string()));
+      b.mesh = p.string();
+      if (mesh["scale"]) {
+        b.mesh_scale = r.number(mesh["scale"], key + ".mesh.scale");
+        if (!(b.mesh_scale > 0.0)) r.fail(mesh["scale"], key + ".mesh.scale", "must be positive");
+      }
+    }
+    m.geometry.bodies.push_back(std::move(b));
+  }
+}
+
 void load_geometry(const Reader& r, const YAML::Node& n, Machine& m) {
   r.only_keys(n, "geometry",
-              {"head_mesh", "table_mesh", "holder_diameter_mm", "holder_length_mm", "spindle_diameter_mm",
+              {"bodies", "head_mesh", "table_mesh", "holder_diameter_mm", "holder_length_mm", "spindle_diameter_mm",
                "spindle_length_mm"});
+  if (n["bodies"]) load_bodies(r, n["bodies"], m);
   const std::filesystem::path dir = std::filesystem::path(r.file()).parent_path();
   auto mesh = [&](const char* key, std::string& out) {
     if (!n[key]) return;

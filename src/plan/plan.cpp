@@ -214,7 +214,7 @@ class Search {
           c.i2 = tj;
           c.orient_err = static_cast<float>(t);
           c.axes = q;
-          if (!sp_.collision_at(pose, ws_, c_).empty()) continue;
+          if (!sp_.collision_at_axes(q, ws_, c_).empty()) continue;  // tool, head and machine bodies
           c.status = Status::Feasible;
           at[l].emplace(key(ti, tj), static_cast<int>(S[l].size()));
           S[l].push_back(c);

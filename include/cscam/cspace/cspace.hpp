@@ -4,6 +4,7 @@
 /// (primary, secondary) rotary values. A cell is feasible when (1) its tool axis lies in the allowed cone
 /// around the CL axis, (2) the linear axes it needs are inside their strokes, (3) tool and holder do not
 /// collide with the part or fixture. Cells are evaluated lazily and cached: collision queries dominate.
+#include <array>
 #include <cstdint>
 #include <limits>
 #include <memory>
@@ -72,6 +73,9 @@ class Space {
  public:
   /// `scene` and `tool` may be null (no collision checking). `head` holds machine meshes that move with the
   /// spindle (machine file geometry.head_mesh), checked against `scene`. All must outlive the Space.
+  /// Machine obstacles with a link (geom::Scene::add) in `scene` or `head` are placed per cell with
+  /// Kinematics::link_in_part: link 0 is the machine base, link 1 + i the link that axis i drives.
+  /// @throws InputError when there are linked obstacles and the kinematics cannot place links.
   Space(std::shared_ptr<const kin::Kinematics> kinematics, const geom::Scene* scene, const geom::ToolShape* tool,
         Options options, const geom::Scene* head = nullptr);
 
@@ -95,7 +99,8 @@ class Space {
   /// Stroke and collision of a cell (the orientation test must have passed). Fills status, axes, detail.
   void evaluate(const kin::Posed& cl_pose, Cell& cell, geom::QueryWorkspace& ws, Counters& c,
                 Certificate* certificate = nullptr) const;
-  /// Collision of an arbitrary tool pose (for reorientation moves). Empty string if free.
+  /// Collision of an arbitrary tool pose (for reorientation moves). Empty string if free. Without axis values
+  /// it cannot place machine bodies (linked obstacles) or the head: use collision_at_axes() when q is known.
   [[nodiscard]] std::string collision_at(const kin::Posed& tool_pose, geom::QueryWorkspace& ws, Counters& c) const;
   /// Whether a feasible cell stays free with `margin_mm` more clearance (a cheap measure of room for
   /// tie-breaking: collision queries only, no distance query).
@@ -112,6 +117,14 @@ class Space {
   const geom::ToolShape* tool_;
   Options opt_;
   const geom::Scene* head_ = nullptr;
+  static constexpr int kMaxLinks = 6;  // the base and one link per axis
+  using LinkPoses = std::array<Eigen::Isometry3d, kMaxLinks>;
+  int links_ = 0;               // machine links used by the obstacles (0: none)
+  bool certify_links_ = true;   // certificates stay sound with the linked obstacles
+  unsigned used_links_ = 0;     // bit l: an obstacle uses link l
+  static bool place_links(const kin::Kinematics& k, const kin::Axes& q, int n, LinkPoses& T, unsigned used);
+  /// opt_.collision, or a copy in `scratch` with the link poses for q when obstacles have links.
+  const geom::CheckOptions& with_links(const kin::Axes& q, LinkPoses& links, geom::CheckOptions& scratch) const;
   int rot1_ = 0, rot2_ = 0;
   int i1_min_ = 0, i1_max_ = 0, i2_min_ = 0, i2_max_ = 0;
 };

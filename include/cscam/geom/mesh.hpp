@@ -63,6 +63,19 @@ struct Mesh {
 ///                      non-manifold or inconsistently oriented.
 [[nodiscard]] Mesh load_mesh(const std::string& path, double scale_to_mm = 1.0, bool require_closed = true);
 
+/// A closed, outward-oriented box mesh of the axis-aligned box [min_mm, max_mm] (12 triangles).
+/// @throws InputError when a side is not positive (names `source`).
+[[nodiscard]] Mesh box_mesh(const Eigen::Vector3d& min_mm, const Eigen::Vector3d& max_mm,
+                            const std::string& source = "box");
+
+/// A closed, outward-oriented prism that contains the cylinder of diameter `diameter_mm` between the centres
+/// of its end faces `from_mm` and `to_mm`: a regular polygon with `sides` sides circumscribed about the
+/// circle (its vertices lie at radius r / cos(pi / sides)), so a collision test against it is conservative
+/// by at most r (1 / cos(pi / sides) - 1) (0.5 % of r with 32 sides).
+/// @throws InputError for a non-positive diameter or length or fewer than 3 sides (names `source`).
+[[nodiscard]] Mesh cylinder_mesh(const Eigen::Vector3d& from_mm, const Eigen::Vector3d& to_mm, double diameter_mm,
+                                 int sides = 32, const std::string& source = "cylinder");
+
 /// Writes a binary STL (little endian), atomically: nothing is left at `path` if writing fails.
 /// Coordinates are written in mm as 32-bit floats. Does not require the mesh to be closed.
 /// @throws InputError "path: ..." when the directory does not exist or the file cannot be written.

@@ -124,9 +124,12 @@ class Scene {
   Scene& operator=(const Scene&) = delete;
 
   /// Adds an obstacle (before build()). Returns its index.
+  /// @param link for ObstacleRole::Machine: the machine link the mesh moves with (an index into
+  ///        CheckOptions::links_in_part, e.g. 0 for the base and 1 + axis index for the link an axis drives);
+  ///        -1: placed by CheckOptions::machine_in_part. Ignored for other roles.
   /// @throws InputError for a mesh without triangles or with out-of-range indices (names mesh.source);
   ///         std::logic_error when called after build().
-  std::size_t add(std::string name, ObstacleRole role, Mesh mesh);
+  std::size_t add(std::string name, ObstacleRole role, Mesh mesh, int link = -1);
 
   /// Builds the bounding-volume hierarchies. Call once; queries require it. Further calls do nothing.
   /// @param with_distance also build the distance hierarchies (about doubles build time and memory);
@@ -138,6 +141,11 @@ class Scene {
   [[nodiscard]] std::size_t obstacle_count() const;
   [[nodiscard]] const std::string& obstacle_name(std::size_t i) const;
   [[nodiscard]] ObstacleRole obstacle_role(std::size_t i) const;
+  /// The machine link of obstacle i (-1: none, see add()).
+  [[nodiscard]] int obstacle_link(std::size_t i) const;
+  /// 1 + the largest link of any obstacle (0 when no obstacle has a link): the size CheckOptions::links_in_part
+  /// must have.
+  [[nodiscard]] int link_count() const;
   [[nodiscard]] const Mesh& obstacle_mesh(std::size_t i) const;
   /// Bounding box of obstacle i in its own frame (part frame, or machine frame for Machine obstacles).
   [[nodiscard]] const Eigen::AlignedBox3d& obstacle_bounds(std::size_t i) const;
@@ -209,6 +217,10 @@ struct CheckOptions {
   unsigned roles = kAllRoles;        ///< which obstacle roles to test (bit or of ObstacleRole)
   /// Pose of the machine frame in the part frame, applied to ObstacleRole::Machine obstacles.
   Eigen::Isometry3d machine_in_part = Eigen::Isometry3d::Identity();
+  /// Poses of the machine links in the part frame, indexed by link (Scene::add), for Machine obstacles that
+  /// have a link, in check() and on both sides of check_meshes(). Not owned; must hold Scene::link_count()
+  /// entries. Null: obstacles with a link are not tested (their pose is unknown without axis values).
+  const Eigen::Isometry3d* links_in_part = nullptr;
 };
 
 /// Outcome of check().
@@ -245,10 +257,13 @@ struct CollisionResult {
                                const CheckOptions& options, QueryWorkspace& workspace);
 
 /// Collision between two sets of meshes: every obstacle of `moving` (e.g. a machine head that moves with
-/// the tool), placed in the part frame by `moving_in_part`, against the obstacles of `fixed` selected by
-/// `options.roles` (Machine-role obstacles of `fixed` placed by options.machine_in_part, as in check()).
+/// the tool), placed in the part frame by `moving_in_part` (or by options.links_in_part for one with a
+/// link), against the obstacles of `fixed` selected by `options.roles` (Machine-role obstacles of `fixed`
+/// placed as in check()). CollisionResult::part is Spindle; `moving_obstacle` receives the index of the moving
+/// obstacle that hit, if not null.
 /// Meshes are surfaces: a part wholly inside another is not seen. Counts one collision query.
 [[nodiscard]] CollisionResult check_meshes(const Scene& moving, const Eigen::Isometry3d& moving_in_part,
-                                           const Scene& fixed, const CheckOptions& options, QueryWorkspace& workspace);
+                                           const Scene& fixed, const CheckOptions& options, QueryWorkspace& workspace,
+                                           int* moving_obstacle = nullptr);
 
 }  // namespace cscam::geom

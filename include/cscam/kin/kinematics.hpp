@@ -38,6 +38,10 @@ class Kinematics {
   /// The rigid motion of the tool-side end link (spindle housing) for axis values q: it maps a point given
   /// in the machine frame at home to its position in the part frame. False if the model cannot say.
   virtual bool head_in_part(const Axes& /*q*/, Eigen::Isometry3d& /*T*/) const { return false; }
+  /// The rigid motion of the link that joint `axis` drives (the body it carries, up to the next joint of its
+  /// chain) for axis values q: it maps a point given in the machine frame at home to the part frame.
+  /// `axis` = -1 is the machine base. False if the model cannot say (then machine bodies cannot be placed).
+  virtual bool link_in_part(int /*axis*/, const Axes& /*q*/, Eigen::Isometry3d& /*T*/) const { return false; }
   /// Limits that the axis values alone do not show, e.g. a PKM's passive joint angles; empty if none broken.
   [[nodiscard]] virtual std::string passive_violation(const Axes& /*q*/) const { return {}; }
   /// First limit that q violates, or empty.

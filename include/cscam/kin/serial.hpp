@@ -129,6 +129,7 @@ class SerialKinematics final : public Kinematics {
   }
 
   bool head_in_part(const Axes& q, Eigen::Isometry3d& T) const override;
+  bool link_in_part(int axis, const Axes& q, Eigen::Isometry3d& T) const override;
   [[nodiscard]] const SerialGeometry<double>& geometry() const { return geometry_; }
   /// The tool axis in the part frame that the two rotary values give (independent of the linear axes).
   [[nodiscard]] Eigen::Vector3d axis_for_rotaries(double primary, double secondary) const;

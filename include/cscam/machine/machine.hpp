@@ -43,8 +43,35 @@ struct PostSettings {
   std::string program_name = "CSCAM";
 };
 
+/// Where a machine body sits in the kinematic structure.
+enum class BodySide {
+  Base,   ///< fixed to the machine frame (bed, column, trunnion supports)
+  Table,  ///< carried by a table-side joint (cradle, platter): moves with the part's chain
+  Head,   ///< carried by a head-side joint (spindle housing, fork): moves with the tool
+};
+
+/// The shape of a machine body.
+enum class BodyShape { Box, Cylinder, Mesh };
+
+/// A rigid piece of the machine (given in the machine frame with every axis at 0) for collision checking:
+/// the tool, holder and head bodies are checked against the part, fixture and base/table bodies.
+struct MachineBody {
+  std::string name;
+  int axis = -1;  ///< the joint whose link carries the body (index into Machine::axes); -1: the base
+  BodySide side = BodySide::Base;
+  BodyShape shape = BodyShape::Box;
+  Eigen::Vector3d min_mm = Eigen::Vector3d::Zero(), max_mm = Eigen::Vector3d::Zero();  ///< Box
+  Eigen::Vector3d from_mm = Eigen::Vector3d::Zero(), to_mm = Eigen::Vector3d::Zero();  ///< Cylinder end centres
+  double diameter_mm = 0.0;                                                            ///< Cylinder
+  std::string mesh;          ///< Mesh: absolute path (resolved against the machine file)
+  double mesh_scale = 1.0;   ///< Mesh: multiply the file's coordinates by this to get mm
+  std::string source;        ///< where the dimensions come from (data sheet, drawing, "estimated: why")
+  SourceLoc where;           ///< the body's entry in the machine file, for messages
+};
+
 /// Optional meshes and tool-holder shapes used by collision checking.
 struct GeometrySettings {
+  std::vector<MachineBody> bodies;  ///< geometry.bodies
   std::string head_mesh;  ///< absolute path (resolved against the machine file)
   std::string table_mesh;
   double holder_diameter_mm = 0.0;
