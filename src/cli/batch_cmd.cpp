@@ -2,6 +2,7 @@
 
 #include <fmt/format.h>
 #include <tbb/blocked_range.h>
+#include <tbb/parallel_invoke.h>
 #include <tbb/parallel_for.h>
 #include <tbb/task_arena.h>
 #include <unistd.h>
@@ -58,7 +59,13 @@ void add_stats(const std::string& nc_text, const std::string& nc_name, const mac
     names[i] = m.post.letters[i];
     rotary[i] = m.axes[i].rotary();
   }
-  report::Stats st = report::compute(nc::read_text(nc_text, nc_name, report::axis_letters(m)), names, rotary);
+  report::Stats st;
+  try {
+    st = report::compute(nc::read_text(nc_text, nc_name, report::axis_letters(m)), names, rotary);
+  } catch (const InputError& e) {  // the gate judges the program; the table just has no figures then
+    r.warnings.push_back("no statistics: " + e.message());
+    return;
+  }
   st.source = fs::path(nc_name).filename().string();
   for (const auto& a : st.axes) {
     (a.rotary ? r.travel_deg : r.travel_mm) += a.travel;
@@ -175,8 +182,6 @@ void make_output_dir(const std::string& dir) {
 
 void run_job(const PostJob& job, JobResult& r) {
   const auto t0 = std::chrono::steady_clock::now();
-  std::string nc_text;
-  std::shared_ptr<const machine::Machine> mp;
   if (job.strategy == Strategy::Planner) {
     PlanArgs a;
     a.cl = job.cl;
@@ -201,10 +206,9 @@ void run_job(const PostJob& job, JobResult& r) {
     r.max_tip_deviation_mm = w.gate.deviation.max_tip_deviation_mm;
     r.max_axis_deviation_deg = w.gate.deviation.max_axis_deviation_deg;
     r.max_velocity_ratio = w.gate.max_velocity_ratio;
-    nc_text = std::move(w.nc_text);
-    mp = machine_for(job.machine);
+    add_stats(w.nc_text, job.out, *machine_for(job.machine), r);
   } else {
-    mp = machine_for(job.machine);
+    const auto mp = machine_for(job.machine);
     const machine::Machine& m = *mp;
     cl::ReadOptions ro;
     ro.units = parse_units(job.units);
@@ -225,12 +229,18 @@ void run_job(const PostJob& job, JobResult& r) {
     post::Summary sum;
     std::ostringstream os;
     post::write_nc(os, prog, m, *kin, axes, po, sum);
-    nc_text = std::move(os).str();
+    const std::string nc_text = std::move(os).str();
     for (const auto& w : sum.warnings) r.warnings.push_back(w);
     // No program reaches disk without passing the independent back-simulation (limits, feeds, tolerance).
-    const gate::Summary gs = gate::write_checked(
-        job.out, nc_text, prog, m, *kin, gate::options_for(m, job.tolerance_mm, job.axis_tolerance_deg, 0.0),
-        &sum.cl_line_of_nc_line);
+    // The statistics read the same text meanwhile (they are dropped if the gate refuses the program).
+    gate::Summary gs;
+    tbb::parallel_invoke(
+        [&] {
+          gs = gate::write_checked(job.out, nc_text, prog, m, *kin,
+                                   gate::options_for(m, job.tolerance_mm, job.axis_tolerance_deg, 0.0),
+                                   &sum.cl_line_of_nc_line);
+        },
+        [&] { add_stats(nc_text, job.out, m, r); });
     r.machine_name = m.name;
     r.cl_points = sum.cl_points;
     r.blocks = sum.blocks;
@@ -242,7 +252,6 @@ void run_job(const PostJob& job, JobResult& r) {
     r.max_axis_deviation_deg = gs.deviation.max_axis_deviation_deg;
     r.max_velocity_ratio = gs.max_velocity_ratio;
   }
-  add_stats(nc_text, job.out, *mp, r);
   r.status = JobStatus::Ok;
   r.seconds = std::chrono::duration<double>(std::chrono::steady_clock::now() - t0).count();
 }

@@ -1,6 +1,8 @@
 // The cscam command-line program: batch CL-to-NC conversion, verification and statistics.
 #include <fmt/format.h>
 
+#include <tbb/task_arena.h>
+
 #include <CLI/CLI.hpp>
 #include <nlohmann/json.hpp>
 #include <algorithm>
@@ -13,6 +15,7 @@
 #include "cscam/cl/program.hpp"
 #include "cscam/core/atomic_file.hpp"
 #include "cscam/core/error.hpp"
+#include "cscam/core/threads.hpp"
 #include "cscam/gate/gate.hpp"
 #include "cscam/machine/machine.hpp"
 #include "cscam/nc/reader.hpp"
@@ -113,7 +116,8 @@ int cmd_post(const PostArgs& a) {
   const std::string out = a.out.empty() ? fs::path(cl).stem().string() + ".ngc" : a.out;  // in the working dir
   const cli::PostJob job = job_of(a, cl, out);
   cli::JobResult r;
-  cli::run_job(job, r);
+  tbb::task_arena arena(static_cast<int>(worker_threads()));  // CSCAM_THREADS bounds the gate's parallel loops
+  arena.execute([&] { cli::run_job(job, r); });
   if (a.json) {
     nlohmann::json j;
     j["nc"] = out;

@@ -6,6 +6,8 @@
 #include <cmath>
 #include <stdexcept>
 
+#include <tbb/task_group.h>
+
 #include "cscam/core/atomic_file.hpp"
 #include "cscam/core/error.hpp"
 #include "cscam/core/tolerances.hpp"
@@ -111,6 +113,19 @@ Summary check(const std::string& nc_text, const std::string& nc_name, const cl::
   s.blocks = ncp.blocks.size();
   const auto& ax = kinematics.axes();
   const TipWordsKinematics tip_kin(kinematics, machine.kind == machine::ModelKind::Xmini);
+
+  // Tip and tool axis against the CL path, sampled inside every feed block: it reads only the program and the
+  // CL path, so it runs beside the limit and velocity checks below (its violations are added after theirs).
+  report::VerifyOptions vo;
+  vo.tip_tolerance_mm = options.tip_tolerance_mm;
+  vo.axis_tolerance_deg = options.axis_tolerance_deg;
+  vo.samples_per_block = options.samples_per_block;
+  vo.ball_centre = options.ball_centre;
+  tbb::task_group tg;
+  tg.run([&] {
+    s.deviation =
+        report::verify(ncp, cl, s.tool_tip_control ? static_cast<const kin::Kinematics&>(tip_kin) : kinematics, vo);
+  });
 
   // Machine (joint) values of every block: the words themselves, or for tool-tip control the IK solution
   // nearest the previous block's (what the control computes), inside every limit.
@@ -240,14 +255,7 @@ Summary check(const std::string& nc_text, const std::string& nc_name, const cl::
     }
   }
 
-  // Tip and tool axis against the CL path, sampled inside every feed block.
-  report::VerifyOptions vo;
-  vo.tip_tolerance_mm = options.tip_tolerance_mm;
-  vo.axis_tolerance_deg = options.axis_tolerance_deg;
-  vo.samples_per_block = options.samples_per_block;
-  vo.ball_centre = options.ball_centre;
-  s.deviation =
-      report::verify(ncp, cl, s.tool_tip_control ? static_cast<const kin::Kinematics&>(tip_kin) : kinematics, vo);
+  tg.wait();  // the tip/axis comparison started above
   const auto& d = s.deviation;
   if (d.max_tip_deviation_mm > vo.tip_tolerance_mm)
     add(Violation::Kind::Deviation, d.max_tip_nc_line, d.max_tip_cl_line,
