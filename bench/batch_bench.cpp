@@ -3,6 +3,7 @@
 // CSCAM_THREADS=1 and =2. Prints files/s at each and the speed-up (target >= 1.8x on 2 cores), and checks that
 // both runs wrote the same bytes. Usage: batch_bench [files] [points]
 #include <fmt/format.h>
+#include <sys/resource.h>
 #include <unistd.h>
 
 #include <chrono>
@@ -39,6 +40,19 @@ void make_cl(const fs::path& path, unsigned seed, std::size_t points) {
   out << "FINI\n";
 }
 
+double load() {
+  double l[1] = {0};
+  return ::getloadavg(l, 1) == 1 ? l[0] : -1.0;
+}
+
+/// CPU seconds (user + system) used by finished child processes so far.
+double children_cpu_s() {
+  rusage ru{};
+  ::getrusage(RUSAGE_CHILDREN, &ru);
+  return static_cast<double>(ru.ru_utime.tv_sec + ru.ru_stime.tv_sec) +
+         1e-6 * static_cast<double>(ru.ru_utime.tv_usec + ru.ru_stime.tv_usec);
+}
+
 std::string slurp(const fs::path& p) {
   std::ifstream in(p, std::ios::binary);
   return std::string((std::istreambuf_iterator<char>(in)), {});
@@ -63,15 +77,20 @@ int main(int argc, char** argv) {
     const std::string cmd = fmt::format("CSCAM_THREADS={} {} post{} --machine trunnion-ac -o {}/ > {}/log{}.txt 2>&1",
                                         threads, CSCAM_CLI, list, out.string(), dir.string(), threads);
     const auto t0 = std::chrono::steady_clock::now();
+    const double cpu0 = children_cpu_s();
     const int rc = std::system(cmd.c_str());
+    const double cpu = children_cpu_s() - cpu0;
     secs[threads] = std::chrono::duration<double>(std::chrono::steady_clock::now() - t0).count();
     if (rc != 0) {
       std::cerr << "batch failed (" << rc << "):\n" << slurp(dir / fmt::format("log{}.txt", threads));
       return 1;
     }
-    std::cout << fmt::format("{} files x {} points, {} thread(s): {:.2f} s, {:.1f} files/s, {:.0f} CL points/s\n",
-                             files, points, threads, secs[threads], files / secs[threads],
-                             static_cast<double>(files * points) / secs[threads]);
+    // CPU time too: on a shared machine the wall time depends on the others' load, the CPU time does not.
+    std::cout << fmt::format(
+        "{} files x {} points, {} thread(s): {:.2f} s wall, {:.2f} s CPU, {:.1f} files/s, {:.0f} CL points/s; "
+        "load average {:.1f}\n",
+        files, points, threads, secs[threads], cpu, files / secs[threads],
+        static_cast<double>(files * points) / secs[threads], load());
   }
   std::size_t same = 0;
   for (std::size_t i = 0; i < files; ++i) {

@@ -304,6 +304,13 @@ TEST(Cli, StatsAndVerifyCheckTheProgramWasWrittenForTheMachine) {
   EXPECT_EQ(r.status, 0) << r.output;
   EXPECT_NE(r.output.find("warning: " + nc + ":"), std::string::npos) << r.output;
   EXPECT_NE(r.output.find("written for machine 'trunnion-ac'"), std::string::npos) << r.output;
+  // The warning is in the JSON document too (stderr dropped inside the subshell: run_command merges it).
+  r = run_command("(" + kCli + " stats " + q(nc) + " --machine " + q(other) + " --json 2>/dev/null)");
+  EXPECT_EQ(r.status, 0) << r.output;
+  const auto sj = nlohmann::json::parse(r.output);
+  ASSERT_EQ(sj.size(), 1u);
+  ASSERT_EQ(sj[0]["warnings"].size(), 1u) << r.output;
+  EXPECT_NE(sj[0]["warnings"][0].get<std::string>().find("written for machine 'trunnion-ac'"), std::string::npos);
   // The right machine: no complaint.
   r = run_command(kCli + " verify " + q(nc) + " --cl " + q(cl) + " --machine trunnion-ac");
   EXPECT_EQ(r.status, 0) << r.output;
@@ -537,8 +544,8 @@ TEST(Cli, OneBadFileDoesNotStopTheOthers) {
   for (const char* n : {"bad.ngc", "far.ngc", "nofeed.ngc"}) EXPECT_FALSE(fs::exists(out + n)) << n;
   for (const auto& e : fs::directory_iterator(out)) EXPECT_EQ(e.path().string().find(".tmp"), std::string::npos);
   // --json: one entry per file in input order, with status, message and warnings; the same exit code.
-  r = run_command(kCli + " post " + q(good1) + " " + q(bad) + " " + q(nofeed) +
-                  " --machine trunnion-ac --default-feed 400 --json -o " + q(out) + " 2>/dev/null");
+  r = run_command("(" + kCli + " post " + q(good1) + " " + q(bad) + " " + q(nofeed) +
+                  " --machine trunnion-ac --default-feed 400 --json -o " + q(out) + " 2>/dev/null)");
   EXPECT_EQ(r.status, 2) << r.output;
   const auto j = nlohmann::json::parse(r.output);
   ASSERT_EQ(j["files"].size(), 3u) << r.output;
@@ -619,7 +626,7 @@ TEST(Cli, JobsFileWithPerFileSettingsMatchesSingleRuns) {
   }
   EXPECT_NE(slurp((d.path / "nc" / "b.ngc").string()).find("M30"), std::string::npos);  // fanuc, not linuxcnc
   // From another working directory the paths still resolve against the jobs file.
-  r = run_command("cd / && " + kCli + " batch " + q(jobs) + " --json 2>/dev/null");
+  r = run_command("(cd / && " + kCli + " batch " + q(jobs) + " --json 2>/dev/null)");
   EXPECT_EQ(r.status, 2) << r.output;
   const auto j = nlohmann::json::parse(r.output);
   ASSERT_EQ(j["files"].size(), 5u);

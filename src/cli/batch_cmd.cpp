@@ -2,6 +2,7 @@
 
 #include <fmt/format.h>
 #include <tbb/blocked_range.h>
+#include <tbb/global_control.h>
 #include <tbb/parallel_invoke.h>
 #include <tbb/parallel_for.h>
 #include <tbb/task_arena.h>
@@ -267,6 +268,8 @@ int run_jobs(const std::vector<PostJob>& jobs, bool json) {
                                    jobs[it->second].cl));
   }
   const std::size_t threads = worker_threads();
+  // TBB's own pool follows the hardware; CSCAM_THREADS may ask for more (or fewer) workers than cores.
+  const tbb::global_control pool(tbb::global_control::max_allowed_parallelism, threads);
   std::vector<JobResult> results(jobs.size());
   const auto t0 = std::chrono::steady_clock::now();
   {

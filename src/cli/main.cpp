@@ -1,6 +1,7 @@
 // The cscam command-line program: batch CL-to-NC conversion, verification and statistics.
 #include <fmt/format.h>
 
+#include <tbb/global_control.h>
 #include <tbb/task_arena.h>
 
 #include <CLI/CLI.hpp>
@@ -116,7 +117,9 @@ int cmd_post(const PostArgs& a) {
   const std::string out = a.out.empty() ? fs::path(cl).stem().string() + ".ngc" : a.out;  // in the working dir
   const cli::PostJob job = job_of(a, cl, out);
   cli::JobResult r;
-  tbb::task_arena arena(static_cast<int>(worker_threads()));  // CSCAM_THREADS bounds the gate's parallel loops
+  // CSCAM_THREADS sets the gate's parallel loops' threads (TBB's pool alone would follow the hardware).
+  const tbb::global_control pool(tbb::global_control::max_allowed_parallelism, worker_threads());
+  tbb::task_arena arena(static_cast<int>(worker_threads()));
   arena.execute([&] { cli::run_job(job, r); });
   if (a.json) {
     nlohmann::json j;
@@ -192,16 +195,25 @@ int cmd_stats(const std::vector<std::string>& files, const std::string& machine_
   const machine::Machine m = machine::load(resolve_machine(machine_arg));
   std::vector<report::Stats> cols;
   std::vector<std::string> headers;
+  std::vector<std::vector<std::string>> warnings;
   for (const auto& f : files) {
     const nc::Program p = nc::read_file(f, report::axis_letters(m));
     // Statistics count axis words: a letter the machine lacks is an error, another machine's header a warning.
-    if (const auto mismatch = report::check_machine_of(p, m)) std::cerr << "warning: " << mismatch->what() << "\n";
+    warnings.emplace_back();
+    if (const auto mismatch = report::check_machine_of(p, m)) {
+      std::cerr << "warning: " << mismatch->what() << "\n";
+      warnings.back().push_back(mismatch->what());
+    }
     cols.push_back(report::compute(p, names_of(m, true), rotary_of(m)));
     headers.push_back(fs::path(f).filename().string());
   }
   if (json) {
     nlohmann::json all = nlohmann::json::array();
-    for (const auto& c : cols) all.push_back(c.json());
+    for (std::size_t i = 0; i < cols.size(); ++i) {
+      nlohmann::json c = cols[i].json();
+      c["warnings"] = warnings[i];  // what went to stderr, also in the document
+      all.push_back(std::move(c));
+    }
     std::cout << all.dump(2) << "\n";
   } else {
     std::cout << report::table(cols, headers);

@@ -160,6 +160,14 @@ VerifyResult verify(const nc::Program& nc, const cl::Program& cl, const kin::Kin
   const std::size_t stride = static_cast<std::size_t>(n) + 2;  // samples 0..n, then FK(qb) exactly
   constexpr std::size_t kChunk = 4096;
   std::vector<kin::Posed> poses;
+  struct AxisSample {
+    std::size_t seg;
+    double t;
+    const kin::Posed* pose;
+    int nc_line;
+  };
+  std::vector<AxisSample> axis_samples;
+  std::vector<double> axis_angles;
   for (std::size_t c0 = 0; c0 < nc.blocks.size(); c0 += kChunk) {
     const std::size_t c1 = std::min(nc.blocks.size(), c0 + kChunk);
     poses.resize((c1 - c0) * stride);
@@ -212,12 +220,7 @@ VerifyResult verify(const nc::Program& nc, const cl::Program& cl, const kin::Kin
           r.max_tip_nc_line = b.line;
           r.max_tip_cl_line = segs[cursor].line;
         }
-        const Vec3 u = slerp(segs[cursor].u0, segs[cursor].u1, t);
-        const double ang = rad2deg(std::acos(std::clamp(u.dot(p.axis), -1.0, 1.0)));
-        if (ang > r.max_axis_deviation_deg) {
-          r.max_axis_deviation_deg = ang;
-          r.max_axis_nc_line = b.line;
-        }
+        axis_samples.push_back({cursor, t, &p, b.line});
         if (k == n || k == 0) {
           nc_feed_points.push_back(pt);
           nc_feed_lines.push_back(b.line);
@@ -225,6 +228,23 @@ VerifyResult verify(const nc::Program& nc, const cl::Program& cl, const kin::Kin
       }
       prev = &b;
     }
+    // The tool axis against the CL orientation where the walk found each sample: independent per sample, so in
+    // parallel; the maximum is then taken in sample order (the first of equal values, as a sequential scan).
+    axis_angles.resize(axis_samples.size());
+    tbb::parallel_for(tbb::blocked_range<std::size_t>(0, axis_samples.size(), 1024),
+                      [&](const tbb::blocked_range<std::size_t>& rg) {
+                        for (std::size_t i = rg.begin(); i != rg.end(); ++i) {
+                          const AxisSample& a = axis_samples[i];
+                          const Vec3 u = slerp(segs[a.seg].u0, segs[a.seg].u1, a.t);
+                          axis_angles[i] = rad2deg(std::acos(std::clamp(u.dot(a.pose->axis), -1.0, 1.0)));
+                        }
+                      });
+    for (std::size_t i = 0; i < axis_samples.size(); ++i)
+      if (axis_angles[i] > r.max_axis_deviation_deg) {
+        r.max_axis_deviation_deg = axis_angles[i];
+        r.max_axis_nc_line = axis_samples[i].nc_line;
+      }
+    axis_samples.clear();
   }
   // Coverage: every CL feed point must be reached by the NC path (nothing skipped).
   if (!nc_feed_points.empty()) {
