@@ -685,3 +685,37 @@ TEST(Cli, CompareWritesJsonOnlyWhereAsked) {
   ASSERT_EQ(r.status, 0) << r.output;
   EXPECT_EQ(nlohmann::json::parse(slurp((d.path / "c.json").string()))["machine"], "trunnion-ac");
 }
+
+TEST(Cli, GateFiguresDoNotDependOnTheThreadCount) {
+  // The gate samples blocks in parallel; its figures (not only the NC bytes) are the same at any thread count,
+  // also on the XMINI, whose FK is a warm-started Newton solve.
+  for (const auto& [cl, machine] :
+       {std::pair<std::string, std::string>{"examples/xmini/seed000_x_cut.cls", "xmini"},
+        std::pair<std::string, std::string>{"examples/nx-haas-umc750/variable_axis.cls", "haas-umc750"}}) {
+    TempDir d;
+    nlohmann::json first;
+    for (const char* threads : {"1", "2", "3"}) {
+      const auto r = run_command("(CSCAM_THREADS=" + std::string(threads) + " " + kCli + " post " +
+                                 q(cscam::test::source_path(cl)) + " --machine " + machine + " --json -o " +
+                                 q(d.file(std::string("t") + threads + ".ngc")) + " 2>/dev/null)");
+      ASSERT_EQ(r.status, 0) << r.output;
+      const auto j = nlohmann::json::parse(r.output);
+      if (first.is_null())
+        first = j["gate"];
+      else
+        EXPECT_EQ(j["gate"], first) << machine << " at " << threads << " threads";
+    }
+    // In a batch (jobs sharing threads) the same figures.
+    const std::string cls = q(cscam::test::source_path(cl)) + " " +
+                            q(d.file("copy.cls", slurp(cscam::test::source_path(cl)))) + " " +
+                            q(d.file("copy2.cls", slurp(cscam::test::source_path(cl))));
+    const auto r = run_command("(CSCAM_THREADS=3 " + kCli + " post " + cls + " --machine " + machine + " --json -o " +
+                               q((d.path / "batch").string() + "/") + " 2>/dev/null)");
+    ASSERT_EQ(r.status, 0) << r.output;
+    const auto j = nlohmann::json::parse(r.output);
+    for (const auto& f : j["files"]) {
+      for (const char* k : {"max_tip_deviation_mm", "max_axis_deviation_deg", "max_velocity_ratio", "message"})
+        EXPECT_EQ(f["gate"][k], first[k]) << machine << " " << k << " in a batch";
+    }
+  }
+}

@@ -235,13 +235,18 @@ void run_job(const PostJob& job, JobResult& r) {
     // No program reaches disk without passing the independent back-simulation (limits, feeds, tolerance).
     // The statistics read the same text meanwhile (they are dropped if the gate refuses the program).
     gate::Summary gs;
-    tbb::parallel_invoke(
-        [&] {
-          gs = gate::write_checked(job.out, nc_text, prog, m, *kin,
-                                   gate::options_for(m, job.tolerance_mm, job.axis_tolerance_deg, 0.0),
-                                   &sum.cl_line_of_nc_line);
-        },
-        [&] { add_stats(nc_text, job.out, m, r); });
+    auto gate_and_write = [&] {
+      gs = gate::write_checked(job.out, nc_text, prog, m, *kin,
+                               gate::options_for(m, job.tolerance_mm, job.axis_tolerance_deg, 0.0),
+                               &sum.cl_line_of_nc_line);
+    };
+    auto stats = [&] { add_stats(nc_text, job.out, m, r); };
+    if (m.kind == machine::ModelKind::Xmini) {  // warm-started FK: the gate stays on this thread (see gate.cpp)
+      gate_and_write();
+      stats();
+    } else {
+      tbb::parallel_invoke(gate_and_write, stats);
+    }
     r.machine_name = m.name;
     r.cl_points = sum.cl_points;
     r.blocks = sum.blocks;
@@ -282,7 +287,9 @@ int run_jobs(const std::vector<PostJob>& jobs, bool json) {
           JobResult& r = results[i];
           const auto tj = std::chrono::steady_clock::now();
           try {
-            run_job(jobs[i], r);
+            // Isolated: while this job waits inside its own parallel loops, its thread does not pick up another
+            // job (whose warm-started FK state would then leak into this one's figures).
+            tbb::this_task_arena::isolate([&] { run_job(jobs[i], r); });
           } catch (const InputError& e) {
             r = JobResult{};
             r.status = JobStatus::Failed;

@@ -11,6 +11,7 @@
 
 #include "cscam/core/tolerances.hpp"
 #include "cscam/core/units.hpp"
+#include "cscam/kin/xmini_kinematics.hpp"
 #include "cscam/report/json.hpp"
 
 namespace cscam::report {
@@ -160,6 +161,10 @@ VerifyResult verify(const nc::Program& nc, const cl::Program& cl, const kin::Kin
   const std::size_t stride = static_cast<std::size_t>(n) + 2;  // samples 0..n, then FK(qb) exactly
   constexpr std::size_t kChunk = 4096;
   std::vector<kin::Posed> poses;
+  // The XMINI's FK is a Newton solve warm-started from the thread's previous one: its last digits depend on
+  // which block a thread solved before, so there the samples are computed in order (numbers independent of the
+  // thread count, as everywhere else).
+  const bool fk_in_order = dynamic_cast<const kin::XminiKinematics*>(&kinematics) != nullptr;
   struct AxisSample {
     std::size_t seg;
     double t;
@@ -171,7 +176,7 @@ VerifyResult verify(const nc::Program& nc, const cl::Program& cl, const kin::Kin
   for (std::size_t c0 = 0; c0 < nc.blocks.size(); c0 += kChunk) {
     const std::size_t c1 = std::min(nc.blocks.size(), c0 + kChunk);
     poses.resize((c1 - c0) * stride);
-    tbb::parallel_for(tbb::blocked_range<std::size_t>(c0, c1, 256), [&](const tbb::blocked_range<std::size_t>& r) {
+    auto fk = [&](const tbb::blocked_range<std::size_t>& r) {
       for (std::size_t bi = r.begin(); bi != r.end(); ++bi) {
         if (bi == 0 || nc.blocks[bi].motion == nc::Motion::Rapid) continue;
         const kin::Axes qa = to_axes(nc.blocks[bi - 1]), qb = to_axes(nc.blocks[bi]);
@@ -179,7 +184,11 @@ VerifyResult verify(const nc::Program& nc, const cl::Program& cl, const kin::Kin
         for (int k = 0; k <= n; ++k) out[k] = kinematics.forward(qa + (static_cast<double>(k) / n) * (qb - qa));
         out[n + 1] = kinematics.forward(qb);
       }
-    });
+    };
+    if (fk_in_order)
+      fk(tbb::blocked_range<std::size_t>(c0, c1));
+    else
+      tbb::parallel_for(tbb::blocked_range<std::size_t>(c0, c1, 256), fk);
     for (std::size_t bi = c0; bi < c1; ++bi) {
       const nc::Block& b = nc.blocks[bi];
       if (b.motion == nc::Motion::Rapid || prev == nullptr) {
