@@ -31,7 +31,8 @@ void make_cl(const fs::path& path, unsigned seed, std::size_t points) {
   for (std::size_t i = 0; i < points; ++i) {
     const std::size_t row = i / per_row, k = i % per_row;
     const double x = cx - 70.0 + 140.0 * static_cast<double>(row % 2 ? per_row - 1 - k : k) / (per_row - 1);
-    const double y = cy - 70.0 + 140.0 * static_cast<double>(row) / static_cast<double>(std::max<std::size_t>(rows - 1, 1));
+    const double y =
+        cy - 70.0 + 140.0 * static_cast<double>(row) / static_cast<double>(std::max<std::size_t>(rows - 1, 1));
     const double zz = std::sqrt(R * R - (x - cx) * (x - cx) - (y - cy) * (y - cy));
     if (k == 0) out << "RAPID\n";
     out << fmt::format("GOTO/{:.4f},{:.4f},{:.4f},{:.7f},{:.7f},{:.7f}\n", x, y, zz - R + 20.0, (x - cx) / R,

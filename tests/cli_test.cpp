@@ -641,10 +641,14 @@ TEST(Cli, JobsFileErrorsNameTheLineAndRunNothing) {
   const std::string head = "defaults:\n  machine: trunnion-ac\njobs:\n  - a.cls\n";
   const std::vector<std::pair<std::string, std::string>> cases = {
       {head + "  - cl: a.cls\n    tolerence: 0.01\n", "jobs.yaml:6:5: 'tolerence': unknown key"},
-      {head + "  - cl: a.cls\n    output: b.ngc\n    tolerance: fine\n", "jobs.yaml:7:16: 'tolerance': expected a number"},
-      {head + "  - cl: a.cls\n    output: b.ngc\n    dialect: heidenhian\n", "jobs.yaml:7:14: 'dialect': unknown dialect"},
-      {head + "  - cl: a.cls\n    output: b.ngc\n    machine: nope\n", "jobs.yaml:7:14: 'machine': machine file not found"},
-      {head + "  - cl: a.cls\n    output: b.ngc\n    strategy: fastest\n", "jobs.yaml:7:15: 'strategy': unknown strategy"},
+      {head + "  - cl: a.cls\n    output: b.ngc\n    tolerance: fine\n",
+       "jobs.yaml:7:16: 'tolerance': expected a number"},
+      {head + "  - cl: a.cls\n    output: b.ngc\n    dialect: heidenhian\n",
+       "jobs.yaml:7:14: 'dialect': unknown dialect"},
+      {head + "  - cl: a.cls\n    output: b.ngc\n    machine: nope\n",
+       "jobs.yaml:7:14: 'machine': machine file not found"},
+      {head + "  - cl: a.cls\n    output: b.ngc\n    strategy: fastest\n",
+       "jobs.yaml:7:15: 'strategy': unknown strategy"},
       {head + "  - cl: a.cls\n    output: b.ngc\n    cone: 5\n", "jobs.yaml:5:5: 'strategy': cone, part and fixture"},
       {head + "  - a.cls\n", "jobs.yaml:5:5: output"},
       {"jobs:\n  - a.cls\n", "jobs.yaml:2:5: 'machine': missing"},
@@ -681,7 +685,8 @@ TEST(Cli, CompareWritesJsonOnlyWhereAsked) {
   auto r = run_command("cd " + q(d.path.string()) + " && " + kCli + " compare cmp.cls --machine trunnion-ac");
   ASSERT_EQ(r.status, 0) << r.output;
   for (const auto& e : fs::directory_iterator(d.path)) EXPECT_EQ(e.path().filename(), "cmp.cls") << e.path();
-  r = run_command("cd " + q(d.path.string()) + " && " + kCli + " compare cmp.cls --machine trunnion-ac --json-out c.json");
+  r = run_command("cd " + q(d.path.string()) + " && " + kCli +
+                  " compare cmp.cls --machine trunnion-ac --json-out c.json");
   ASSERT_EQ(r.status, 0) << r.output;
   EXPECT_EQ(nlohmann::json::parse(slurp((d.path / "c.json").string()))["machine"], "trunnion-ac");
 }

@@ -3,8 +3,8 @@
 #include <fmt/format.h>
 #include <tbb/blocked_range.h>
 #include <tbb/global_control.h>
-#include <tbb/parallel_invoke.h>
 #include <tbb/parallel_for.h>
+#include <tbb/parallel_invoke.h>
 #include <tbb/task_arena.h>
 #include <unistd.h>
 #include <yaml-cpp/yaml.h>
@@ -164,8 +164,7 @@ void print_table(const std::vector<PostJob>& jobs, const std::vector<JobResult>&
                                r.status == JobStatus::Failed ? "FAILED" : "INTERNAL", "-", "-", "-", "-", r.seconds);
     }
   }
-  std::cout << fmt::format("{} of {} files converted in {:.3f} s on {} thread(s)\n", ok, jobs.size(), wall_s,
-                           threads);
+  std::cout << fmt::format("{} of {} files converted in {:.3f} s on {} thread(s)\n", ok, jobs.size(), wall_s, threads);
   for (std::size_t i = 0; i < jobs.size(); ++i)
     if (results[i].status != JobStatus::Ok)
       std::cout << fmt::format("{}: {}\n", fs::path(jobs[i].cl).filename().string(), results[i].message);
@@ -178,7 +177,8 @@ void make_output_dir(const std::string& dir) {
   std::error_code ec;
   fs::create_directories(dir, ec);
   if (ec || !fs::is_directory(dir))
-    throw InputError(SourceLoc{dir}, fmt::format("cannot create the output directory: {}", ec ? ec.message() : "not a directory"));
+    throw InputError(SourceLoc{dir},
+                     fmt::format("cannot create the output directory: {}", ec ? ec.message() : "not a directory"));
 }
 
 void run_job(const PostJob& job, JobResult& r) {
@@ -370,8 +370,8 @@ class JobsReader {
       fail(n, key, fmt::format("expected a number, got '{}'", n.Scalar()));
     }
     if (!std::isfinite(v) || v < 0 || (positive_only && v <= 0))
-      fail(n, key, fmt::format("expected a {} number, got '{}'", positive_only ? "positive" : "non-negative",
-                               n.Scalar()));
+      fail(n, key,
+           fmt::format("expected a {} number, got '{}'", positive_only ? "positive" : "non-negative", n.Scalar()));
     return v;
   }
 
@@ -560,8 +560,9 @@ std::function<int()> add_batch_command(CLI::App& app) {
   };
   auto a = std::make_shared<Args>();
   auto* cmd = app.add_subcommand(
-      "batch", "Convert the CL files listed in a jobs file (per-file machine, tool length, tolerances, dialect, "
-               "strategy), in parallel (CSCAM_THREADS threads)");
+      "batch",
+      "Convert the CL files listed in a jobs file (per-file machine, tool length, tolerances, dialect, "
+      "strategy), in parallel (CSCAM_THREADS threads)");
   cmd->add_option("jobs", a->jobs_file, "jobs file (YAML; paths relative to it; see docs/batch.md)")->required();
   cmd->add_flag("--json", a->json, "print the summary as JSON");
   return [a, cmd]() -> int {

@@ -1,18 +1,19 @@
 // The cscam command-line program: batch CL-to-NC conversion, verification and statistics.
 #include <fmt/format.h>
-
 #include <tbb/global_control.h>
 #include <tbb/task_arena.h>
 
 #include <CLI/CLI.hpp>
-#include <nlohmann/json.hpp>
 #include <algorithm>
 #include <chrono>
 #include <filesystem>
 #include <fstream>
 #include <iostream>
+#include <nlohmann/json.hpp>
 #include <sstream>
 
+#include "batch_cmd.hpp"
+#include "calib_cmd.hpp"
 #include "cscam/cl/program.hpp"
 #include "cscam/core/atomic_file.hpp"
 #include "cscam/core/error.hpp"
@@ -27,8 +28,6 @@
 #include "cscam/report/verify.hpp"
 #include "plan_cmd.hpp"
 #include "sim_cmd.hpp"
-#include "batch_cmd.hpp"
-#include "calib_cmd.hpp"
 
 namespace fs = std::filesystem;
 using namespace cscam;
@@ -299,8 +298,8 @@ int main(int argc, char** argv) {
   app.option_defaults()->always_capture_default();
 
   PostArgs pa;
-  auto* post_cmd =
-      app.add_subcommand("post", "Convert CL files to NC with the conventional (nearest-solution) strategy; several in parallel");
+  auto* post_cmd = app.add_subcommand(
+      "post", "Convert CL files to NC with the conventional (nearest-solution) strategy; several in parallel");
   post_cmd->add_option("cl", pa.cl, "CL file(s) (APT/CLDATA, NX CLSF, CSV); several are converted in parallel")
       ->required();
   post_cmd->add_option("-m,--machine", pa.machine, "machine file or bundled machine name")->required();
@@ -311,7 +310,8 @@ int main(int argc, char** argv) {
                        "override the machine's dialect (linuxcnc, fanuc, xmini-joint, xmini-cartesian)");
   post_cmd->add_option("--units", pa.units, "force the CL units (mm or inch)");
   post_cmd->add_option("--tolerance", pa.tolerance, "linearisation tolerance of the tip, mm (0: the machine file's)");
-  post_cmd->add_option("--axis-tolerance", pa.axis_tolerance, "linearisation tolerance of the tool axis, deg (0: the machine file's)");
+  post_cmd->add_option("--axis-tolerance", pa.axis_tolerance,
+                       "linearisation tolerance of the tool axis, deg (0: the machine file's)");
   post_cmd->add_option("--tool-length", pa.tool_length, "gauge-to-tip tool length, mm (0: the machine file's)");
   post_cmd
       ->add_option("--default-feed", pa.default_feed,

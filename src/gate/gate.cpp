@@ -1,12 +1,11 @@
 #include "cscam/gate/gate.hpp"
 
 #include <fmt/format.h>
+#include <tbb/task_group.h>
 
 #include <algorithm>
 #include <cmath>
 #include <stdexcept>
-
-#include <tbb/task_group.h>
 
 #include "cscam/core/atomic_file.hpp"
 #include "cscam/core/error.hpp"

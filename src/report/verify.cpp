@@ -1,13 +1,12 @@
 #include "cscam/report/verify.hpp"
 
 #include <fmt/format.h>
+#include <tbb/blocked_range.h>
+#include <tbb/parallel_for.h>
 
 #include <algorithm>
 #include <cmath>
 #include <limits>
-
-#include <tbb/blocked_range.h>
-#include <tbb/parallel_for.h>
 
 #include "cscam/core/tolerances.hpp"
 #include "cscam/core/units.hpp"
