@@ -724,3 +724,18 @@ TEST(Cli, GateFiguresDoNotDependOnTheThreadCount) {
     }
   }
 }
+
+TEST(Cli, ProgressLineOnlyOnATerminal) {
+  TempDir d;
+  std::string cls;
+  for (unsigned s = 0; s < 3; ++s) cls += " " + q(d.file("p" + std::to_string(s) + ".cls", dome_cl(50 + s, 2, 10)));
+  const std::string cmd = kCli + " post" + cls + " --machine trunnion-ac -o " + q((d.path / "out").string() + "/");
+  auto r = run_command(cmd);  // a pipe: no progress line
+  ASSERT_EQ(r.status, 0) << r.output;
+  EXPECT_EQ(r.output.find("3/3 files"), std::string::npos) << r.output;
+  if (run_command("command -v script").status != 0) GTEST_SKIP() << "no script(1) to make a terminal";
+  r = run_command("script -qec " + q(cmd) + " /dev/null");  // a terminal: the progress line, then cleared
+  ASSERT_EQ(r.status, 0) << r.output;
+  EXPECT_NE(r.output.find("] 3/3 files"), std::string::npos) << r.output;
+  EXPECT_NE(r.output.find("\r\033[K"), std::string::npos) << r.output;
+}
