@@ -350,6 +350,13 @@ TEST(Cli, StatsAndVerifyCheckTheProgramWasWrittenForTheMachine) {
   EXPECT_EQ(r.status, 0) << r.output;
   EXPECT_NE(r.output.find("warning: " + nc + ":"), std::string::npos) << r.output;
   EXPECT_NE(r.output.find("written for machine 'trunnion-ac'"), std::string::npos) << r.output;
+  // The warning is in the JSON document too (stderr dropped inside the subshell: run_command merges it).
+  r = run_command("(" + kCli + " stats " + q(nc) + " --machine " + q(other) + " --json 2>/dev/null)");
+  EXPECT_EQ(r.status, 0) << r.output;
+  const auto sj = nlohmann::json::parse(r.output);
+  ASSERT_EQ(sj.size(), 1u);
+  ASSERT_EQ(sj[0]["warnings"].size(), 1u) << r.output;
+  EXPECT_NE(sj[0]["warnings"][0].get<std::string>().find("written for machine 'trunnion-ac'"), std::string::npos);
   // The right machine: no complaint.
   r = run_command(kCli + " verify " + q(nc) + " --cl " + q(cl) + " --machine trunnion-ac");
   EXPECT_EQ(r.status, 0) << r.output;
@@ -509,4 +516,288 @@ TEST(Cli, TraceRejectsLostSamplesWithLocation) {
   r = run_command(kCli + " trace " + idle + " --machine trunnion-ac --cl " + cl);
   EXPECT_EQ(r.status, 1) << r.output;
   EXPECT_NE(r.output.find("did not cut"), std::string::npos) << r.output;
+}
+
+// --- batch conversion: several files, jobs files, the CLI a user expects ------------------------------------
+namespace {
+
+std::string slurp(const std::string& path) {
+  std::ifstream in(path, std::ios::binary);
+  return std::string((std::istreambuf_iterator<char>(in)), {});
+}
+
+/// A variable-axis raster over a dome (normals tilt up to ~25 deg), different for every seed.
+std::string dome_cl(unsigned seed, int rows, int per_row) {
+  auto g = cscam::test::rng(seed);
+  std::uniform_real_distribution<double> u(-10.0, 10.0);
+  const double cx = u(g), cy = u(g), R = 150.0 + 5.0 * u(g);
+  std::ostringstream os;
+  os << "PARTNO DOME " << seed << "\nUNITS/MM\nMULTAX/ON\nCUTTER/10,5\nLOADTL/1\nSPINDL/8000,CLW\nFEDRAT/MMPM,1500\n";
+  for (int r = 0; r < rows; ++r) {
+    os << "RAPID\n";
+    for (int k = 0; k < per_row; ++k) {
+      const double x = cx - 40.0 + 80.0 * (r % 2 ? per_row - 1 - k : k) / (per_row - 1);
+      const double y = cy - 40.0 + 80.0 * r / std::max(rows - 1, 1);
+      const double zz = std::sqrt(R * R - (x - cx) * (x - cx) - (y - cy) * (y - cy));
+      char buf[160];
+      std::snprintf(buf, sizeof buf, "GOTO/%.4f,%.4f,%.4f,%.7f,%.7f,%.7f\n", x, y, zz - R + 20.0, (x - cx) / R,
+                    (y - cy) / R, zz / R);
+      os << buf;
+    }
+  }
+  os << "FINI\n";
+  return os.str();
+}
+
+}  // namespace
+
+TEST(Cli, PostOfSeveralFilesIsByteIdenticalToSingleRunsAtAnyThreadCount) {
+  TempDir d;
+  std::vector<std::string> cls;
+  for (unsigned s = 0; s < 4; ++s) cls.push_back(d.file("dome" + std::to_string(s) + ".cls", dome_cl(s, 6, 40)));
+  cls.push_back(cscam::test::source_path("examples/groove/groove.cls"));
+  std::string all;
+  for (const auto& c : cls) all += " " + q(c);
+  // The oracle: one `cscam post` per file.
+  fs::create_directories(d.path / "single");
+  for (const auto& c : cls) {
+    const auto r = run_command(kCli + " post " + q(c) + " --machine trunnion-ac --tolerance 0.005 -o " +
+                               q((d.path / "single" / (fs::path(c).stem().string() + ".ngc")).string()));
+    ASSERT_EQ(r.status, 0) << r.output;
+  }
+  for (const char* threads : {"1", "2", "3"}) {
+    const fs::path dir = d.path / (std::string("batch") + threads);
+    const auto r = run_command("CSCAM_THREADS=" + std::string(threads) + " " + kCli + " post" + all +
+                               " --machine trunnion-ac --tolerance 0.005 -o " + q(dir.string() + "/"));
+    ASSERT_EQ(r.status, 0) << r.output;
+    // The summary table: one row per file with its status, then the count.
+    EXPECT_NE(r.output.find("reversals"), std::string::npos) << r.output;
+    EXPECT_NE(r.output.find("groove.cls"), std::string::npos) << r.output;
+    EXPECT_NE(r.output.find("5 of 5 files converted"), std::string::npos) << r.output;
+    EXPECT_NE(r.output.find(std::string("on ") + threads + " thread"), std::string::npos) << r.output;
+    for (const auto& c : cls) {
+      const std::string name = fs::path(c).stem().string() + ".ngc";
+      const std::string single = slurp((d.path / "single" / name).string());
+      ASSERT_FALSE(single.empty());
+      EXPECT_EQ(slurp((dir / name).string()), single) << name << " at " << threads << " threads";
+    }
+    for (const auto& e : fs::directory_iterator(dir)) EXPECT_EQ(e.path().extension(), ".ngc") << e.path();
+  }
+}
+
+TEST(Cli, OneBadFileDoesNotStopTheOthers) {
+  TempDir d;
+  const std::string good1 = d.file("good1.cls", dome_cl(11, 3, 20));
+  const std::string bad = d.file("bad.cls", "UNITS/MM\nMULTAX\nGOTO/1,2,3,0,0,1\nGOTO/1,2,x3,0,0,1\n");
+  const std::string far = d.file("far.cls", "UNITS/MM\nFEDRAT/MMPM,1000\nGOTO/0,0,0,0,0,1\nGOTO/5000,0,0,0,0,1\n");
+  const std::string nofeed = d.file("nofeed.cls", "UNITS/MM\nRAPID\nGOTO/0,0,50\nGOTO/0,0,0\nGOTO/10,0,0\n");
+  const std::string good2 = d.file("good2.cls", dome_cl(12, 3, 20));
+  const std::string out = (d.path / "out").string() + "/";
+  auto r = run_command(kCli + " post " + q(good1) + " " + q(bad) + " " + q(far) + " " + q(nofeed) + " " + q(good2) +
+                       " --machine trunnion-ac -o " + q(out));
+  EXPECT_EQ(r.status, 2) << r.output;  // input refused: 2, as for a single file
+  EXPECT_NE(r.output.find("2 of 5 files converted"), std::string::npos) << r.output;
+  EXPECT_NE(r.output.find("FAILED"), std::string::npos) << r.output;
+  EXPECT_NE(r.output.find("bad.cls:4:"), std::string::npos) << r.output;
+  EXPECT_NE(r.output.find("far.cls:4"), std::string::npos) << r.output;
+  EXPECT_NE(r.output.find("nofeed.cls:4"), std::string::npos) << r.output;
+  EXPECT_TRUE(fs::exists(out + "good1.ngc"));
+  EXPECT_TRUE(fs::exists(out + "good2.ngc"));
+  for (const char* n : {"bad.ngc", "far.ngc", "nofeed.ngc"}) EXPECT_FALSE(fs::exists(out + n)) << n;
+  for (const auto& e : fs::directory_iterator(out)) EXPECT_EQ(e.path().string().find(".tmp"), std::string::npos);
+  // --json: one entry per file in input order, with status, message and warnings; the same exit code.
+  r = run_command("(" + kCli + " post " + q(good1) + " " + q(bad) + " " + q(nofeed) +
+                  " --machine trunnion-ac --default-feed 400 --json -o " + q(out) + " 2>/dev/null)");
+  EXPECT_EQ(r.status, 2) << r.output;
+  const auto j = nlohmann::json::parse(r.output);
+  ASSERT_EQ(j["files"].size(), 3u) << r.output;
+  EXPECT_EQ(j["files"][0]["status"], "ok");
+  EXPECT_GT(j["files"][0]["blocks"].get<int>(), 60);
+  EXPECT_EQ(j["files"][1]["status"], "failed");
+  EXPECT_NE(j["files"][1]["message"].get<std::string>().find("bad.cls:4:"), std::string::npos);
+  EXPECT_EQ(j["files"][2]["status"], "ok");  // the default feed makes it convertible, with a warning
+  ASSERT_FALSE(j["files"][2]["warnings"].empty()) << r.output;
+  EXPECT_NE(j["files"][2]["warnings"][0].get<std::string>().find("default feed 400"), std::string::npos);
+  EXPECT_EQ(j["converted"], 2);
+  EXPECT_EQ(j["failed"], 1);
+  // Several files and an output that is a file, or no output at all: an argument error, nothing written.
+  r = run_command(kCli + " post " + q(good1) + " " + q(good2) + " --machine trunnion-ac -o " + q(d.file("x.ngc")));
+  EXPECT_EQ(r.status, 2) << r.output;
+  EXPECT_NE(r.output.find("output directory"), std::string::npos) << r.output;
+  EXPECT_FALSE(fs::exists(d.path / "x.ngc"));
+  // Two inputs with one stem would write one file twice.
+  fs::create_directories(d.path / "sub");
+  const std::string twin = (d.path / "sub" / "good1.cls").string();
+  fs::copy_file(good1, twin);
+  r = run_command(kCli + " post " + q(good1) + " " + q(twin) + " --machine trunnion-ac -o " + q(out));
+  EXPECT_EQ(r.status, 2) << r.output;
+  EXPECT_NE(r.output.find("distinct names"), std::string::npos) << r.output;
+}
+
+TEST(Cli, JobsFileWithPerFileSettingsMatchesSingleRuns) {
+  TempDir d;
+  fs::create_directories(d.path / "cl");
+  d.file("cl/a.cls", dome_cl(21, 4, 30));
+  d.file("cl/b.cls", dome_cl(22, 4, 30));
+  d.file("cl/c.cls", dome_cl(23, 4, 30));
+  d.file("cl/bad.cls", "UNITS/MM\nGOTO/1,2\n");
+  fs::copy_file(cscam::test::source_path("examples/groove/groove.cls"), d.path / "cl" / "groove.cls");
+  const std::string jobs = d.file("jobs.yaml",
+                                  "# paths are relative to this file\n"
+                                  "output_dir: nc\n"
+                                  "defaults:\n"
+                                  "  machine: trunnion-ac\n"
+                                  "  tolerance: 0.005\n"
+                                  "jobs:\n"
+                                  "  - cl/a.cls\n"
+                                  "  - cl: cl/b.cls\n"
+                                  "    machine: haas-umc750\n"
+                                  "    tool_length: 120\n"
+                                  "    dialect: fanuc\n"
+                                  "  - cl: cl/c.cls\n"
+                                  "    output: c-coarse.ngc\n"
+                                  "    tolerance: 0.02\n"
+                                  "    axis_tolerance: 0.5\n"
+                                  "  - cl: cl/groove.cls\n"
+                                  "    strategy: planner\n"
+                                  "    cone: 25\n"
+                                  "  - cl/bad.cls\n");
+  const std::string here = "cd " + q(d.path.string()) + " && ";
+  auto r = run_command(here + kCli + " batch jobs.yaml");
+  EXPECT_EQ(r.status, 2) << r.output;
+  EXPECT_NE(r.output.find("4 of 5 files converted"), std::string::npos) << r.output;
+  EXPECT_NE(r.output.find("bad.cls:2"), std::string::npos) << r.output;
+  EXPECT_FALSE(fs::exists(d.path / "nc" / "bad.ngc"));
+  // Each output equals the single run with the same settings.
+  struct Case {
+    std::string cmd, out;
+  };
+  const std::vector<Case> cases = {
+      {"post cl/a.cls --machine trunnion-ac --tolerance 0.005", "a.ngc"},
+      {"post cl/b.cls --machine haas-umc750 --tolerance 0.005 --tool-length 120 --dialect fanuc", "b.ngc"},
+      {"post cl/c.cls --machine trunnion-ac --tolerance 0.02 --axis-tolerance 0.5", "c-coarse.ngc"},
+      {"plan cl/groove.cls --machine trunnion-ac --tolerance 0.005 --cone 25", "groove.ngc"},
+  };
+  fs::create_directories(d.path / "single");
+  for (const auto& c : cases) {
+    r = run_command(here + kCli + " " + c.cmd + " -o single/" + c.out);
+    ASSERT_EQ(r.status, 0) << c.cmd << ": " << r.output;
+    const std::string single = slurp((d.path / "single" / c.out).string());
+    ASSERT_FALSE(single.empty());
+    EXPECT_EQ(slurp((d.path / "nc" / c.out).string()), single) << c.cmd;
+  }
+  EXPECT_NE(slurp((d.path / "nc" / "b.ngc").string()).find("M30"), std::string::npos);  // fanuc, not linuxcnc
+  // From another working directory the paths still resolve against the jobs file.
+  r = run_command("(cd / && " + kCli + " batch " + q(jobs) + " --json 2>/dev/null)");
+  EXPECT_EQ(r.status, 2) << r.output;
+  const auto j = nlohmann::json::parse(r.output);
+  ASSERT_EQ(j["files"].size(), 5u);
+  EXPECT_EQ(j["files"][3]["strategy"], "planner");
+  EXPECT_EQ(j["files"][3]["status"], "ok");
+  EXPECT_EQ(j["files"][4]["status"], "failed");
+}
+
+TEST(Cli, JobsFileErrorsNameTheLineAndRunNothing) {
+  TempDir d;
+  d.file("a.cls", dome_cl(31, 2, 10));
+  const std::string head = "defaults:\n  machine: trunnion-ac\njobs:\n  - a.cls\n";
+  const std::vector<std::pair<std::string, std::string>> cases = {
+      {head + "  - cl: a.cls\n    tolerence: 0.01\n", "jobs.yaml:6:5: 'tolerence': unknown key"},
+      {head + "  - cl: a.cls\n    output: b.ngc\n    tolerance: fine\n",
+       "jobs.yaml:7:16: 'tolerance': expected a number"},
+      {head + "  - cl: a.cls\n    output: b.ngc\n    dialect: heidenhian\n",
+       "jobs.yaml:7:14: 'dialect': unknown dialect"},
+      {head + "  - cl: a.cls\n    output: b.ngc\n    machine: nope\n",
+       "jobs.yaml:7:14: 'machine': machine file not found"},
+      {head + "  - cl: a.cls\n    output: b.ngc\n    strategy: fastest\n",
+       "jobs.yaml:7:15: 'strategy': unknown strategy"},
+      {head + "  - cl: a.cls\n    output: b.ngc\n    cone: 5\n", "jobs.yaml:5:5: 'strategy': cone, part and fixture"},
+      {head + "  - a.cls\n", "jobs.yaml:5:5: output"},
+      {"jobs:\n  - a.cls\n", "jobs.yaml:2:5: 'machine': missing"},
+      {"defaults:\n  machine: trunnion-ac\n", "'jobs': missing"},
+      {"jobs: [\n", "YAML syntax error"},
+      {head + "colour: red\n", "jobs.yaml:5:1: 'colour': unknown key"},
+  };
+  for (const auto& [text, expected] : cases) {
+    d.file("jobs.yaml", text);
+    const auto r = run_command(kCli + " batch " + q((d.path / "jobs.yaml").string()));
+    EXPECT_EQ(r.status, 2) << text << r.output;
+    EXPECT_NE(r.output.find(expected), std::string::npos) << text << "\n" << r.output;
+    EXPECT_FALSE(fs::exists(d.path / "a.ngc")) << text;
+  }
+  const auto r = run_command(kCli + " batch " + q((d.path / "missing.yaml").string()));
+  EXPECT_EQ(r.status, 2) << r.output;
+  EXPECT_NE(r.output.find("missing.yaml: cannot open jobs file"), std::string::npos) << r.output;
+}
+
+TEST(Cli, VersionAndDefaultsInHelp) {
+  auto r = run_command(kCli + " --version");
+  EXPECT_EQ(r.status, 0) << r.output;
+  EXPECT_TRUE(std::regex_search(r.output, std::regex(R"(^cscam \d+\.\d+\.\d+)"))) << r.output;
+  r = run_command(kCli + " verify --help");
+  EXPECT_EQ(r.status, 0) << r.output;
+  EXPECT_TRUE(std::regex_search(r.output, std::regex(R"(--samples\s+INT[^\n]*=8\s)"))) << r.output;
+  r = run_command(kCli + " plan --help");
+  EXPECT_TRUE(std::regex_search(r.output, std::regex(R"(--resolution\s+FLOAT[^\n]*=1\s)"))) << r.output;
+}
+
+TEST(Cli, CompareWritesJsonOnlyWhereAsked) {
+  TempDir d;
+  const std::string cl = d.file("cmp.cls", dome_cl(41, 2, 10));
+  auto r = run_command("cd " + q(d.path.string()) + " && " + kCli + " compare cmp.cls --machine trunnion-ac");
+  ASSERT_EQ(r.status, 0) << r.output;
+  for (const auto& e : fs::directory_iterator(d.path)) EXPECT_EQ(e.path().filename(), "cmp.cls") << e.path();
+  r = run_command("cd " + q(d.path.string()) + " && " + kCli +
+                  " compare cmp.cls --machine trunnion-ac --json-out c.json");
+  ASSERT_EQ(r.status, 0) << r.output;
+  EXPECT_EQ(nlohmann::json::parse(slurp((d.path / "c.json").string()))["machine"], "trunnion-ac");
+}
+
+TEST(Cli, GateFiguresDoNotDependOnTheThreadCount) {
+  // The gate samples blocks in parallel; its figures (not only the NC bytes) are the same at any thread count,
+  // also on the XMINI, whose FK is a warm-started Newton solve.
+  for (const auto& [cl, machine] :
+       {std::pair<std::string, std::string>{"examples/xmini/seed000_x_cut.cls", "xmini"},
+        std::pair<std::string, std::string>{"examples/nx-haas-umc750/variable_axis.cls", "haas-umc750"}}) {
+    TempDir d;
+    nlohmann::json first;
+    for (const char* threads : {"1", "2", "3"}) {
+      const auto r = run_command("(CSCAM_THREADS=" + std::string(threads) + " " + kCli + " post " +
+                                 q(cscam::test::source_path(cl)) + " --machine " + machine + " --json -o " +
+                                 q(d.file(std::string("t") + threads + ".ngc")) + " 2>/dev/null)");
+      ASSERT_EQ(r.status, 0) << r.output;
+      const auto j = nlohmann::json::parse(r.output);
+      if (first.is_null())
+        first = j["gate"];
+      else
+        EXPECT_EQ(j["gate"], first) << machine << " at " << threads << " threads";
+    }
+    // In a batch (jobs sharing threads) the same figures.
+    const std::string cls = q(cscam::test::source_path(cl)) + " " +
+                            q(d.file("copy.cls", slurp(cscam::test::source_path(cl)))) + " " +
+                            q(d.file("copy2.cls", slurp(cscam::test::source_path(cl))));
+    const auto r = run_command("(CSCAM_THREADS=3 " + kCli + " post " + cls + " --machine " + machine + " --json -o " +
+                               q((d.path / "batch").string() + "/") + " 2>/dev/null)");
+    ASSERT_EQ(r.status, 0) << r.output;
+    const auto j = nlohmann::json::parse(r.output);
+    for (const auto& f : j["files"]) {
+      for (const char* k : {"max_tip_deviation_mm", "max_axis_deviation_deg", "max_velocity_ratio", "message"})
+        EXPECT_EQ(f["gate"][k], first[k]) << machine << " " << k << " in a batch";
+    }
+  }
+}
+
+TEST(Cli, ProgressLineOnlyOnATerminal) {
+  TempDir d;
+  std::string cls;
+  for (unsigned s = 0; s < 3; ++s) cls += " " + q(d.file("p" + std::to_string(s) + ".cls", dome_cl(50 + s, 2, 10)));
+  const std::string cmd = kCli + " post" + cls + " --machine trunnion-ac -o " + q((d.path / "out").string() + "/");
+  auto r = run_command(cmd);  // a pipe: no progress line
+  ASSERT_EQ(r.status, 0) << r.output;
+  EXPECT_EQ(r.output.find("3/3 files"), std::string::npos) << r.output;
+  if (run_command("command -v script").status != 0) GTEST_SKIP() << "no script(1) to make a terminal";
+  r = run_command("script -qec " + q(cmd) + " /dev/null");  // a terminal: the progress line, then cleared
+  ASSERT_EQ(r.status, 0) << r.output;
+  EXPECT_NE(r.output.find("] 3/3 files"), std::string::npos) << r.output;
+  EXPECT_NE(r.output.find("\r\033[K"), std::string::npos) << r.output;
 }

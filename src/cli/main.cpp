@@ -1,18 +1,23 @@
 // The cscam command-line program: batch CL-to-NC conversion, verification and statistics.
 #include <fmt/format.h>
+#include <tbb/global_control.h>
+#include <tbb/task_arena.h>
 
 #include <CLI/CLI.hpp>
-#include <nlohmann/json.hpp>
 #include <algorithm>
 #include <chrono>
 #include <filesystem>
 #include <fstream>
 #include <iostream>
+#include <nlohmann/json.hpp>
 #include <sstream>
 
+#include "batch_cmd.hpp"
+#include "calib_cmd.hpp"
 #include "cscam/cl/program.hpp"
 #include "cscam/core/atomic_file.hpp"
 #include "cscam/core/error.hpp"
+#include "cscam/core/threads.hpp"
 #include "cscam/gate/gate.hpp"
 #include "cscam/machine/machine.hpp"
 #include "cscam/nc/reader.hpp"
@@ -71,69 +76,82 @@ std::array<bool, 5> rotary_of(const machine::Machine& m) {
 }
 
 struct PostArgs {
-  std::string cl, machine, out, dialect, units;
+  std::vector<std::string> cl;
+  std::string machine, out, dialect, units;
   double tolerance = 0, axis_tolerance = 0, tool_length = 0;
   double default_feed = 0;  ///< mm/min for feed moves without a feed rate; 0: such a CL file is an error
   bool json = false, no_linearise = false;
 };
 
+cli::PostJob job_of(const PostArgs& a, const std::string& cl, const std::string& out) {
+  cli::PostJob j;
+  j.cl = cl;
+  j.machine = a.machine;
+  j.out = out;
+  j.dialect = a.dialect;
+  j.units = a.units;
+  j.tolerance_mm = a.tolerance;
+  j.axis_tolerance_deg = a.axis_tolerance;
+  j.tool_length_mm = a.tool_length;
+  j.default_feed_mm_per_min = a.default_feed;
+  j.linearise = !a.no_linearise;
+  return j;
+}
+
 int cmd_post(const PostArgs& a) {
-  const auto t0 = std::chrono::steady_clock::now();
-  const machine::Machine m = machine::load(resolve_machine(a.machine));
-  cl::ReadOptions ro;
-  ro.units = parse_units(a.units);
-  ro.require_feed = true;
-  if (a.default_feed > 0) ro.default_feed_mm_per_min = a.default_feed;
-  const cl::Program prog = cl::read_file(a.cl, ro);
-  for (const auto& w : prog.warnings) std::cerr << "warning: " << w.where.str() << ": " << w.message << "\n";
-  const double L = post::tool_length_for(m, a.tool_length);
-  const auto kin = m.make_kinematics(L);
-  const auto axes = post::conventional_axes(prog, m, *kin);
-  post::Options po;
-  po.dialect = a.dialect;
-  po.tolerance_mm = a.tolerance;
-  po.axis_tolerance_deg = a.axis_tolerance;
-  po.linearise = !a.no_linearise;
-  po.source_name = fs::path(a.cl).filename().string();
-  po.tool_length_mm = L;
-  post::Summary sum;
-  const std::string out = a.out.empty() ? fs::path(a.cl).stem().string() + ".ngc" : a.out;  // in the working dir
-  std::ostringstream nc_text;
-  post::write_nc(nc_text, prog, m, *kin, axes, po, sum);
-  for (const auto& w : sum.warnings) std::cerr << "warning: " << w << "\n";
-  // No program reaches disk without passing the independent back-simulation (limits, feeds, tolerance).
-  const gate::Summary gs =
-      gate::write_checked(out, nc_text.str(), prog, m, *kin, gate::options_for(m, a.tolerance, a.axis_tolerance, 0.0),
-                          &sum.cl_line_of_nc_line);
-  const double secs = std::chrono::duration<double>(std::chrono::steady_clock::now() - t0).count();
+  // Several files, or an output that names a directory: the batch form, every file a job of its own.
+  const bool to_dir = !a.out.empty() && (a.out.back() == '/' || fs::is_directory(a.out));
+  if (a.cl.size() > 1 || to_dir) {
+    if (a.out.empty())
+      throw InputError(fmt::format("post: {} CL files need an output directory: -o DIR/", a.cl.size()));
+    if (!to_dir)
+      throw InputError(SourceLoc{a.out}, fmt::format("post: {} CL files need an output directory, and this is a "
+                                                     "file (end it with / to create the directory)",
+                                                     a.cl.size()));
+    cli::make_output_dir(a.out);
+    std::vector<cli::PostJob> jobs;
+    for (const auto& cl : a.cl)
+      jobs.push_back(job_of(a, cl, (fs::path(a.out) / (fs::path(cl).stem().string() + ".ngc")).string()));
+    return cli::run_jobs(jobs, a.json);
+  }
+  const std::string& cl = a.cl.front();
+  const std::string out = a.out.empty() ? fs::path(cl).stem().string() + ".ngc" : a.out;  // in the working dir
+  const cli::PostJob job = job_of(a, cl, out);
+  cli::JobResult r;
+  // CSCAM_THREADS sets the gate's parallel loops' threads (TBB's pool alone would follow the hardware).
+  const tbb::global_control pool(tbb::global_control::max_allowed_parallelism, worker_threads());
+  tbb::task_arena arena(static_cast<int>(worker_threads()));
+  arena.execute([&] { cli::run_job(job, r); });
   if (a.json) {
     nlohmann::json j;
     j["nc"] = out;
-    j["machine"] = m.name;
-    j["cl_points"] = sum.cl_points;
-    j["blocks"] = sum.blocks;
-    j["inserted_points"] = sum.inserted_points;
-    j["reorientations"] = sum.reorientations;
-    j["retracts"] = sum.retracts;
-    j["gate"] = {{"ok", gs.ok},
-                 {"message", gs.message},
-                 {"max_tip_deviation_mm", gs.deviation.max_tip_deviation_mm},
-                 {"max_axis_deviation_deg", gs.deviation.max_axis_deviation_deg},
-                 {"max_velocity_ratio", gs.max_velocity_ratio}};
-    j["warnings"] = nlohmann::json::array();
-    for (const auto& w : prog.warnings) j["warnings"].push_back(w.where.str() + ": " + w.message);
-    for (const auto& w : sum.warnings) j["warnings"].push_back(w);
-    j["seconds"] = secs;
+    j["machine"] = r.machine_name;
+    j["cl_points"] = r.cl_points;
+    j["blocks"] = r.blocks;
+    j["inserted_points"] = r.inserted_points;
+    j["reorientations"] = r.reorientations;
+    j["retracts"] = r.retracts;
+    j["travel_mm"] = r.travel_mm;
+    j["travel_deg"] = r.travel_deg;
+    j["reversals"] = r.reversals;
+    j["gate"] = {{"ok", true},
+                 {"message", r.message},
+                 {"max_tip_deviation_mm", r.max_tip_deviation_mm},
+                 {"max_axis_deviation_deg", r.max_axis_deviation_deg},
+                 {"max_velocity_ratio", r.max_velocity_ratio}};
+    j["warnings"] = r.warnings;
+    j["seconds"] = r.seconds;
     std::cout << j.dump() << "\n";
   } else {
+    for (const auto& w : r.warnings) std::cerr << "warning: " << w << "\n";
     std::cout << fmt::format(
         "wrote {} ({} CL points -> {} blocks, {} points inserted by linearisation{}) for machine {} in {:.3f} s\n"
         "gate {}\n",
-        out, sum.cl_points, sum.blocks, sum.inserted_points,
-        sum.reorientations + sum.retracts
-            ? fmt::format(", {} reorientations in place, {} retracts", sum.reorientations, sum.retracts)
+        out, r.cl_points, r.blocks, r.inserted_points,
+        r.reorientations + r.retracts
+            ? fmt::format(", {} reorientations in place, {} retracts", r.reorientations, r.retracts)
             : std::string(),
-        m.name, secs, gs.message);
+        r.machine_name, r.seconds, r.message);
   }
   return 0;
 }
@@ -178,16 +196,25 @@ int cmd_stats(const std::vector<std::string>& files, const std::string& machine_
   const machine::Machine m = machine::load(resolve_machine(machine_arg));
   std::vector<report::Stats> cols;
   std::vector<std::string> headers;
+  std::vector<std::vector<std::string>> warnings;
   for (const auto& f : files) {
     const nc::Program p = nc::read_file(f, report::axis_letters(m));
     // Statistics count axis words: a letter the machine lacks is an error, another machine's header a warning.
-    if (const auto mismatch = report::check_machine_of(p, m)) std::cerr << "warning: " << mismatch->what() << "\n";
+    warnings.emplace_back();
+    if (const auto mismatch = report::check_machine_of(p, m)) {
+      std::cerr << "warning: " << mismatch->what() << "\n";
+      warnings.back().push_back(mismatch->what());
+    }
     cols.push_back(report::compute(p, names_of(m, true), rotary_of(m)));
     headers.push_back(fs::path(f).filename().string());
   }
   if (json) {
     nlohmann::json all = nlohmann::json::array();
-    for (const auto& c : cols) all.push_back(c.json());
+    for (std::size_t i = 0; i < cols.size(); ++i) {
+      nlohmann::json c = cols[i].json();
+      c["warnings"] = warnings[i];  // what went to stderr, also in the document
+      all.push_back(std::move(c));
+    }
     std::cout << all.dump(2) << "\n";
   } else {
     std::cout << report::table(cols, headers);
@@ -268,20 +295,26 @@ int cmd_backlash(const BacklashArgs& a) {
 int main(int argc, char** argv) {
   CLI::App app{"cscam: 5-axis CAM post-processor with a configuration-space tool-orientation planner"};
   app.require_subcommand(1);
+  app.set_version_flag("--version", std::string("cscam ") + CSCAM_VERSION);
+  // Every option's default is shown in --help ("0" for a tolerance means "the machine file's").
+  app.option_defaults()->always_capture_default();
 
   PostArgs pa;
-  auto* post_cmd =
-      app.add_subcommand("post", "Convert a CL file to NC with the conventional (nearest-solution) strategy");
-  post_cmd->add_option("cl", pa.cl, "CL file (APT/CLDATA, NX CLSF, CSV)")->required();
+  auto* post_cmd = app.add_subcommand(
+      "post", "Convert CL files to NC with the conventional (nearest-solution) strategy; several in parallel");
+  post_cmd->add_option("cl", pa.cl, "CL file(s) (APT/CLDATA, NX CLSF, CSV); several are converted in parallel")
+      ->required();
   post_cmd->add_option("-m,--machine", pa.machine, "machine file or bundled machine name")->required();
   post_cmd->add_option("-o,--output", pa.out,
-                       "NC file to write (default: CL name with .ngc, in the working directory)");
+                       "NC file to write, or a directory (ending in /) for several CL files "
+                       "(default: CL name with .ngc, in the working directory)");
   post_cmd->add_option("--dialect", pa.dialect,
                        "override the machine's dialect (linuxcnc, fanuc, xmini-joint, xmini-cartesian)");
   post_cmd->add_option("--units", pa.units, "force the CL units (mm or inch)");
-  post_cmd->add_option("--tolerance", pa.tolerance, "linearisation tolerance of the tip, mm");
-  post_cmd->add_option("--axis-tolerance", pa.axis_tolerance, "linearisation tolerance of the tool axis, deg");
-  post_cmd->add_option("--tool-length", pa.tool_length, "gauge-to-tip tool length, mm (default: machine file)");
+  post_cmd->add_option("--tolerance", pa.tolerance, "linearisation tolerance of the tip, mm (0: the machine file's)");
+  post_cmd->add_option("--axis-tolerance", pa.axis_tolerance,
+                       "linearisation tolerance of the tool axis, deg (0: the machine file's)");
+  post_cmd->add_option("--tool-length", pa.tool_length, "gauge-to-tip tool length, mm (0: the machine file's)");
   post_cmd
       ->add_option("--default-feed", pa.default_feed,
                    "feed, mm/min, for cutting moves the CL gives no feed rate for (default: such a CL is an error)")
@@ -328,6 +361,7 @@ int main(int argc, char** argv) {
   auto run_sim_commands = cli::add_sim_commands(app);
   auto run_calib_commands = cli::add_calib_commands(app);
   auto run_trace_commands = cli::add_trace_commands(app);
+  auto run_batch_command = cli::add_batch_command(app);
 
   try {
     app.parse(argc, argv);
@@ -343,6 +377,7 @@ int main(int argc, char** argv) {
     if (const int rc = run_sim_commands(); rc >= 0) return rc;
     if (const int rc = run_calib_commands(); rc >= 0) return rc;
     if (const int rc = run_trace_commands(); rc >= 0) return rc;
+    if (const int rc = run_batch_command(); rc >= 0) return rc;
   } catch (const InputError& e) {
     std::cerr << "error: " << e.what() << "\n";
     return 2;

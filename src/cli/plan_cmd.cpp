@@ -35,16 +35,6 @@ namespace cscam::cli {
 
 namespace {
 
-struct PlanArgs {
-  std::string cl, machine, out, dialect, units, svg_dir, json_out;
-  std::vector<std::string> parts, fixtures;
-  double cone_deg = 0, min_tilt_deg = 0, resolution_deg = 1.0, clearance_mm = 0.5, tool_length = 0, tolerance = 0;
-  double max_step_deg = 0, mesh_scale = 1.0, tilt_step_deg = 0;
-  double default_feed = 0;  ///< mm/min for feed moves without a feed rate; 0: such a CL file is an error
-  bool no_collision = false, json = false;
-  bool no_machine_geometry = false;  ///< leave the machine file's bodies out of the scene
-};
-
 /// Everything a planning run needs, loaded once from the arguments.
 struct Setup {
   machine::Machine m;
@@ -95,7 +85,7 @@ nlohmann::json mesh_reports_json(const Setup& s) {
   return out;
 }
 
-std::unique_ptr<Setup> setup(const PlanArgs& a) {
+std::unique_ptr<Setup> setup(const PlanArgs& a, std::vector<std::string>* warnings = nullptr) {
   auto s = std::make_unique<Setup>();
   s->m = machine::load(resolve_machine(a.machine));
   cl::ReadOptions ro;
@@ -103,7 +93,12 @@ std::unique_ptr<Setup> setup(const PlanArgs& a) {
   ro.require_feed = true;
   if (a.default_feed > 0) ro.default_feed_mm_per_min = a.default_feed;
   s->prog = cl::read_file(a.cl, ro);
-  for (const auto& w : s->prog.warnings) std::cerr << "warning: " << w.where.str() << ": " << w.message << "\n";
+  for (const auto& w : s->prog.warnings) {
+    if (warnings)
+      warnings->push_back(w.where.str() + ": " + w.message);
+    else
+      std::cerr << "warning: " << w.where.str() << ": " << w.message << "\n";
+  }
   s->tool_length = post::tool_length_for(s->m, a.tool_length);
   s->kin = s->m.make_kinematics(s->tool_length);
   for (const auto& p : a.parts)
@@ -363,11 +358,12 @@ int run_compare(const PlanArgs& a) {
                                  {"ik", p.counters.ik},
                                  {"stroke", p.counters.stroke},
                                  {"collision", p.counters.collision}}}}}};
-  const std::string json = jc.dump(2) + "\n";
-  // Default: beside the working directory, never next to the (possibly read-only) input.
-  const std::string json_path = a.json_out.empty() ? fs::path(a.cl).stem().string() + ".compare.json" : a.json_out;
-  write_file_atomically(json_path, [&](std::ostream& os) { os << json; });
-  std::cout << "JSON: " << json_path << "\n";
+  // JSON only where asked: a run must not leave files in the working directory it was not told to write.
+  if (!a.json_out.empty()) {
+    const std::string json = jc.dump(2) + "\n";
+    write_file_atomically(a.json_out, [&](std::ostream& os) { os << json; });
+    std::cout << "JSON: " << a.json_out << "\n";
+  }
   if (!a.out.empty())
     gate::write_checked(a.out, plan_text, p.program, s->m, *s->kin, gate_options(*s, a, a.cone_deg),
                         &sp.cl_line_of_nc_line);
@@ -403,6 +399,20 @@ void common_options(CLI::App* c, PlanArgs& a) {
 
 }  // namespace
 
+PlanWritten plan_and_write(const PlanArgs& a, const std::string& out) {
+  PlanWritten w;
+  auto s = setup(a, &w.warnings);
+  const plan::Planner planner(s->m, s->kin, &s->scene, s->tool.get(), s->opt, s->has_head ? &s->head : nullptr);
+  const plan::Plan p = planner.run(s->prog);
+  const std::string text = post_to_string(*s, p.program, p.axes, a, "cspace-planner", w.post);
+  w.gate = gate::write_checked(out, text, p.program, s->m, *s->kin, gate_options(*s, a, a.cone_deg),
+                               &w.post.cl_line_of_nc_line);
+  for (const auto& x : w.post.warnings) w.warnings.push_back(x);
+  w.machine_name = s->m.name;
+  w.nc_text = text;
+  return w;
+}
+
 std::function<int()> add_plan_commands(CLI::App& app) {
   auto args = std::make_shared<PlanArgs>();
   auto* plan_cmd = app.add_subcommand("plan", "Plan tool orientations in the rotary C-space and write the NC program");
@@ -410,7 +420,7 @@ std::function<int()> add_plan_commands(CLI::App& app) {
   plan_cmd->add_option("-o,--output", args->out, "NC file to write");
   auto* cmp = app.add_subcommand("compare", "Conventional post vs C-space planner: travel, reversals, tiers");
   common_options(cmp, *args);
-  cmp->add_option("--json-out", args->json_out, "where to write the JSON comparison (default: CL name .compare.json)");
+  cmp->add_option("--json-out", args->json_out, "write the comparison as JSON to this file (default: none)");
   cmp->add_option("-o,--output", args->out, "also write the planned NC program here");
   return [args, plan_cmd, cmp]() -> int {
     if (*plan_cmd) return run_plan(*args);

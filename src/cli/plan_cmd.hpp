@@ -7,8 +7,34 @@
 #include <vector>
 
 #include "cscam/core/units.hpp"
+#include "cscam/gate/gate.hpp"
+#include "cscam/post/post.hpp"
 
 namespace cscam::cli {
+
+/// The options of `plan` and `compare` (also what a batch job with the planner strategy sets).
+struct PlanArgs {
+  std::string cl, machine, out, dialect, units, svg_dir, json_out;
+  std::vector<std::string> parts, fixtures;
+  double cone_deg = 0, min_tilt_deg = 0, resolution_deg = 1.0, clearance_mm = 0.5, tool_length = 0, tolerance = 0;
+  double max_step_deg = 0, mesh_scale = 1.0, tilt_step_deg = 0;
+  double default_feed = 0;  ///< mm/min for feed moves without a feed rate; 0: such a CL file is an error
+  bool no_collision = false, json = false;
+  bool no_machine_geometry = false;  ///< leave the machine file's bodies out of the scene
+};
+
+/// What plan_and_write did.
+struct PlanWritten {
+  std::string machine_name;
+  std::string nc_text;  ///< the program written
+  post::Summary post;
+  gate::Summary gate;
+  std::vector<std::string> warnings;  ///< CL reader and post warnings (not printed)
+};
+
+/// Plans `a.cl`, posts it and writes `out` through the safety gate, printing nothing (the batch form of
+/// `cscam plan`: the same program byte for byte). Throws InputError on bad input or a refused program.
+PlanWritten plan_and_write(const PlanArgs& a, const std::string& out);
 
 /// Adds `plan` and `compare` to the app; returns a runner that executes whichever was chosen (or null).
 std::function<int()> add_plan_commands(CLI::App& app);

@@ -1,6 +1,7 @@
 #include "cscam/gate/gate.hpp"
 
 #include <fmt/format.h>
+#include <tbb/task_group.h>
 
 #include <algorithm>
 #include <cmath>
@@ -111,6 +112,23 @@ Summary check(const std::string& nc_text, const std::string& nc_name, const cl::
   s.blocks = ncp.blocks.size();
   const auto& ax = kinematics.axes();
   const TipWordsKinematics tip_kin(kinematics, machine.kind == machine::ModelKind::Xmini);
+
+  // Tip and tool axis against the CL path, sampled inside every feed block: it reads only the program and the
+  // CL path, so it runs beside the limit and velocity checks below (its violations are added after theirs).
+  report::VerifyOptions vo;
+  vo.tip_tolerance_mm = options.tip_tolerance_mm;
+  vo.axis_tolerance_deg = options.axis_tolerance_deg;
+  vo.samples_per_block = options.samples_per_block;
+  vo.ball_centre = options.ball_centre;
+  // The XMINI's FK is warm-started from the calling thread's previous solve: there the comparison runs on this
+  // thread after the checks below, so that its last digits do not depend on the thread count.
+  const bool verify_here = machine.kind == machine::ModelKind::Xmini;
+  auto compare = [&] {
+    s.deviation =
+        report::verify(ncp, cl, s.tool_tip_control ? static_cast<const kin::Kinematics&>(tip_kin) : kinematics, vo);
+  };
+  tbb::task_group tg;
+  if (!verify_here) tg.run(compare);
 
   // Machine (joint) values of every block: the words themselves, or for tool-tip control the IK solution
   // nearest the previous block's (what the control computes), inside every limit.
@@ -240,14 +258,8 @@ Summary check(const std::string& nc_text, const std::string& nc_name, const cl::
     }
   }
 
-  // Tip and tool axis against the CL path, sampled inside every feed block.
-  report::VerifyOptions vo;
-  vo.tip_tolerance_mm = options.tip_tolerance_mm;
-  vo.axis_tolerance_deg = options.axis_tolerance_deg;
-  vo.samples_per_block = options.samples_per_block;
-  vo.ball_centre = options.ball_centre;
-  s.deviation =
-      report::verify(ncp, cl, s.tool_tip_control ? static_cast<const kin::Kinematics&>(tip_kin) : kinematics, vo);
+  tg.wait();  // the tip/axis comparison started above
+  if (verify_here) compare();
   const auto& d = s.deviation;
   if (d.max_tip_deviation_mm > vo.tip_tolerance_mm)
     add(Violation::Kind::Deviation, d.max_tip_nc_line, d.max_tip_cl_line,

@@ -1,6 +1,8 @@
 #include "cscam/report/verify.hpp"
 
 #include <fmt/format.h>
+#include <tbb/blocked_range.h>
+#include <tbb/parallel_for.h>
 
 #include <algorithm>
 #include <cmath>
@@ -8,6 +10,7 @@
 
 #include "cscam/core/tolerances.hpp"
 #include "cscam/core/units.hpp"
+#include "cscam/kin/xmini_kinematics.hpp"
 #include "cscam/report/json.hpp"
 
 namespace cscam::report {
@@ -38,14 +41,15 @@ double seg_distance(const ClSeg& s, const Vec3& p, double& t) {
 /// A feed block that moves the tool only along its own axis, away from the CL path (a post's retract
 /// before a flip or unwind, or the plunge back): every sample lies on the line through the block's start
 /// along its axis, the axis stays within tolerance, and no sample is below the CL path (no gouge).
+/// `poses` are the FK samples of the block (0..n at qa + i/n (qb - qa)) and FK(qb) at index n + 1;
 /// `cl_point_near(p)` gives the nearest CL path point and its axis.
 template <typename Near>
-bool departure(const kin::Kinematics& k, const kin::Axes& qa, const kin::Axes& qb, int n, double tip_tol,
-               double cos_axis_tol, double ball_r, Near&& cl_point_near) {
-  const kin::Posed pa = k.forward(qa), pb = k.forward(qb);
+bool departure(const kin::Posed* poses, int n, double tip_tol, double cos_axis_tol, double ball_r,
+               Near&& cl_point_near) {
+  const kin::Posed &pa = poses[0], &pb = poses[n + 1];
   if ((pb.tip_mm - pa.tip_mm).norm() <= tip_tol) return false;
   for (int i = 0; i <= n; ++i) {
-    const kin::Posed p = i == 0 ? pa : (i == n ? pb : k.forward(qa + (static_cast<double>(i) / n) * (qb - qa)));
+    const kin::Posed& p = i == n ? pb : poses[i];
     if ((p.tip_mm - pa.tip_mm).cross(pa.axis).norm() > tip_tol || p.axis.dot(pa.axis) < cos_axis_tol) return false;
     const Vec3 ctrl = p.tip_mm + ball_r * p.axis;  // the compared point: tip, or ball centre
     const auto [c, u] = cl_point_near(ctrl);
@@ -149,60 +153,106 @@ VerifyResult verify(const nc::Program& nc, const cl::Program& cl, const kin::Kin
     for (int a = 0; a < 5; ++a) q[a] = b.axes[static_cast<size_t>(a)];
     return q;
   };
-  for (const nc::Block& b : nc.blocks) {
-    if (b.motion == nc::Motion::Rapid || prev == nullptr) {
-      after_rapid = true;
+  // Forward kinematics of every sample is independent of the search along the CL path: computed in parallel
+  // for a chunk of blocks (fixed chunks, fixed slots), then walked in order as before. Same numbers at any
+  // thread count.
+  const int n = std::max(1, options.samples_per_block);
+  const std::size_t stride = static_cast<std::size_t>(n) + 2;  // samples 0..n, then FK(qb) exactly
+  constexpr std::size_t kChunk = 4096;
+  std::vector<kin::Posed> poses;
+  // The XMINI's FK is a Newton solve warm-started from the thread's previous one: its last digits depend on
+  // which block a thread solved before, so there the samples are computed in order (numbers independent of the
+  // thread count, as everywhere else).
+  const bool fk_in_order = dynamic_cast<const kin::XminiKinematics*>(&kinematics) != nullptr;
+  struct AxisSample {
+    std::size_t seg;
+    double t;
+    const kin::Posed* pose;
+    int nc_line;
+  };
+  std::vector<AxisSample> axis_samples;
+  std::vector<double> axis_angles;
+  for (std::size_t c0 = 0; c0 < nc.blocks.size(); c0 += kChunk) {
+    const std::size_t c1 = std::min(nc.blocks.size(), c0 + kChunk);
+    poses.resize((c1 - c0) * stride);
+    auto fk = [&](const tbb::blocked_range<std::size_t>& r) {
+      for (std::size_t bi = r.begin(); bi != r.end(); ++bi) {
+        if (bi == 0 || nc.blocks[bi].motion == nc::Motion::Rapid) continue;
+        const kin::Axes qa = to_axes(nc.blocks[bi - 1]), qb = to_axes(nc.blocks[bi]);
+        kin::Posed* out = &poses[(bi - c0) * stride];
+        for (int k = 0; k <= n; ++k) out[k] = kinematics.forward(qa + (static_cast<double>(k) / n) * (qb - qa));
+        out[n + 1] = kinematics.forward(qb);
+      }
+    };
+    if (fk_in_order)
+      fk(tbb::blocked_range<std::size_t>(c0, c1));
+    else
+      tbb::parallel_for(tbb::blocked_range<std::size_t>(c0, c1, 256), fk);
+    for (std::size_t bi = c0; bi < c1; ++bi) {
+      const nc::Block& b = nc.blocks[bi];
+      if (b.motion == nc::Motion::Rapid || prev == nullptr) {
+        after_rapid = true;
+        prev = &b;
+        continue;
+      }
+      const kin::Posed* bp = &poses[(bi - c0) * stride];
+      if (departure(bp, n, options.tip_tolerance_mm, std::cos(deg2rad(options.axis_tolerance_deg)), ball_r,
+                    [&](const Vec3& p) {
+                      size_t c = cursor;
+                      double t;
+                      nearest(p, c, false, t);
+                      const ClSeg& sg = segs[c];
+                      return std::pair<Vec3, Vec3>(sg.p0 + t * (sg.p1 - sg.p0), slerp(sg.u0, sg.u1, t));
+                    })) {
+        // A retract or plunge along the fixed tool axis (a post's flip or unwind): off the path by design,
+        // like a rapid; the CL points around it must still be reached.
+        ++r.axial_blocks;
+        for (const kin::Posed* p : {&bp[0], &bp[n + 1]}) {  // its ends may be CL points (a CL plunge or retract)
+          nc_feed_points.push_back(point(p->tip_mm, p->axis));
+          nc_feed_lines.push_back(b.line);
+        }
+        after_rapid = true;
+        prev = &b;
+        continue;
+      }
+      ++r.feed_blocks;
+      for (int k = after_rapid ? 0 : 1; k <= n; ++k) {
+        const kin::Posed& p = bp[k];
+        const Vec3 pt = point(p.tip_mm, p.axis);
+        double t;
+        const double d = nearest(pt, cursor, after_rapid && k == 0, t);
+        after_rapid = false;
+        ++r.samples;
+        if (d > r.max_tip_deviation_mm) {
+          r.max_tip_deviation_mm = d;
+          r.max_tip_nc_line = b.line;
+          r.max_tip_cl_line = segs[cursor].line;
+        }
+        axis_samples.push_back({cursor, t, &p, b.line});
+        if (k == n || k == 0) {
+          nc_feed_points.push_back(pt);
+          nc_feed_lines.push_back(b.line);
+        }
+      }
       prev = &b;
-      continue;
     }
-    const kin::Axes qa = to_axes(*prev), qb = to_axes(b);
-    if (departure(kinematics, qa, qb, std::max(1, options.samples_per_block), options.tip_tolerance_mm,
-                  std::cos(deg2rad(options.axis_tolerance_deg)), ball_r, [&](const Vec3& p) {
-                    size_t c = cursor;
-                    double t;
-                    nearest(p, c, false, t);
-                    const ClSeg& sg = segs[c];
-                    return std::pair<Vec3, Vec3>(sg.p0 + t * (sg.p1 - sg.p0), slerp(sg.u0, sg.u1, t));
-                  })) {
-      // A retract or plunge along the fixed tool axis (a post's flip or unwind): off the path by design,
-      // like a rapid; the CL points around it must still be reached.
-      ++r.axial_blocks;
-      for (const kin::Axes* q : {&qa, &qb}) {  // its ends may be CL points (a CL plunge or retract at feed)
-        const kin::Posed p = kinematics.forward(*q);
-        nc_feed_points.push_back(point(p.tip_mm, p.axis));
-        nc_feed_lines.push_back(b.line);
+    // The tool axis against the CL orientation where the walk found each sample: independent per sample, so in
+    // parallel; the maximum is then taken in sample order (the first of equal values, as a sequential scan).
+    axis_angles.resize(axis_samples.size());
+    tbb::parallel_for(tbb::blocked_range<std::size_t>(0, axis_samples.size(), 1024),
+                      [&](const tbb::blocked_range<std::size_t>& rg) {
+                        for (std::size_t i = rg.begin(); i != rg.end(); ++i) {
+                          const AxisSample& a = axis_samples[i];
+                          const Vec3 u = slerp(segs[a.seg].u0, segs[a.seg].u1, a.t);
+                          axis_angles[i] = rad2deg(std::acos(std::clamp(u.dot(a.pose->axis), -1.0, 1.0)));
+                        }
+                      });
+    for (std::size_t i = 0; i < axis_samples.size(); ++i)
+      if (axis_angles[i] > r.max_axis_deviation_deg) {
+        r.max_axis_deviation_deg = axis_angles[i];
+        r.max_axis_nc_line = axis_samples[i].nc_line;
       }
-      after_rapid = true;
-      prev = &b;
-      continue;
-    }
-    ++r.feed_blocks;
-    const int n = std::max(1, options.samples_per_block);
-    for (int k = after_rapid ? 0 : 1; k <= n; ++k) {
-      const double s = static_cast<double>(k) / n;
-      const kin::Posed p = kinematics.forward(qa + s * (qb - qa));
-      const Vec3 pt = point(p.tip_mm, p.axis);
-      double t;
-      const double d = nearest(pt, cursor, after_rapid && k == 0, t);
-      after_rapid = false;
-      ++r.samples;
-      if (d > r.max_tip_deviation_mm) {
-        r.max_tip_deviation_mm = d;
-        r.max_tip_nc_line = b.line;
-        r.max_tip_cl_line = segs[cursor].line;
-      }
-      const Vec3 u = slerp(segs[cursor].u0, segs[cursor].u1, t);
-      const double ang = rad2deg(std::acos(std::clamp(u.dot(p.axis), -1.0, 1.0)));
-      if (ang > r.max_axis_deviation_deg) {
-        r.max_axis_deviation_deg = ang;
-        r.max_axis_nc_line = b.line;
-      }
-      if (k == n || k == 0) {
-        nc_feed_points.push_back(pt);
-        nc_feed_lines.push_back(b.line);
-      }
-    }
-    prev = &b;
+    axis_samples.clear();
   }
   // Coverage: every CL feed point must be reached by the NC path (nothing skipped).
   if (!nc_feed_points.empty()) {
