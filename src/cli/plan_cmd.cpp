@@ -165,9 +165,15 @@ gate::Options gate_options(const Setup& s, const PlanArgs& a, double cone_deg) {
   return g;
 }
 
-report::VerifyResult verify_text(const Setup& s, const std::string& text, double cone_deg) {
+/// Verifies NC text against the CL program, except for the approach/retract moves the planner re-placed along
+/// the chosen tool axis (listed in `replaced`), which are checked against their planned poses.
+report::VerifyResult verify_text(const Setup& s, const std::string& text, double cone_deg,
+                                 const plan::Plan* planned = nullptr) {
   const report::VerifyOptions vo = report::verify_options_for(s.m, 0.0, 0.0, cone_deg);
-  return report::verify(nc::read_text(text, "planned.ngc", report::axis_letters(s.m)), s.prog, *s.kin, vo);
+  cl::Program ref = s.prog;
+  if (planned)
+    for (std::size_t m : planned->replaced_moves) ref.moves[m] = planned->program.moves[m];
+  return report::verify(nc::read_text(text, "planned.ngc", report::axis_letters(s.m)), ref, *s.kin, vo);
 }
 
 void write_svgs(const Setup& s, const plan::Planner& planner, const plan::Plan& p, const std::vector<kin::Axes>& conv,
@@ -203,9 +209,11 @@ int run_plan(const PlanArgs& a) {
   if (!a.svg_dir.empty()) write_svgs(*s, planner, p, post::conventional_axes(s->prog, s->m, *s->kin), a.svg_dir);
   std::cout << p.summary();
   std::cout << fmt::format("wrote {} ({} blocks); verify: {}\n", out, sum.blocks, v.message);
-  std::cout << fmt::format("planner: {:.3f} s, {} cells enumerated, {} IK, {} stroke and {} collision queries\n",
-                           p.seconds, p.counters.cells_enumerated, p.counters.ik, p.counters.stroke,
-                           p.counters.collision);
+  std::cout << fmt::format(
+      "planner: {:.3f} s, {} cells enumerated, {} IK, {} stroke and {} collision queries ({} of them for {} swept "
+      "moves)\n",
+      p.seconds, p.counters.cells_enumerated, p.counters.ik, p.counters.stroke, p.counters.collision,
+      p.counters.swept_queries, p.counters.swept);
   return 0;
 }
 
@@ -221,16 +229,18 @@ int run_compare(const PlanArgs& a) {
   post::Summary sp;
   const std::string plan_text = post_to_string(*s, p.program, p.axes, a, "cspace-planner", sp);
   const auto vc = verify_text(*s, conv_text, 0.0);
-  const auto vp = verify_text(*s, plan_text, a.cone_deg);
+  const auto vp = verify_text(*s, plan_text, a.cone_deg, &p);
   auto stc = stats_of(*s, conv_text, "conventional");
   auto stp = stats_of(*s, plan_text, "planner");
   // An independent collision check of both programs against the meshes (even when the planner was told
   // to ignore them): FK of every CL point's axis values, tool vs scene.
+  // And every move between the points, swept (feed blocks, approach/retract, reorientations).
   struct Hits {
     std::size_t n = 0;
     int first_line = 0;
+    plan::SweptSummary swept;
   };
-  auto count_collisions = [&](const std::vector<kin::Axes>& axes) {
+  auto count_collisions = [&](const cl::Program& prog, const std::vector<kin::Axes>& axes) {
     Hits h;
     if (!s->has_meshes || !s->tool) return h;
     cspace::Options co = s->opt.cspace;
@@ -238,14 +248,15 @@ int run_compare(const PlanArgs& a) {
     geom::QueryWorkspace ws;
     cspace::Counters cc;
     const cspace::Space space_h(s->kin, &s->scene, s->tool.get(), co, s->has_head ? &s->head : nullptr);
-    for (std::size_t i = 0; i < s->prog.moves.size(); ++i)
+    for (std::size_t i = 0; i < prog.moves.size(); ++i)
       if (!space_h.collision_at_axes(axes[i], ws, cc).empty()) {
-        if (!h.n) h.first_line = s->prog.moves[i].line;
+        if (!h.n) h.first_line = prog.moves[i].line;
         ++h.n;
       }
+    h.swept = plan::check_program(space_h, s->m, prog, axes, cc);
     return h;
   };
-  const Hits hc = count_collisions(conv), hp = count_collisions(p.axes);
+  const Hits hc = count_collisions(s->prog, conv), hp = count_collisions(p.program, p.axes);
   const std::size_t conv_collisions = hc.n;
   std::string tiers;
   int counts[5] = {0, 0, 0, 0, 0};
@@ -256,7 +267,14 @@ int run_compare(const PlanArgs& a) {
   std::cout << report::table({stc, stp}, {"conventional", "planner"});
   std::cout << fmt::format("{:<28}{:>22}{:>22}\n", "NC blocks", sc.blocks, sp.blocks);
   std::cout << fmt::format("{:<28}{:>22}{:>22}\n", "verify", vc.ok ? "ok" : "FAILED", vp.ok ? "ok" : "FAILED");
-  if (s->has_meshes) std::cout << fmt::format("{:<28}{:>22}{:>22}\n", "colliding CL points", hc.n, hp.n);
+  if (s->has_meshes) {
+    std::cout << fmt::format("{:<28}{:>22}{:>22}\n", "colliding CL points", hc.n, hp.n);
+    std::cout << fmt::format("{:<28}{:>22}{:>22}\n", "colliding moves (swept)", hc.swept.collisions,
+                             hp.swept.collisions);
+    if (hc.swept.uncertified || hp.swept.uncertified)
+      std::cout << fmt::format("{:<28}{:>22}{:>22}\n", "uncertified moves (swept)", hc.swept.uncertified,
+                               hp.swept.uncertified);
+  }
   std::cout << fmt::format("{:<28}{:>22}{:>22}\n", "segment tiers 1/2/3/4", "-", tiers);
   std::cout << fmt::format("{:<28}{:>22.3f}{:>22.3f}\n", "time (s)", conv_s, p.seconds);
   std::cout << fmt::format("planner queries: {} cells, {} IK, {} stroke, {} collision\n", p.counters.cells_enumerated,
@@ -265,6 +283,18 @@ int run_compare(const PlanArgs& a) {
   if (hc.n)
     std::cout << fmt::format("the conventional program collides at {} CL points (first at CL line {})\n", hc.n,
                              hc.first_line);
+  auto first_swept = [&](const char* who, const Hits& h) {
+    for (const auto& x : h.swept.hits)
+      if (x.result.status == cspace::SweepStatus::Collides) {
+        std::cout << fmt::format("the {} program collides between points at {} moves (first: the {} into CL line {}, "
+                                 "{:.0f} % along: {})\n",
+                                 who, h.swept.collisions, x.reorientation ? "reorientation" : "move", x.line,
+                                 100.0 * x.result.t, x.result.detail);
+        return;
+      }
+  };
+  first_swept("conventional", hc);
+  first_swept("planned", hp);
   if (hp.n)
     std::cout << fmt::format("the planned program collides at {} CL points (first at CL line {}){}\n", hp.n,
                              hp.first_line, s->opt.cspace.check_collision ? "" : ": collision pruning was off");
@@ -280,19 +310,26 @@ int run_compare(const PlanArgs& a) {
                                {"blocks", sc.blocks},
                                {"verify_ok", vc.ok},
                                {"colliding_points", conv_collisions},
+                               {"colliding_moves_swept", hc.swept.collisions},
+                               {"uncertified_moves_swept", hc.swept.uncertified},
                                {"seconds", report::rounded(conv_s, 4)}}},
                              {"planner",
                               {{"stats", stp.json()},
                                {"blocks", sp.blocks},
                                {"verify_ok", vp.ok},
                                {"colliding_points", hp.n},
+                               {"colliding_moves_swept", hp.swept.collisions},
+                               {"uncertified_moves_swept", hp.swept.uncertified},
+                               {"points_beyond_cell_cap", p.points_beyond_cap},
                                {"seconds", report::rounded(p.seconds, 4)},
                                {"tiers", std::move(tier_list)},
                                {"queries",
                                 {{"cells", p.counters.cells_enumerated},
                                  {"ik", p.counters.ik},
                                  {"stroke", p.counters.stroke},
-                                 {"collision", p.counters.collision}}}}}};
+                                 {"collision", p.counters.collision},
+                                 {"swept_moves", p.counters.swept},
+                                 {"swept_queries", p.counters.swept_queries}}}}}};
   const std::string json = jc.dump(2) + "\n";
   // Default: beside the working directory, never next to the (possibly read-only) input.
   const std::string json_path = a.json_out.empty() ? fs::path(a.cl).stem().string() + ".compare.json" : a.json_out;

@@ -12,22 +12,6 @@
 
 namespace cscam::cspace {
 
-const char* to_string(Status s) {
-  switch (s) {
-    case Status::Unknown:
-      return "unknown";
-    case Status::Feasible:
-      return "feasible";
-    case Status::Orientation:
-      return "orientation";
-    case Status::Stroke:
-      return "stroke";
-    case Status::Collision:
-      return "collision";
-  }
-  return "?";
-}
-
 Counters& Counters::operator+=(const Counters& o) {
   cells_enumerated += o.cells_enumerated;
   ik += o.ik;
@@ -35,6 +19,8 @@ Counters& Counters::operator+=(const Counters& o) {
   collision += o.collision;
   cache_hits += o.cache_hits;
   certified += o.certified;
+  swept += o.swept;
+  swept_queries += o.swept_queries;
   return *this;
 }
 
@@ -46,6 +32,15 @@ Space::Space(std::shared_ptr<const kin::Kinematics> kinematics, const geom::Scen
   if (opt_.min_tilt_rad > opt_.cone_rad && opt_.cone_rad > 0)
     throw InputError(fmt::format("minimum tilt {:.3f} deg exceeds the cone {:.3f} deg: no orientation is allowed",
                                  rad2deg(opt_.min_tilt_rad), rad2deg(opt_.cone_rad)));
+  if (tool_) {
+    tip_tool_.cutter = {tool_->cutter.diameter_mm, 0.0, tool_->cutter.corner_radius_mm + 2.0 * kRapidSweepMarginCapMm + 1e-3};
+    double rmax = 0.0, top = 0.0;
+    for (const geom::ToolSegment& sgm : tool_->segments()) {
+      rmax = std::max(rmax, sgm.radius_mm);
+      top = std::max(top, sgm.z1_mm);
+    }
+    reach_mm_ = top + rmax + std::max(opt_.collision.clearance_mm, opt_.collision.cutter_clearance_mm);
+  }
   const auto rp = kin_->rotary_pair();
   rot1_ = rp[0];
   rot2_ = rp[1];
