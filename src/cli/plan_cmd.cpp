@@ -12,6 +12,7 @@
 #include "cscam/cl/program.hpp"
 #include "cscam/core/atomic_file.hpp"
 #include "cscam/core/error.hpp"
+#include "cscam/core/tolerances.hpp"
 #include "cscam/core/units.hpp"
 #include "cscam/geom/mesh.hpp"
 #include "cscam/geom/scene.hpp"
@@ -211,10 +212,86 @@ int run_plan(const PlanArgs& a) {
   std::cout << fmt::format("wrote {} ({} blocks); verify: {}\n", out, sum.blocks, v.message);
   std::cout << fmt::format(
       "planner: {:.3f} s, {} cells enumerated, {} IK, {} stroke and {} collision queries ({} of them for {} swept "
-      "moves)\n",
+      "moves), peak memory {:.0f} MB\n",
       p.seconds, p.counters.cells_enumerated, p.counters.ik, p.counters.stroke, p.counters.collision,
-      p.counters.swept_queries, p.counters.swept);
+      p.counters.swept_queries, p.counters.swept, p.peak_memory_mb);
   return 0;
+}
+
+/// Per segment, for compare --json: CL line range, tier and why earlier tiers failed, the fixed values or ranges,
+/// rotary travel and reversals, linear travel against the conventional program's, and the swept check. Returns
+/// notes for segments whose linear travel a fixed (3+2) orientation made much longer.
+std::vector<std::string> segment_reports(const Setup& s, const plan::Plan& p, const std::vector<kin::Axes>& conv,
+                                         nlohmann::json& out) {
+  std::vector<std::string> notes;
+  for (std::size_t g = 0; g < p.segments.size(); ++g) {
+    const auto& seg = p.segments[g];
+    nlohmann::json fails = nlohmann::json::array();
+    for (const auto& f : seg.failures)
+      fails.push_back({{"tier", static_cast<int>(f.tier)}, {"cl_line", f.line}, {"reason", f.reason}});
+    nlohmann::json axes = nlohmann::json::object();
+    for (int j = 0; j < 5; ++j) {
+      const auto J = static_cast<std::size_t>(j);
+      const bool rot = s.m.axes[J].rotary();
+      const double scale = rot ? 180.0 / kPi : 1.0, hyst = rot ? tol::kReversalHysteresisDeg : tol::kReversalHysteresisMm;
+      auto walk = [&](const std::vector<kin::Axes>& q, double& travel, int& reversals, double& lo, double& hi) {
+        travel = 0;
+        reversals = 0;
+        lo = hi = q[seg.first_move][j] * scale;
+        int dir = 0;
+        double ext = lo;
+        for (std::size_t m = seg.first_move + 1; m <= seg.last_move; ++m) {
+          const double v = q[m][j] * scale;
+          travel += std::abs(v - q[m - 1][j] * scale);
+          lo = std::min(lo, v);
+          hi = std::max(hi, v);
+          if (dir == 0) {
+            if (std::abs(v - ext) > hyst) dir = v > ext ? 1 : -1, ext = v;
+          } else if (dir * (v - ext) > 0) {
+            ext = v;
+          } else if (std::abs(v - ext) > hyst) {
+            ++reversals;
+            dir = -dir;
+            ext = v;
+          }
+        }
+      };
+      double tp, tc, lo, hi, lo_c, hi_c;
+      int rv, rc;
+      walk(p.axes, tp, rv, lo, hi);
+      walk(conv, tc, rc, lo_c, hi_c);
+      axes[s.m.post.letters[J]] = {{"range", {report::rounded(lo, 4), report::rounded(hi, 4)}},
+                                   {"travel", report::rounded(tp, 4)},
+                                   {"reversals", rv},
+                                   {"conventional_travel", report::rounded(tc, 4)},
+                                   {"conventional_reversals", rc},
+                                   {"unit", rot ? "deg" : "mm"}};
+      // A fixed orientation can turn a short path into long linear strokes (the table no longer follows it).
+      if (!rot && tp > 1.25 * tc && tp - tc > 10.0)
+        notes.push_back(fmt::format("segment {} (CL lines {}-{}): the {} makes {} travel {:.0f} mm instead of {:.0f} "
+                                    "mm (x{:.2f}) at the CL points",
+                                    g + 1, seg.first_line, seg.last_line,
+                                    seg.tier == plan::Tier::Fixed2 ? "fixed (3+2) orientation" : "chosen orientation",
+                                    s.m.post.letters[J], tp, tc, tp / tc));
+    }
+    out.push_back({{"cl_lines", {seg.first_line, seg.last_line}},
+                   {"tier", static_cast<int>(seg.tier)},
+                   {"tier_name", plan::to_string(seg.tier)},
+                   {"description", seg.description},
+                   {"earlier_tiers_failed", std::move(fails)},
+                   {"axes", std::move(axes)},
+                   {"reorientation", plan::to_string(seg.reorientation)},
+                   {"reorientation_detail", seg.reorientation_detail},
+                   {"swept_collisions", seg.swept_collisions},
+                   {"swept_uncertified", seg.swept_uncertified},
+                   {"swept_first", seg.swept_collisions + seg.swept_uncertified
+                                       ? nlohmann::json{{"cl_line", seg.swept_first_line},
+                                                        {"detail", seg.swept_first_detail}}
+                                       : nlohmann::json()},
+                   {"approach_moves_replaced", seg.approach_moves_replaced},
+                   {"legs", seg.legs}});
+  }
+  return notes;
 }
 
 int run_compare(const PlanArgs& a) {
@@ -277,8 +354,10 @@ int run_compare(const PlanArgs& a) {
   }
   std::cout << fmt::format("{:<28}{:>22}{:>22}\n", "segment tiers 1/2/3/4", "-", tiers);
   std::cout << fmt::format("{:<28}{:>22.3f}{:>22.3f}\n", "time (s)", conv_s, p.seconds);
-  std::cout << fmt::format("planner queries: {} cells, {} IK, {} stroke, {} collision\n", p.counters.cells_enumerated,
-                           p.counters.ik, p.counters.stroke, p.counters.collision);
+  std::cout << fmt::format(
+      "planner queries: {} cells, {} IK, {} stroke, {} collision ({} for {} swept moves); peak memory {:.0f} MB\n",
+      p.counters.cells_enumerated, p.counters.ik, p.counters.stroke, p.counters.collision, p.counters.swept_queries,
+      p.counters.swept, p.peak_memory_mb);
   std::cout << p.summary();
   if (hc.n)
     std::cout << fmt::format("the conventional program collides at {} CL points (first at CL line {})\n", hc.n,
@@ -300,7 +379,10 @@ int run_compare(const PlanArgs& a) {
                              hp.first_line, s->opt.cspace.check_collision ? "" : ": collision pruning was off");
   nlohmann::json tier_list = nlohmann::json::array();
   for (const auto& g : p.segments) tier_list.push_back(static_cast<int>(g.tier));
-  const nlohmann::json jc = {{"cl", a.cl},
+  nlohmann::json segs = nlohmann::json::array();
+  const std::vector<std::string> flags = segment_reports(*s, p, conv, segs);
+  for (const auto& f : flags) std::cout << "note: " << f << "\n";
+  nlohmann::json jc = {{"cl", a.cl},
                              {"machine", s->m.name},
                              {"cone_deg", a.cone_deg},
                              {"resolution_deg", a.resolution_deg},
@@ -329,7 +411,9 @@ int run_compare(const PlanArgs& a) {
                                  {"stroke", p.counters.stroke},
                                  {"collision", p.counters.collision},
                                  {"swept_moves", p.counters.swept},
-                                 {"swept_queries", p.counters.swept_queries}}}}}};
+                                 {"swept_queries", p.counters.swept_queries}}},
+                               {"peak_memory_mb", report::rounded(p.peak_memory_mb, 1)}}}};
+  jc["planner"]["segments"] = std::move(segs);
   const std::string json = jc.dump(2) + "\n";
   // Default: beside the working directory, never next to the (possibly read-only) input.
   const std::string json_path = a.json_out.empty() ? fs::path(a.cl).stem().string() + ".compare.json" : a.json_out;

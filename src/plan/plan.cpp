@@ -11,6 +11,7 @@
 #include <unordered_map>
 #include <utility>
 
+#include <sys/resource.h>
 #include <tbb/blocked_range.h>
 #include <tbb/enumerable_thread_specific.h>
 #include <tbb/parallel_for.h>
@@ -90,6 +91,8 @@ class Search {
   }
 
   int line(std::size_t k) const { return prog_.moves[L_[k].move].line; }
+  /// The rotaries the previous segment ended at (tie-break between equally good starts); null: home.
+  void prefer(const kin::Axes* q) { prefer_ = q; }
   /// Names of the primary and secondary rotaries, for reports.
   std::string n1() const {
     return sp_.kinematics().axes()[static_cast<size_t>(sp_.kinematics().rotary_pair()[0])].name;
@@ -118,7 +121,9 @@ class Search {
           continue;
         }
         if (k == 0) {
-          cost[0][j] = 0.0;
+          // Ties (windings of a cyclic axis) go to the start nearest the previous segment's rotaries (or home).
+          const double r1 = prefer_ ? (*prefer_)[rp[0]] : 0.0, r2 = prefer_ ? (*prefer_)[rp[1]] : 0.0;
+          cost[0][j] = 1e-9 * (std::abs(cells[j].r1 - r1) + std::abs(cells[j].r2 - r2));
           any = true;
           continue;
         }
@@ -823,6 +828,7 @@ class Search {
   cspace::Counters& c_;
   const cl::Program& prog_;
   bool exact_;
+  const kin::Axes* prefer_ = nullptr;
   geom::QueryWorkspace ws_;
 };
 
@@ -1113,6 +1119,7 @@ Plan Planner::run(const cl::Program& program) const {
     TierFailure f;
     std::string desc;
     const kin::Axes* prefer = plan.segments.empty() ? nullptr : &plan.axes[segs[plan.segments.size() - 1].second];
+    search.prefer(prefer);
     if (search.fixed2(path, f, prefer)) {
       rep.tier = Tier::Fixed2;
       desc = fmt::format("rotaries fixed at {} = {:.3f} deg, {} = {:.3f} deg", search.n1(), rad2deg(path[0]->r1),
@@ -1278,6 +1285,8 @@ Plan Planner::run(const cl::Program& program) const {
     }
   }
   plan.seconds = std::chrono::duration<double>(std::chrono::steady_clock::now() - t0).count();
+  rusage ru{};
+  if (getrusage(RUSAGE_SELF, &ru) == 0) plan.peak_memory_mb = static_cast<double>(ru.ru_maxrss) / 1024.0;
   return plan;
 }
 

@@ -81,6 +81,7 @@ struct Plan {
   std::size_t points_beyond_cap = 0;    ///< points whose cells beyond max_cells_per_point had to be searched
   std::vector<std::size_t> replaced_moves;  ///< approach/retract moves re-placed along the chosen tool axis
   double seconds = 0.0;
+  double peak_memory_mb = 0.0;  ///< the process's peak resident memory when the plan was done
   std::vector<std::string> warnings;
   std::string summary() const;
 };
