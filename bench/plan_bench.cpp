@@ -142,9 +142,10 @@ double peak_rss_mb() {
   return static_cast<double>(ru.ru_maxrss) / 1024.0;
 }
 
-void BM_PlanHard10k(benchmark::State& state) {
+void BM_PlanHard(benchmark::State& state) {
   auto& f = hard_fixture();
-  const auto prog = hard_path(10000);
+  const int n = static_cast<int>(state.range(0));
+  const auto prog = hard_path(n);
   cscam::plan::Options o;
   o.cspace.cone_rad = cscam::deg2rad(8.0);
   o.cspace.ball_radius_mm = 5;
@@ -169,7 +170,7 @@ void BM_PlanHard10k(benchmark::State& state) {
   }
   int tier = 0;
   for (const auto& g : p.segments) tier = std::max(tier, static_cast<int>(g.tier));
-  state.counters["points"] = 10000;
+  state.counters["points"] = n;
   state.counters["triangles"] = static_cast<double>(f.triangles);
   state.counters["tier"] = tier;
   state.counters["cone_cells_colliding_pct"] = 100.0 * colliding / std::max(1.0, cells);
@@ -178,7 +179,8 @@ void BM_PlanHard10k(benchmark::State& state) {
   state.counters["swept_collisions"] = static_cast<double>(p.swept.collisions);
   state.counters["peak_rss_mb"] = peak_rss_mb();
 }
-BENCHMARK(BM_PlanHard10k)->Unit(benchmark::kMillisecond)->Iterations(1);
+// 10,000 points is the target; 1,000 for a quick look.
+BENCHMARK(BM_PlanHard)->Arg(1000)->Arg(10000)->Unit(benchmark::kMillisecond)->Iterations(1);
 
 /// 1,000,000 points (the easy groove finishing pass, cone 5, collision on): time and peak memory.
 void BM_Plan1M(benchmark::State& state) {

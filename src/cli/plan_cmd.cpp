@@ -211,8 +211,8 @@ int run_plan(const PlanArgs& a) {
   std::cout << p.summary();
   std::cout << fmt::format("wrote {} ({} blocks); verify: {}\n", out, sum.blocks, v.message);
   std::cout << fmt::format(
-      "planner: {:.3f} s, {} cells enumerated, {} IK, {} stroke and {} collision queries ({} of them for {} swept "
-      "moves), peak memory {:.0f} MB\n",
+      "planner: {:.3f} s, {} cells enumerated, {} IK, {} stroke and {} collision queries, {} more for {} swept "
+      "moves, peak memory {:.0f} MB\n",
       p.seconds, p.counters.cells_enumerated, p.counters.ik, p.counters.stroke, p.counters.collision,
       p.counters.swept_queries, p.counters.swept, p.peak_memory_mb);
   return 0;
@@ -355,7 +355,7 @@ int run_compare(const PlanArgs& a) {
   std::cout << fmt::format("{:<28}{:>22}{:>22}\n", "segment tiers 1/2/3/4", "-", tiers);
   std::cout << fmt::format("{:<28}{:>22.3f}{:>22.3f}\n", "time (s)", conv_s, p.seconds);
   std::cout << fmt::format(
-      "planner queries: {} cells, {} IK, {} stroke, {} collision ({} for {} swept moves); peak memory {:.0f} MB\n",
+      "planner queries: {} cells, {} IK, {} stroke, {} collision, {} more for {} swept moves; peak memory {:.0f} MB\n",
       p.counters.cells_enumerated, p.counters.ik, p.counters.stroke, p.counters.collision, p.counters.swept_queries,
       p.counters.swept, p.peak_memory_mb);
   std::cout << p.summary();

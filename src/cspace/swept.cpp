@@ -88,6 +88,7 @@ SweptResult Space::swept(const kin::Axes& qa, const kin::Axes& qb, SweepMode mod
                          Counters& c) const {
   SweptResult res;
   ++c.swept;
+  Counters q_count;  // its queries count as swept queries, apart from the cell queries
   if (!checks_collision()) return res;
   const kin::Axes dq = qb - qa;
   const double cap = mode == SweepMode::Cutting ? cutting_margin_cap_mm() : kRapidSweepMarginCapMm;
@@ -140,10 +141,10 @@ SweptResult Space::swept(const kin::Axes& qa, const kin::Axes& qb, SweepMode mod
     const double m = 0.5 * (iv.hi - iv.lo) * speed_bound(iv.lo, iv.hi) + 1e-6;
     if (m <= cap) {
       ++res.queries;
-      if (collision_inflated(pose, m, mode, ws, c).empty()) {
+      if (collision_inflated(pose, m, mode, ws, q_count).empty()) {
         if (head_) {
           // Head meshes: at the certified poses (sampled, not certified).
-          const std::string h = collision_at_axes(q, ws, c);
+          const std::string h = collision_at_axes(q, ws, q_count);
           if (!h.empty()) {
             res = {SweepStatus::Collides, t, h, res.queries + 1};
             break;
@@ -153,7 +154,7 @@ SweptResult Space::swept(const kin::Axes& qa, const kin::Axes& qb, SweepMode mod
       }
     }
     ++res.queries;
-    const std::string hit = collision_inflated(pose, 0.0, mode, ws, c);
+    const std::string hit = collision_inflated(pose, 0.0, mode, ws, q_count);
     if (!hit.empty()) {
       res.status = SweepStatus::Collides;
       res.t = t;
@@ -169,7 +170,8 @@ SweptResult Space::swept(const kin::Axes& qa, const kin::Axes& qb, SweepMode mod
     stack.push_back({t, iv.hi, iv.depth + 1});  // left half first: the earliest hit is found first
     stack.push_back({iv.lo, t, iv.depth + 1});
   }
-  c.swept_queries += res.queries;
+  res.queries = q_count.collision;
+  c.swept_queries += q_count.collision;
   return res;
 }
 

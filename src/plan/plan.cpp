@@ -1120,13 +1120,17 @@ Plan Planner::run(const cl::Program& program) const {
     std::string desc;
     const kin::Axes* prefer = plan.segments.empty() ? nullptr : &plan.axes[segs[plan.segments.size() - 1].second];
     search.prefer(prefer);
+    bool listed = false;  // the full (capped) cell lists of points after the first are in the layers
+    auto cascade = [&]() {
+    rep.failures.clear();
+    desc.clear();
     if (search.fixed2(path, f, prefer)) {
       rep.tier = Tier::Fixed2;
       desc = fmt::format("rotaries fixed at {} = {:.3f} deg, {} = {:.3f} deg", search.n1(), rad2deg(path[0]->r1),
                          search.n2(), rad2deg(path[0]->r2));
     } else {
       rep.failures.push_back(f);
-      if (!exact)
+      if (!exact && !listed)
         for (std::size_t k = 1; k < layers.size(); ++k) {
           // Keep what tier 1 already evaluated (the cache) when the full cell list arrives.
           std::unordered_map<std::uint64_t, Cell> keep;
@@ -1140,6 +1144,7 @@ Plan Planner::run(const cl::Program& program) const {
             }
           }
         }
+      listed = true;
       check_points();
       if (search.fixed1(path, f, desc)) {
         rep.tier = Tier::Fixed1;
@@ -1167,6 +1172,44 @@ Plan Planner::run(const cl::Program& program) const {
                                          rep.first_line, rep.last_line, f.reason));
           }
           rep.tier = Tier::Shortest;
+        }
+      }
+    }
+    };
+    cascade();
+    // Between the points: a move whose sweep collides rules out the cell it leads into (conservative: that cell
+    // might be fine from another predecessor), and the tiers run again on what is left. A few rounds at most;
+    // what remains is reported by the final swept check.
+    std::vector<Cell> kept;  // outlives `path` when it points here
+    if (space_.checks_collision() && path.size() > 1) {
+      geom::QueryWorkspace ws;
+      for (int round = 0; round < 4; ++round) {
+        std::vector<std::size_t> bad;
+        for (std::size_t k = 0; k + 1 < path.size(); ++k)
+          if (path[k] != path[k + 1] &&
+              space_.swept(path[k]->axes, path[k + 1]->axes, cspace::SweepMode::Cutting, ws, plan.counters).status ==
+                  cspace::SweepStatus::Collides)
+            bad.push_back(k + 1);
+        if (bad.empty()) break;
+        // Keep the current answer: if nothing is left without those cells, it stands (with its warning).
+        kept.clear();
+        for (const Cell* c : path) kept.push_back(*c);
+        const Tier kept_tier = rep.tier;
+        const std::vector<TierFailure> kept_failures = rep.failures;
+        const std::string kept_desc = desc;
+        for (std::size_t k : bad) {
+          Cell* c = const_cast<Cell*>(path[k]);  // the layers own the cells; the path points into them
+          c->status = Status::Collision;
+          c->detail = "the move into it from the previous point collides (swept)";
+        }
+        try {
+          cascade();
+        } catch (const InputError&) {
+          for (std::size_t k = 0; k < kept.size(); ++k) path[k] = &kept[k];
+          rep.tier = kept_tier;
+          rep.failures = kept_failures;
+          desc = kept_desc;
+          break;
         }
       }
     }

@@ -53,7 +53,7 @@ struct Counters {
   std::uint64_t cache_hits = 0;
   std::uint64_t certified = 0;  ///< collision queries skipped by a clearance certificate
   std::uint64_t swept = 0;      ///< swept (between-point) moves checked
-  std::uint64_t swept_queries = 0;  ///< collision queries those swept checks made
+  std::uint64_t swept_queries = 0;  ///< collision queries those swept checks made (not in `collision`)
   Counters& operator+=(const Counters& o);
 };
 
