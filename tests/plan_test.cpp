@@ -20,6 +20,8 @@
 #include "test_support.hpp"
 
 #include <fcl/fcl.h>
+#include <fstream>
+#include <nlohmann/json.hpp>
 #include <memory>
 
 #include "cscam/cspace/cspace.hpp"
@@ -532,4 +534,28 @@ TEST(PlannerIssue11, SameAnswerAtAnyThreadCount) {
     EXPECT_EQ(p->counters.cells_enumerated, p1.counters.cells_enumerated);
   }
   EXPECT_GE(p1.points_beyond_cap, 1u);
+}
+
+TEST(PlannerIssue11, CompareCountsSweptCollisionsAndReportsSegmentsInJson) {
+  const std::string dir = ::testing::TempDir();
+  const std::string json = dir + "/groove.compare.json", nc = dir + "/groove.planned.ngc";
+  const auto r = test::run_command(std::string(CSCAM_CLI) + " compare " +
+                                   test::source_path("examples/groove/groove.cls") + " --machine trunnion-ac --part " +
+                                   test::source_path("examples/groove/groove.stl") + " --cone 25 --json-out " + json +
+                                   " -o " + nc);
+  ASSERT_EQ(r.status, 0) << r.output;
+  EXPECT_NE(r.output.find("colliding moves (swept)"), std::string::npos) << r.output;
+  std::ifstream in(json);
+  const nlohmann::json j = nlohmann::json::parse(in);
+  EXPECT_GT(j["conventional"]["colliding_moves_swept"].get<int>(), 100);  // the conventional post follows the normals
+  EXPECT_EQ(j["planner"]["colliding_moves_swept"].get<int>(), 0);
+  EXPECT_EQ(j["planner"]["uncertified_moves_swept"].get<int>(), 0);
+  const auto& segs = j["planner"]["segments"];
+  ASSERT_EQ(segs.size(), 1u);
+  EXPECT_EQ(segs[0]["cl_lines"][0].get<int>(), 11);
+  EXPECT_EQ(segs[0]["cl_lines"][1].get<int>(), 173);
+  EXPECT_EQ(segs[0]["tier"].get<int>(), 1);
+  EXPECT_EQ(segs[0]["approach_moves_replaced"].get<int>(), 1);
+  EXPECT_EQ(segs[0]["axes"]["A"]["reversals"].get<int>(), 0);
+  EXPECT_GT(segs[0]["axes"]["A"]["conventional_reversals"].get<int>(), 0);
 }
