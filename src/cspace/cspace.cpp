@@ -75,6 +75,21 @@ bool Space::in_cone(const kin::Posed& cl, double r1, double r2, float* orient_er
   return err <= std::max(opt_.cone_rad, 1e-7) && err >= opt_.min_tilt_rad - 1e-12;
 }
 
+bool Space::in_cone_cos(const kin::Posed& cl, double r1, double r2, double& dot) const {
+  Eigen::Vector3d a;
+  if (!kin_->tool_axis_at(r1, r2, cl.tip_mm, a)) return false;
+  dot = std::clamp(a.dot(cl.axis), -1.0, 1.0);
+  // Clear of both bounds by far more than round-off: decided by the cosine; near one: in_cone's own test.
+  constexpr double kBand = 1e-9;
+  const double cos_cone = std::cos(std::max(opt_.cone_rad, 1e-7));
+  if (dot < cos_cone - kBand) return false;
+  const double cos_min = opt_.min_tilt_rad > 0 ? std::cos(opt_.min_tilt_rad - 1e-12) : 2.0;
+  if (dot > cos_cone + kBand && dot < cos_min - kBand) return true;
+  if (dot > cos_min + kBand) return false;
+  const double err = std::acos(dot);
+  return err <= std::max(opt_.cone_rad, 1e-7) && err >= opt_.min_tilt_rad - 1e-12;
+}
+
 kin::Posed Space::tool_pose(const kin::Posed& cl, double r1, double r2) const {
   Eigen::Vector3d a;
   if (!kin_->tool_axis_at(r1, r2, cl.tip_mm, a)) a = cl.axis;

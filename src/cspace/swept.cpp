@@ -33,10 +33,11 @@ struct Gains {
   std::array<double, 5> tip{}, axis{};
 };
 
-Gains gains_at(const kin::Kinematics& k, const kin::Axes& q) {
+Gains gains_at(const kin::Kinematics& k, const kin::Axes& q, const kin::Axes& dq) {
   Gains g;
   const kin::Posed p0 = k.forward(q);
   for (int j = 0; j < 5; ++j) {
+    if (dq[j] == 0) continue;  // an axis that does not move contributes nothing
     constexpr double eps = 1e-6;
     kin::Axes qq = q;
     qq[j] += eps;
@@ -100,8 +101,8 @@ SweptResult Space::swept(const kin::Axes& qa, const kin::Axes& qb, SweepMode mod
   // at most by twice the tip's own travel (the carried axis moves too): rho(t) <= rho_max + 2 h V_tip.
   auto speed_bound = [&](double lo, double hi) {
     const double h = hi - lo;
-    std::array<Gains, 3> g = {gains_at(*kin_, qa + lo * dq), gains_at(*kin_, qa + 0.5 * (lo + hi) * dq),
-                              gains_at(*kin_, qa + hi * dq)};
+    std::array<Gains, 3> g = {gains_at(*kin_, qa + lo * dq, dq), gains_at(*kin_, qa + 0.5 * (lo + hi) * dq, dq),
+                              gains_at(*kin_, qa + hi * dq, dq)};
     double A = 0, Brho = 0, B = 0, Vaxis = 0;
     for (int j = 0; j < 5; ++j) {
       const auto J = static_cast<size_t>(j);

@@ -328,19 +328,21 @@ class Search {
     for (const Cell& c0 : L_[0].cells) {
       double score = c0.orient_err;
       bool ok = true;
+      double min_dot = 1.0;  // the worst point's cosine: one arc cosine per candidate, not one per point
       for (std::size_t oi = 0; oi < oorder.size() && ok; ++oi) {
         const std::size_t k = oorder[oi];
-        float e = 0.0f;
-        const bool in = exact_ ? L_[k].index.count(key(c0.i1, c0.i2)) > 0 : sp_.in_cone(L_[k].cl, c0.r1, c0.r2, &e);
+        double dot = 1.0;
+        const bool in = exact_ ? L_[k].index.count(key(c0.i1, c0.i2)) > 0 : sp_.in_cone_cos(L_[k].cl, c0.r1, c0.r2, dot);
         if (!in) {
           furthest = std::max(furthest, k);
           ok = false;
           std::rotate(oorder.begin(), oorder.begin() + static_cast<std::ptrdiff_t>(oi),
                       oorder.begin() + static_cast<std::ptrdiff_t>(oi) + 1);
         } else {
-          score = std::max(score, static_cast<double>(e));
+          min_dot = std::min(min_dot, dot);
         }
       }
+      if (ok && !exact_ && oorder.size()) score = std::max(score, static_cast<double>(static_cast<float>(std::acos(min_dot))));
       // Among equally good orientations prefer the winding nearest the previous segment (or home).
       const double home = prefer ? std::abs(c0.r1 - (*prefer)[rp[0]]) + std::abs(c0.r2 - (*prefer)[rp[1]])
                                  : std::abs(c0.r1) + std::abs(c0.r2);
@@ -942,6 +944,7 @@ Plan Planner::run(const cl::Program& program) const {
     else
       segs.back().second = i;
   }
+  std::vector<char> swept_ok(moves.size(), 0);  // moves certified free by a segment's own swept check
   for (const auto& [s, e] : segs) {
     std::vector<Layer> layers(e - s + 1);
     // Only the first point's cells are needed by tier 1 (the others are tested cell by cell); the rest
@@ -1184,13 +1187,18 @@ Plan Planner::run(const cl::Program& program) const {
     if (space_.checks_collision() && path.size() > 1) {
       geom::QueryWorkspace ws;
       for (int round = 0; round < 4; ++round) {
-        std::vector<std::size_t> bad;
-        for (std::size_t k = 0; k + 1 < path.size(); ++k)
-          if (path[k] != path[k + 1] &&
-              space_.swept(path[k]->axes, path[k + 1]->axes, cspace::SweepMode::Cutting, ws, plan.counters).status ==
-                  cspace::SweepStatus::Collides)
-            bad.push_back(k + 1);
-        if (bad.empty()) break;
+        std::vector<std::size_t> bad, free_into;
+        for (std::size_t k = 0; k + 1 < path.size(); ++k) {
+          const auto st =
+              space_.swept(path[k]->axes, path[k + 1]->axes, cspace::SweepMode::Cutting, ws, plan.counters).status;
+          if (st == cspace::SweepStatus::Collides) bad.push_back(k + 1);
+          if (st == cspace::SweepStatus::Free) free_into.push_back(k + 1);
+        }
+        if (bad.empty()) {
+          // The final check need not repeat these (unless an approach/retract below moves an end).
+          for (std::size_t k : free_into) swept_ok[layers[k].move] = 1;
+          break;
+        }
         // Keep the current answer: if nothing is left without those cells, it stands (with its warning).
         kept.clear();
         for (const Cell* c : path) kept.push_back(*c);
@@ -1282,17 +1290,21 @@ Plan Planner::run(const cl::Program& program) const {
     // Approach and retract run along the tool axis: a CL approach (retract) along the CL axis of the point it
     // leads into (out of) follows the chosen axis instead, at the same distance, with that point's rotaries;
     // otherwise the new tilt would be dragged along the old approach line (through the material beside it).
-    if (e > s && moves[s].kind == cl::MotionKind::Rapid && along_chosen_axis(program, plan, s, s + 1))
+    if (e > s && moves[s].kind == cl::MotionKind::Rapid && along_chosen_axis(program, plan, s, s + 1)) {
       ++rep.approach_moves_replaced;
-    if (e > s + 1 && moves[e].kind != cl::MotionKind::Rapid && along_chosen_axis(program, plan, e, e - 1))
+      swept_ok[s + 1] = 0;
+    }
+    if (e > s + 1 && moves[e].kind != cl::MotionKind::Rapid && along_chosen_axis(program, plan, e, e - 1)) {
       ++rep.approach_moves_replaced;
+      swept_ok[e] = 0;
+    }
     if (e == s && s > 0 && moves[s].kind == cl::MotionKind::Rapid && along_chosen_axis(program, plan, s, s - 1))
       ++rep.approach_moves_replaced;
     plan.segments.push_back(std::move(rep));
   }
   // Every move between points, checked swept: feed blocks, approach and retract, and the reorientation into each
   // segment as the post performs it.
-  plan.swept = check_program(space_, machine_, plan.program, plan.axes, plan.counters);
+  plan.swept = check_program(space_, machine_, plan.program, plan.axes, plan.counters, &swept_ok);
   std::size_t g = 0;
   for (const SweptHit& h : plan.swept.hits) {
     while (g + 1 < plan.segments.size() && plan.segments[g].last_move < h.move) ++g;

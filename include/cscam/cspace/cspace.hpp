@@ -114,6 +114,9 @@ class Space {
   void enumerate(const kin::Posed& cl_pose, std::vector<Cell>& out, std::size_t cap, Counters& c) const;
   /// Orientation test of one grid cell (cone and minimum tilt); fills orient_err.
   [[nodiscard]] bool in_cone(const kin::Posed& cl_pose, double r1, double r2, float* orient_err = nullptr) const;
+  /// in_cone's answer without an arc cosine away from the bounds (for long scans): `dot` gets the cosine of the
+  /// angle to the CL axis (clamped to [-1, 1]).
+  [[nodiscard]] bool in_cone_cos(const kin::Posed& cl_pose, double r1, double r2, double& dot) const;
   /// The tool pose a cell gives at a CL pose (tip moves for a ball mill so the centre stays put).
   [[nodiscard]] kin::Posed tool_pose(const kin::Posed& cl_pose, double r1, double r2) const;
   /// Stroke and collision of a cell (the orientation test must have passed). Fills status, axes, detail.

@@ -35,7 +35,9 @@ struct SweptSummary {
 /// Checks every move of `program` with axis values `axes` (one per CL move). A move into a feed point, or out of
 /// one, is checked in Cutting mode (the cutting end may touch); a move between two rapid points, and the legs of a
 /// reorientation in the air, in Rapid mode (the whole tool counts).
+/// `certified` (optional, one flag per move): moves already certified free with these axis values, not checked again.
 SweptSummary check_program(const cspace::Space& space, const machine::Machine& machine, const cl::Program& program,
-                           const std::vector<kin::Axes>& axes, cspace::Counters& counters);
+                           const std::vector<kin::Axes>& axes, cspace::Counters& counters,
+                           const std::vector<char>* certified = nullptr);
 
 }  // namespace cscam::plan
