@@ -4,6 +4,8 @@
 // (expected far below linear: cells are evaluated lazily).
 #include <benchmark/benchmark.h>
 
+#include <sys/resource.h>
+
 #include <cmath>
 #include <sstream>
 
@@ -13,6 +15,7 @@
 #include "cscam/geom/scene.hpp"
 #include "cscam/machine/machine.hpp"
 #include "cscam/plan/plan.hpp"
+#include "cscam/cspace/cspace.hpp"
 
 namespace {
 
@@ -94,6 +97,108 @@ BENCHMARK(BM_Plan10k)->Unit(benchmark::kMillisecond)->Iterations(1);
 BENCHMARK(BM_PlanPoints)->Arg(1250)->Arg(2500)->Arg(5000)->Arg(10000)->Unit(benchmark::kMillisecond)->Iterations(1);
 // resolution 4, 2, 1, 0.5 deg: 16x more grid cells from first to last
 BENCHMARK(BM_PlanResolution)->Arg(1)->Arg(2)->Arg(4)->Arg(8)->Unit(benchmark::kMillisecond)->Iterations(1);
+
+/// Issue 11, part 3: the hard case. A narrower groove (mouth 16 mm: a D10 tool tilted across it by more than
+/// ~11 deg hits the lip), 10,000 points whose CL axis swings +-12 deg across the groove (8 periods) and +-10 deg
+/// along it (5 periods), cone 8 deg: no fixed orientation, no fixed axis and no monotonic pair covers the swings
+/// (tiers 1-3 fail), and near each swing's extreme the lip removes most of the cone.
+struct HardFixture {
+  cscam::machine::Machine m = cscam::machine::load(std::string(CSCAM_SOURCE_DIR) + "/machines/trunnion-ac.yaml");
+  cscam::geom::Scene scene;
+  cscam::geom::ToolShape tool = cscam::geom::ToolShape::from_cutter(10, 5, 30);
+  size_t triangles = 0;
+  HardFixture() {
+    cscam::geom::GrooveParams g;
+    g.mouth_width_mm = 16.0;
+    auto mesh = cscam::geom::make_benchmark_part(200000, g);
+    triangles = mesh.triangle_count();
+    scene.add("groove", cscam::geom::ObstacleRole::Part, std::move(mesh));
+    scene.build(false);
+  }
+};
+
+HardFixture& hard_fixture() {
+  static HardFixture f;
+  return f;
+}
+
+cscam::cl::Program hard_path(int n) {
+  std::ostringstream o;
+  o.precision(10);
+  o << "UNITS/MM\nMULTAX\nCUTTER/10,5\nFEDRAT/MMPM,1000\n";
+  for (int i = 0; i < n; ++i) {
+    const double s = double(i) / (n - 1), x = -45 + 90 * s;
+    const double tx = cscam::deg2rad(10.0) * std::sin(2 * M_PI * 5 * s),
+                 ty = cscam::deg2rad(12.0) * std::sin(2 * M_PI * 8 * s);
+    const Eigen::Vector3d u = Eigen::Vector3d(std::tan(tx), std::tan(ty), 1).normalized();
+    o << "GOTO/" << x << ",0,0," << u.x() << "," << u.y() << "," << u.z() << "\n";
+  }
+  return cscam::cl::read_text(o.str(), "hard.cls");
+}
+
+double peak_rss_mb() {
+  rusage ru{};
+  getrusage(RUSAGE_SELF, &ru);
+  return static_cast<double>(ru.ru_maxrss) / 1024.0;
+}
+
+void BM_PlanHard(benchmark::State& state) {
+  auto& f = hard_fixture();
+  const int n = static_cast<int>(state.range(0));
+  const auto prog = hard_path(n);
+  cscam::plan::Options o;
+  o.cspace.cone_rad = cscam::deg2rad(8.0);
+  o.cspace.ball_radius_mm = 5;
+  o.cspace.check_collision = true;
+  const cscam::plan::Planner planner(f.m, f.m.kinematics(), &f.scene, &f.tool, o);
+  cscam::plan::Plan p;
+  for (auto _ : state) p = planner.run(prog);
+  // The share of the cone's cells that collisions remove, over 50 points spread along the path (every cell).
+  const cscam::cspace::Space sp(f.m.kinematics(), &f.scene, &f.tool, o.cspace);
+  cscam::geom::QueryWorkspace ws;
+  cscam::cspace::Counters c;
+  double cells = 0, colliding = 0;
+  for (int i = 0; i < 50; ++i) {
+    const auto& mv = prog.moves[static_cast<size_t>(i) * prog.moves.size() / 50];
+    std::vector<cscam::cspace::Cell> cs;
+    sp.enumerate({mv.tip_in_part_mm, mv.axis_in_part.normalized()}, cs, std::numeric_limits<std::size_t>::max(), c);
+    for (auto& cell : cs) {
+      sp.evaluate({mv.tip_in_part_mm, mv.axis_in_part.normalized()}, cell, ws, c);
+      cells += 1;
+      colliding += cell.status == cscam::cspace::Status::Collision;
+    }
+  }
+  int tier = 0;
+  for (const auto& g : p.segments) tier = std::max(tier, static_cast<int>(g.tier));
+  state.counters["points"] = n;
+  state.counters["triangles"] = static_cast<double>(f.triangles);
+  state.counters["tier"] = tier;
+  state.counters["cone_cells_colliding_pct"] = 100.0 * colliding / std::max(1.0, cells);
+  state.counters["cells_enumerated"] = static_cast<double>(p.counters.cells_enumerated);
+  state.counters["collision_queries"] = static_cast<double>(p.counters.collision);
+  state.counters["swept_collisions"] = static_cast<double>(p.swept.collisions);
+  state.counters["peak_rss_mb"] = peak_rss_mb();
+}
+// 10,000 points is the issue's target; 1,000 for a quick look.
+BENCHMARK(BM_PlanHard)->Arg(1000)->Arg(10000)->Unit(benchmark::kMillisecond)->Iterations(1);
+
+/// 1,000,000 points (the easy groove finishing pass, cone 5, collision on): time and peak memory.
+void BM_Plan1M(benchmark::State& state) {
+  auto& f = fixture();
+  const auto prog = path(1000000);
+  cscam::plan::Options o;
+  o.cspace.cone_rad = cscam::deg2rad(5.0);
+  o.cspace.ball_radius_mm = 5;
+  o.cspace.check_collision = true;
+  const cscam::plan::Planner planner(f.m, f.m.kinematics(), &f.scene, &f.tool, o);
+  cscam::plan::Plan p;
+  for (auto _ : state) p = planner.run(prog);
+  state.counters["points"] = 1e6;
+  state.counters["tier"] = p.segments.empty() ? 0 : static_cast<int>(p.segments[0].tier);
+  state.counters["collision_queries"] = static_cast<double>(p.counters.collision);
+  state.counters["peak_rss_mb"] = peak_rss_mb();
+}
+BENCHMARK(BM_Plan1M)->Unit(benchmark::kMillisecond)->Iterations(1);
 
 }  // namespace
 

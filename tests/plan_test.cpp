@@ -5,6 +5,7 @@
 #include <gtest/gtest.h>
 
 #include <cmath>
+#include <cstdlib>
 #include <sstream>
 
 #include "cscam/cl/program.hpp"
@@ -18,6 +19,13 @@
 #include "cscam/post/post.hpp"
 #include "cscam/report/verify.hpp"
 #include "test_support.hpp"
+
+#include <fcl/fcl.h>
+#include <fstream>
+#include <nlohmann/json.hpp>
+#include <memory>
+
+#include "cscam/cspace/cspace.hpp"
 
 using namespace cscam;
 using Vec3 = Eigen::Vector3d;
@@ -318,6 +326,38 @@ double lowest_z(const kin::Posed& fk, double s0, double r) {
 
 }  // namespace
 
+// ---------------------------------------------------------------------------------------------------
+// ---- issue 11, part 1: wrong answers ----
+
+namespace {
+
+/// A round pocket undercut by a lip, as a closed surface of revolution about Z: floor z = 0 out to the pocket
+/// radius, wall up to the lip's underside, the lip (a ring) with a narrower opening up to the top z = top, the top
+/// out to the outer radius, down the outside, the bottom back to the axis.
+geom::Mesh lip_pocket(double pocket_r, double lip_r, double lip_z, double top, double outer_r, int sectors = 96) {
+  const std::vector<std::pair<double, double>> profile = {{0, 0},        {pocket_r, 0},   {pocket_r, lip_z},
+                                                          {lip_r, lip_z}, {lip_r, top},    {outer_r, top},
+                                                          {outer_r, -10}, {0, -10}};
+  geom::Mesh m;
+  m.source = "lip pocket";
+  auto vertex = [&](std::size_t p, int j) {
+    const double a = 2 * kPi * j / sectors;
+    m.vertices_mm.emplace_back(profile[p].first * std::cos(a), profile[p].first * std::sin(a), profile[p].second);
+    return static_cast<int>(m.vertices_mm.size() - 1);
+  };
+  for (std::size_t p = 0; p < profile.size(); ++p) {
+    const std::size_t q = (p + 1) % profile.size();
+    for (int j = 0; j < sectors; ++j) {
+      const int a = vertex(p, j), b = vertex(q, j), c = vertex(q, j + 1), d = vertex(p, j + 1);
+      if (profile[q].first > 0) m.triangles.emplace_back(a, b, c);
+      if (profile[p].first > 0) m.triangles.emplace_back(a, c, d);
+    }
+  }
+  return m;
+}
+
+}  // namespace
+
 TEST(PlannerMachineGeometry, OnlyTheMachineRulesOutTheHorizontalAxis) {
   // A 25 mm block on the Haas UMC-750 platter, its +X wall finished with a D8 ball mill and a horizontal CL
   // axis at z = 8 and 16 mm. The part never touches the tool (it lies behind the ball); the holder (r 10 + 0.5,
@@ -371,4 +411,223 @@ TEST(PlannerMachineGeometry, OnlyTheMachineRulesOutTheHorizontalAxis) {
   const std::string hit = space.collision_at_axes(without.axes[1], ws, c);
   EXPECT_NE(hit.find("machine platter"), std::string::npos) << hit;
   EXPECT_TRUE(space.collision_at_axes(with.axes[1], ws, c).empty());
+}
+
+TEST(PlannerIssue11, UndercutPocketIsSearchedBeyondTheCellCap) {
+  // D8 ball on the pocket floor 11.5 mm from the centre (pocket radius 20), CL axis vertical, half-way round the
+  // pocket: the lip (opening radius 12 at z 17..20) hides every orientation closer than ~16 deg to the vertical and
+  // the free tilt turns with the point (no 3+2 answer); cone 25. Near the vertical the cone holds far more cells
+  // than the per-point cap (every C value at each A), so the cap ends the nearest-first list before the first free
+  // cell: the points must still be found feasible.
+  geom::Scene scene;
+  scene.add("pocket", geom::ObstacleRole::Part, lip_pocket(20, 12, 17, 20, 40));
+  scene.build(true);
+  std::ostringstream cl;
+  cl << "UNITS/MM\nMULTAX\nCUTTER/8,4\nFEDRAT/MMPM,500\n";
+  for (int deg = 0; deg <= 180; deg += 30)
+    cl << "GOTO/" << 11.5 * std::cos(deg2rad(deg)) << "," << 11.5 * std::sin(deg2rad(deg)) << ",0,0,0,1\n";
+  const cl::Program prog = cl::read_text(cl.str(), "lip.cls");
+  const auto tool = geom::ToolShape::from_cutter(8, 4, 24);
+  const auto mach = trunnion();
+  plan::Options o;
+  o.cspace.cone_rad = deg2rad(25.0);
+  o.cspace.ball_radius_mm = 4.0;
+  // At 1 deg the default cap (4096 cells) stops near 12 deg; at 2 deg (a quicker test) a cap of 256 stops near 4.
+  o.cspace.resolution_rad = deg2rad(2.0);
+  o.max_cells_per_point = 256;
+  const plan::Plan p = plan::Planner(mach, mach.kinematics(), &scene, &tool, o).run(prog);
+  ASSERT_EQ(p.axes.size(), prog.moves.size());
+  EXPECT_NE(p.segments[0].tier, plan::Tier::Fixed2) << p.summary();
+  EXPECT_GE(p.points_beyond_cap, 1u) << p.summary();
+  // Independent oracle: raw FCL distances from the checked tool parts (cutter body above the ball and a relief,
+  // shank, holder) to the mesh.
+  const geom::Mesh mesh = lip_pocket(20, 12, 17, 20, 40);
+  auto bvh = std::make_shared<fcl::BVHModel<fcl::OBBRSSd>>();
+  std::vector<fcl::Vector3d> v(mesh.vertices_mm.begin(), mesh.vertices_mm.end());
+  std::vector<fcl::Triangle> t;
+  for (const auto& tri : mesh.triangles) t.emplace_back(tri[0], tri[1], tri[2]);
+  bvh->beginModel();
+  bvh->addSubModel(v, t);
+  bvh->endModel();
+  const fcl::CollisionObjectd part(bvh);
+  const auto m = trunnion();
+  const auto k = m.kinematics();
+  for (std::size_t i = 0; i < p.axes.size(); ++i) {
+    const kin::Posed pose = k->forward(p.axes[i]);
+    const double tilt = rad2deg(std::acos(pose.axis.z()));
+    EXPECT_LE(tilt, 25.0 + 1e-6);
+    // The ball centre stays on the CL's.
+    EXPECT_LT((pose.tip_mm + 4.0 * pose.axis - prog.moves[i].tip_in_part_mm - Vec3(0, 0, 4)).norm(), 1e-6);
+    EXPECT_GT(tilt, 12.0) << "the free cells lie beyond where the cap stops";
+    const double relief = 0.8;  // 0.2 x the corner radius: geom's default
+    struct Stage {
+      double z0, z1, r, clearance;
+    };
+    for (const Stage& s : {Stage{4 + relief, 24, 4, 0.0}, Stage{24, 40, 4, 0.5}, Stage{40, 80, 10, 0.5}}) {
+      auto cyl = std::make_shared<fcl::Cylinderd>(s.r, s.z1 - s.z0);
+      fcl::Transform3d T = fcl::Transform3d::Identity();
+      T.linear() = Eigen::Quaterniond::FromTwoVectors(Vec3::UnitZ(), pose.axis).toRotationMatrix();
+      T.translation() = pose.tip_mm + 0.5 * (s.z0 + s.z1) * pose.axis;
+      const fcl::CollisionObjectd tool_part(cyl, T);
+      fcl::DistanceRequestd req;
+      fcl::DistanceResultd res;
+      fcl::distance(&tool_part, &part, req, res);
+      EXPECT_GT(res.min_distance, s.clearance - 1e-6) << "point " << i << " stage z " << s.z0 << ".." << s.z1;
+    }
+  }
+}
+
+TEST(PlannerIssue11, SweptCheckCertifiesFreeMovesAndFindsTheHitBetweenPoints) {
+  // A wall x in [0, 10] from z = 0 to 30; a flat D10 tool, vertical, tip at z = 5, passes from x = -20 to x = 30:
+  // both end poses are free, the move between them goes through the wall.
+  geom::Mesh wall;
+  wall.source = "wall";
+  for (double x : {0.0, 10.0})
+    for (double y : {-50.0, 50.0})
+      for (double z : {0.0, 30.0}) wall.vertices_mm.emplace_back(x, y, z);
+  const int f[12][3] = {{0, 1, 3}, {0, 3, 2}, {4, 6, 7}, {4, 7, 5}, {0, 4, 5}, {0, 5, 1},
+                        {2, 3, 7}, {2, 7, 6}, {0, 2, 6}, {0, 6, 4}, {1, 5, 7}, {1, 7, 3}};
+  for (const auto& t : f) wall.triangles.emplace_back(t[0], t[1], t[2]);
+  geom::Scene scene;
+  scene.add("wall", geom::ObstacleRole::Part, std::move(wall));
+  scene.build(false);
+  const auto m = trunnion();
+  const auto k = m.kinematics();
+  const auto tool = geom::ToolShape::from_cutter(10, 0, 20);
+  cspace::Options o;
+  o.check_collision = true;
+  const cspace::Space sp(k, &scene, &tool, o);
+  geom::QueryWorkspace ws;
+  cspace::Counters c;
+  auto axes_at = [&](double x, double z) {
+    kin::Axes q = kin::Axes::Zero();
+    const auto rp = k->rotary_pair();
+    q[rp[0]] = q[rp[1]] = 0;
+    EXPECT_TRUE(k->solve_for_rotaries({Vec3(x, 0, z), Vec3::UnitZ()}, q));
+    return q;
+  };
+  const auto hit = sp.swept(axes_at(-20, 5), axes_at(30, 5), cspace::SweepMode::Rapid, ws, c);
+  EXPECT_EQ(hit.status, cspace::SweepStatus::Collides);
+  // The tool (radius 5) overlaps the wall for x in (-5, 15): t in (0.3, 0.7).
+  EXPECT_GT(hit.t, 0.3 - 1e-9);
+  EXPECT_LT(hit.t, 0.7 + 1e-9);
+  // Above the wall (tip at z = 31): free, and certified with a handful of queries.
+  const auto over = sp.swept(axes_at(-20, 31), axes_at(30, 31), cspace::SweepMode::Rapid, ws, c);
+  EXPECT_EQ(over.status, cspace::SweepStatus::Free) << over.detail;
+  // Cutting mode excludes the tool's bottom relief: at z = 30.3 the tip passes 0.3 mm over the wall, which only
+  // the Rapid mode (the whole tool) counts.
+  EXPECT_EQ(sp.swept(axes_at(-20, 30.3), axes_at(30, 30.3), cspace::SweepMode::Cutting, ws, c).status,
+            cspace::SweepStatus::Free);
+  EXPECT_EQ(sp.swept(axes_at(-20, 29.7), axes_at(30, 29.7), cspace::SweepMode::Rapid, ws, c).status,
+            cspace::SweepStatus::Collides);
+}
+
+TEST(PlannerIssue11, GrooveApproachFollowsTheChosenAxisAndNoMoveCollides) {
+  // examples/groove at cone 25: the tilt chosen for the cut, applied to the CL's approach line, dragged the
+  // flutes through the lip on the plunge. Approach along the chosen axis: the whole program is swept-free.
+  geom::Scene scene;
+  scene.add("groove", geom::ObstacleRole::Part, geom::load_mesh(test::source_path("examples/groove/groove.stl")));
+  scene.build(false);
+  const cl::Program prog = cl::read_file(test::source_path("examples/groove/groove.cls"));
+  const auto tool = geom::ToolShape::from_cutter(10, 5, 30);
+  const auto p = run(prog, 25.0, &scene, &tool, 5.0);
+  ASSERT_EQ(p.replaced_moves.size(), 1u);
+  EXPECT_EQ(p.replaced_moves[0], 0u);
+  EXPECT_EQ(p.swept.collisions, 0u) << p.summary();
+  EXPECT_EQ(p.swept.uncertified, 0u) << p.summary();
+  EXPECT_GE(p.swept.moves, prog.moves.size() - 1);
+  // The approach point lies on the chosen axis of the first cutting point, 30 mm out.
+  const auto m = trunnion();
+  const auto k = m.kinematics();
+  const kin::Posed a = k->forward(p.axes[0]), b = k->forward(p.axes[1]);
+  EXPECT_LT((a.tip_mm - b.tip_mm - 30.0 * b.axis).norm(), 1e-3);
+  // Independent check of the old behaviour: the chosen orientation on the CL's approach line collides.
+  cspace::Options o;
+  o.check_collision = true;
+  o.ball_radius_mm = 5.0;
+  const cspace::Space sp(k, &scene, &tool, o);
+  geom::QueryWorkspace ws;
+  cspace::Counters c;
+  kin::Axes q0 = p.axes[1];
+  ASSERT_TRUE(k->solve_for_rotaries({prog.moves[0].tip_in_part_mm + 5.0 * prog.moves[0].axis_in_part - 5.0 * b.axis,
+                                     b.axis},
+                                    q0));
+  EXPECT_EQ(sp.swept(q0, p.axes[1], cspace::SweepMode::Cutting, ws, c).status, cspace::SweepStatus::Collides);
+}
+
+TEST(PlannerIssue11, ConeZeroOnAVerticalAxisWorksOnEveryBundledMachine) {
+  const cl::Program prog = cl::read_file(test::source_path("examples/cl/iso_catia.cls"));
+  // (pcmm.yaml is a measuring machine: nothing to plan.)
+  for (const char* name : {"haas-umc750", "trunnion-ac", "head-head-ac", "head-table-bc45", "xmini"}) {
+    const machine::Machine m = machine::load(test::source_path(std::string("machines/") + name + ".yaml"));
+    plan::Options o;
+    const plan::Planner planner(m, m.kinematics(), nullptr, nullptr, o);
+    try {
+      const plan::Plan p = planner.run(prog);
+      // Exact orientation: FK of every planned point gives the CL axis.
+      for (std::size_t i = 0; i < prog.moves.size(); ++i)
+        EXPECT_GT(m.kinematics()->forward(p.axes[i]).axis.dot(prog.moves[i].axis_in_part.normalized()), 1 - 1e-9)
+            << name << " move " << i;
+    } catch (const std::exception& e) {
+      ADD_FAILURE() << name << ": " << e.what();
+    }
+  }
+}
+
+TEST(PlannerIssue11, SameAnswerAtAnyThreadCount) {
+  // The parallel cell evaluation (per-point pre-pass and whole-cone extension) must not change a bit of the plan.
+  geom::Scene scene;
+  scene.add("pocket", geom::ObstacleRole::Part, lip_pocket(20, 12, 17, 20, 40));
+  scene.build(false);
+  std::ostringstream cl;
+  cl << "UNITS/MM\nMULTAX\nCUTTER/8,4\nFEDRAT/MMPM,500\n";
+  for (int deg = 0; deg <= 90; deg += 45)
+    cl << "GOTO/" << 11.5 * std::cos(deg2rad(deg)) << "," << 11.5 * std::sin(deg2rad(deg)) << ",0,0,0,1\n";
+  const cl::Program prog = cl::read_text(cl.str(), "lip.cls");
+  const auto tool = geom::ToolShape::from_cutter(8, 4, 24);
+  const auto mach = trunnion();
+  plan::Options o;
+  o.cspace.cone_rad = deg2rad(25.0);
+  o.cspace.resolution_rad = deg2rad(2.0);
+  o.cspace.ball_radius_mm = 4.0;
+  o.max_cells_per_point = 256;
+  auto at = [&](const char* threads) {
+    ::setenv("CSCAM_THREADS", threads, 1);
+    return plan::Planner(mach, mach.kinematics(), &scene, &tool, o).run(prog);
+  };
+  const plan::Plan p1 = at("1"), p2 = at("2"), p3 = at("3");
+  ::unsetenv("CSCAM_THREADS");
+  for (const plan::Plan* p : {&p2, &p3}) {
+    ASSERT_EQ(p->axes.size(), p1.axes.size());
+    for (std::size_t i = 0; i < p1.axes.size(); ++i)
+      for (int j = 0; j < 5; ++j) EXPECT_EQ(p->axes[i][j], p1.axes[i][j]);  // bit for bit
+    EXPECT_EQ(p->summary(), p1.summary());
+    EXPECT_EQ(p->counters.collision, p1.counters.collision);
+    EXPECT_EQ(p->counters.cells_enumerated, p1.counters.cells_enumerated);
+  }
+  EXPECT_GE(p1.points_beyond_cap, 1u);
+}
+
+TEST(PlannerIssue11, CompareCountsSweptCollisionsAndReportsSegmentsInJson) {
+  const std::string dir = ::testing::TempDir();
+  const std::string json = dir + "/groove.compare.json", nc = dir + "/groove.planned.ngc";
+  const auto r = test::run_command(std::string(CSCAM_CLI) + " compare " +
+                                   test::source_path("examples/groove/groove.cls") + " --machine trunnion-ac --part " +
+                                   test::source_path("examples/groove/groove.stl") + " --cone 25 --json-out " + json +
+                                   " -o " + nc);
+  ASSERT_EQ(r.status, 0) << r.output;
+  EXPECT_NE(r.output.find("colliding moves (swept)"), std::string::npos) << r.output;
+  std::ifstream in(json);
+  const nlohmann::json j = nlohmann::json::parse(in);
+  EXPECT_GT(j["conventional"]["colliding_moves_swept"].get<int>(), 100);  // the conventional post follows the normals
+  EXPECT_EQ(j["planner"]["colliding_moves_swept"].get<int>(), 0);
+  EXPECT_EQ(j["planner"]["uncertified_moves_swept"].get<int>(), 0);
+  const auto& segs = j["planner"]["segments"];
+  ASSERT_EQ(segs.size(), 1u);
+  EXPECT_EQ(segs[0]["cl_lines"][0].get<int>(), 11);
+  EXPECT_EQ(segs[0]["cl_lines"][1].get<int>(), 173);
+  EXPECT_EQ(segs[0]["tier"].get<int>(), 1);
+  EXPECT_EQ(segs[0]["approach_moves_replaced"].get<int>(), 1);
+  EXPECT_EQ(segs[0]["axes"]["A"]["reversals"].get<int>(), 0);
+  EXPECT_GT(segs[0]["axes"]["A"]["conventional_reversals"].get<int>(), 0);
 }

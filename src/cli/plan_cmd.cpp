@@ -13,6 +13,7 @@
 #include "cscam/cl/program.hpp"
 #include "cscam/core/atomic_file.hpp"
 #include "cscam/core/error.hpp"
+#include "cscam/core/tolerances.hpp"
 #include "cscam/core/units.hpp"
 #include "cscam/cspace/machine_scene.hpp"
 #include "cscam/geom/mesh.hpp"
@@ -224,9 +225,15 @@ gate::Options gate_options(const Setup& s, const PlanArgs& a, double cone_deg) {
   return g;
 }
 
-report::VerifyResult verify_text(const Setup& s, const std::string& text, double cone_deg) {
+/// Verifies NC text against the CL program, except for the approach/retract moves the planner re-placed along
+/// the chosen tool axis (listed in `replaced`), which are checked against their planned poses.
+report::VerifyResult verify_text(const Setup& s, const std::string& text, double cone_deg,
+                                 const plan::Plan* planned = nullptr) {
   const report::VerifyOptions vo = report::verify_options_for(s.m, 0.0, 0.0, cone_deg);
-  return report::verify(nc::read_text(text, "planned.ngc", report::axis_letters(s.m)), s.prog, *s.kin, vo);
+  cl::Program ref = s.prog;
+  if (planned)
+    for (std::size_t m : planned->replaced_moves) ref.moves[m] = planned->program.moves[m];
+  return report::verify(nc::read_text(text, "planned.ngc", report::axis_letters(s.m)), ref, *s.kin, vo);
 }
 
 void write_svgs(const Setup& s, const plan::Planner& planner, const plan::Plan& p, const std::vector<kin::Axes>& conv,
@@ -262,10 +269,88 @@ int run_plan(const PlanArgs& a) {
   if (!a.svg_dir.empty()) write_svgs(*s, planner, p, post::conventional_axes(s->prog, s->m, *s->kin), a.svg_dir);
   std::cout << p.summary();
   std::cout << fmt::format("wrote {} ({} blocks); verify: {}\n", out, sum.blocks, v.message);
-  std::cout << fmt::format("planner: {:.3f} s, {} cells enumerated, {} IK, {} stroke and {} collision queries\n",
-                           p.seconds, p.counters.cells_enumerated, p.counters.ik, p.counters.stroke,
-                           p.counters.collision);
+  std::cout << fmt::format(
+      "planner: {:.3f} s, {} cells enumerated, {} IK, {} stroke and {} collision queries, {} more for {} swept "
+      "moves, peak memory {:.0f} MB\n",
+      p.seconds, p.counters.cells_enumerated, p.counters.ik, p.counters.stroke, p.counters.collision,
+      p.counters.swept_queries, p.counters.swept, p.peak_memory_mb);
   return 0;
+}
+
+/// Per segment, for compare --json: CL line range, tier and why earlier tiers failed, the fixed values or ranges,
+/// rotary travel and reversals, linear travel against the conventional program's, and the swept check. Returns
+/// notes for segments whose linear travel a fixed (3+2) orientation made much longer.
+std::vector<std::string> segment_reports(const Setup& s, const plan::Plan& p, const std::vector<kin::Axes>& conv,
+                                         nlohmann::json& out) {
+  std::vector<std::string> notes;
+  for (std::size_t g = 0; g < p.segments.size(); ++g) {
+    const auto& seg = p.segments[g];
+    nlohmann::json fails = nlohmann::json::array();
+    for (const auto& f : seg.failures)
+      fails.push_back({{"tier", static_cast<int>(f.tier)}, {"cl_line", f.line}, {"reason", f.reason}});
+    nlohmann::json axes = nlohmann::json::object();
+    for (int j = 0; j < 5; ++j) {
+      const auto J = static_cast<std::size_t>(j);
+      const bool rot = s.m.axes[J].rotary();
+      const double scale = rot ? 180.0 / kPi : 1.0, hyst = rot ? tol::kReversalHysteresisDeg : tol::kReversalHysteresisMm;
+      auto walk = [&](const std::vector<kin::Axes>& q, double& travel, int& reversals, double& lo, double& hi) {
+        travel = 0;
+        reversals = 0;
+        lo = hi = q[seg.first_move][j] * scale;
+        int dir = 0;
+        double ext = lo;
+        for (std::size_t m = seg.first_move + 1; m <= seg.last_move; ++m) {
+          const double v = q[m][j] * scale;
+          travel += std::abs(v - q[m - 1][j] * scale);
+          lo = std::min(lo, v);
+          hi = std::max(hi, v);
+          if (dir == 0) {
+            if (std::abs(v - ext) > hyst) dir = v > ext ? 1 : -1, ext = v;
+          } else if (dir * (v - ext) > 0) {
+            ext = v;
+          } else if (std::abs(v - ext) > hyst) {
+            ++reversals;
+            dir = -dir;
+            ext = v;
+          }
+        }
+      };
+      double tp, tc, lo, hi, lo_c, hi_c;
+      int rv, rc;
+      walk(p.axes, tp, rv, lo, hi);
+      walk(conv, tc, rc, lo_c, hi_c);
+      axes[s.m.post.letters[J]] = {{"range", {report::rounded(lo, 4), report::rounded(hi, 4)}},
+                                   {"travel", report::rounded(tp, 4)},
+                                   {"reversals", rv},
+                                   {"conventional_travel", report::rounded(tc, 4)},
+                                   {"conventional_reversals", rc},
+                                   {"unit", rot ? "deg" : "mm"}};
+      // A fixed orientation can turn a short path into long linear strokes (the table no longer follows it).
+      if (!rot && tp > 1.25 * tc && tp - tc > 10.0)
+        notes.push_back(fmt::format("segment {} (CL lines {}-{}): the {} makes {} travel {:.0f} mm instead of {:.0f} "
+                                    "mm (x{:.2f}) at the CL points",
+                                    g + 1, seg.first_line, seg.last_line,
+                                    seg.tier == plan::Tier::Fixed2 ? "fixed (3+2) orientation" : "chosen orientation",
+                                    s.m.post.letters[J], tp, tc, tp / tc));
+    }
+    out.push_back({{"cl_lines", {seg.first_line, seg.last_line}},
+                   {"tier", static_cast<int>(seg.tier)},
+                   {"tier_name", plan::to_string(seg.tier)},
+                   {"description", seg.description},
+                   {"earlier_tiers_failed", std::move(fails)},
+                   {"axes", std::move(axes)},
+                   {"reorientation", plan::to_string(seg.reorientation)},
+                   {"reorientation_detail", seg.reorientation_detail},
+                   {"swept_collisions", seg.swept_collisions},
+                   {"swept_uncertified", seg.swept_uncertified},
+                   {"swept_first", seg.swept_collisions + seg.swept_uncertified
+                                       ? nlohmann::json{{"cl_line", seg.swept_first_line},
+                                                        {"detail", seg.swept_first_detail}}
+                                       : nlohmann::json()},
+                   {"approach_moves_replaced", seg.approach_moves_replaced},
+                   {"legs", seg.legs}});
+  }
+  return notes;
 }
 
 int run_compare(const PlanArgs& a) {
@@ -280,16 +365,18 @@ int run_compare(const PlanArgs& a) {
   post::Summary sp;
   const std::string plan_text = post_to_string(*s, p.program, p.axes, a, "cspace-planner", sp);
   const auto vc = verify_text(*s, conv_text, 0.0);
-  const auto vp = verify_text(*s, plan_text, a.cone_deg);
+  const auto vp = verify_text(*s, plan_text, a.cone_deg, &p);
   auto stc = stats_of(*s, conv_text, "conventional");
   auto stp = stats_of(*s, plan_text, "planner");
   // An independent collision check of both programs against the meshes (even when the planner was told
   // to ignore them): FK of every CL point's axis values, tool vs scene.
+  // And every move between the points, swept (feed blocks, approach/retract, reorientations).
   struct Hits {
     std::size_t n = 0;
     int first_line = 0;
+    plan::SweptSummary swept;
   };
-  auto count_collisions = [&](const std::vector<kin::Axes>& axes) {
+  auto count_collisions = [&](const cl::Program& prog, const std::vector<kin::Axes>& axes) {
     Hits h;
     if (!s->has_meshes || !s->tool) return h;
     cspace::Options co = s->opt.cspace;
@@ -298,14 +385,15 @@ int run_compare(const PlanArgs& a) {
     geom::QueryWorkspace ws;
     cspace::Counters cc;
     const cspace::Space space_h(s->kin, &s->scene, s->tool.get(), co, s->has_head ? &s->head : nullptr);
-    for (std::size_t i = 0; i < s->prog.moves.size(); ++i)
+    for (std::size_t i = 0; i < prog.moves.size(); ++i)
       if (!space_h.collision_at_axes(axes[i], ws, cc).empty()) {
-        if (!h.n) h.first_line = s->prog.moves[i].line;
+        if (!h.n) h.first_line = prog.moves[i].line;
         ++h.n;
       }
+    h.swept = plan::check_program(space_h, s->m, prog, axes, cc);
     return h;
   };
-  const Hits hc = count_collisions(conv), hp = count_collisions(p.axes);
+  const Hits hc = count_collisions(s->prog, conv), hp = count_collisions(p.program, p.axes);
   const std::size_t conv_collisions = hc.n;
   std::string tiers;
   int counts[5] = {0, 0, 0, 0, 0};
@@ -319,21 +407,45 @@ int run_compare(const PlanArgs& a) {
   std::cout << report::table({stc, stp}, {"conventional", "planner"});
   std::cout << fmt::format("{:<28}{:>22}{:>22}\n", "NC blocks", sc.blocks, sp.blocks);
   std::cout << fmt::format("{:<28}{:>22}{:>22}\n", "verify", vc.ok ? "ok" : "FAILED", vp.ok ? "ok" : "FAILED");
-  if (s->has_meshes) std::cout << fmt::format("{:<28}{:>22}{:>22}\n", "colliding CL points", hc.n, hp.n);
+  if (s->has_meshes) {
+    std::cout << fmt::format("{:<28}{:>22}{:>22}\n", "colliding CL points", hc.n, hp.n);
+    std::cout << fmt::format("{:<28}{:>22}{:>22}\n", "colliding moves (swept)", hc.swept.collisions,
+                             hp.swept.collisions);
+    if (hc.swept.uncertified || hp.swept.uncertified)
+      std::cout << fmt::format("{:<28}{:>22}{:>22}\n", "uncertified moves (swept)", hc.swept.uncertified,
+                               hp.swept.uncertified);
+  }
   std::cout << fmt::format("{:<28}{:>22}{:>22}\n", "segment tiers 1/2/3/4", "-", tiers);
   std::cout << fmt::format("{:<28}{:>22.3f}{:>22.3f}\n", "time (s)", conv_s, p.seconds);
-  std::cout << fmt::format("planner queries: {} cells, {} IK, {} stroke, {} collision\n", p.counters.cells_enumerated,
-                           p.counters.ik, p.counters.stroke, p.counters.collision);
+  std::cout << fmt::format(
+      "planner queries: {} cells, {} IK, {} stroke, {} collision, {} more for {} swept moves; peak memory {:.0f} MB\n",
+      p.counters.cells_enumerated, p.counters.ik, p.counters.stroke, p.counters.collision, p.counters.swept_queries,
+      p.counters.swept, p.peak_memory_mb);
   std::cout << p.summary();
   if (hc.n)
     std::cout << fmt::format("the conventional program collides at {} CL points (first at CL line {})\n", hc.n,
                              hc.first_line);
+  auto first_swept = [&](const char* who, const Hits& h) {
+    for (const auto& x : h.swept.hits)
+      if (x.result.status == cspace::SweepStatus::Collides) {
+        std::cout << fmt::format("the {} program collides between points at {} moves (first: the {} into CL line {}, "
+                                 "{:.0f} % along: {})\n",
+                                 who, h.swept.collisions, x.reorientation ? "reorientation" : "move", x.line,
+                                 100.0 * x.result.t, x.result.detail);
+        return;
+      }
+  };
+  first_swept("conventional", hc);
+  first_swept("planned", hp);
   if (hp.n)
     std::cout << fmt::format("the planned program collides at {} CL points (first at CL line {}){}\n", hp.n,
                              hp.first_line, s->opt.cspace.check_collision ? "" : ": collision pruning was off");
   nlohmann::json tier_list = nlohmann::json::array();
   for (const auto& g : p.segments) tier_list.push_back(static_cast<int>(g.tier));
-  const nlohmann::json jc = {{"cl", a.cl},
+  nlohmann::json segs = nlohmann::json::array();
+  const std::vector<std::string> flags = segment_reports(*s, p, conv, segs);
+  for (const auto& f : flags) std::cout << "note: " << f << "\n";
+  nlohmann::json jc = {{"cl", a.cl},
                              {"machine", s->m.name},
                              {"cone_deg", a.cone_deg},
                              {"resolution_deg", a.resolution_deg},
@@ -345,19 +457,28 @@ int run_compare(const PlanArgs& a) {
                                {"blocks", sc.blocks},
                                {"verify_ok", vc.ok},
                                {"colliding_points", conv_collisions},
+                               {"colliding_moves_swept", hc.swept.collisions},
+                               {"uncertified_moves_swept", hc.swept.uncertified},
                                {"seconds", report::rounded(conv_s, 4)}}},
                              {"planner",
                               {{"stats", stp.json()},
                                {"blocks", sp.blocks},
                                {"verify_ok", vp.ok},
                                {"colliding_points", hp.n},
+                               {"colliding_moves_swept", hp.swept.collisions},
+                               {"uncertified_moves_swept", hp.swept.uncertified},
+                               {"points_beyond_cell_cap", p.points_beyond_cap},
                                {"seconds", report::rounded(p.seconds, 4)},
                                {"tiers", std::move(tier_list)},
                                {"queries",
                                 {{"cells", p.counters.cells_enumerated},
                                  {"ik", p.counters.ik},
                                  {"stroke", p.counters.stroke},
-                                 {"collision", p.counters.collision}}}}}};
+                                 {"collision", p.counters.collision},
+                                 {"swept_moves", p.counters.swept},
+                                 {"swept_queries", p.counters.swept_queries}}},
+                               {"peak_memory_mb", report::rounded(p.peak_memory_mb, 1)}}}};
+  jc["planner"]["segments"] = std::move(segs);
   // JSON only where asked: a run must not leave files in the working directory it was not told to write.
   if (!a.json_out.empty()) {
     const std::string json = jc.dump(2) + "\n";

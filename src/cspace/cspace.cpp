@@ -12,22 +12,6 @@
 
 namespace cscam::cspace {
 
-const char* to_string(Status s) {
-  switch (s) {
-    case Status::Unknown:
-      return "unknown";
-    case Status::Feasible:
-      return "feasible";
-    case Status::Orientation:
-      return "orientation";
-    case Status::Stroke:
-      return "stroke";
-    case Status::Collision:
-      return "collision";
-  }
-  return "?";
-}
-
 Counters& Counters::operator+=(const Counters& o) {
   cells_enumerated += o.cells_enumerated;
   ik += o.ik;
@@ -35,6 +19,8 @@ Counters& Counters::operator+=(const Counters& o) {
   collision += o.collision;
   cache_hits += o.cache_hits;
   certified += o.certified;
+  swept += o.swept;
+  swept_queries += o.swept_queries;
   return *this;
 }
 
@@ -64,6 +50,15 @@ Space::Space(std::shared_ptr<const kin::Kinematics> kinematics, const geom::Scen
     for (int l = 0; l < (scene_ ? scene_->link_count() : 0); ++l)
       if (((used_links_ >> l) & 1u) && !a[static_cast<std::size_t>(l)].isApprox(b[static_cast<std::size_t>(l)], 1e-12))
         certify_links_ = false;
+  }
+  if (tool_) {
+    tip_tool_.cutter = {tool_->cutter.diameter_mm, 0.0, tool_->cutter.corner_radius_mm + 2.0 * kRapidSweepMarginCapMm + 1e-3};
+    double rmax = 0.0, top = 0.0;
+    for (const geom::ToolSegment& sgm : tool_->segments()) {
+      rmax = std::max(rmax, sgm.radius_mm);
+      top = std::max(top, sgm.z1_mm);
+    }
+    reach_mm_ = top + rmax + std::max(opt_.collision.clearance_mm, opt_.collision.cutter_clearance_mm);
   }
   const auto rp = kin_->rotary_pair();
   rot1_ = rp[0];
@@ -96,6 +91,21 @@ bool Space::in_cone(const kin::Posed& cl, double r1, double r2, float* orient_er
   const double err = std::acos(std::clamp(a.dot(cl.axis), -1.0, 1.0));
   if (orient_err) *orient_err = static_cast<float>(err);
   // A tiny floor on the cone lets exact IK cells (cone 0) pass their own test despite rounding.
+  return err <= std::max(opt_.cone_rad, 1e-7) && err >= opt_.min_tilt_rad - 1e-12;
+}
+
+bool Space::in_cone_cos(const kin::Posed& cl, double r1, double r2, double& dot) const {
+  Eigen::Vector3d a;
+  if (!kin_->tool_axis_at(r1, r2, cl.tip_mm, a)) return false;
+  dot = std::clamp(a.dot(cl.axis), -1.0, 1.0);
+  // Clear of both bounds by far more than round-off: decided by the cosine; near one: in_cone's own test.
+  constexpr double kBand = 1e-9;
+  const double cos_cone = std::cos(std::max(opt_.cone_rad, 1e-7));
+  if (dot < cos_cone - kBand) return false;
+  const double cos_min = opt_.min_tilt_rad > 0 ? std::cos(opt_.min_tilt_rad - 1e-12) : 2.0;
+  if (dot > cos_cone + kBand && dot < cos_min - kBand) return true;
+  if (dot > cos_min + kBand) return false;
+  const double err = std::acos(dot);
   return err <= std::max(opt_.cone_rad, 1e-7) && err >= opt_.min_tilt_rad - 1e-12;
 }
 

@@ -11,7 +11,14 @@
 #include <unordered_map>
 #include <utility>
 
+#include <sys/resource.h>
+#include <tbb/blocked_range.h>
+#include <tbb/enumerable_thread_specific.h>
+#include <tbb/parallel_for.h>
+#include <tbb/task_arena.h>
+
 #include "cscam/core/error.hpp"
+#include "cscam/core/threads.hpp"
 #include "cscam/core/units.hpp"
 #include "cscam/kin/track.hpp"
 
@@ -50,6 +57,7 @@ struct Layer {
   std::vector<Cell> cells;                        ///< orientation cells, closest first (capped)
   std::unordered_map<std::uint64_t, int> index;   ///< (i1,i2) -> position in cells
   std::unordered_map<std::uint64_t, Cell> extra;  ///< evaluated cells outside the cap
+  bool truncated = false;                         ///< `cells` stopped at the cap: the cone holds more
 };
 
 /// The search over one segment's layers. Owns the per-thread query workspace.
@@ -83,6 +91,8 @@ class Search {
   }
 
   int line(std::size_t k) const { return prog_.moves[L_[k].move].line; }
+  /// The rotaries the previous segment ended at (tie-break between equally good starts); null: home.
+  void prefer(const kin::Axes* q) { prefer_ = q; }
   /// Names of the primary and secondary rotaries, for reports.
   std::string n1() const {
     return sp_.kinematics().axes()[static_cast<size_t>(sp_.kinematics().rotary_pair()[0])].name;
@@ -111,7 +121,9 @@ class Search {
           continue;
         }
         if (k == 0) {
-          cost[0][j] = 0.0;
+          // Ties (windings of a cyclic axis) go to the start nearest the previous segment's rotaries (or home).
+          const double r1 = prefer_ ? (*prefer_)[rp[0]] : 0.0, r2 = prefer_ ? (*prefer_)[rp[1]] : 0.0;
+          cost[0][j] = 1e-9 * (std::abs(cells[j].r1 - r1) + std::abs(cells[j].r2 - r2));
           any = true;
           continue;
         }
@@ -316,19 +328,21 @@ class Search {
     for (const Cell& c0 : L_[0].cells) {
       double score = c0.orient_err;
       bool ok = true;
+      double min_dot = 1.0;  // the worst point's cosine: one arc cosine per candidate, not one per point
       for (std::size_t oi = 0; oi < oorder.size() && ok; ++oi) {
         const std::size_t k = oorder[oi];
-        float e = 0.0f;
-        const bool in = exact_ ? L_[k].index.count(key(c0.i1, c0.i2)) > 0 : sp_.in_cone(L_[k].cl, c0.r1, c0.r2, &e);
+        double dot = 1.0;
+        const bool in = exact_ ? L_[k].index.count(key(c0.i1, c0.i2)) > 0 : sp_.in_cone_cos(L_[k].cl, c0.r1, c0.r2, dot);
         if (!in) {
           furthest = std::max(furthest, k);
           ok = false;
           std::rotate(oorder.begin(), oorder.begin() + static_cast<std::ptrdiff_t>(oi),
                       oorder.begin() + static_cast<std::ptrdiff_t>(oi) + 1);
         } else {
-          score = std::max(score, static_cast<double>(e));
+          min_dot = std::min(min_dot, dot);
         }
       }
+      if (ok && !exact_ && oorder.size()) score = std::max(score, static_cast<double>(static_cast<float>(std::acos(min_dot))));
       // Among equally good orientations prefer the winding nearest the previous segment (or home).
       const double home = prefer ? std::abs(c0.r1 - (*prefer)[rp[0]]) + std::abs(c0.r2 - (*prefer)[rp[1]])
                                  : std::abs(c0.r1) + std::abs(c0.r2);
@@ -816,21 +830,48 @@ class Search {
   cspace::Counters& c_;
   const cl::Program& prog_;
   bool exact_;
+  const kin::Axes* prefer_ = nullptr;
   geom::QueryWorkspace ws_;
 };
 
 }  // namespace
 
+const char* to_string(Reorientation r) {
+  switch (r) {
+    case Reorientation::None:
+      return "none";
+    case Reorientation::Clear:
+      return "clear";
+    case Reorientation::Collides:
+      return "collides";
+    case Reorientation::Uncertified:
+      return "uncertified";
+  }
+  return "?";
+}
+
 std::string Plan::summary() const {
   std::string s;
   for (std::size_t i = 0; i < segments.size(); ++i) {
     const auto& g = segments[i];
+    std::string reo;
+    if (g.reorientation != Reorientation::None)
+      reo = std::string("; reorientation into it: ") + to_string(g.reorientation) +
+            (g.reorientation_detail.empty() ? "" : ": " + g.reorientation_detail);
     s += fmt::format("segment {} (CL lines {}-{}): {} — {}{}\n", i + 1, g.first_line, g.last_line, to_string(g.tier),
-                     g.description, g.reorientation == "none" ? "" : "; reorientation into it: " + g.reorientation);
+                     g.description, reo);
     for (const auto& f : g.failures)
       s += fmt::format("    tier {} failed at CL line {}: {}\n", static_cast<int>(f.tier), f.line, f.reason);
     if (!g.legs.empty()) s += "    legs: " + g.legs + "\n";
+    if (g.approach_moves_replaced)
+      s += fmt::format("    approach/retract: {} move(s) along the chosen tool axis\n", g.approach_moves_replaced);
+    if (g.swept_collisions || g.swept_uncertified)
+      s += fmt::format("    swept: {} move(s) collide, {} uncertified (first into CL line {}: {})\n", g.swept_collisions,
+                       g.swept_uncertified, g.swept_first_line, g.swept_first_detail);
   }
+  if (points_beyond_cap)
+    s += fmt::format("{} point(s) needed cells beyond the first cells per point: searched their whole cone\n",
+                     points_beyond_cap);
   for (const auto& w : warnings) s += "warning: " + w + "\n";
   return s;
 }
@@ -841,6 +882,52 @@ Planner::Planner(const machine::Machine& machine, std::shared_ptr<const kin::Kin
       kin_(kinematics),
       space_(kinematics, scene, tool, options.cspace, head),
       opt_(std::move(options)) {}
+
+bool Planner::along_chosen_axis(const cl::Program& cl, Plan& plan, std::size_t m, std::size_t ref) const {
+  // The CL values decide whether `m` is an approach (retract) along the axis of `ref`.
+  const cl::Move& orig_m = cl.moves[m];
+  const Eigen::Vector3d cl_ref_tip = cl.moves[ref].tip_in_part_mm, cl_ref_axis = cl.moves[ref].axis_in_part.normalized();
+  const Eigen::Vector3d d = orig_m.tip_in_part_mm - cl_ref_tip;
+  const double len = d.norm();
+  constexpr double kAxialRad = 1e-3;  // CL files print 4-5 decimals: far below this
+  if (len < 1e-6 || d.dot(cl_ref_axis) < len * std::cos(kAxialRad)) return false;
+  if (orig_m.axis_in_part.normalized().dot(cl_ref_axis) < std::cos(kAxialRad)) return false;
+  const kin::Posed ref_pose = kin_->forward(plan.axes[ref]);
+  if (ref_pose.axis.dot(cl_ref_axis) > 1.0 - 1e-12 && (ref_pose.tip_mm - cl_ref_tip).norm() < 1e-9) return false;
+  kin::Axes q = plan.axes[ref];
+  const kin::Posed target{ref_pose.tip_mm + len * ref_pose.axis, ref_pose.axis};
+  if (!kin_->solve_for_rotaries(target, q) || !kin_->check_limits(q).empty() || !kin_->passive_violation(q).empty())
+    return false;
+  plan.axes[m] = q;
+  const kin::Posed tp = kin_->forward(q);
+  plan.program.moves[m].tip_in_part_mm = tp.tip_mm;
+  plan.program.moves[m].axis_in_part = tp.axis;
+  plan.replaced_moves.push_back(m);
+  return true;
+}
+
+namespace {
+
+/// Evaluates cells in parallel over the immutable space, one workspace per thread. `job(i, ws, counters)` must only
+/// touch item i, so the outcome (and the summed counters) does not depend on the thread count.
+template <typename Job>
+void parallel_items(std::size_t n, cspace::Counters& total, Job&& job) {
+  struct Local {
+    geom::QueryWorkspace ws;
+    cspace::Counters c;
+  };
+  tbb::enumerable_thread_specific<Local> locals;
+  tbb::task_arena arena(static_cast<int>(worker_threads()));
+  arena.execute([&] {
+    tbb::parallel_for(tbb::blocked_range<std::size_t>(0, n), [&](const tbb::blocked_range<std::size_t>& r) {
+      Local& l = locals.local();
+      for (std::size_t i = r.begin(); i != r.end(); ++i) job(i, l.ws, l.c);
+    });
+  });
+  for (const Local& l : locals) total += l.c;
+}
+
+}  // namespace
 
 Plan Planner::run(const cl::Program& program) const {
   const auto t0 = std::chrono::steady_clock::now();
@@ -857,14 +944,16 @@ Plan Planner::run(const cl::Program& program) const {
     else
       segs.back().second = i;
   }
+  std::vector<char> swept_ok(moves.size(), 0);  // moves certified free by a segment's own swept check
   for (const auto& [s, e] : segs) {
     std::vector<Layer> layers(e - s + 1);
     // Only the first point's cells are needed by tier 1 (the others are tested cell by cell); the rest
     // are enumerated when a later tier needs them, or for the per-point feasibility check in exact mode.
-    auto enumerate_layer = [&](std::size_t k) {
+    auto enumerate_layer = [&](std::size_t k, std::size_t cap) {
       Layer& l = layers[k];
-      // Tier 1 takes its candidates from the first point: give it a much larger share.
-      space_.enumerate(l.cl, l.cells, k == 0 ? 64 * opt_.max_cells_per_point : opt_.max_cells_per_point, plan.counters);
+      space_.enumerate(l.cl, l.cells, cap, plan.counters);
+      l.truncated = l.cells.size() >= cap;
+      l.index.clear();
       if (exact)
         for (Cell& c : l.cells) {
           c.i1 = static_cast<int>(std::lround(c.r1 / kExactKeyRad));
@@ -876,7 +965,8 @@ Plan Planner::run(const cl::Program& program) const {
     for (std::size_t k = 0; k < layers.size(); ++k) {
       layers[k].move = s + k;
       layers[k].cl = {moves[s + k].tip_in_part_mm, moves[s + k].axis_in_part.normalized()};
-      if (k == 0 || exact) enumerate_layer(k);
+      // Tier 1 takes its candidates from the first point: give it a much larger share.
+      if (k == 0 || exact) enumerate_layer(k, k == 0 ? 64 * opt_.max_cells_per_point : opt_.max_cells_per_point);
     }
     if (exact) {
       // At a singular point the primary rotary is free: offer every primary that a neighbouring regular
@@ -898,7 +988,8 @@ Plan Planner::run(const cl::Program& program) const {
           }
         std::vector<Cell> out;
         for (const Cell& c : cells) {
-          if (!c.singular) {
+          // No regular neighbour (e.g. a whole segment along the primary axis): the IK's own choice stands.
+          if (!c.singular || primaries.empty()) {
             out.push_back(c);
             continue;
           }
@@ -917,20 +1008,64 @@ Plan Planner::run(const cl::Program& program) const {
           layers[k].index.emplace(key(cells[j].i1, cells[j].i2), static_cast<int>(j));
       }
     }
+    // Replaces a truncated cell list with every cell of the cone, keeping what was evaluated already.
+    auto extend_layer = [&](std::size_t k) {
+      Layer& l = layers[k];
+      std::unordered_map<std::uint64_t, Cell> keep;
+      keep.swap(l.extra);
+      for (Cell& c : l.cells)
+        if (c.status != Status::Unknown) keep.insert_or_assign(key(c.i1, c.i2), std::move(c));
+      enumerate_layer(k, std::numeric_limits<std::size_t>::max());
+      for (auto& [kk, c] : keep) {
+        if (auto it = l.index.find(kk); it != l.index.end()) {
+          if (c.status != Status::Orientation) l.cells[static_cast<size_t>(it->second)] = c;
+        } else {
+          l.extra.emplace(kk, std::move(c));
+        }
+      }
+    };
     Search search(space_, opt_, layers, plan.counters, program);
     auto check_points = [&]() {
-      // Every point needs at least one feasible cell; otherwise say which constraint emptied it.
+      // Every point needs at least one feasible cell; otherwise say which constraint emptied it. A point is
+      // called infeasible only once every cell of its cone has been shown infeasible: a truncated list whose
+      // cells all fail is first extended to the whole cone.
+      // In parallel first: each point's cells in order up to its first feasible one (what the loop below needs).
+      parallel_items(layers.size(), plan.counters, [&](std::size_t k, geom::QueryWorkspace& ws, cspace::Counters& c) {
+        for (Cell& cell : layers[k].cells) {
+          space_.evaluate(layers[k].cl, cell, ws, c);
+          if (cell.status == Status::Feasible) break;
+        }
+      });
       for (std::size_t k = 0; k < layers.size(); ++k) {
         bool any = false;
         int n_stroke = 0, n_coll = 0;
         std::string example;
-        for (Cell& c : layers[k].cells) {
-          if (search.feasible(k, c)) {
-            any = true;
-            break;
+        for (bool extended = false;;) {
+          n_stroke = n_coll = 0;
+          for (Cell& c : layers[k].cells) {
+            if (search.feasible(k, c)) {
+              any = true;
+              break;
+            }
+            (c.status == Status::Stroke ? n_stroke : n_coll)++;
+            if (example.empty()) example = c.detail;
           }
-          (c.status == Status::Stroke ? n_stroke : n_coll)++;
-          if (example.empty()) example = c.detail;
+          if (any || extended || !layers[k].truncated) break;
+          extend_layer(k);
+          ++plan.points_beyond_cap;
+          extended = true;
+          // The whole cone, nearest first, in parallel blocks; stop after the first block holding a feasible cell.
+          auto& cells = layers[k].cells;
+          constexpr std::size_t kBlock = 1024;
+          for (std::size_t b = 0; b < cells.size(); b += kBlock) {
+            const std::size_t e = std::min(cells.size(), b + kBlock);
+            parallel_items(e - b, plan.counters, [&](std::size_t i, geom::QueryWorkspace& ws, cspace::Counters& c) {
+              space_.evaluate(layers[k].cl, cells[b + i], ws, c);
+            });
+            if (std::any_of(cells.begin() + static_cast<std::ptrdiff_t>(b), cells.begin() + static_cast<std::ptrdiff_t>(e),
+                            [](const Cell& x) { return x.status == Status::Feasible; }))
+              break;
+          }
         }
         if (any) continue;
         const cl::Move& mv = moves[layers[k].move];
@@ -987,18 +1122,23 @@ Plan Planner::run(const cl::Program& program) const {
     TierFailure f;
     std::string desc;
     const kin::Axes* prefer = plan.segments.empty() ? nullptr : &plan.axes[segs[plan.segments.size() - 1].second];
+    search.prefer(prefer);
+    bool listed = false;  // the full (capped) cell lists of points after the first are in the layers
+    auto cascade = [&]() {
+    rep.failures.clear();
+    desc.clear();
     if (search.fixed2(path, f, prefer)) {
       rep.tier = Tier::Fixed2;
       desc = fmt::format("rotaries fixed at {} = {:.3f} deg, {} = {:.3f} deg", search.n1(), rad2deg(path[0]->r1),
                          search.n2(), rad2deg(path[0]->r2));
     } else {
       rep.failures.push_back(f);
-      if (!exact)
+      if (!exact && !listed)
         for (std::size_t k = 1; k < layers.size(); ++k) {
           // Keep what tier 1 already evaluated (the cache) when the full cell list arrives.
           std::unordered_map<std::uint64_t, Cell> keep;
           keep.swap(layers[k].extra);
-          enumerate_layer(k);
+          enumerate_layer(k, opt_.max_cells_per_point);
           for (auto& [kk, c] : keep) {
             if (auto it = layers[k].index.find(kk); it != layers[k].index.end()) {
               if (c.status != Status::Orientation) layers[k].cells[static_cast<size_t>(it->second)] = c;
@@ -1007,6 +1147,7 @@ Plan Planner::run(const cl::Program& program) const {
             }
           }
         }
+      listed = true;
       check_points();
       if (search.fixed1(path, f, desc)) {
         rep.tier = Tier::Fixed1;
@@ -1016,12 +1157,67 @@ Plan Planner::run(const cl::Program& program) const {
           rep.tier = Tier::Monotonic;
         } else {
           rep.failures.push_back(f);
-          if (!search.shortest(path, f, desc)) {
+          bool found = search.shortest(path, f, desc);
+          if (!found && !exact) {
+            // The tiers searched truncated cell lists: search the whole cones before giving up.
+            std::size_t n_ext = 0;
+            for (std::size_t k = 0; k < layers.size(); ++k)
+              if (layers[k].truncated) {
+                extend_layer(k);
+                ++n_ext;
+              }
+            plan.points_beyond_cap += n_ext;
+            if (n_ext) found = search.shortest(path, f, desc);
+          }
+          if (!found) {
             throw InputError(SourceLoc{program.file, f.line, 0},
                              fmt::format("no rotary path through the feasible cells of segment CL lines {}-{}: {}",
                                          rep.first_line, rep.last_line, f.reason));
           }
           rep.tier = Tier::Shortest;
+        }
+      }
+    }
+    };
+    cascade();
+    // Between the points: a move whose sweep collides rules out the cell it leads into (conservative: that cell
+    // might be fine from another predecessor), and the tiers run again on what is left. A few rounds at most;
+    // what remains is reported by the final swept check.
+    std::vector<Cell> kept;  // outlives `path` when it points here
+    if (space_.checks_collision() && path.size() > 1) {
+      geom::QueryWorkspace ws;
+      for (int round = 0; round < 4; ++round) {
+        std::vector<std::size_t> bad, free_into;
+        for (std::size_t k = 0; k + 1 < path.size(); ++k) {
+          const auto st =
+              space_.swept(path[k]->axes, path[k + 1]->axes, cspace::SweepMode::Cutting, ws, plan.counters).status;
+          if (st == cspace::SweepStatus::Collides) bad.push_back(k + 1);
+          if (st == cspace::SweepStatus::Free) free_into.push_back(k + 1);
+        }
+        if (bad.empty()) {
+          // The final check need not repeat these (unless an approach/retract below moves an end).
+          for (std::size_t k : free_into) swept_ok[layers[k].move] = 1;
+          break;
+        }
+        // Keep the current answer: if nothing is left without those cells, it stands (with its warning).
+        kept.clear();
+        for (const Cell* c : path) kept.push_back(*c);
+        const Tier kept_tier = rep.tier;
+        const std::vector<TierFailure> kept_failures = rep.failures;
+        const std::string kept_desc = desc;
+        for (std::size_t k : bad) {
+          Cell* c = const_cast<Cell*>(path[k]);  // the layers own the cells; the path points into them
+          c->status = Status::Collision;
+          c->detail = "the move into it from the previous point collides (swept)";
+        }
+        try {
+          cascade();
+        } catch (const InputError&) {
+          for (std::size_t k = 0; k < kept.size(); ++k) path[k] = &kept[k];
+          rep.tier = kept_tier;
+          rep.failures = kept_failures;
+          desc = kept_desc;
+          break;
         }
       }
     }
@@ -1091,45 +1287,61 @@ Plan Planner::run(const cl::Program& program) const {
       plan.program.moves[m].tip_in_part_mm = tp.tip_mm;
       plan.program.moves[m].axis_in_part = tp.axis;
     }
+    // Approach and retract run along the tool axis: a CL approach (retract) along the CL axis of the point it
+    // leads into (out of) follows the chosen axis instead, at the same distance, with that point's rotaries;
+    // otherwise the new tilt would be dragged along the old approach line (through the material beside it).
+    if (e > s && moves[s].kind == cl::MotionKind::Rapid && along_chosen_axis(program, plan, s, s + 1)) {
+      ++rep.approach_moves_replaced;
+      swept_ok[s + 1] = 0;
+    }
+    if (e > s + 1 && moves[e].kind != cl::MotionKind::Rapid && along_chosen_axis(program, plan, e, e - 1)) {
+      ++rep.approach_moves_replaced;
+      swept_ok[e] = 0;
+    }
+    if (e == s && s > 0 && moves[s].kind == cl::MotionKind::Rapid && along_chosen_axis(program, plan, s, s - 1))
+      ++rep.approach_moves_replaced;
     plan.segments.push_back(std::move(rep));
   }
-  // Reorientation between segments happens at the safe retract plane (the post's rapid sequence): check it.
-  const int z = machine_.axis_index("z");
-  if (z >= 0 && space_.options().check_collision) {
+  // Every move between points, checked swept: feed blocks, approach and retract, and the reorientation into each
+  // segment as the post performs it.
+  plan.swept = check_program(space_, machine_, plan.program, plan.axes, plan.counters, &swept_ok);
+  std::size_t g = 0;
+  for (const SweptHit& h : plan.swept.hits) {
+    while (g + 1 < plan.segments.size() && plan.segments[g].last_move < h.move) ++g;
+    SegmentReport& rep = plan.segments[g];
+    const bool collides = h.result.status == cspace::SweepStatus::Collides;
+    if (h.reorientation) {
+      if (rep.reorientation == Reorientation::Collides) continue;
+      rep.reorientation = collides ? Reorientation::Collides : Reorientation::Uncertified;
+      rep.reorientation_detail = h.result.detail;
+      plan.warnings.push_back(fmt::format("{}: the reorientation into the segment starting here {} ({})",
+                                          SourceLoc{program.file, rep.first_line, 0}.str(),
+                                          collides ? "collides" : "cannot be certified free", h.result.detail));
+      continue;
+    }
+    (collides ? rep.swept_collisions : rep.swept_uncertified)++;
+    if (rep.swept_collisions + rep.swept_uncertified == 1) {
+      rep.swept_first_line = h.line;
+      rep.swept_first_detail = h.result.detail;
+      plan.warnings.push_back(fmt::format("{}: the move into this point {} between CL points ({}, at {:.0f} % of the move)",
+                                          SourceLoc{program.file, h.line, 0}.str(),
+                                          collides ? "collides" : "cannot be certified free", h.result.detail,
+                                          100.0 * h.result.t));
+    }
+  }
+  if (space_.checks_collision()) {
     const auto rp = kin_->rotary_pair();
-    const double safe_z =
-        std::isnan(machine_.post.safe_z_mm) ? machine_.axes[static_cast<size_t>(z)].max : machine_.post.safe_z_mm;
-    geom::QueryWorkspace ws;
-    for (std::size_t g = 1; g < plan.segments.size(); ++g) {
-      auto& rep = plan.segments[g];
-      const kin::Axes from = plan.axes[plan.segments[g - 1].last_move], to = plan.axes[rep.first_move];
-      if (std::abs(from[rp[0]] - to[rp[0]]) < 1e-9 && std::abs(from[rp[1]] - to[rp[1]]) < 1e-9) continue;
-      // retract, rotate (sampled every degree), position, plunge: each leg sampled along its straight joint move
-      kin::Axes up = from, turned = from, above = to;
-      up[z] = turned[z] = above[z] = safe_z;
-      turned[rp[0]] = to[rp[0]];
-      turned[rp[1]] = to[rp[1]];
-      rep.reorientation = "clear";
-      const std::array<std::pair<kin::Axes, kin::Axes>, 4> legs = {
-          {{from, up}, {up, turned}, {turned, above}, {above, to}}};
-      for (const auto& [qa, qb] : legs) {
-        const double span = std::max({std::abs(qb[rp[0]] - qa[rp[0]]), std::abs(qb[rp[1]] - qa[rp[1]]), deg2rad(1.0)});
-        const int n = std::min(720, static_cast<int>(std::ceil(span / deg2rad(1.0))) + 8);
-        for (int i = 0; i <= n; ++i) {
-          const kin::Axes q = qa + (qb - qa) * (double(i) / n);
-          const std::string hit = space_.collision_at_axes(q, ws, plan.counters);
-          if (!hit.empty()) {
-            rep.reorientation = "collides: " + hit;
-            plan.warnings.push_back(fmt::format("{}: the reorientation into the segment starting here collides ({})",
-                                                SourceLoc{program.file, rep.first_line, 0}.str(), hit));
-            break;
-          }
-        }
-        if (rep.reorientation != "clear") break;
-      }
+    for (std::size_t i = 1; i < plan.segments.size(); ++i) {
+      auto& rep = plan.segments[i];
+      const kin::Axes &from = plan.axes[plan.segments[i - 1].last_move], &to = plan.axes[rep.first_move];
+      if (rep.reorientation == Reorientation::None &&
+          (std::abs(from[rp[0]] - to[rp[0]]) > 1e-9 || std::abs(from[rp[1]] - to[rp[1]]) > 1e-9))
+        rep.reorientation = Reorientation::Clear;
     }
   }
   plan.seconds = std::chrono::duration<double>(std::chrono::steady_clock::now() - t0).count();
+  rusage ru{};
+  if (getrusage(RUSAGE_SELF, &ru) == 0) plan.peak_memory_mb = static_cast<double>(ru.ru_maxrss) / 1024.0;
   return plan;
 }
 

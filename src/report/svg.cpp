@@ -38,11 +38,16 @@ std::string cspace_svg(const plan::SegmentSpace& sp, const std::string& n1, cons
       W, H, ml, title);
   auto X = [&](double r1) { return ml + (r1 / sp.resolution_rad - sp.i1_min + 0.5) * cw; };
   auto Y = [&](double r2) { return H - mb - (r2 / sp.resolution_rad - sp.i2_min + 0.5) * ch; };
+  // One rectangle per run of equal cells along a row (the same picture, a fraction of the file).
   for (int b = 0; b < c2; ++b)
-    for (int a = 0; a < c1; ++a)
-      s +=
-          fmt::format("<rect x=\"{:.2f}\" y=\"{:.2f}\" width=\"{:.2f}\" height=\"{:.2f}\" fill=\"{}\"/>\n", ml + a * cw,
-                      H - mb - (b + 1) * ch, cw + 0.05, ch + 0.05, colour(sp.status[static_cast<size_t>(b * c1 + a)]));
+    for (int a = 0; a < c1;) {
+      const cspace::Status st = sp.status[static_cast<size_t>(b * c1 + a)];
+      int e = a + 1;
+      while (e < c1 && sp.status[static_cast<size_t>(b * c1 + e)] == st) ++e;
+      s += fmt::format("<rect x=\"{:.2f}\" y=\"{:.2f}\" width=\"{:.2f}\" height=\"{:.2f}\" fill=\"{}\"/>\n",
+                       ml + a * cw, H - mb - (b + 1) * ch, (e - a) * cw + 0.05, ch + 0.05, colour(st));
+      a = e;
+    }
   if (!sp.path.empty()) {
     s += "<polyline fill=\"none\" stroke=\"#1f3a93\" stroke-width=\"2\" points=\"";
     for (const auto& [r1, r2] : sp.path) s += fmt::format("{:.2f},{:.2f} ", X(r1), Y(r2));

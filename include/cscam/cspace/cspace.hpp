@@ -12,14 +12,12 @@
 #include <unordered_map>
 #include <vector>
 
+#include "cscam/cspace/status.hpp"
 #include "cscam/geom/scene.hpp"
 #include "cscam/kin/kinematics.hpp"
 
 namespace cscam::cspace {
 
-/// Why a cell is (in)feasible.
-enum class Status : std::uint8_t { Unknown, Feasible, Orientation, Stroke, Collision };
-const char* to_string(Status s);
 
 /// Per-operation settings of the C-space.
 struct Options {
@@ -55,6 +53,8 @@ struct Counters {
   std::uint64_t collision = 0;  ///< collision queries
   std::uint64_t cache_hits = 0;
   std::uint64_t certified = 0;  ///< collision queries skipped by a clearance certificate
+  std::uint64_t swept = 0;      ///< swept (between-point) moves checked
+  std::uint64_t swept_queries = 0;  ///< collision queries those swept checks made (not in `collision`)
   Counters& operator+=(const Counters& o);
 };
 
@@ -66,6 +66,30 @@ struct Certificate {
   Eigen::Vector3d tip_mm = Eigen::Vector3d::Zero();
   Eigen::Vector3d axis = Eigen::Vector3d::UnitZ();
   double margin_mm = 0.0;
+};
+
+/// How a motion between two poses is checked. Cutting: the cutting end (ball or corner radius plus relief) is in
+/// contact with the material by design and is excluded, as at the CL points. Rapid: the whole tool body from the
+/// tip counts (a rapid must not touch anything).
+enum class SweepMode : std::uint8_t { Cutting, Rapid };
+
+/// Largest inflation a Rapid-mode swept check uses before it bisects an interval, mm: larger margins certify
+/// longer intervals in open space with fewer queries; near obstacles they fail anyway.
+inline constexpr double kRapidSweepMarginCapMm = 5.0;
+
+/// Outcome of a swept check of one straight joint-space move.
+enum class SweepStatus : std::uint8_t {
+  Free,         ///< certified free over the whole move
+  Collides,     ///< a pose on the move collides (at `t`)
+  Uncertified,  ///< no collision found, but the clearance is too small to certify within the query budget
+};
+const char* to_string(SweepStatus s);
+
+struct SweptResult {
+  SweepStatus status = SweepStatus::Free;
+  double t = 0.0;      ///< move parameter (0: start, 1: end) of the collision or of the uncertified spot
+  std::string detail;  ///< what collides
+  std::uint64_t queries = 0;
 };
 
 /// The C-space model: immutable, shared by threads. Per-thread scratch lives in Workspace.
@@ -94,6 +118,9 @@ class Space {
   void enumerate(const kin::Posed& cl_pose, std::vector<Cell>& out, std::size_t cap, Counters& c) const;
   /// Orientation test of one grid cell (cone and minimum tilt); fills orient_err.
   [[nodiscard]] bool in_cone(const kin::Posed& cl_pose, double r1, double r2, float* orient_err = nullptr) const;
+  /// in_cone's answer without an arc cosine away from the bounds (for long scans): `dot` gets the cosine of the
+  /// angle to the CL axis (clamped to [-1, 1]).
+  [[nodiscard]] bool in_cone_cos(const kin::Posed& cl_pose, double r1, double r2, double& dot) const;
   /// The tool pose a cell gives at a CL pose (tip moves for a ball mill so the centre stays put).
   [[nodiscard]] kin::Posed tool_pose(const kin::Posed& cl_pose, double r1, double r2) const;
   /// Stroke and collision of a cell (the orientation test must have passed). Fills status, axes, detail.
@@ -108,6 +135,21 @@ class Space {
                                       geom::QueryWorkspace& ws, Counters& c) const;
   /// Collision of the tool and the machine head meshes for axis values q. Empty string if free.
   [[nodiscard]] std::string collision_at_axes(const kin::Axes& q, geom::QueryWorkspace& ws, Counters& c) const;
+  /// Swept check of the straight joint-space move qa -> qb (what a control does between two blocks), with a
+  /// clearance certificate: the interval around a pose is free when the tool there, inflated by the largest
+  /// distance any tool point can travel over the interval (a bound from the axis travel, the tip's lever arms
+  /// about the rotaries and the tool length), is free. Intervals that cannot be certified are bisected.
+  /// Machine head meshes are checked at the certified poses only (sampled, not certified).
+  [[nodiscard]] SweptResult swept(const kin::Axes& qa, const kin::Axes& qb, SweepMode mode, geom::QueryWorkspace& ws,
+                                  Counters& c) const;
+  /// Whether the tool at `pose` (the FK of axes `q`, which place any machine bodies), inflated by `margin_mm` in
+  /// every direction (superset of the Minkowski sum), is free. Empty string if free.
+  [[nodiscard]] std::string collision_inflated(const kin::Axes& q, const kin::Posed& pose, double margin_mm,
+                                               SweepMode mode,
+                                               geom::QueryWorkspace& ws, Counters& c) const;
+  /// Largest motion margin a Cutting-mode inflated check accepts (the relief above the cutting end), mm.
+  [[nodiscard]] double cutting_margin_cap_mm() const;
+  [[nodiscard]] bool checks_collision() const { return opt_.check_collision && scene_ && tool_; }
   /// The tool axis (part frame) of rotary values.
   [[nodiscard]] Eigen::Vector3d axis_of(double r1, double r2) const;
 
@@ -125,6 +167,8 @@ class Space {
   static bool place_links(const kin::Kinematics& k, const kin::Axes& q, int n, LinkPoses& T, unsigned used);
   /// opt_.collision, or a copy in `scratch` with the link poses for q when obstacles have links.
   const geom::CheckOptions& with_links(const kin::Axes& q, LinkPoses& links, geom::CheckOptions& scratch) const;
+  geom::ToolShape tip_tool_;  ///< the lowest part of the cutter as a flat cylinder (Rapid-mode sweeps)
+  double reach_mm_ = 0.0;     ///< tool length plus largest checked radius: lever arm of a tool-axis rotation
   int rot1_ = 0, rot2_ = 0;
   int i1_min_ = 0, i1_max_ = 0, i2_min_ = 0, i2_max_ = 0;
 };

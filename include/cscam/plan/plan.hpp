@@ -3,6 +3,7 @@
 /// The C-space tool-orientation planner (seed 002). For every continuous cutting segment it searches,
 /// in this order: both rotaries fixed (3+2); one fixed and the other monotonic; both monotonic; and
 /// finally the shortest path (least weighted rotary travel, bounded step per point).
+#include <cstdint>
 #include <memory>
 #include <string>
 #include <vector>
@@ -10,6 +11,7 @@
 #include "cscam/cl/program.hpp"
 #include "cscam/cspace/cspace.hpp"
 #include "cscam/machine/machine.hpp"
+#include "cscam/plan/swept.hpp"
 
 namespace cscam::plan {
 
@@ -18,7 +20,10 @@ const char* to_string(Tier t);
 
 struct Options {
   cspace::Options cspace;
-  std::size_t max_cells_per_point = 4096;  ///< orientation cells kept per point (closest to the CL axis)
+  /// Orientation cells the tiers search per point (closest to the CL axis first). A point whose kept cells are all
+  /// infeasible gets every cell of its cone (never called infeasible on a truncated list); the summary counts
+  /// those points.
+  std::size_t max_cells_per_point = 4096;
   double max_step_rad = 0.0;               ///< tier 4 bound on the rotary step per point; 0: 20 x resolution
   double orientation_weight = 1e-3;        ///< tier 4: cost per rad of orientation error (tie-break only)
   int max_fixed_candidates = 256;          ///< tier 2: fixed values tried per axis
@@ -31,6 +36,10 @@ struct Options {
   double leg_step_cells = 4;   ///< largest per-point change of tilt (in tilt steps) of that re-plan
   double tilt_step_rad = 0.0;  ///< tilt grid of that re-plan (a disc of radius cone around the CL axis); 0: resolution
 };
+
+/// The reorientation into a segment.
+enum class Reorientation : std::uint8_t { None, Clear, Collides, Uncertified };
+const char* to_string(Reorientation r);
 
 /// Why an earlier tier failed on a segment: the first point at which it became impossible.
 struct TierFailure {
@@ -47,8 +56,16 @@ struct SegmentReport {
   std::vector<TierFailure> failures;  ///< one per tier tried before the one reached
   std::string description;            ///< e.g. "fixed B=-22.0 C=1.0"
   /// The reorientation into this segment (retract to the safe plane, rotate, position, plunge), as the post
-  /// performs it: "none" (no rotary change), "clear", or what collides.
-  std::string reorientation = "none";
+  /// performs it, checked swept.
+  Reorientation reorientation = Reorientation::None;
+  std::string reorientation_detail;  ///< what collides (Reorientation::Collides / Uncertified)
+  /// Moves of this segment (CL moves into its points, approach and retract included) that the swept check
+  /// found colliding or could not certify; the first of them.
+  std::size_t swept_collisions = 0, swept_uncertified = 0;
+  int swept_first_line = 0;
+  std::string swept_first_detail;
+  /// Approach / retract moves re-placed along the chosen tool axis (the CL's ran along the CL axis).
+  int approach_moves_replaced = 0;
   /// With Options::monotone_axes: "monotonic", or which axis still reverses, where, and why it cannot be avoided.
   std::string legs;
 };
@@ -60,20 +77,13 @@ struct Plan {
   cl::Program program;
   std::vector<SegmentReport> segments;
   cspace::Counters counters;
+  SweptSummary swept;                   ///< the swept check of the planned program
+  std::size_t points_beyond_cap = 0;    ///< points whose cells beyond max_cells_per_point had to be searched
+  std::vector<std::size_t> replaced_moves;  ///< approach/retract moves re-placed along the chosen tool axis
   double seconds = 0.0;
+  double peak_memory_mb = 0.0;  ///< the process's peak resident memory when the plan was done
   std::vector<std::string> warnings;
   std::string summary() const;
-};
-
-/// For the pictures: the C-space of one segment (cells feasible at every point, and why the others failed).
-struct SegmentSpace {
-  std::size_t segment = 0;
-  int i1_min = 0, i1_max = 0, i2_min = 0, i2_max = 0;
-  double resolution_rad = 0.0;
-  /// status per cell over the whole segment: Feasible only if feasible at every point; otherwise the
-  /// first reason found (Orientation < Stroke < Collision by first failing point).
-  std::vector<cspace::Status> status;           ///< (i2 - i2_min) * (i1_max - i1_min + 1) + (i1 - i1_min)
-  std::vector<std::pair<double, double>> path;  ///< chosen (r1, r2) per point
 };
 
 class Planner {
@@ -90,6 +100,11 @@ class Planner {
                               std::size_t max_points = 24) const;
 
  private:
+  /// Re-places move m (an approach into, or retract out of, move ref along ref's CL axis) along ref's chosen
+  /// axis at the same distance, with ref's rotaries. False (nothing changed) when m is not such a move or the
+  /// re-placed point breaks a limit.
+  bool along_chosen_axis(const cl::Program& cl, Plan& plan, std::size_t m, std::size_t ref) const;
+
   const machine::Machine& machine_;
   std::shared_ptr<const kin::Kinematics> kin_;
   cspace::Space space_;

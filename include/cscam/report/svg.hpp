@@ -2,11 +2,12 @@
 /// @file
 /// Pictures generated from the same data as the JSON reports: the C-space of a segment with the chosen
 /// path, and axis-value plots of two strategies.
+#include <array>
 #include <string>
 #include <vector>
 
 #include "cscam/kin/types.hpp"
-#include "cscam/plan/plan.hpp"
+#include "cscam/cspace/status.hpp"
 
 namespace cscam::report {
 

@@ -1,0 +1,64 @@
+#include "cscam/plan/swept.hpp"
+
+#include <array>
+#include <cmath>
+#include <limits>
+
+#include "cscam/core/error.hpp"
+
+namespace cscam::plan {
+
+double safe_z_of(const machine::Machine& m) {
+  const int z = m.axis_index("z");
+  if (z < 0) return std::numeric_limits<double>::quiet_NaN();
+  return std::isnan(m.post.safe_z_mm) ? m.axes[static_cast<size_t>(z)].max : m.post.safe_z_mm;
+}
+
+SweptSummary check_program(const cspace::Space& space, const machine::Machine& machine, const cl::Program& program,
+                           const std::vector<kin::Axes>& axes, cspace::Counters& counters,
+                           const std::vector<char>* certified) {
+  CSCAM_CHECK(axes.size() == program.moves.size(), "one axis vector per CL move");
+  SweptSummary out;
+  if (!space.checks_collision()) return out;
+  geom::QueryWorkspace ws;
+  const auto rp = space.kinematics().rotary_pair();
+  const int z = machine.axis_index("z");
+  const double safe_z = safe_z_of(machine);
+  auto check = [&](std::size_t move, const kin::Axes& qa, const kin::Axes& qb, cspace::SweepMode mode, bool reo) {
+    ++out.moves;
+    cspace::SweptResult r = space.swept(qa, qb, mode, ws, counters);
+    if (r.status == cspace::SweepStatus::Free) return;
+    (r.status == cspace::SweepStatus::Collides ? out.collisions : out.uncertified)++;
+    out.hits.push_back({move, program.moves[move].line, reo, std::move(r)});
+  };
+  const auto& mv = program.moves;
+  for (std::size_t i = 1; i < mv.size(); ++i) {
+    const kin::Axes& from = axes[i - 1];
+    const kin::Axes& to = axes[i];
+    const bool from_cut = mv[i - 1].kind != cl::MotionKind::Rapid, to_cut = mv[i].kind != cl::MotionKind::Rapid;
+    const auto direct = from_cut || to_cut ? cspace::SweepMode::Cutting : cspace::SweepMode::Rapid;
+    const bool turns = std::abs(from[rp[0]] - to[rp[0]]) > 1e-9 || std::abs(from[rp[1]] - to[rp[1]]) > 1e-9;
+    if (mv[i].kind == cl::MotionKind::Rapid && turns && z >= 0 && !std::isnan(safe_z)) {
+      // The post's reorientation: retract to the safe plane, rotate there, position above, plunge.
+      kin::Axes up = from, turned = from, above = to;
+      up[z] = turned[z] = above[z] = safe_z;
+      turned[rp[0]] = to[rp[0]];
+      turned[rp[1]] = to[rp[1]];
+      const std::array<std::pair<kin::Axes, kin::Axes>, 4> legs = {
+          {{from, up}, {up, turned}, {turned, above}, {above, to}}};
+      for (std::size_t l = 0; l < legs.size(); ++l) {
+        const bool cut = (l == 0 && from_cut) || (l == 3 && to_cut);
+        check(i, legs[l].first, legs[l].second, cut ? cspace::SweepMode::Cutting : cspace::SweepMode::Rapid, true);
+      }
+      continue;
+    }
+    if (certified && (*certified)[i]) {
+      ++out.moves;
+      continue;
+    }
+    check(i, from, to, direct, false);
+  }
+  return out;
+}
+
+}  // namespace cscam::plan
