@@ -623,3 +623,29 @@ TEST(PostGolden, GrooveAndNxExamplesInEveryDialect) {
     }
   }
 }
+
+TEST(PostCli, TcpFlagsAndVerifyAndStatsReadEveryDialect) {
+  const fs::path dir = fs::temp_directory_path() / ("cscam_post_cli_" + std::to_string(::getpid()));
+  fs::create_directories(dir);
+  const std::string cl = test::source_path("examples/nx-haas-umc750/variable_axis.cls");
+  for (const char* dialect : {"haas", "siemens", "heidenhain", "fanuc", "linuxcnc"}) {
+    for (const char* tcp : {"--tcp", "--no-tcp"}) {
+      SCOPED_TRACE(std::string(dialect) + " " + tcp);
+      const std::string out = (dir / (std::string(dialect) + tcp + ".nc")).string();
+      auto r = test::run_command(fmt::format("{} post {} --machine haas-umc750 --dialect {} {} -o {}", CSCAM_CLI, cl,
+                                             dialect, tcp, out));
+      ASSERT_EQ(r.status, 0) << r.output;
+      r = test::run_command(fmt::format("{} verify {} --machine haas-umc750 --cl {}", CSCAM_CLI, out, cl));
+      EXPECT_EQ(r.status, 0) << r.output;
+      EXPECT_EQ(r.output.rfind("OK:", 0), 0u) << r.output;
+      r = test::run_command(fmt::format("{} stats {} --machine haas-umc750", CSCAM_CLI, out));
+      EXPECT_EQ(r.status, 0) << r.output;
+      EXPECT_NE(r.output.find("cycle time (min)"), std::string::npos) << r.output;
+    }
+  }
+  const auto r = test::run_command(fmt::format("{} post {} --machine haas-umc750 --tcp --no-tcp -o {}", CSCAM_CLI, cl,
+                                               (dir / "x.nc").string()));
+  EXPECT_NE(r.status, 0);
+  EXPECT_FALSE(fs::exists(dir / "x.nc"));
+  fs::remove_all(dir);
+}

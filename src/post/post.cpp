@@ -371,8 +371,10 @@ class Sequencer {
         break;
       }
     if (feed) {
-      blk_.feed = *feed;
+      // Printed rounded down: a block is never faster than the time the sequencer gave it.
       blk_.feed_decimals = mode93_ ? 3 : 1;
+      const double p = mode93_ ? 1000.0 : 10.0;
+      blk_.feed = std::max(std::floor(*feed * p * (1.0 + 1e-12)) / p, 1.0 / p);
     }
     fmt_->block(buf_, blk_);
     ++sum_.blocks;
@@ -622,7 +624,12 @@ class Sequencer {
     double minutes = programmed_minutes;
     for (int i = 0; i < 5; ++i) {
       const double vmax = m_.axes[static_cast<size_t>(i)].max_feed;
-      if (vmax > 0) minutes = std::max(minutes, std::abs(qb[i] - qa[i]) / vmax);
+      if (vmax <= 0) continue;
+      // The move as the control sees it is between the printed (rounded) words: a short block's rounding may
+      // make it longer than the model's.
+      const double f = to_file_[static_cast<size_t>(i)] * scale_[static_cast<size_t>(i)];
+      const double printed = std::abs(static_cast<double>(std::llround(qb[i] * f) - std::llround(qa[i] * f))) / f;
+      minutes = std::max(minutes, std::max(std::abs(qb[i] - qa[i]), printed) / vmax);
     }
     if (minutes > programmed_minutes * (1.0 + 1e-9) + 1e-12 && programmed_minutes > 0) {
       if (capped_blocks_++ == 0) first_capped_line_ = next_nc_line();
