@@ -649,3 +649,45 @@ TEST(PostCli, TcpFlagsAndVerifyAndStatsReadEveryDialect) {
   EXPECT_FALSE(fs::exists(dir / "x.nc"));
   fs::remove_all(dir);
 }
+
+TEST(PostProgram, HeadRotaryToolLengthComesFromTheClNeverSilentlyTheDefault) {
+  const auto hh = load_machine("head-head-ac");
+  const auto tt = load_machine("trunnion-ac");
+  const cl::Program with = cl::read_text("UNITS/MM\nTLDATA/MILL,6,3,75,0,0\nLOADTL/3\nGOTO/0,0,0\n", "with.cls");
+  const cl::Program without = cl::read_text("UNITS/MM\nLOADTL/3\nGOTO/0,0,0\n", "without.cls");
+  std::string note;
+  EXPECT_DOUBLE_EQ(post::tool_length_for(hh, 0.0, with, note), 75.0);
+  EXPECT_NE(note.find("from the CL"), std::string::npos) << note;
+  EXPECT_DOUBLE_EQ(post::tool_length_for(hh, 0.0, without, note), hh.default_tool_length_mm);
+  EXPECT_NE(note.find("default_tool_length_mm"), std::string::npos) << note;
+  EXPECT_DOUBLE_EQ(post::tool_length_for(hh, 42.0, with, note), 42.0);
+  EXPECT_TRUE(note.empty());
+  EXPECT_DOUBLE_EQ(post::tool_length_for(tt, 0.0, with, note), tt.default_tool_length_mm);  // table rotaries only
+  EXPECT_TRUE(note.empty());
+}
+
+TEST(PostProgram, DwellInsertAdjustRegisterAndCutcomPolicy) {
+  const auto m = load_machine("trunnion-ac");
+  const auto k = m.kinematics();
+  const cl::Program prog = cl::read_text(
+      "UNITS/MM\nMULTAX\nCUTTER/6\nLOAD/TOOL,7,ADJUST,27\nCUTCOM/LEFT\nFEDRAT/MMPM,1000\nRAPID\nGOTO/0,0,20,0,0,1\n"
+      "DELAY/2.5\nINSERT/M100 P1\nGOTO/20,0,20,0,0,1\n",
+      "records.cls");
+  bool cutcom_warned = false;
+  for (const auto& w : prog.warnings) cutcom_warned |= w.message.find("CUTCOM") != std::string::npos;
+  EXPECT_TRUE(cutcom_warned);
+  const Posted p = post_program(prog, m, *k);
+  EXPECT_NE(p.text.find("T7 M6\nG43 H27\n"), std::string::npos) << p.text;
+  EXPECT_NE(p.text.find("\nG4 P2.500\n"), std::string::npos) << p.text;
+  EXPECT_NE(p.text.find("\nM100 P1\n"), std::string::npos) << p.text;
+  const auto s = post_program(prog, m, *k, true, std::nullopt, "siemens").text;
+  EXPECT_NE(s.find("\nG4 F2.500\n"), std::string::npos) << s;
+  const auto h = post_program(prog, m, *k, true, std::nullopt, "heidenhain").text;
+  EXPECT_NE(h.find(" CYCL DEF 9.1 DWELL 2.500\n"), std::string::npos) << h;
+  try {
+    cl::read_text("UNITS/MM\nLOAD/TOOL,7,ADJUST,-2\nGOTO/0,0,0\n", "bad.cls");
+    FAIL();
+  } catch (const InputError& e) {
+    EXPECT_NE(std::string(e.what()).find("bad.cls:2:"), std::string::npos) << e.what();
+  }
+}

@@ -85,7 +85,9 @@ int cmd_post(const PostArgs& a) {
   if (a.default_feed > 0) ro.default_feed_mm_per_min = a.default_feed;
   const cl::Program prog = cl::read_file(a.cl, ro);
   for (const auto& w : prog.warnings) std::cerr << "warning: " << w.where.str() << ": " << w.message << "\n";
-  const double L = post::tool_length_for(m, a.tool_length);
+  std::string tool_note;  // head-side rotaries: where the tool length came from
+  const double L = post::tool_length_for(m, a.tool_length, prog, tool_note);
+  if (!tool_note.empty()) std::cerr << "warning: " << tool_note << "\n";
   const auto kin = m.make_kinematics(L);
   const auto axes = post::conventional_axes(prog, m, *kin);
   post::Options po;
@@ -122,6 +124,7 @@ int cmd_post(const PostArgs& a) {
                  {"max_velocity_ratio", gs.max_velocity_ratio}};
     j["warnings"] = nlohmann::json::array();
     for (const auto& w : prog.warnings) j["warnings"].push_back(w.where.str() + ": " + w.message);
+    if (!tool_note.empty()) j["warnings"].push_back(tool_note);
     for (const auto& w : sum.warnings) j["warnings"].push_back(w);
     j["seconds"] = secs;
     std::cout << j.dump() << "\n";

@@ -129,6 +129,12 @@ void Formatter::stop(std::string& out, bool optional) {
   out += optional ? "M1\n" : "M0\n";
 }
 
+void Formatter::insert(std::string& out, const std::string& text) {
+  line_start(out);
+  out += text;
+  out.push_back('\n');
+}
+
 void Formatter::dwell(std::string& out, double seconds) {
   line_start(out);
   fmt::format_to(std::back_inserter(out), "G4 P{:.3f}\n", seconds);
@@ -415,6 +421,11 @@ class Heidenhain : public Formatter {
   void stop(std::string& out, bool optional) override {
     number(out);
     out += optional ? "M1\n" : "STOP M0\n";
+  }
+  void insert(std::string& out, const std::string& text) override {
+    number(out);
+    out += text;
+    out.push_back('\n');
   }
   void dwell(std::string& out, double seconds) override {
     number(out);

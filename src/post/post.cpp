@@ -244,10 +244,13 @@ class Sequencer {
           fmt_->tcp_off(buf_);
           tcp_on_ = false;
         }
-        tool_h_ = n;  // the length offset register of the tool's own number
-        if (n == 0)
-          sum_.warnings.push_back(fmt::format("{}: tool 0 loaded: its length offset H0 cancels the tool length on "
-                                              "most controls",
+        // The length offset register: LOAD/TOOL,n,ADJUST,h, else the tool's own number.
+        tool_h_ = known && prog_.tools[static_cast<size_t>(e.tool_index)].length_register >= 0
+                      ? prog_.tools[static_cast<size_t>(e.tool_index)].length_register
+                      : n;
+        if (tool_h_ == 0)
+          sum_.warnings.push_back(fmt::format("{}: length offset register H0 (tool 0, or ADJUST,0): H0 cancels "
+                                              "the tool length on most controls",
                                               SourceLoc{prog_.file, e.line, 0}.str()));
         fmt_->tool_change(buf_, n, tool_h_,
                           known ? fmt::format("TOOL {}: {} D{:.3f}", n,
@@ -279,6 +282,12 @@ class Sequencer {
         break;
       case K::Stop:
         fmt_->stop(buf_, e.text.rfind("OPSTOP", 0) == 0);
+        break;
+      case K::Dwell:
+        fmt_->dwell(buf_, e.seconds);
+        break;
+      case K::Insert:
+        fmt_->insert(buf_, e.text);
         break;
     }
   }

@@ -74,6 +74,8 @@ class Formatter {
   virtual void stop(std::string& out, bool optional);
   virtual void dwell(std::string& out, double seconds);
   virtual void comment(std::string& out, const std::string& text);
+  /// A CL INSERT record's text, passed through as a block of its own.
+  virtual void insert(std::string& out, const std::string& text);
   /// A motion block.
   virtual void block(std::string& out, const BlockSpec& b);
 

@@ -63,4 +63,10 @@ std::vector<std::string> dialects();
 /// Tool length (gauge to tip, mm) to use for a program: the option if > 0, else the machine default.
 double tool_length_for(const machine::Machine& machine, double option_mm);
 
+/// The same for a CL program. On a machine whose head carries a rotary the tool length changes the kinematics:
+/// without the option it comes from the CL (the first tool's TLDATA/CUTTER length) and `note` says so; when the CL
+/// has none either, the machine default is used and `note` is a warning saying so (never silently).
+double tool_length_for(const machine::Machine& machine, double option_mm, const cl::Program& program,
+                       std::string& note);
+
 }  // namespace cscam::post
