@@ -9,9 +9,9 @@
 
 #include <algorithm>
 #include <cstdlib>
-#include <optional>
 #include <filesystem>
 #include <fstream>
+#include <optional>
 #include <random>
 #include <regex>
 #include <sstream>
@@ -45,8 +45,8 @@ struct Posted {
   post::Summary summary;
 };
 
-Posted post_program(const cl::Program& prog, const machine::Machine& m, const kin::Kinematics& k,
-                    bool linearise = true, std::optional<bool> tcp = std::nullopt, const std::string& dialect = "") {
+Posted post_program(const cl::Program& prog, const machine::Machine& m, const kin::Kinematics& k, bool linearise = true,
+                    std::optional<bool> tcp = std::nullopt, const std::string& dialect = "") {
   const auto axes = post::conventional_axes(prog, m, k);
   std::ostringstream os;
   post::Options o;
@@ -325,8 +325,8 @@ struct Case {
 
 std::vector<Case> all_cases() {
   return {{"linuxcnc", false, "angles"}, {"linuxcnc", true, "angles"},    {"fanuc", false, "angles"},
-          {"fanuc", true, "angles"},     {"fanuc", true, "vectors"},     {"haas", false, "angles"},
-          {"haas", true, "angles"},      {"siemens", false, "angles"},   {"siemens", true, "angles"},
+          {"fanuc", true, "angles"},     {"fanuc", true, "vectors"},      {"haas", false, "angles"},
+          {"haas", true, "angles"},      {"siemens", false, "angles"},    {"siemens", true, "angles"},
           {"siemens", true, "vectors"},  {"heidenhain", false, "angles"}, {"heidenhain", true, "angles"}};
 }
 
@@ -412,8 +412,9 @@ TEST(PostDialects, UnknownDialectNamesTheKnownOnes) {
 // --- The program a machinist expects ----------------------------------------------------------------
 
 TEST(PostProgram, SequenceNumbersInchWorkOffsetAndRotaryHome) {
-  const auto m = machine_with_post("trunnion-ac", "  sequence_numbers: true\n  sequence_step: 5\n  inch: true\n"
-                                                  "  work_offset: g55\n");
+  const auto m = machine_with_post("trunnion-ac",
+                                   "  sequence_numbers: true\n  sequence_step: 5\n  inch: true\n"
+                                   "  work_offset: g55\n");
   const auto k = m.kinematics();
   const cl::Program prog = cl::read_text(synthetic_cl(25.0, 3, 20, 10.0), "inch.cls");
   const Posted p = post_program(prog, m, *k);
@@ -549,13 +550,13 @@ TEST(PostProgram, OptionalStopAndToolZeroWarning) {
 }
 
 TEST(PostProgram, MachineFileRejectsBadPostSettings) {
-  for (const auto& [line, key] : std::vector<std::pair<std::string, std::string>>{
-           {"  tcp_form: quaternions\n", "post.tcp_form"},
-           {"  work_offset: G99\n", "post.work_offset"},
-           {"  rotary_output: sideways\n", "post.rotary_output"},
-           {"  clamp: {x: [M10, M11]}\n", "post.clamp.x"},
-           {"  clamp: {a: [M10, Q11]}\n", "post.clamp.a"},
-           {"  program_number: -3\n", "post.program_number"}}) {
+  for (const auto& [line, key] :
+       std::vector<std::pair<std::string, std::string>>{{"  tcp_form: quaternions\n", "post.tcp_form"},
+                                                        {"  work_offset: G99\n", "post.work_offset"},
+                                                        {"  rotary_output: sideways\n", "post.rotary_output"},
+                                                        {"  clamp: {x: [M10, M11]}\n", "post.clamp.x"},
+                                                        {"  clamp: {a: [M10, Q11]}\n", "post.clamp.a"},
+                                                        {"  program_number: -3\n", "post.program_number"}}) {
     SCOPED_TRACE(line);
     try {
       machine_with_post("trunnion-ac", line);
@@ -632,8 +633,8 @@ TEST(PostCli, TcpFlagsAndVerifyAndStatsReadEveryDialect) {
     for (const char* tcp : {"--tcp", "--no-tcp"}) {
       SCOPED_TRACE(std::string(dialect) + " " + tcp);
       const std::string out = (dir / (std::string(dialect) + tcp + ".nc")).string();
-      auto r = test::run_command(fmt::format("{} post {} --machine haas-umc750 --dialect {} {} -o {}", CSCAM_CLI, cl,
-                                             dialect, tcp, out));
+      auto r = test::run_command(
+          fmt::format("{} post {} --machine haas-umc750 --dialect {} {} -o {}", CSCAM_CLI, cl, dialect, tcp, out));
       ASSERT_EQ(r.status, 0) << r.output;
       r = test::run_command(fmt::format("{} verify {} --machine haas-umc750 --cl {}", CSCAM_CLI, out, cl));
       EXPECT_EQ(r.status, 0) << r.output;
@@ -643,8 +644,8 @@ TEST(PostCli, TcpFlagsAndVerifyAndStatsReadEveryDialect) {
       EXPECT_NE(r.output.find("cycle time (min)"), std::string::npos) << r.output;
     }
   }
-  const auto r = test::run_command(fmt::format("{} post {} --machine haas-umc750 --tcp --no-tcp -o {}", CSCAM_CLI, cl,
-                                               (dir / "x.nc").string()));
+  const auto r = test::run_command(
+      fmt::format("{} post {} --machine haas-umc750 --tcp --no-tcp -o {}", CSCAM_CLI, cl, (dir / "x.nc").string()));
   EXPECT_NE(r.status, 0);
   EXPECT_FALSE(fs::exists(dir / "x.nc"));
   fs::remove_all(dir);

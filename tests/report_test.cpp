@@ -79,8 +79,8 @@ TEST(Stats, CycleTimeByHand) {
   nc::AxisLetters l;
   l.letter = {'X', 'Y', 'Z', 'B', 'C'};
   l.rotary = {false, false, false, true, true};
-  const nc::Program p = nc::read_text(
-      "G0 X0 Y0 Z0 B0 C0\nG0 X100\nG1 X200 F1000\nG93 G1 B90 F20\nG94 G1 B0 F900\nG0 Z50\n", "t.ngc", l);
+  const nc::Program p =
+      nc::read_text("G0 X0 Y0 Z0 B0 C0\nG0 X100\nG1 X200 F1000\nG93 G1 B90 F20\nG94 G1 B0 F900\nG0 Z50\n", "t.ngc", l);
   const std::array<double, 5> vmax{10000, 10000, 5000, 3600, 3600};
   const auto st = report::compute(p, {"X", "Y", "Z", "B", "C"}, l.rotary, &vmax);
   EXPECT_TRUE(st.rapid_time_known);

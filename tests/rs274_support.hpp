@@ -26,8 +26,8 @@ inline constexpr double kRs274HalfUnit = 0.5e-4 + 1e-9;
 /// Runs rs274 -g on the text and returns every STRAIGHT_FEED/TRAVERSE as (x y z a b c), and its output.
 /// `ini_dir`, when given, is a folder of the repository (under tests/data) with an `rs274-*.ini` and what it
 /// names: it is copied beside the program and passed with -i (e.g. the remaps of LinuxCNC's M428/M429).
-inline std::vector<std::array<double, 6>> rs274_moves(const std::string& text, const std::string& tag,
-                                                      std::string& log, const std::string& ini_dir = "") {
+inline std::vector<std::array<double, 6>> rs274_moves(const std::string& text, const std::string& tag, std::string& log,
+                                                      const std::string& ini_dir = "") {
   namespace fs = std::filesystem;
   // Each run in its own directory, and one rs274 at a time machine-wide: the standalone interpreter keeps
   // state beside it and crashed (bus error) when two test processes ran it at once under ctest -j.

@@ -822,8 +822,9 @@ bool AptReader::statement(const Statement& st) {
     push_event(Event::Kind::Insert, st.line, std::string(trim(h.args)));
   } else if (h.is("CUTCOM")) {
     // The CL is the tool path itself: the post writes it uncompensated (G40) and says so.
-    warn(st, h.keyword_offset, "CUTCOM ignored: the CL points are the tool tip path, written without control-side "
-                               "cutter compensation (G40)");
+    warn(st, h.keyword_offset,
+         "CUTCOM ignored: the CL points are the tool tip path, written without control-side "
+         "cutter compensation (G40)");
   } else if (h.is("FINI")) {
     return false;
   } else {

@@ -20,7 +20,6 @@ namespace {
 
 using Vec3 = Eigen::Vector3d;
 
-
 std::string axis_value(const kin::AxisInfo& a, double v) {
   return a.rotary() ? fmt::format("{:.4f} deg", rad2deg(v)) : fmt::format("{:.4f} mm", v);
 }

@@ -111,9 +111,26 @@ std::map<std::string, ModelLoader>& registry() {
 
 void load_post(const Reader& r, const YAML::Node& n, Machine& m) {
   r.only_keys(n, "post",
-              {"dialect", "tcp", "letters", "decimals_linear", "decimals_rotary", "tolerance_mm", "axis_tolerance_deg",
-               "safe_z_mm", "start_branch", "branch_rule", "program_name", "singularity", "tcp_form", "work_offset",
-               "program_number", "sequence_numbers", "sequence_step", "inch", "clamp", "rotary_output",
+              {"dialect",
+               "tcp",
+               "letters",
+               "decimals_linear",
+               "decimals_rotary",
+               "tolerance_mm",
+               "axis_tolerance_deg",
+               "safe_z_mm",
+               "start_branch",
+               "branch_rule",
+               "program_name",
+               "singularity",
+               "tcp_form",
+               "work_offset",
+               "program_number",
+               "sequence_numbers",
+               "sequence_step",
+               "inch",
+               "clamp",
+               "rotary_output",
                "home_rotaries"});
   PostSettings& p = m.post;
   if (n["dialect"]) p.dialect = r.string(n["dialect"], "post.dialect");
@@ -144,9 +161,11 @@ void load_post(const Reader& r, const YAML::Node& n, Machine& m) {
     std::string w = r.string(n["work_offset"], "post.work_offset");
     for (char& c : w) c = static_cast<char>(std::toupper(static_cast<unsigned char>(c)));
     const bool g5x = w.size() == 3 && w.rfind("G5", 0) == 0 && w[2] >= '4' && w[2] <= '9';
-    const bool g541 = w.rfind("G54.1 P", 0) == 0 && w.size() > 7 &&
-                      std::all_of(w.begin() + 7, w.end(), [](char c) { return std::isdigit(static_cast<unsigned char>(c)); });
-    if (w == "NONE") w.clear();
+    const bool g541 = w.rfind("G54.1 P", 0) == 0 && w.size() > 7 && std::all_of(w.begin() + 7, w.end(), [](char c) {
+                        return std::isdigit(static_cast<unsigned char>(c));
+                      });
+    if (w == "NONE")
+      w.clear();
     else if (!g5x && !g541)
       r.fail(n["work_offset"], "post.work_offset", fmt::format("expected G54..G59, G54.1 P<n> or none, got '{}'", w));
     p.work_offset = w;

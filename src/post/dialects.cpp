@@ -57,8 +57,8 @@ void Formatter::header_comments(std::string& out, bool with_name) {
   comment(out, fmt::format("cscam post: machine {} dialect {} strategy {}", sanitize_comment(info_.machine_name),
                            name(), sanitize_comment(info_.strategy)));
   if (!info_.source_name.empty()) comment(out, "source: " + info_.source_name);
-  comment(out, fmt::format("cscam tool_length_mm={:.4f} tolerance_mm={:.4f}", info_.tool_length_mm,
-                           info_.tolerance_mm));
+  comment(out,
+          fmt::format("cscam tool_length_mm={:.4f} tolerance_mm={:.4f}", info_.tool_length_mm, info_.tolerance_mm));
   if (info_.tcp) {
     std::string rot;
     for (size_t i = 0; i < 5; ++i)

@@ -35,8 +35,8 @@ Vec3 Slerp::operator()(double s) const {
 Linearizer::Linearizer(const kin::Kinematics& k, const Settings& s)
     : kin_(k), set_(s), cos_tol_axis_(std::cos(s.axis_tolerance_rad)) {}
 
-bool Linearizer::exceeds(const kin::Axes& qa, const kin::Axes& qb, double sa, double sb, const Vec3& P0,
-                         const Vec3& P1, const Slerp& axis, Stats& stats) const {
+bool Linearizer::exceeds(const kin::Axes& qa, const kin::Axes& qb, double sa, double sb, const Vec3& P0, const Vec3& P1,
+                         const Slerp& axis, Stats& stats) const {
   for (double t : {0.5, 0.25, 0.75}) {
     const kin::Posed p = kin_.forward(qa + t * (qb - qa));
     const double dtip = point_segment_distance(p.tip_mm + set_.control_offset_mm * p.axis, P0, P1);
@@ -52,7 +52,8 @@ void Linearizer::split(const cl::Move& m0, const kin::Axes& q0, const cl::Move& 
   auto check_limits = [&](const kin::Axes& q) {
     const std::string v = kin_.check_limits(q);
     if (!v.empty())
-      throw InputError(SourceLoc{cl_file, m1.line, 0}, fmt::format("the post refuses a block outside the limits: {}", v));
+      throw InputError(SourceLoc{cl_file, m1.line, 0},
+                       fmt::format("the post refuses a block outside the limits: {}", v));
   };
   const double off = set_.control_offset_mm;
   // The controlled points: tips, or ball centres when the plan keeps those on the CL path.
@@ -113,8 +114,7 @@ void Linearizer::split(const cl::Move& m0, const kin::Axes& q0, const cl::Move& 
         stack_.push_back({pc.sa, sm, pc.qa, qm, pc.depth + 1});
         continue;
       }
-    } else if (set_.enabled && pc.depth >= set_.max_depth &&
-               exceeds(pc.qa, pc.qb, pc.sa, pc.sb, P0, P1, axis, stats)) {
+    } else if (set_.enabled && pc.depth >= set_.max_depth && exceeds(pc.qa, pc.qb, pc.sa, pc.sb, P0, P1, axis, stats)) {
       stats.warnings.push_back(fmt::format("{}: tolerance not reached after {} subdivisions (singular region?)",
                                            SourceLoc{cl_file, m1.line, 0}.str(), set_.max_depth));
     }

@@ -63,7 +63,13 @@ class Sequencer {
  public:
   Sequencer(std::ostream& out, const cl::Program& program, const machine::Machine& machine, const kin::Kinematics& kin,
             const Options& opt, Summary& summary)
-      : out_(out), prog_(program), m_(machine), kin_(kin), traits_(kin.traits()), opt_(opt), sum_(summary),
+      : out_(out),
+        prog_(program),
+        m_(machine),
+        kin_(kin),
+        traits_(kin.traits()),
+        opt_(opt),
+        sum_(summary),
         lin_(kin, linearizer_settings(machine, opt)) {
     const std::string dialect = opt.dialect.empty() ? machine.post.dialect : opt.dialect;
     tol_mm_ = opt.tolerance_mm > 0 ? opt.tolerance_mm : machine.post.tolerance_mm;
@@ -156,9 +162,9 @@ class Sequencer {
     map_lines(0);
     flush();
     if (capped_blocks_ > 0)
-      sum_.warnings.push_back(fmt::format(
-          "{}: {} feed block(s) slowed so that no axis exceeds its max_feed (first at NC line {})", prog_.file,
-          capped_blocks_, first_capped_line_));
+      sum_.warnings.push_back(
+          fmt::format("{}: {} feed block(s) slowed so that no axis exceeds its max_feed (first at NC line {})",
+                      prog_.file, capped_blocks_, first_capped_line_));
     sum_.capped_blocks = capped_blocks_;
   }
 
@@ -187,9 +193,9 @@ class Sequencer {
 
   /// The NC line the next line of text will be.
   [[nodiscard]] int next_nc_line() const {
-    return static_cast<int>(sum_.cl_line_of_nc_line.size() +
-                            static_cast<size_t>(std::count(buf_.begin() + static_cast<std::ptrdiff_t>(scanned_),
-                                                           buf_.end(), '\n')));
+    return static_cast<int>(
+        sum_.cl_line_of_nc_line.size() +
+        static_cast<size_t>(std::count(buf_.begin() + static_cast<std::ptrdiff_t>(scanned_), buf_.end(), '\n')));
   }
 
   // --- Program frame and CL records -----------------------------------------------------------------
@@ -197,9 +203,10 @@ class Sequencer {
   void tool_tip_control_on(int cl_line) {
     if (tool_h_ == 0 && !warned_h0_) {
       warned_h0_ = true;
-      sum_.warnings.push_back(fmt::format("{}: tool-tip control with length offset H0 (no LOAD/TOOL before the first "
-                                          "move): H0 cancels the tool length on most controls",
-                                          SourceLoc{prog_.file, cl_line, 0}.str()));
+      sum_.warnings.push_back(
+          fmt::format("{}: tool-tip control with length offset H0 (no LOAD/TOOL before the first "
+                      "move): H0 cancels the tool length on most controls",
+                      SourceLoc{prog_.file, cl_line, 0}.str()));
     }
     fmt_->tcp_on(buf_, tool_h_);
     tcp_on_ = true;
@@ -249,14 +256,15 @@ class Sequencer {
                       ? prog_.tools[static_cast<size_t>(e.tool_index)].length_register
                       : n;
         if (tool_h_ == 0)
-          sum_.warnings.push_back(fmt::format("{}: length offset register H0 (tool 0, or ADJUST,0): H0 cancels "
-                                              "the tool length on most controls",
-                                              SourceLoc{prog_.file, e.line, 0}.str()));
-        fmt_->tool_change(buf_, n, tool_h_,
-                          known ? fmt::format("TOOL {}: {} D{:.3f}", n,
-                                              prog_.tools[static_cast<size_t>(e.tool_index)].name,
-                                              prog_.tools[static_cast<size_t>(e.tool_index)].diameter_mm)
-                                : std::string());
+          sum_.warnings.push_back(
+              fmt::format("{}: length offset register H0 (tool 0, or ADJUST,0): H0 cancels "
+                          "the tool length on most controls",
+                          SourceLoc{prog_.file, e.line, 0}.str()));
+        fmt_->tool_change(
+            buf_, n, tool_h_,
+            known ? fmt::format("TOOL {}: {} D{:.3f}", n, prog_.tools[static_cast<size_t>(e.tool_index)].name,
+                                prog_.tools[static_cast<size_t>(e.tool_index)].diameter_mm)
+                  : std::string());
         if (cart_) tool_tip_control_on(e.line);
         break;
       }
@@ -296,8 +304,7 @@ class Sequencer {
 
   /// Whether the stretch of feed moves after the rapid at i keeps every rotary where the rapid put it.
   bool indexed_from(const std::vector<kin::Axes>& axes, size_t i) const {
-    if (std::all_of(clamp_codes_.begin(), clamp_codes_.end(), [](const auto& c) { return c[0].empty(); }))
-      return false;
+    if (std::all_of(clamp_codes_.begin(), clamp_codes_.end(), [](const auto& c) { return c[0].empty(); })) return false;
     const auto rp = kin_.rotary_pair();
     size_t j = i + 1;
     for (; j < axes.size() && prog_.moves[j].kind == cl::MotionKind::Feed; ++j)
@@ -804,7 +811,7 @@ class Sequencer {
     kin::Axes v = q;
     int k = 0;
     for (int i = 0; i < 5; ++i)
-      if (!m_.axes[static_cast<size_t>(i)].rotary()) v[i] = tip[k++] ;
+      if (!m_.axes[static_cast<size_t>(i)].rotary()) v[i] = tip[k++];
     if (traits_.tcp_rotary_words == kin::Traits::TcpRotaryWords::VirtualWrist) {
       const auto rp = kin_.rotary_pair();
       const auto ca = xmini_virtual_ca(axis, q[rp[0]], q[rp[1]]);
@@ -993,12 +1000,12 @@ class Sequencer {
   std::array<bool, 5> clamped_{};
   int z_ = -1;
   double safe_z_ = 0.0;
-  bool cart_ = false;           ///< Cartesian (TCP) output: slots hold tip + tool-vector rotaries
-  bool vectors_ = false;        ///< TCP with the tool vector instead of rotary words
-  bool tcp_on_ = false;         ///< tool-tip control switched on in the program
-  int tool_h_ = 0;              ///< length offset register of the loaded tool
+  bool cart_ = false;     ///< Cartesian (TCP) output: slots hold tip + tool-vector rotaries
+  bool vectors_ = false;  ///< TCP with the tool vector instead of rotary words
+  bool tcp_on_ = false;   ///< tool-tip control switched on in the program
+  int tool_h_ = 0;        ///< length offset register of the loaded tool
   bool warned_h0_ = false;
-  bool axis_retract_ = false;   ///< retract along the tool axis to z = safe_z_mm (no Z axis, or Cartesian)
+  bool axis_retract_ = false;  ///< retract along the tool axis to z = safe_z_mm (no Z axis, or Cartesian)
   Vec3 cart_tip_ = Vec3::Zero(), cart_axis_ = Vec3::UnitZ();  ///< last Cartesian position (part frame)
   kin::Axes cart_q_ = kin::Axes::Zero();                      ///< the machine axes there
   cl::Move cart_move_;                                        ///< the last CL point posted in Cartesian mode

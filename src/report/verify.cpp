@@ -11,8 +11,8 @@
 
 #include "cscam/core/error.hpp"
 #include "cscam/core/tolerances.hpp"
-#include "cscam/kin/track.hpp"
 #include "cscam/core/units.hpp"
+#include "cscam/kin/track.hpp"
 #include "cscam/report/json.hpp"
 
 namespace cscam::report {

@@ -39,9 +39,9 @@ struct Program {
   std::string file;
   std::vector<Block> blocks;
   std::optional<double> tool_length_mm;  ///< from a "(cscam tool_length_mm=...)" header comment
-  bool tcp = false;  ///< G43.4/G43.5/G234/M428/TRAORI/TCPM/M128 seen: axis values are part coordinates
-  bool tcp_vectors = false;  ///< the tool orientation is given as vectors (Block::tool_vector)
-  std::vector<std::string> notes;        ///< things skipped on purpose (G28/G53 blocks, arcs treated as chords)
+  bool tcp = false;                ///< G43.4/G43.5/G234/M428/TRAORI/TCPM/M128 seen: axis values are part coordinates
+  bool tcp_vectors = false;        ///< the tool orientation is given as vectors (Block::tool_vector)
+  std::vector<std::string> notes;  ///< things skipped on purpose (G28/G53 blocks, arcs treated as chords)
   /// The machine named by our post's header comment "(cscam post: machine NAME dialect ...)", if present.
   std::optional<std::string> header_machine;
   int header_line = 0;  ///< the line of that comment

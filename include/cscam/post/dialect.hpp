@@ -23,10 +23,10 @@ struct ProgramInfo {
   std::string strategy;
   double tool_length_mm = 0.0;
   double tolerance_mm = 0.01;
-  bool tcp = false;          ///< tool-tip control: linear words are the tip in the part frame
-  bool tcp_vectors = false;  ///< the tool orientation as a vector (G43.5 I J K, Siemens A3 B3 C3), not angles
-  bool inch = false;         ///< G20 / MM->INCH output
-  std::string work_offset;   ///< "G54", ...; empty: none
+  bool tcp = false;                    ///< tool-tip control: linear words are the tip in the part frame
+  bool tcp_vectors = false;            ///< the tool orientation as a vector (G43.5 I J K, Siemens A3 B3 C3), not angles
+  bool inch = false;                   ///< G20 / MM->INCH output
+  std::string work_offset;             ///< "G54", ...; empty: none
   std::array<std::string, 5> letters;  ///< word letter per axis slot
   std::array<bool, 5> rotary{};
   std::array<double, 5> home{};  ///< values the end block returns the rotaries to (rad)
@@ -37,8 +37,8 @@ struct BlockSpec {
   enum class Motion { Rapid, Linear } motion = Motion::Linear;
   enum class FeedMode { Keep, PerMinute, InverseTime } feed_mode = FeedMode::Keep;  ///< a change to announce
   struct Word {
-    int slot = 0;       ///< axis slot 0..4
-    long long scaled;   ///< value * 10^decimals, in file units (mm/inch/deg)
+    int slot = 0;      ///< axis slot 0..4
+    long long scaled;  ///< value * 10^decimals, in file units (mm/inch/deg)
     int decimals = 4;
     bool shortest = false;  ///< a rotary to be reached the short way (modulo output)
   };

@@ -20,7 +20,7 @@ struct Options {
   double tolerance_mm = 0.0;        ///< 0: the machine's
   double axis_tolerance_deg = 0.0;  ///< 0: the machine's
   bool linearise = true;
-  std::optional<bool> tcp;  ///< tool-tip control on/off; unset: the machine's post.tcp
+  std::optional<bool> tcp;         ///< tool-tip control on/off; unset: the machine's post.tcp
   int max_subdivision_depth = 14;  ///< at most 2^depth pieces per CL segment
   std::string source_name;         ///< shown in the header comment
   std::string strategy = "conventional";

@@ -2,8 +2,8 @@
 /// @file
 /// Back-simulation: read NC axis values, run forward kinematics inside every block, and compare the
 /// tool tip and axis with the CL path.
-#include <nlohmann/json_fwd.hpp>
 #include <memory>
+#include <nlohmann/json_fwd.hpp>
 #include <string>
 
 #include "cscam/cl/program.hpp"
