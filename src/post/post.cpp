@@ -778,6 +778,7 @@ class Sequencer {
       for (int i = 0; i < 5; ++i)
         if (!m_.axes[static_cast<size_t>(i)].rotary()) v[i] = up[k++];
       emit_g0(v);
+      track_control(v, cart_axis_);
       cart_tip_ = up;
       kin::Axes q_up = cart_q_;
       if (kin_.solve_for_rotaries(kin::Posed{up, cart_axis_}, q_up)) cart_q_ = q_up;
@@ -848,6 +849,7 @@ class Sequencer {
             emit();
           }
           cur_ = va;
+          track_control(va, axis);
         }
       }
       turn_stepwise(v);
@@ -863,6 +865,7 @@ class Sequencer {
       tcp_pieces(cart_move_, cart_q_, mv, q);
       for (const auto& pc : tcp_pieces_) emit_tcp_feed(pc.tip, pc.axis, pc.q, feed_mm_min);
     }
+    if (!have_state_ || mv.kind == cl::MotionKind::Rapid) track_control(v, axis);
     cur_ = v;
     cart_q_ = q;
     cart_tip_ = mv.tip_in_part_mm;
@@ -948,6 +951,18 @@ class Sequencer {
     }
   }
 
+  /// The machine axes the control moves to for the tip words v (IK nearest to its previous axes, as the gate
+  /// reads the program back).
+  void track_control(const kin::Axes& v, const Vec3& cl_axis) {
+    Vec3 tip, u = cl_axis;
+    int k = 0;
+    for (int i = 0; i < 5; ++i)
+      if (!m_.axes[static_cast<size_t>(i)].rotary()) tip[k++] = v[i];
+    if (!vectors_ && !axis_of_words(v, u)) return;
+    kin::Axes sol;
+    if (kin::nearest_solution(kin_, kin::Posed{tip, u}, ctrl_q_, sol)) ctrl_q_ = sol;
+  }
+
   /// One tool-tip-control feed block to (tip, axis) with machine axes q there.
   void emit_tcp_feed(const Vec3& tip, const Vec3& axis, const kin::Axes& q, double feed_mm_min) {
     const kin::Axes v = cartesian_words(tip, axis, q);
@@ -959,7 +974,12 @@ class Sequencer {
       // The control moves the tip at F; slowed so that no machine axis exceeds its max_feed.
       const double tip_mm = (tip - cart_tip_).norm();
       const double programmed = tip_mm / feed_mm_min;
-      const double minutes = block_minutes(cart_q_, q, programmed);
+      // Judged by the planned axes and by what the control computes from the words (its IK nearest to where it
+      // is: near a singularity it may turn a rotary much more than the plan).
+      const kin::Axes ctrl_before = ctrl_q_;
+      track_control(v, axis);
+      const double minutes =
+          std::max(block_minutes(cart_q_, q, programmed), block_minutes(ctrl_before, ctrl_q_, programmed));
       const double f =
           minutes > programmed * (1.0 + 1e-9) ? word_length(cur_, v) / minutes : feed_mm_min * feed_to_file_;
       std::optional<double> fw;
@@ -1008,6 +1028,7 @@ class Sequencer {
   bool axis_retract_ = false;  ///< retract along the tool axis to z = safe_z_mm (no Z axis, or Cartesian)
   Vec3 cart_tip_ = Vec3::Zero(), cart_axis_ = Vec3::UnitZ();  ///< last Cartesian position (part frame)
   kin::Axes cart_q_ = kin::Axes::Zero();                      ///< the machine axes there
+  kin::Axes ctrl_q_ = kin::Axes::Zero();  ///< the machine axes a TCP control reaches (IK nearest, like the gate)
   cl::Move cart_move_;                                        ///< the last CL point posted in Cartesian mode
   std::vector<TcpPiece> tcp_pieces_;
   bool have_state_ = false;
