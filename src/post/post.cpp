@@ -204,8 +204,8 @@ class Sequencer {
     if (tool_h_ == 0 && !warned_h0_) {
       warned_h0_ = true;
       sum_.warnings.push_back(
-          fmt::format("{}: tool-tip control with length offset H0 (no LOAD/TOOL before the first "
-                      "move): H0 cancels the tool length on most controls",
+          fmt::format("{}: tool-tip control with length offset register H0: H0 cancels the tool length on "
+                      "most controls",
                       SourceLoc{prog_.file, cl_line, 0}.str()));
     }
     fmt_->tcp_on(buf_, tool_h_);
@@ -388,8 +388,9 @@ class Sequencer {
       }
     if (feed) {
       // Printed rounded down: a block is never faster than the time the sequencer gave it.
-      blk_.feed_decimals = mode93_ ? 3 : 1;
-      const double p = mode93_ ? 1000.0 : 10.0;
+      // Slow per-minute feeds (a capped block that mostly turns a rotary) keep four decimals.
+      blk_.feed_decimals = mode93_ ? 3 : (*feed < 100.0 ? 4 : 1);
+      const double p = std::pow(10.0, blk_.feed_decimals);
       blk_.feed = std::max(std::floor(*feed * p * (1.0 + 1e-12)) / p, 1.0 / p);
     }
     fmt_->block(buf_, blk_);
@@ -657,8 +658,10 @@ class Sequencer {
   /// rotary words' angle (deg).
   [[nodiscard]] double word_length(const kin::Axes& wa, const kin::Axes& wb) const {
     double lin2 = 0.0, rot2 = 0.0;
-    for (int i = 0; i < 5; ++i) {
-      const double d = (wb[i] - wa[i]) * to_file_[static_cast<size_t>(i)];
+    for (int i = 0; i < 5; ++i) {  // between the printed (rounded) words, as the control measures it
+      const double f = to_file_[static_cast<size_t>(i)] * scale_[static_cast<size_t>(i)];
+      const double d =
+          static_cast<double>(std::llround(wb[i] * f) - std::llround(wa[i] * f)) / scale_[static_cast<size_t>(i)];
       (m_.axes[static_cast<size_t>(i)].rotary() ? rot2 : lin2) += d * d;
     }
     return lin2 > 1e-18 ? std::sqrt(lin2) : std::sqrt(rot2);
@@ -1029,7 +1032,7 @@ class Sequencer {
   Vec3 cart_tip_ = Vec3::Zero(), cart_axis_ = Vec3::UnitZ();  ///< last Cartesian position (part frame)
   kin::Axes cart_q_ = kin::Axes::Zero();                      ///< the machine axes there
   kin::Axes ctrl_q_ = kin::Axes::Zero();  ///< the machine axes a TCP control reaches (IK nearest, like the gate)
-  cl::Move cart_move_;                                        ///< the last CL point posted in Cartesian mode
+  cl::Move cart_move_;                    ///< the last CL point posted in Cartesian mode
   std::vector<TcpPiece> tcp_pieces_;
   bool have_state_ = false;
   bool at_cut_ = false;  ///< the last motion was a feed: the tool may be in the material
