@@ -81,3 +81,74 @@ TEST(NcReader, HeaderMachineAndForeignAxisWords) {
   EXPECT_FALSE(nx.header_machine.has_value());
   EXPECT_TRUE(nx.foreign_axis_words.empty());
 }
+
+TEST(NcReader, SinumerikIdentifiersAssignmentsShortWayAndVectors) {
+  const auto p = nc::read_text(
+      "; (cscam post: machine m dialect siemens strategy s)\nG71 G90 G94 G17 G40 G64\nTRAFOOF\nG54\nT=\"BALL6\"\n"
+      "M6\nD1\nCYCLE800(0,\"TC1\",200000,57,0,0,0,0,0,0,0,0,0,-1,100,1)\nTRAORI\nORIWKS ORIVECT\nR1=2.5\n"
+      "G0 X=10 Y2 Z=ACP(3) A3=0.6 B3=0 C3=0.8\nG1 X11 C=DC(350) F100 ; a comment\nG1 C=DC(10)\nTRAFOOF\nM30\n",
+      "s.mpf", xyzbc());
+  EXPECT_TRUE(p.tcp);
+  EXPECT_TRUE(p.tcp_vectors);
+  ASSERT_TRUE(p.header_machine.has_value());
+  EXPECT_EQ(*p.header_machine, "m");
+  ASSERT_EQ(p.blocks.size(), 3u);
+  EXPECT_DOUBLE_EQ(p.blocks[0].axes[0], 10.0);
+  EXPECT_DOUBLE_EQ(p.blocks[0].axes[2], 3.0);
+  EXPECT_TRUE(p.blocks[0].has_vector);
+  EXPECT_DOUBLE_EQ(p.blocks[0].tool_vector[0], 0.6);
+  EXPECT_DOUBLE_EQ(p.blocks[0].tool_vector[2], 0.8);
+  // C=DC(350) from an unknown C is 350; DC(10) from 350 goes the short way to 370
+  EXPECT_NEAR(rad2deg(p.blocks[1].axes[4]), 350.0, 1e-9);
+  EXPECT_NEAR(rad2deg(p.blocks[2].axes[4]), 370.0, 1e-9);
+  EXPECT_TRUE(p.foreign_axis_words.empty()) << "A3/B3/C3 are no axis words";
+}
+
+TEST(NcReader, ModuloRotaryReadTheShortWay) {
+  auto l = xyzbc();
+  l.modulo[4] = true;
+  const auto p = nc::read_text("G0 X0 Y0 Z0 B0 C350\nG1 C10 F100\nG1 C100\nG1 C190\nG1 C20\n", "m.ngc", l);
+  ASSERT_EQ(p.blocks.size(), 5u);
+  EXPECT_NEAR(rad2deg(p.blocks[1].axes[4]), 370.0, 1e-9);
+  EXPECT_NEAR(rad2deg(p.blocks[2].axes[4]), 460.0, 1e-9);
+  EXPECT_NEAR(rad2deg(p.blocks[3].axes[4]), 550.0, 1e-9);
+  EXPECT_NEAR(rad2deg(p.blocks[4].axes[4]), 380.0, 1e-9);  // back the short way
+}
+
+TEST(NcReader, FanucVectorFormAndLinuxcncSwitchkins) {
+  const auto v = nc::read_text("G43.5 H1\nG1 X1 Y2 Z3 I0 J0.6 K0.8 F100\nG1 X2\nG49\n", "v.nc", xyzbc());
+  EXPECT_TRUE(v.tcp);
+  EXPECT_TRUE(v.tcp_vectors);
+  ASSERT_EQ(v.blocks.size(), 2u);
+  EXPECT_DOUBLE_EQ(v.blocks[1].tool_vector[1], 0.6);  // modal
+  const auto l = nc::read_text("M428\nG0 X1 Y2 Z3 B0 C0\nM429\n", "l.ngc", xyzbc());
+  EXPECT_TRUE(l.tcp);
+  EXPECT_FALSE(l.tcp_vectors);
+}
+
+TEST(NcReader, HeidenhainConversational) {
+  const std::string text =
+      "0 BEGIN PGM PART MM\n1 ; (cscam post: machine m dialect heidenhain strategy s)\n"
+      "2 ; (cscam tool_length_mm=12.5000 tolerance_mm=0.0100)\n3 CYCL DEF 247 DATUM SETTING ~\n  Q339=+1 ;DATUM\n"
+      "4 TOOL CALL 1 Z S6000\n5 FUNCTION TCPM F TCP AXIS POS PATHCTRL AXIS\n6 L Z+100 R0 FMAX M3\n"
+      "7 L X+1.5 Y-2 B+10 C-20.5 R0 FMAX\n8 L X+2.5 R0 F1500\n9 L Y-3 ; comment\n10 END PGM PART MM\n11 L X+99\n";
+  const auto p = nc::read_text(text, "h.h", xyzbc());
+  EXPECT_TRUE(p.tcp);
+  ASSERT_TRUE(p.tool_length_mm.has_value());
+  EXPECT_DOUBLE_EQ(*p.tool_length_mm, 12.5);
+  ASSERT_EQ(p.blocks.size(), 4u);
+  EXPECT_EQ(p.blocks[0].motion, nc::Motion::Rapid);
+  EXPECT_DOUBLE_EQ(p.blocks[0].axes[2], 100.0);
+  EXPECT_NEAR(rad2deg(p.blocks[1].axes[4]), -20.5, 1e-12);
+  EXPECT_EQ(p.blocks[2].motion, nc::Motion::Linear);
+  EXPECT_DOUBLE_EQ(p.blocks[2].feed, 1500.0);
+  EXPECT_DOUBLE_EQ(p.blocks[3].axes[1], -3.0);
+  EXPECT_DOUBLE_EQ(p.blocks[3].feed, 1500.0);  // modal
+  EXPECT_EQ(p.blocks[3].line, 11);
+  try {
+    nc::read_text("0 BEGIN PGM P MM\n1 L X+1..5\n", "bad.h", xyzbc());
+    FAIL();
+  } catch (const InputError& e) {
+    EXPECT_NE(std::string(e.what()).find("bad.h:2:"), std::string::npos) << e.what();
+  }
+}

@@ -4,16 +4,22 @@
 //  3. against NX's post for the same CL (the B/C angles NX chose are IK solutions of ours).
 #include "cscam/post/post.hpp"
 
+#include <fmt/format.h>
 #include <gtest/gtest.h>
 
+#include <algorithm>
+#include <cstdlib>
 #include <filesystem>
 #include <fstream>
+#include <optional>
+#include <random>
 #include <regex>
 #include <sstream>
 
 #include "cscam/cl/program.hpp"
 #include "cscam/core/error.hpp"
 #include "cscam/core/units.hpp"
+#include "cscam/gate/gate.hpp"
 #include "cscam/machine/machine.hpp"
 #include "cscam/nc/reader.hpp"
 #include "cscam/report/verify.hpp"
@@ -39,12 +45,14 @@ struct Posted {
   post::Summary summary;
 };
 
-Posted post_program(const cl::Program& prog, const machine::Machine& m, const kin::Kinematics& k,
-                    bool linearise = true) {
+Posted post_program(const cl::Program& prog, const machine::Machine& m, const kin::Kinematics& k, bool linearise = true,
+                    std::optional<bool> tcp = std::nullopt, const std::string& dialect = "") {
   const auto axes = post::conventional_axes(prog, m, k);
   std::ostringstream os;
   post::Options o;
   o.linearise = linearise;
+  o.tcp = tcp;
+  o.dialect = dialect;
   Posted p;
   post::write_nc(os, prog, m, k, axes, o, p.summary);
   p.text = os.str();
@@ -173,5 +181,514 @@ TEST(Post, PointOutsideTheLimitsNamesTheClLine) {
     const std::string msg = e.what();
     EXPECT_NE(msg.find("far.cls:4"), std::string::npos) << msg;
     EXPECT_NE(msg.find("x = "), std::string::npos) << msg;
+  }
+}
+
+// --- LinuxCNC ------------------------------------------------------------------------------------------
+
+/// LinuxCNC's xyzac-trt-kins forward map (src/emc/kinematics/trtfuncs.c, xyzacKinematicsForward), written out
+/// here as the oracle: joints (machine X Y Z, A C in degrees) to world coordinates, with the sample config's
+/// pins y-offset 20, z-offset 10, rot-points 0 and tool-offset dt.
+Vec3 linuxcnc_xyzac_world(const kin::Axes& j, double dt) {
+  const double x_rot = 0, y_rot = 0, z_rot = 0, dy = 20, dz = 10 + dt;
+  const double a = j[3], c = j[4];
+  return {std::cos(c) * (j[0] - x_rot) + std::sin(c) * std::cos(a) * (j[1] - dy - y_rot) +
+              std::sin(c) * std::sin(a) * (j[2] - dz - z_rot) + std::sin(c) * dy + x_rot,
+          -std::sin(c) * (j[0] - x_rot) + std::cos(c) * std::cos(a) * (j[1] - dy - y_rot) +
+              std::cos(c) * std::sin(a) * (j[2] - dz - z_rot) + std::cos(c) * dy + y_rot,
+          -std::sin(a) * (j[1] - dy - y_rot) + std::cos(a) * (j[2] - dz - z_rot) + dz + z_rot};
+}
+
+TEST(PostLinuxcnc, TrunnionAcModelIsLinuxcncXyzacTrtKins) {
+  // The TCP words are LinuxCNC's world coordinates only if our trunnion-ac model is its kinematics: the tip our
+  // FK gives for random joints must be the world position of trtfuncs.c (tool offset 0: the tip is the gauge).
+  const auto m = load_machine("trunnion-ac");
+  const auto k = m.kinematics();
+  std::mt19937 rng(42);
+  std::uniform_real_distribution<double> lin(-200, 200), a(deg2rad(-100), deg2rad(50)), c(-7, 7);
+  for (int i = 0; i < 200; ++i) {
+    kin::Axes q;
+    q << lin(rng), lin(rng), lin(rng), a(rng), c(rng);
+    const Vec3 ours = k->forward(q).tip_mm;
+    const Vec3 theirs = linuxcnc_xyzac_world(q, 0.0);
+    ASSERT_LT((ours - theirs).norm(), 1e-9) << "joints " << q.transpose();
+  }
+}
+
+TEST(PostLinuxcnc, MachineCoordinatesCarryG64PAtTheTolerance) {
+  const auto m = load_machine("trunnion-ac");
+  const auto k = m.kinematics();
+  const cl::Program prog = cl::read_text(synthetic_cl(30.0, 4, 30, 10.0), "g64.cls");
+  const Posted p = post_program(prog, m, *k, true, false);
+  EXPECT_NE(p.text.find(fmt::format("G64 P{:.4f}\n", m.post.tolerance_mm)), std::string::npos) << p.text.substr(0, 400);
+  EXPECT_EQ(p.text.find("M428"), std::string::npos);
+  std::string log;
+  const auto moves = rs274_moves(p.text, "g64", log);
+  EXPECT_NE(log.find(fmt::format("SET_MOTION_CONTROL_MODE(CANON_CONTINUOUS, {:.6f})", m.post.tolerance_mm)),
+            std::string::npos)
+      << log.substr(0, 3000);
+  expect_rs274_agrees(p.text, m, "g64");
+}
+
+TEST(PostLinuxcnc, TcpFormSwitchesTheTrunnionKinematicsAndVerifies) {
+  const auto m = load_machine("trunnion-ac");
+  const auto k = m.kinematics();
+  const cl::Program prog = cl::read_text(synthetic_cl(30.0, 4, 30, 10.0), "tcp.cls");
+  const Posted p = post_program(prog, m, *k, true, true);
+  const size_t on = p.text.find("\nM428"), off = p.text.find("\nM429"), first_move = p.text.find("\nG0");
+  ASSERT_NE(on, std::string::npos) << p.text.substr(0, 600);
+  ASSERT_NE(off, std::string::npos);
+  EXPECT_LT(on, first_move);  // world coordinates before the first move
+  EXPECT_GT(off, p.text.rfind("\nG1"));
+  EXPECT_EQ(p.text.find("G43.4"), std::string::npos) << "LinuxCNC's rs274 rejects G43.4";
+  // rs274 with the M428/M429 remaps of the sample config accepts it and moves to our words.
+  std::string log;
+  rs274_moves(p.text, "tcp", log, "tests/data/linuxcnc");
+  EXPECT_NE(log.find("SET_AUX_OUTPUT_VALUE(3,1.000000)"), std::string::npos) << log.substr(0, 3000);
+  expect_rs274_agrees(p.text, m, "tcp", "tests/data/linuxcnc");
+  // Every block's words are the tip (part frame) of the CL point: each CL point appears as a block.
+  const nc::Program ncp = nc::read_text(p.text, "tcp.ngc", letters_of(m));
+  EXPECT_TRUE(ncp.tcp);
+  size_t found = 0;
+  for (const auto& mv : prog.moves)
+    for (const auto& b : ncp.blocks)
+      if ((Vec3(b.axes[0], b.axes[1], b.axes[2]) - mv.tip_in_part_mm).norm() < 1e-4) {
+        ++found;
+        break;
+      }
+  EXPECT_EQ(found, prog.moves.size());
+  // The safety gate reads it as TCP: IK of the tip and rotary words, limits, feeds and the path.
+  const auto gs = gate::check(p.text, "tcp.ngc", prog, m, *k, gate::options_for(m, 0, 0, 0));
+  EXPECT_TRUE(gs.ok) << gs.message;
+  EXPECT_TRUE(gs.tool_tip_control);
+}
+
+// --- Dialects -----------------------------------------------------------------------------------------
+
+namespace {
+
+/// The machine file `name` with extra post settings appended under `post:` (same folder: relative paths hold).
+machine::Machine machine_with_post(const std::string& name, const std::string& extra_post_lines) {
+  std::ifstream in(test::source_path("machines/" + name + ".yaml"));
+  std::stringstream ss;
+  ss << in.rdbuf();
+  std::string text = ss.str();
+  const size_t p = text.find("\npost:\n");
+  EXPECT_NE(p, std::string::npos);
+  text.insert(p + 7, extra_post_lines);
+  return machine::load_text(text, test::source_path("machines/" + name + "-variant.yaml"));
+}
+
+/// Every CL point is reached by some block: its words read back (FK of the machine axes, or the tip words and
+/// tool vector under tool-tip control) give the CL tip and axis within the tolerance. Independent of verify.
+void expect_every_cl_point_reached(const std::string& text, const cl::Program& prog, const machine::Machine& m,
+                                   const kin::Kinematics& k, const std::string& tag) {
+  nc::Program ncp = report::read_for_machine(text, tag, m);
+  ASSERT_EQ(report::resolve_tool_vectors(ncp, k), "");
+  const bool tcp = report::uses_tool_tip_control(text);
+  ASSERT_EQ(tcp, ncp.tcp) << tag;
+  std::vector<kin::Posed> poses;
+  for (const auto& b : ncp.blocks) {
+    if (!std::all_of(b.known.begin(), b.known.end(), [](bool x) { return x; })) continue;
+    kin::Axes q;
+    for (int i = 0; i < 5; ++i) q[i] = b.axes[static_cast<size_t>(i)];
+    if (!tcp) {
+      poses.push_back(k.forward(q));
+      continue;
+    }
+    kin::Posed p;
+    p.tip_mm = Vec3(q[0], q[1], q[2]);
+    const auto rp = k.rotary_pair();
+    if (b.has_vector)
+      p.axis = Vec3(b.tool_vector[0], b.tool_vector[1], b.tool_vector[2]).normalized();
+    else
+      ASSERT_TRUE(k.tool_axis_at(q[rp[0]], q[rp[1]], p.tip_mm, p.axis));
+    poses.push_back(p);
+  }
+  const double tol = m.post.tolerance_mm + 1e-3, cos_tol = std::cos(deg2rad(m.post.axis_tolerance_deg + 0.01));
+  for (const auto& mv : prog.moves) {
+    bool hit = false;
+    for (const auto& p : poses)
+      if ((p.tip_mm - mv.tip_in_part_mm).norm() <= tol && p.axis.dot(mv.axis_in_part.normalized()) >= cos_tol) {
+        hit = true;
+        break;
+      }
+    ASSERT_TRUE(hit) << tag << ": CL line " << mv.line << " is never reached";
+  }
+}
+
+struct Case {
+  std::string dialect;
+  bool tcp;
+  std::string tcp_form;
+};
+
+std::vector<Case> all_cases() {
+  return {{"linuxcnc", false, "angles"}, {"linuxcnc", true, "angles"},    {"fanuc", false, "angles"},
+          {"fanuc", true, "angles"},     {"fanuc", true, "vectors"},      {"haas", false, "angles"},
+          {"haas", true, "angles"},      {"siemens", false, "angles"},    {"siemens", true, "angles"},
+          {"siemens", true, "vectors"},  {"heidenhain", false, "angles"}, {"heidenhain", true, "angles"}};
+}
+
+std::string case_tag(const Case& c) {
+  return c.dialect + (c.tcp ? "-tcp" : "") + (c.tcp_form == "vectors" ? "-vectors" : "");
+}
+
+}  // namespace
+
+TEST(PostDialects, EveryDialectReadsBackReachesEveryClPointAndPassesTheGate) {
+  for (const char* name : {"trunnion-ac", "haas-umc750", "head-head-ac"}) {
+    const cl::Program prog = cl::read_text(synthetic_cl(25.0, 3, 25, 10.0), std::string(name) + ".cls");
+    for (const Case& c : all_cases()) {
+      const std::string tag = std::string(name) + "-" + case_tag(c);
+      SCOPED_TRACE(tag);
+      const auto m = machine_with_post(name, "  tcp_form: " + c.tcp_form + "\n");
+      const auto k = m.kinematics();
+      const Posted p = post_program(prog, m, *k, true, c.tcp, c.dialect);
+      expect_every_cl_point_reached(p.text, prog, m, *k, tag);
+      const auto gs = gate::check(p.text, tag, prog, m, *k, gate::options_for(m, 0, 0, 0));
+      EXPECT_TRUE(gs.ok) << gs.message;
+      EXPECT_EQ(gs.tool_tip_control, c.tcp);
+    }
+  }
+}
+
+TEST(PostDialects, EachControllerFamilySpellsItsOwnForms) {
+  const cl::Program prog = cl::read_text(synthetic_cl(25.0, 2, 10, 10.0), "forms.cls");
+  auto post_as = [&](const std::string& dialect, bool tcp, const std::string& form) {
+    const auto m = machine_with_post("trunnion-ac", "  tcp_form: " + form + "\n  program_number: 42\n");
+    const auto k = m.kinematics();
+    return post_program(prog, m, *k, true, tcp, dialect).text;
+  };
+  auto has = [](const std::string& t, const std::string& w) { return t.find(w) != std::string::npos; };
+  const std::string fa = post_as("fanuc", true, "angles");
+  EXPECT_TRUE(has(fa, "O0042 (TRUNNION-AC)") && has(fa, "G43.4 H1\n") && has(fa, "\nG49\n") && has(fa, "\nM30\n"))
+      << fa.substr(0, 800);
+  const std::string fv = post_as("fanuc", true, "vectors");
+  EXPECT_TRUE(has(fv, "G43.5 H1\n") && has(fv, " I-0.303731 J-0.274364 K0.912399")) << fv.substr(0, 800);
+  EXPECT_FALSE(std::regex_search(fv, std::regex("\\nG[01][^\\n]* A-?[0-9]"))) << "no rotary words with vectors";
+  const std::string fm = post_as("fanuc", false, "angles");
+  EXPECT_TRUE(has(fm, "G43 H1\n") && !has(fm, "G43.4")) << fm.substr(0, 800);
+  const std::string ha = post_as("haas", true, "angles");
+  EXPECT_TRUE(has(ha, "O00042 (TRUNNION-AC)") && has(ha, "G234 H1\n") && has(ha, "\nG49\n")) << ha.substr(0, 800);
+  const std::string sv = post_as("siemens", true, "vectors");
+  EXPECT_TRUE(has(sv, "\nTRAORI\n") && has(sv, "ORIWKS ORIVECT") && has(sv, " A3=") && has(sv, " C3=") &&
+              has(sv, "\nTRAFOOF\n") && has(sv, "G71 ") && has(sv, "\n; (cscam post: machine trunnion-ac"))
+      << sv.substr(0, 800);
+  const std::string hh = post_as("heidenhain", true, "angles");
+  EXPECT_TRUE(has(hh, "0 BEGIN PGM TRUNNION_AC MM\n") && has(hh, "FUNCTION TCPM F TCP AXIS POS PATHCTRL AXIS") &&
+              has(hh, " FMAX\n") && has(hh, "FUNCTION RESET TCPM") && has(hh, "END PGM TRUNNION_AC MM\n") &&
+              std::regex_search(hh, std::regex("\\n[0-9]+ L X[+-][0-9.]+ Y[+-][0-9.]+")))
+      << hh.substr(0, 800);
+  EXPECT_FALSE(has(hh, "G93")) << "a TNC has no inverse-time feed";
+  const std::string hm = post_as("heidenhain", false, "angles");
+  EXPECT_FALSE(has(hm, "G93"));
+}
+
+TEST(PostDialects, FanucMachineCoordinatesAreAcceptedByRs274) {
+  // Fanuc's machine-coordinate form is RS274 apart from the O-number line.
+  const auto m = load_machine("trunnion-ac");
+  const auto k = m.kinematics();
+  const cl::Program prog = cl::read_text(synthetic_cl(25.0, 3, 25, 10.0), "fanuc.cls");
+  std::string text = post_program(prog, m, *k, true, false, "fanuc").text;
+  const size_t o = text.find("\nO0001");
+  ASSERT_NE(o, std::string::npos);
+  text.erase(o + 1, text.find('\n', o + 1) - o);
+  expect_rs274_agrees(text, m, "fanuc");
+}
+
+TEST(PostDialects, UnknownDialectNamesTheKnownOnes) {
+  const auto m = load_machine("trunnion-ac");
+  const auto k = m.kinematics();
+  const cl::Program prog = cl::read_text(synthetic_cl(10.0, 2, 5, 10.0), "x.cls");
+  try {
+    post_program(prog, m, *k, true, std::nullopt, "klingon");
+    FAIL();
+  } catch (const InputError& e) {
+    EXPECT_NE(std::string(e.what()).find("heidenhain"), std::string::npos) << e.what();
+  }
+}
+
+// --- The program a machinist expects ----------------------------------------------------------------
+
+TEST(PostProgram, SequenceNumbersInchWorkOffsetAndRotaryHome) {
+  const auto m = machine_with_post("trunnion-ac",
+                                   "  sequence_numbers: true\n  sequence_step: 5\n  inch: true\n"
+                                   "  work_offset: g55\n");
+  const auto k = m.kinematics();
+  const cl::Program prog = cl::read_text(synthetic_cl(25.0, 3, 20, 10.0), "inch.cls");
+  const Posted p = post_program(prog, m, *k);
+  EXPECT_NE(p.text.find("N5 G20 G90 G94"), std::string::npos) << p.text.substr(0, 600);
+  EXPECT_NE(p.text.find("N10 G55\n"), std::string::npos);
+  // every block numbered, in steps of 5
+  std::regex nword("^N([0-9]+) ");
+  long long prev = 0;
+  std::istringstream in(p.text);
+  std::string line;
+  int numbered = 0;
+  while (std::getline(in, line)) {
+    std::smatch mm;
+    if (line.empty() || line[0] == '(' || line == "%") continue;
+    ASSERT_TRUE(std::regex_search(line, mm, nword)) << line;
+    const long long n = std::stoll(mm[1]);
+    EXPECT_EQ(n, prev + 5);
+    prev = n;
+    ++numbered;
+  }
+  EXPECT_GT(numbered, 50);
+  // the last move turns the rotaries home
+  const nc::Program ncp = report::read_for_machine(p.text, "inch.ngc", m);
+  ASSERT_FALSE(ncp.blocks.empty());
+  EXPECT_NEAR(ncp.blocks.back().axes[3], 0.0, 1e-9);
+  EXPECT_NEAR(ncp.blocks.back().axes[4], 0.0, 1e-9);
+  // inch words read back in mm through the same path
+  const auto gs = gate::check(p.text, "inch.ngc", prog, m, *k, gate::options_for(m, 0, 0, 0));
+  EXPECT_TRUE(gs.ok) << gs.message;
+}
+
+TEST(PostProgram, FeedsAreCappedAtMaxFeedAndReported) {
+  const auto m = load_machine("trunnion-ac");
+  const auto k = m.kinematics();
+  // 30 m/min asked, X may do 10 m/min
+  const cl::Program prog = cl::read_text(
+      "UNITS/MM\nMULTAX\nFEDRAT/MMPM,30000\nRAPID\nGOTO/0,0,5,0,0,1\nGOTO/100,0,5,0,0,1\n"
+      "GOTO/110,10,5,0.2,0,0.9797959\n",
+      "fast.cls");
+  const Posted p = post_program(prog, m, *k);
+  EXPECT_GT(p.summary.capped_blocks, 0u);
+  EXPECT_NE(p.text.find("F10000.0"), std::string::npos) << p.text;
+  bool warned = false;
+  for (const auto& w : p.summary.warnings) warned |= w.find("max_feed") != std::string::npos;
+  EXPECT_TRUE(warned);
+  const auto gs = gate::check(p.text, "fast.ngc", prog, m, *k, gate::options_for(m, 0, 0, 0));
+  EXPECT_TRUE(gs.ok) << gs.message;
+  EXPECT_LE(gs.max_velocity_ratio, 1.0 + 1e-3);
+}
+
+TEST(PostProgram, ShortestWayRotaryIsWrittenModulo360AndReadBackUnwound) {
+  // A spiral that winds C through 720 deg: modulo words, and the reader follows the short way.
+  std::ostringstream cl;
+  cl << "UNITS/MM\nMULTAX\nFEDRAT/MMPM,2000\nRAPID\n";
+  for (int i = 0; i <= 240; ++i) {
+    const double t = deg2rad(3.0 * i);
+    const Vec3 u = Vec3(0.3 * std::cos(t), 0.3 * std::sin(t), 1.0).normalized();
+    cl << "GOTO/" << 30 * std::cos(t) << "," << 30 * std::sin(t) << ",5," << u.x() << "," << u.y() << "," << u.z()
+       << "\n";
+  }
+  const cl::Program prog = cl::read_text(cl.str(), "spiral.cls");
+  for (const char* dialect : {"linuxcnc", "siemens"}) {
+    SCOPED_TRACE(dialect);
+    const auto m = machine_with_post("trunnion-ac", "  rotary_output: shortest\n");
+    const auto k = m.kinematics();
+    const Posted p = post_program(prog, m, *k, true, std::nullopt, dialect);
+    std::smatch mm;
+    std::string::const_iterator it = p.text.begin();
+    const std::regex cword(dialect == std::string("siemens") ? "C=DC\\((-?[0-9.]+)\\)" : " C(-?[0-9.]+)");
+    int n = 0;
+    while (std::regex_search(it, p.text.cend(), mm, cword)) {
+      const double c = std::stod(mm[1]);
+      EXPECT_GE(c, 0.0);
+      EXPECT_LT(c, 360.0);
+      it = mm[0].second;
+      ++n;
+    }
+    EXPECT_GT(n, 100);
+    const nc::Program ncp = report::read_for_machine(p.text, "spiral.ngc", m);
+    double cmax = 0;
+    for (const auto& b : ncp.blocks) cmax = std::max(cmax, std::abs(b.axes[4]));
+    EXPECT_GT(rad2deg(cmax), 600.0) << "read back the short way, the table winds on";
+    const auto gs = gate::check(p.text, "spiral.ngc", prog, m, *k, gate::options_for(m, 0, 0, 0));
+    EXPECT_TRUE(gs.ok) << gs.message;
+  }
+}
+
+TEST(PostProgram, RotariesClampedAroundIndexedStretches) {
+  const auto m = machine_with_post("haas-umc750", "  clamp: {b: [M10, M11], c: [M12, M13]}\n");
+  const auto k = m.kinematics();
+  // two 3+2 faces: fixed tilt, then another fixed tilt; then a simultaneous stretch
+  const cl::Program prog = cl::read_text(
+      "UNITS/MM\nMULTAX\nFEDRAT/MMPM,1000\nRAPID\nGOTO/0,0,20,0.3,0,0.9539392\nGOTO/20,0,20,0.3,0,0.9539392\n"
+      "GOTO/20,20,20,0.3,0,0.9539392\nRAPID\nGOTO/0,60,20,0,0.3,0.9539392\nGOTO/-20,60,20,0,0.3,0.9539392\n"
+      "RAPID\nGOTO/0,-60,20,0,0,1\nGOTO/10,-60,20,0.1,0,0.9949874\n",
+      "faces.cls");
+  const Posted p = post_program(prog, m, *k, true, std::nullopt, "haas");
+  auto count = [&](const std::string& w) {
+    size_t n = 0;
+    for (size_t pos = p.text.find(w); pos != std::string::npos; pos = p.text.find(w, pos + 1)) ++n;
+    return n;
+  };
+  EXPECT_EQ(count("\nM10\n"), 2u) << p.text;
+  EXPECT_EQ(count("\nM12\n"), 2u);
+  EXPECT_EQ(count("\nM11\n"), 2u);
+  EXPECT_EQ(count("\nM13\n"), 2u);
+  // no rotary word between a clamp and its unclamp
+  std::istringstream in(p.text);
+  std::string line;
+  bool clamped = false;
+  while (std::getline(in, line)) {
+    if (line == "M10") clamped = true;
+    if (line == "M11") clamped = false;
+    if (clamped) EXPECT_FALSE(std::regex_search(line, std::regex(" [BC]-?[0-9]"))) << line;
+  }
+  const auto gs = gate::check(p.text, "faces.ngc", prog, m, *k, gate::options_for(m, 0, 0, 0));
+  EXPECT_TRUE(gs.ok) << gs.message << "\n" << p.text;
+}
+
+TEST(PostProgram, OptionalStopAndToolZeroWarning) {
+  const auto m = load_machine("trunnion-ac");
+  const auto k = m.kinematics();
+  const cl::Program prog = cl::read_text(
+      "UNITS/MM\nMULTAX\nLOADTL/0\nFEDRAT/MMPM,1000\nRAPID\nGOTO/0,0,20,0,0,1\nOPSTOP\nGOTO/20,0,20,0,0,1\nSTOP\n"
+      "GOTO/20,10,20,0,0,1\n",
+      "stops.cls");
+  const Posted p = post_program(prog, m, *k);
+  EXPECT_NE(p.text.find("\nM1\n"), std::string::npos) << p.text;
+  EXPECT_NE(p.text.find("\nM0\n"), std::string::npos) << p.text;
+  bool warned = false;
+  for (const auto& w : p.summary.warnings) warned |= w.find("H0") != std::string::npos;
+  EXPECT_TRUE(warned);
+}
+
+TEST(PostProgram, MachineFileRejectsBadPostSettings) {
+  for (const auto& [line, key] :
+       std::vector<std::pair<std::string, std::string>>{{"  tcp_form: quaternions\n", "post.tcp_form"},
+                                                        {"  work_offset: G99\n", "post.work_offset"},
+                                                        {"  rotary_output: sideways\n", "post.rotary_output"},
+                                                        {"  clamp: {x: [M10, M11]}\n", "post.clamp.x"},
+                                                        {"  clamp: {a: [M10, Q11]}\n", "post.clamp.a"},
+                                                        {"  program_number: -3\n", "post.program_number"}}) {
+    SCOPED_TRACE(line);
+    try {
+      machine_with_post("trunnion-ac", line);
+      FAIL() << "accepted";
+    } catch (const InputError& e) {
+      EXPECT_NE(std::string(e.what()).find(key), std::string::npos) << e.what();
+      EXPECT_NE(std::string(e.what()).find("trunnion-ac-variant.yaml:"), std::string::npos) << e.what();
+    }
+  }
+}
+
+// --- Golden files: the groove and NX examples in every dialect ------------------------------------------
+// A change to any of these files is a change of what the machines run: review the diff, then regenerate with
+// CSCAM_UPDATE_GOLDEN=1 ctest -R PostGolden.
+
+TEST(PostGolden, GrooveAndNxExamplesInEveryDialect) {
+  const bool update = std::getenv("CSCAM_UPDATE_GOLDEN") != nullptr;
+  struct Example {
+    std::string cl, machine, stem;
+  };
+  for (const Example& ex : {Example{"examples/groove/groove.cls", "trunnion-ac", "groove"},
+                            Example{"examples/nx-haas-umc750/variable_axis.cls", "haas-umc750", "nx"}}) {
+    const cl::Program prog = cl::read_file(test::source_path(ex.cl));
+    for (const Case& c : all_cases()) {
+      const std::string tag = ex.stem + "-" + case_tag(c);
+      SCOPED_TRACE(tag);
+      const auto m = machine_with_post(ex.machine, "  tcp_form: " + c.tcp_form + "\n");
+      const auto k = m.kinematics();
+      const auto axes = post::conventional_axes(prog, m, *k);
+      std::ostringstream os;
+      post::Options o;
+      o.tcp = c.tcp;
+      o.dialect = c.dialect;
+      o.source_name = fs::path(ex.cl).filename().string();
+      post::Summary sum;
+      post::write_nc(os, prog, m, *k, axes, o, sum);
+      const std::string text = os.str();
+      const auto gs = gate::check(text, tag, prog, m, *k, gate::options_for(m, 0, 0, 0));
+      EXPECT_TRUE(gs.ok) << gs.message;
+      const std::string path = test::source_path("tests/data/golden/" + tag + ".nc");
+      if (update) {
+        fs::create_directories(fs::path(path).parent_path());
+        std::ofstream(path, std::ios::binary) << text;
+        continue;
+      }
+      std::ifstream in(path, std::ios::binary);
+      ASSERT_TRUE(in) << "missing golden file " << path << " (CSCAM_UPDATE_GOLDEN=1 writes it)";
+      std::stringstream want;
+      want << in.rdbuf();
+      if (want.str() != text) {
+        // the first differing line, for the review
+        std::istringstream a(want.str()), b(text);
+        std::string la, lb;
+        int n = 0;
+        while (true) {
+          const bool ga = static_cast<bool>(std::getline(a, la)), gb = static_cast<bool>(std::getline(b, lb));
+          ++n;
+          if (!ga && !gb) break;
+          if (!ga || !gb || la != lb) {
+            ADD_FAILURE() << path << ":" << n << ": golden '" << la << "' now '" << lb << "'";
+            break;
+          }
+        }
+      }
+    }
+  }
+}
+
+TEST(PostCli, TcpFlagsAndVerifyAndStatsReadEveryDialect) {
+  const fs::path dir = fs::temp_directory_path() / ("cscam_post_cli_" + std::to_string(::getpid()));
+  fs::create_directories(dir);
+  const std::string cl = test::source_path("examples/nx-haas-umc750/variable_axis.cls");
+  for (const char* dialect : {"haas", "siemens", "heidenhain", "fanuc", "linuxcnc"}) {
+    for (const char* tcp : {"--tcp", "--no-tcp"}) {
+      SCOPED_TRACE(std::string(dialect) + " " + tcp);
+      const std::string out = (dir / (std::string(dialect) + tcp + ".nc")).string();
+      auto r = test::run_command(
+          fmt::format("{} post {} --machine haas-umc750 --dialect {} {} -o {}", CSCAM_CLI, cl, dialect, tcp, out));
+      ASSERT_EQ(r.status, 0) << r.output;
+      r = test::run_command(fmt::format("{} verify {} --machine haas-umc750 --cl {}", CSCAM_CLI, out, cl));
+      EXPECT_EQ(r.status, 0) << r.output;
+      EXPECT_EQ(r.output.rfind("OK:", 0), 0u) << r.output;
+      r = test::run_command(fmt::format("{} stats {} --machine haas-umc750", CSCAM_CLI, out));
+      EXPECT_EQ(r.status, 0) << r.output;
+      EXPECT_NE(r.output.find("cycle time (min)"), std::string::npos) << r.output;
+    }
+  }
+  const auto r = test::run_command(
+      fmt::format("{} post {} --machine haas-umc750 --tcp --no-tcp -o {}", CSCAM_CLI, cl, (dir / "x.nc").string()));
+  EXPECT_NE(r.status, 0);
+  EXPECT_FALSE(fs::exists(dir / "x.nc"));
+  fs::remove_all(dir);
+}
+
+TEST(PostProgram, HeadRotaryToolLengthComesFromTheClNeverSilentlyTheDefault) {
+  const auto hh = load_machine("head-head-ac");
+  const auto tt = load_machine("trunnion-ac");
+  const cl::Program with = cl::read_text("UNITS/MM\nTLDATA/MILL,6,3,75,0,0\nLOADTL/3\nGOTO/0,0,0\n", "with.cls");
+  const cl::Program without = cl::read_text("UNITS/MM\nLOADTL/3\nGOTO/0,0,0\n", "without.cls");
+  std::string note;
+  EXPECT_DOUBLE_EQ(post::tool_length_for(hh, 0.0, with, note), 75.0);
+  EXPECT_NE(note.find("from the CL"), std::string::npos) << note;
+  EXPECT_DOUBLE_EQ(post::tool_length_for(hh, 0.0, without, note), hh.default_tool_length_mm);
+  EXPECT_NE(note.find("default_tool_length_mm"), std::string::npos) << note;
+  EXPECT_DOUBLE_EQ(post::tool_length_for(hh, 42.0, with, note), 42.0);
+  EXPECT_TRUE(note.empty());
+  EXPECT_DOUBLE_EQ(post::tool_length_for(tt, 0.0, with, note), tt.default_tool_length_mm);  // table rotaries only
+  EXPECT_TRUE(note.empty());
+}
+
+TEST(PostProgram, DwellInsertAdjustRegisterAndCutcomPolicy) {
+  const auto m = load_machine("trunnion-ac");
+  const auto k = m.kinematics();
+  const cl::Program prog = cl::read_text(
+      "UNITS/MM\nMULTAX\nCUTTER/6\nLOAD/TOOL,7,ADJUST,27\nCUTCOM/LEFT\nFEDRAT/MMPM,1000\nRAPID\nGOTO/0,0,20,0,0,1\n"
+      "DELAY/2.5\nINSERT/M100 P1\nGOTO/20,0,20,0,0,1\n",
+      "records.cls");
+  bool cutcom_warned = false;
+  for (const auto& w : prog.warnings) cutcom_warned |= w.message.find("CUTCOM") != std::string::npos;
+  EXPECT_TRUE(cutcom_warned);
+  const Posted p = post_program(prog, m, *k);
+  EXPECT_NE(p.text.find("T7 M6\nG43 H27\n"), std::string::npos) << p.text;
+  EXPECT_NE(p.text.find("\nG4 P2.500\n"), std::string::npos) << p.text;
+  EXPECT_NE(p.text.find("\nM100 P1\n"), std::string::npos) << p.text;
+  const auto s = post_program(prog, m, *k, true, std::nullopt, "siemens").text;
+  EXPECT_NE(s.find("\nG4 F2.500\n"), std::string::npos) << s;
+  const auto h = post_program(prog, m, *k, true, std::nullopt, "heidenhain").text;
+  EXPECT_NE(h.find(" CYCL DEF 9.1 DWELL 2.500\n"), std::string::npos) << h;
+  try {
+    cl::read_text("UNITS/MM\nLOAD/TOOL,7,ADJUST,-2\nGOTO/0,0,0\n", "bad.cls");
+    FAIL();
+  } catch (const InputError& e) {
+    EXPECT_NE(std::string(e.what()).find("bad.cls:2:"), std::string::npos) << e.what();
   }
 }

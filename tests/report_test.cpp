@@ -245,3 +245,21 @@ TEST(Trace, ReaderRejectsLostSamplesAndBadLines) {
   EXPECT_NE(message_of("0 1 2 3\n").find("s.txt:1"), std::string::npos);
   EXPECT_NE(message_of("").find("no samples"), std::string::npos);
 }
+
+TEST(Stats, CycleTimeByHand) {
+  // G0 from (0,0,0) to X100: X at 10000 mm/min -> 0.01 min; G1 X200 F1000 -> 0.1 min; G93 G1 B90 F20 -> 0.05 min;
+  // G94 G1 B0 (rotary only) F900 deg/min -> 0.1 min. Rapid to Z50 at 5000 -> 0.01 min.
+  nc::AxisLetters l;
+  l.letter = {'X', 'Y', 'Z', 'B', 'C'};
+  l.rotary = {false, false, false, true, true};
+  const nc::Program p =
+      nc::read_text("G0 X0 Y0 Z0 B0 C0\nG0 X100\nG1 X200 F1000\nG93 G1 B90 F20\nG94 G1 B0 F900\nG0 Z50\n", "t.ngc", l);
+  const std::array<double, 5> vmax{10000, 10000, 5000, 3600, 3600};
+  const auto st = report::compute(p, {"X", "Y", "Z", "B", "C"}, l.rotary, &vmax);
+  EXPECT_TRUE(st.rapid_time_known);
+  EXPECT_NEAR(st.feed_minutes, 0.1 + 0.05 + 0.1, 1e-12);
+  EXPECT_NEAR(st.rapid_minutes, 0.01 + 0.01, 1e-12);
+  const auto no_rates = report::compute(p, {"X", "Y", "Z", "B", "C"}, l.rotary);
+  EXPECT_FALSE(no_rates.rapid_time_known);
+  EXPECT_NE(report::table({st}, {"t"}).find("cycle time (min)"), std::string::npos);
+}

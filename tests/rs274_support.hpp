@@ -24,8 +24,10 @@ namespace cscam::test {
 inline constexpr double kRs274HalfUnit = 0.5e-4 + 1e-9;
 
 /// Runs rs274 -g on the text and returns every STRAIGHT_FEED/TRAVERSE as (x y z a b c), and its output.
-inline std::vector<std::array<double, 6>> rs274_moves(const std::string& text, const std::string& tag,
-                                                      std::string& log) {
+/// `ini_dir`, when given, is a folder of the repository (under tests/data) with an `rs274-*.ini` and what it
+/// names: it is copied beside the program and passed with -i (e.g. the remaps of LinuxCNC's M428/M429).
+inline std::vector<std::array<double, 6>> rs274_moves(const std::string& text, const std::string& tag, std::string& log,
+                                                      const std::string& ini_dir = "") {
   namespace fs = std::filesystem;
   // Each run in its own directory, and one rs274 at a time machine-wide: the standalone interpreter keeps
   // state beside it and crashed (bus error) when two test processes ran it at once under ctest -j.
@@ -36,7 +38,14 @@ inline std::vector<std::array<double, 6>> rs274_moves(const std::string& text, c
   const std::string path = (dir / (tag + ".ngc")).string();
   std::ofstream(path) << text;
   const std::string lock = (fs::temp_directory_path() / "cscam_rs274.lock").string();
-  const auto r = run_command("cd '" + dir.string() + "' && flock '" + lock + "' rs274 -g '" + path + "'");
+  std::string ini_arg;
+  if (!ini_dir.empty()) {
+    fs::copy(source_path(ini_dir), dir, fs::copy_options::recursive);
+    for (const auto& e : fs::directory_iterator(dir))
+      if (e.path().extension() == ".ini") ini_arg = "-i '" + e.path().filename().string() + "' ";
+  }
+  const auto r =
+      run_command("cd '" + dir.string() + "' && flock '" + lock + "' rs274 " + ini_arg + "-g '" + path + "'");
   log = r.output;
   std::vector<std::array<double, 6>> moves;
   std::istringstream in(r.output);
@@ -59,13 +68,14 @@ inline std::vector<std::array<double, 6>> rs274_moves(const std::string& text, c
 
 /// rs274 accepts the program and every move equals ours (read back by our NC reader), axis by axis: rs274
 /// prints x y z a b c, and our five axes go to the slots of their letters.
-inline void expect_rs274_agrees(const std::string& text, const machine::Machine& m, const std::string& tag) {
+inline void expect_rs274_agrees(const std::string& text, const machine::Machine& m, const std::string& tag,
+                                const std::string& ini_dir = "", const nc::AxisLetters* letters = nullptr) {
   std::string log;
-  const auto moves = rs274_moves(text, tag, log);
+  const auto moves = rs274_moves(text, tag, log, ini_dir);
   EXPECT_EQ(log.find("error"), std::string::npos) << log.substr(0, 2000);
   EXPECT_EQ(log.find("Error"), std::string::npos) << log.substr(0, 2000);
   EXPECT_EQ(log.find("Unknown"), std::string::npos) << log.substr(0, 2000);
-  const nc::Program ours = nc::read_text(text, tag, report::axis_letters(m));
+  const nc::Program ours = nc::read_text(text, tag, letters ? *letters : report::axis_letters(m));
   ASSERT_EQ(moves.size(), ours.blocks.size()) << "rs274 and our reader see different numbers of moves";
   ASSERT_GT(moves.size(), 1u);
   const std::string slots = "XYZABC";

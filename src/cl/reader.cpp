@@ -731,6 +731,15 @@ void AptReader::load_tool(const Statement& st, const Head& h) {
   stage_tool(st.line);
   staged_.has_number = true;
   staged_.tool.number = static_cast<int>(num);
+  // LOAD/TOOL,n,ADJUST,h: the length offset register h.
+  for (size_t k = i + 1; k + 1 < fields_.size(); ++k)
+    if (fields_[k].is_word("ADJUST")) {
+      const double reg = number(st, fields_[k + 1], "a length offset register");
+      if (reg < 0 || reg != std::floor(reg) || reg > 1e6)
+        fail(st, fields_[k + 1].offset,
+             fmt::format("bad ADJUST register (expected an integer >= 0, got '{}')", fields_[k + 1].text));
+      staged_.tool.length_register = static_cast<int>(reg);
+    }
 }
 
 bool AptReader::statement(const Statement& st) {
@@ -815,6 +824,21 @@ bool AptReader::statement(const Statement& st) {
     push_event(Event::Kind::Comment, st.line, std::string(trim(h.args)));
   } else if (h.is("STOP") || h.is("OPSTOP")) {
     push_event(Event::Kind::Stop, st.line, std::string(h.upper));
+  } else if (h.is("DELAY")) {
+    split_fields(h.args, h.args_offset, fields_);
+    if (fields_.size() != 1)
+      fail(st, h.args_offset, "DELAY/ expects one value, the dwell in seconds (DELAY/REV is not supported)");
+    const double secs = number(st, fields_[0], "a dwell time in seconds");
+    if (!(secs >= 0)) fail(st, fields_[0].offset, "negative DELAY/");
+    push_event(Event::Kind::Dwell, st.line);
+    prog_.events.back().seconds = secs;
+  } else if (h.is("INSERT")) {
+    push_event(Event::Kind::Insert, st.line, std::string(trim(h.args)));
+  } else if (h.is("CUTCOM")) {
+    // The CL is the tool path itself: the post writes it uncompensated (G40) and says so.
+    warn(st, h.keyword_offset,
+         "CUTCOM ignored: the CL points are the tool tip path, written without control-side "
+         "cutter compensation (G40)");
   } else if (h.is("FINI")) {
     return false;
   } else {

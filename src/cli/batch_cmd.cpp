@@ -217,7 +217,9 @@ void run_job(const PostJob& job, JobResult& r) {
     if (job.default_feed_mm_per_min > 0) ro.default_feed_mm_per_min = job.default_feed_mm_per_min;
     const cl::Program prog = cl::read_file(job.cl, ro);
     for (const auto& w : prog.warnings) r.warnings.push_back(w.where.str() + ": " + w.message);
-    const double L = post::tool_length_for(m, job.tool_length_mm);
+    std::string tool_note;  // head-side rotaries: where the tool length came from
+    const double L = post::tool_length_for(m, job.tool_length_mm, prog, tool_note);
+    if (!tool_note.empty()) r.warnings.push_back(tool_note);
     const auto kin = m.make_kinematics(L);
     const auto axes = post::conventional_axes(prog, m, *kin);
     post::Options po;
@@ -225,6 +227,7 @@ void run_job(const PostJob& job, JobResult& r) {
     po.tolerance_mm = job.tolerance_mm;
     po.axis_tolerance_deg = job.axis_tolerance_deg;
     po.linearise = job.linearise;
+    po.tcp = job.tcp;
     po.source_name = fs::path(job.cl).filename().string();
     po.tool_length_mm = L;
     post::Summary sum;
@@ -241,7 +244,7 @@ void run_job(const PostJob& job, JobResult& r) {
                                &sum.cl_line_of_nc_line);
     };
     auto stats = [&] { add_stats(nc_text, job.out, m, r); };
-    if (m.kind == machine::ModelKind::Xmini) {  // warm-started FK: the gate stays on this thread (see gate.cpp)
+    if (kin->traits().forward_depends_on_call_order) {  // warm-started FK: the gate stays on this thread (see gate.cpp)
       gate_and_write();
       stats();
     } else {
@@ -444,6 +447,8 @@ class JobsReader {
       j.default_feed_mm_per_min = number(v, k, true);
     } else if (k == "linearise") {
       j.linearise = boolean(v, k);
+    } else if (k == "tcp") {
+      j.tcp = boolean(v, k);
     } else if (k == "part") {
       j.parts = paths(v, k);
     } else if (k == "fixture") {
@@ -463,7 +468,7 @@ class JobsReader {
 
 constexpr const char* kJobKeys =
     "cl, output, machine, dialect, units, strategy, tolerance, axis_tolerance, tool_length, cone, default_feed, "
-    "linearise, part, fixture";
+    "linearise, tcp, part, fixture";
 
 }  // namespace
 

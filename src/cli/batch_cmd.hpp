@@ -6,6 +6,7 @@
 #include <CLI/CLI.hpp>
 #include <functional>
 #include <nlohmann/json.hpp>
+#include <optional>
 #include <string>
 #include <vector>
 
@@ -27,6 +28,7 @@ struct PostJob {
   double cone_deg = 0;                       ///< planner only
   std::vector<std::string> parts, fixtures;  ///< planner only: meshes for collision checking
   bool linearise = true;
+  std::optional<bool> tcp;  ///< tool-tip control on/off; unset: the machine's post.tcp
   SourceLoc entry;  ///< where the job was given (jobs file line); empty for the command line
 };
 

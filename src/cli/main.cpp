@@ -80,7 +80,7 @@ struct PostArgs {
   std::string machine, out, dialect, units;
   double tolerance = 0, axis_tolerance = 0, tool_length = 0;
   double default_feed = 0;  ///< mm/min for feed moves without a feed rate; 0: such a CL file is an error
-  bool json = false, no_linearise = false;
+  bool json = false, no_linearise = false, tcp = false, no_tcp = false;
 };
 
 cli::PostJob job_of(const PostArgs& a, const std::string& cl, const std::string& out) {
@@ -95,6 +95,7 @@ cli::PostJob job_of(const PostArgs& a, const std::string& cl, const std::string&
   j.tool_length_mm = a.tool_length;
   j.default_feed_mm_per_min = a.default_feed;
   j.linearise = !a.no_linearise;
+  if (a.tcp || a.no_tcp) j.tcp = a.tcp;
   return j;
 }
 
@@ -168,13 +169,10 @@ int cmd_verify(const VerifyArgs& a) {
   cl::ReadOptions ro;
   ro.units = parse_units(a.units);
   const cl::Program prog = cl::read_file(a.cl, ro);
-  const nc::Program ncp = nc::read_file(a.nc, report::axis_letters(m));
+  // Tool-tip-control programs are read with the tip words X Y Z and compared through the control's view.
+  nc::Program ncp = report::read_file_for_machine(a.nc, m);
   // Another machine's program would be verified against the wrong kinematics: an error, not a verdict.
   if (auto mismatch = report::check_machine_of(ncp, m)) throw *mismatch;
-  if (ncp.tcp)
-    throw InputError(SourceLoc{a.nc},
-                     "this program uses TCP (G43.4/G234): its axis values are not machine coordinates, "
-                     "verify needs a machine-coordinate program");
   const double L = a.tool_length >= 0 ? a.tool_length : ncp.tool_length_mm.value_or(m.default_tool_length_mm);
   const auto kin = m.make_kinematics(L);
   // The post's tolerances plus the slack for printed decimals (one place: report::verify_options_for); an explicit
@@ -184,7 +182,9 @@ int cmd_verify(const VerifyArgs& a) {
   if (a.tolerance > 0) vo.tip_tolerance_mm = a.tolerance;
   if (a.axis_tolerance > 0) vo.axis_tolerance_deg = a.axis_tolerance + a.cone;
   vo.samples_per_block = a.samples;
-  const auto r = report::verify(ncp, prog, *kin, vo);
+  if (const std::string why = report::resolve_tool_vectors(ncp, *kin); !why.empty()) throw InputError(why);
+  const auto tip_view = report::tool_tip_kinematics(*kin, ncp.tcp_vectors);
+  const auto r = report::verify(ncp, prog, ncp.tcp ? *tip_view : *kin, vo);
   if (a.json)
     std::cout << r.json().dump(2) << "\n";
   else
@@ -198,14 +198,16 @@ int cmd_stats(const std::vector<std::string>& files, const std::string& machine_
   std::vector<std::string> headers;
   std::vector<std::vector<std::string>> warnings;
   for (const auto& f : files) {
-    const nc::Program p = nc::read_file(f, report::axis_letters(m));
+    const nc::Program p = report::read_file_for_machine(f, m);
     // Statistics count axis words: a letter the machine lacks is an error, another machine's header a warning.
     warnings.emplace_back();
     if (const auto mismatch = report::check_machine_of(p, m)) {
       std::cerr << "warning: " << mismatch->what() << "\n";
       warnings.back().push_back(mismatch->what());
     }
-    cols.push_back(report::compute(p, names_of(m, true), rotary_of(m)));
+    std::array<double, 5> vmax{};  // mm/min, deg/min: the rapids of the cycle-time estimate
+    for (size_t i = 0; i < 5; ++i) vmax[i] = m.axes[i].rotary() ? rad2deg(m.axes[i].max_feed) : m.axes[i].max_feed;
+    cols.push_back(report::compute(p, names_of(m, true), rotary_of(m), &vmax));
     headers.push_back(fs::path(f).filename().string());
   }
   if (json) {
@@ -309,7 +311,8 @@ int main(int argc, char** argv) {
                        "NC file to write, or a directory (ending in /) for several CL files "
                        "(default: CL name with .ngc, in the working directory)");
   post_cmd->add_option("--dialect", pa.dialect,
-                       "override the machine's dialect (linuxcnc, fanuc, xmini-joint, xmini-cartesian)");
+                       "override the machine's dialect (linuxcnc, fanuc, haas, siemens, heidenhain, xmini-joint, "
+                       "xmini-cartesian)");
   post_cmd->add_option("--units", pa.units, "force the CL units (mm or inch)");
   post_cmd->add_option("--tolerance", pa.tolerance, "linearisation tolerance of the tip, mm (0: the machine file's)");
   post_cmd->add_option("--axis-tolerance", pa.axis_tolerance,
@@ -320,6 +323,8 @@ int main(int argc, char** argv) {
                    "feed, mm/min, for cutting moves the CL gives no feed rate for (default: such a CL is an error)")
       ->check(CLI::PositiveNumber);
   post_cmd->add_flag("--no-linearise", pa.no_linearise, "do not insert points between CL points");
+  auto* tcp_flag = post_cmd->add_flag("--tcp", pa.tcp, "tool-tip control on (default: the machine's post.tcp)");
+  post_cmd->add_flag("--no-tcp", pa.no_tcp, "tool-tip control off: machine coordinates")->excludes(tcp_flag);
   post_cmd->add_flag("--json", pa.json, "print a JSON summary");
 
   VerifyArgs va;

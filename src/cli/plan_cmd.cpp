@@ -134,7 +134,7 @@ std::unique_ptr<Setup> setup(const PlanArgs& a, std::vector<std::string>* warnin
   o.tilt_step_rad = deg2rad(a.tilt_step_deg);
   o.cspace.collision.clearance_mm = a.clearance_mm;
   // On a parallel machine the actuated legs' reversals count too (every Cartesian move moves every leg).
-  if (s->m.kind == machine::ModelKind::Xmini)
+  if (s->kin->traits().parallel)
     for (int i = 0; i < 5; ++i)
       if (!s->m.axes[static_cast<size_t>(i)].rotary()) o.monotone_axes.push_back(i);
   if (t) {

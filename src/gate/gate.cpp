@@ -21,48 +21,6 @@ namespace {
 
 using Vec3 = Eigen::Vector3d;
 
-/// A tool-tip-control program holds the tip (part frame) in its linear words and the tool vector in its
-/// rotary words; the control moves both linearly between blocks. This adapter gives verify that view.
-class TipWordsKinematics final : public kin::Kinematics {
- public:
-  TipWordsKinematics(const kin::Kinematics& machine_kin, bool xmini_virtual_wrist)
-      : k_(machine_kin), xmini_(xmini_virtual_wrist) {
-    for (int i = 0; i < 5; ++i)
-      if (!k_.axes()[static_cast<size_t>(i)].rotary()) lin_[static_cast<size_t>(nlin_++)] = i;
-  }
-  [[nodiscard]] const std::vector<kin::AxisInfo>& axes() const override { return k_.axes(); }
-  [[nodiscard]] std::array<int, 2> rotary_pair() const override { return k_.rotary_pair(); }
-  [[nodiscard]] kin::Posed forward(const kin::Axes& q) const override {
-    kin::Posed p;
-    p.tip_mm = Vec3(q[lin_[0]], q[lin_[1]], q[lin_[2]]);
-    const auto rp = k_.rotary_pair();
-    if (xmini_) {
-      // Virtual wrist angles of an untilted platform (the post's Cartesian words): u(C, A).
-      const double c = q[rp[0]], a = q[rp[1]];
-      p.axis = Vec3(-std::sin(a) * std::sin(c), -std::sin(a) * std::cos(c), std::cos(a));
-    } else if (!k_.tool_axis_at(q[rp[0]], q[rp[1]], p.tip_mm, p.axis)) {
-      p.axis = Vec3::Constant(std::numeric_limits<double>::quiet_NaN());
-    }
-    return p;
-  }
-  void inverse_all(const kin::Posed&, const kin::Axes*, std::vector<kin::Solution>&) const override {
-    throw std::logic_error("TipWordsKinematics has no inverse");
-  }
-  void inverse_branches(const kin::Posed&, const kin::Axes*, std::vector<kin::Solution>&) const override {
-    throw std::logic_error("TipWordsKinematics has no inverse");
-  }
-  bool solve_for_rotaries(const kin::Posed&, kin::Axes&) const override { return false; }
-  bool tool_axis_at(double, double, const Vec3&, Vec3&) const override { return false; }
-
- private:
-  const kin::Kinematics& k_;
-  bool xmini_;
-  std::array<int, 3> lin_{};
-  int nlin_ = 0;
-};
-
-bool contains(const std::string& text, std::string_view what) { return text.find(what) != std::string::npos; }
-
 std::string axis_value(const kin::AxisInfo& a, double v) {
   return a.rotary() ? fmt::format("{:.4f} deg", rad2deg(v)) : fmt::format("{:.4f} mm", v);
 }
@@ -90,28 +48,30 @@ Summary check(const std::string& nc_text, const std::string& nc_name, const cl::
     s.violations.push_back({kind, nc_line, cl_line ? cl_line : cl_line_of(nc_line), std::move(msg)});
   };
 
-  // Tool-tip control: the program says so (G43.4 / G234 / TCPM words, or our Cartesian header).
-  const bool tip_words = contains(nc_text, "(cartesian:") || contains(nc_text, "G43.4") || contains(nc_text, "G234") ||
-                         contains(nc_text, "TCPM") || contains(nc_text, "TRAORI");
-  nc::AxisLetters letters = report::axis_letters(machine);
-  if (tip_words) {
-    int k = 0;
-    for (size_t i = 0; i < 5; ++i)
-      if (!letters.rotary[i]) letters.letter[i] = "XYZ"[k++];
-  }
+  // Tool-tip control: the program says so (G43.4 / G234 / TCPM words, or our Cartesian header); its linear
+  // words are then the tip X Y Z. Vector forms (G43.5 I J K, A3 B3 C3) get their rotaries by IK.
   nc::Program ncp;
   try {
-    ncp = nc::read_text(nc_text, nc_name, letters);
+    ncp = report::read_for_machine(nc_text, nc_name, machine);
   } catch (const InputError& e) {
     add(Violation::Kind::Unreadable, e.where().line, 0,
         fmt::format("the program cannot be read back: {}", e.message()));
     s.message = s.violations.front().message;
     return s;
   }
-  s.tool_tip_control = tip_words || ncp.tcp;
+  s.tool_tip_control = report::uses_tool_tip_control(nc_text) || ncp.tcp;
+  {
+    int bad_line = 0;
+    if (const std::string why = report::resolve_tool_vectors(ncp, kinematics, &bad_line); !why.empty()) {
+      add(Violation::Kind::Limit, bad_line, 0, why);
+      s.message = s.violations.front().message;
+      return s;
+    }
+  }
   s.blocks = ncp.blocks.size();
   const auto& ax = kinematics.axes();
-  const TipWordsKinematics tip_kin(kinematics, machine.kind == machine::ModelKind::Xmini);
+  const auto tip_kin_ptr = report::tool_tip_kinematics(kinematics, ncp.tcp_vectors);
+  const kin::Kinematics& tip_kin = *tip_kin_ptr;
 
   // Tip and tool axis against the CL path, sampled inside every feed block: it reads only the program and the
   // CL path, so it runs beside the limit and velocity checks below (its violations are added after theirs).
@@ -122,7 +82,7 @@ Summary check(const std::string& nc_text, const std::string& nc_name, const cl::
   vo.ball_centre = options.ball_centre;
   // The XMINI's FK is warm-started from the calling thread's previous solve: there the comparison runs on this
   // thread after the checks below, so that its last digits do not depend on the thread count.
-  const bool verify_here = machine.kind == machine::ModelKind::Xmini;
+  const bool verify_here = kinematics.traits().forward_depends_on_call_order;
   auto compare = [&] {
     s.deviation =
         report::verify(ncp, cl, s.tool_tip_control ? static_cast<const kin::Kinematics&>(tip_kin) : kinematics, vo);

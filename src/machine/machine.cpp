@@ -4,6 +4,8 @@
 #include <yaml-cpp/yaml.h>
 
 #include <algorithm>
+#include <cctype>
+#include <cmath>
 #include <filesystem>
 #include <fstream>
 #include <mutex>
@@ -109,8 +111,27 @@ std::map<std::string, ModelLoader>& registry() {
 
 void load_post(const Reader& r, const YAML::Node& n, Machine& m) {
   r.only_keys(n, "post",
-              {"dialect", "tcp", "letters", "decimals_linear", "decimals_rotary", "tolerance_mm", "axis_tolerance_deg",
-               "safe_z_mm", "start_branch", "branch_rule", "program_name", "singularity"});
+              {"dialect",
+               "tcp",
+               "letters",
+               "decimals_linear",
+               "decimals_rotary",
+               "tolerance_mm",
+               "axis_tolerance_deg",
+               "safe_z_mm",
+               "start_branch",
+               "branch_rule",
+               "program_name",
+               "singularity",
+               "tcp_form",
+               "work_offset",
+               "program_number",
+               "sequence_numbers",
+               "sequence_step",
+               "inch",
+               "clamp",
+               "rotary_output",
+               "home_rotaries"});
   PostSettings& p = m.post;
   if (n["dialect"]) p.dialect = r.string(n["dialect"], "post.dialect");
   if (n["tcp"]) p.tcp = r.boolean(n["tcp"], "post.tcp");
@@ -131,6 +152,63 @@ void load_post(const Reader& r, const YAML::Node& n, Machine& m) {
            fmt::format("must be positive (got {})", p.axis_tolerance_deg));
   if (n["safe_z_mm"]) p.safe_z_mm = r.number(n["safe_z_mm"], "post.safe_z_mm");
   if (n["program_name"]) p.program_name = r.string(n["program_name"], "post.program_name");
+  if (n["tcp_form"]) {
+    p.tcp_form = r.string(n["tcp_form"], "post.tcp_form");
+    if (p.tcp_form != "angles" && p.tcp_form != "vectors")
+      r.fail(n["tcp_form"], "post.tcp_form", fmt::format("expected angles or vectors, got '{}'", p.tcp_form));
+  }
+  if (n["work_offset"]) {
+    std::string w = r.string(n["work_offset"], "post.work_offset");
+    for (char& c : w) c = static_cast<char>(std::toupper(static_cast<unsigned char>(c)));
+    const bool g5x = w.size() == 3 && w.rfind("G5", 0) == 0 && w[2] >= '4' && w[2] <= '9';
+    const bool g541 = w.rfind("G54.1 P", 0) == 0 && w.size() > 7 && std::all_of(w.begin() + 7, w.end(), [](char c) {
+                        return std::isdigit(static_cast<unsigned char>(c));
+                      });
+    if (w == "NONE")
+      w.clear();
+    else if (!g5x && !g541)
+      r.fail(n["work_offset"], "post.work_offset", fmt::format("expected G54..G59, G54.1 P<n> or none, got '{}'", w));
+    p.work_offset = w;
+  }
+  if (n["program_number"]) {
+    const double v = r.number(n["program_number"], "post.program_number");
+    if (!(v >= 0 && v <= 99999 && v == std::floor(v)))
+      r.fail(n["program_number"], "post.program_number", "must be an integer 0..99999");
+    p.program_number = static_cast<int>(v);
+  }
+  if (n["sequence_numbers"]) p.sequence_numbers = r.boolean(n["sequence_numbers"], "post.sequence_numbers");
+  if (n["sequence_step"]) {
+    const double v = r.number(n["sequence_step"], "post.sequence_step");
+    if (!(v >= 1 && v <= 1000 && v == std::floor(v)))
+      r.fail(n["sequence_step"], "post.sequence_step", "must be an integer 1..1000");
+    p.sequence_step = static_cast<int>(v);
+  }
+  if (n["inch"]) p.inch = r.boolean(n["inch"], "post.inch");
+  if (n["home_rotaries"]) p.home_rotaries = r.boolean(n["home_rotaries"], "post.home_rotaries");
+  if (n["rotary_output"]) {
+    p.rotary_output = r.string(n["rotary_output"], "post.rotary_output");
+    if (p.rotary_output != "absolute" && p.rotary_output != "shortest")
+      r.fail(n["rotary_output"], "post.rotary_output",
+             fmt::format("expected absolute or shortest, got '{}'", p.rotary_output));
+  }
+  if (const YAML::Node cl = n["clamp"]) {
+    if (!cl.IsMap()) r.fail(cl, "post.clamp", "expected a mapping axis: [clamp M-code, unclamp M-code]");
+    for (const auto& kv : cl) {
+      const auto ax = kv.first.as<std::string>();
+      const int i = m.axis_index(ax);
+      if (i < 0 || !m.axes[static_cast<size_t>(i)].rotary())
+        r.fail(kv.first, "post.clamp." + ax, "not a rotary axis of this machine");
+      if (!kv.second.IsSequence() || kv.second.size() != 2)
+        r.fail(kv.second, "post.clamp." + ax, "expected [clamp M-code, unclamp M-code], e.g. [M10, M11]");
+      std::array<std::string, 2> codes{r.string(kv.second[0], "post.clamp." + ax),
+                                       r.string(kv.second[1], "post.clamp." + ax)};
+      for (const auto& c : codes)
+        if (c.size() < 2 || (c[0] != 'M' && c[0] != 'm') ||
+            !std::all_of(c.begin() + 1, c.end(), [](char d) { return std::isdigit(static_cast<unsigned char>(d)); }))
+          r.fail(kv.second, "post.clamp." + ax, fmt::format("'{}' is not an M-code", c));
+      p.clamp[ax] = codes;
+    }
+  }
   if (const YAML::Node sg = n["singularity"]) {
     if (!sg.IsMap()) r.fail(sg, "post.singularity", "expected a mapping with flip and retract_mm");
     r.only_keys(sg, "post.singularity", {"flip", "retract_mm"});

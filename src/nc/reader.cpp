@@ -7,6 +7,7 @@
 #include <charconv>
 #include <cmath>
 #include <fstream>
+#include <optional>
 #include <sstream>
 
 #include "cscam/core/error.hpp"
@@ -24,9 +25,188 @@ std::string_view trim(std::string_view s) {
   return s;
 }
 
+/// A number at s[k] ("-1.5", "+.5", "3."); advances k past it.
+std::optional<double> parse_number(std::string_view s, size_t& k) {
+  while (k < s.size() && s[k] == ' ') ++k;
+  const size_t j = k;
+  if (k < s.size() && (s[k] == '-' || s[k] == '+')) ++k;
+  while (k < s.size() && (std::isdigit(static_cast<unsigned char>(s[k])) || s[k] == '.')) ++k;
+  std::string fixed(s.substr(j, k - j));
+  if (!fixed.empty() && fixed[0] == '+') fixed.erase(0, 1);
+  if (!fixed.empty() && fixed.back() == '.') fixed.push_back('0');
+  if (fixed.rfind("-.", 0) == 0) fixed.insert(1, "0");
+  if (!fixed.empty() && fixed[0] == '.') fixed.insert(0, "0");
+  double v = 0;
+  const auto r = std::from_chars(fixed.data(), fixed.data() + fixed.size(), v);
+  if (fixed.empty() || r.ec != std::errc() || r.ptr != fixed.data() + fixed.size()) return std::nullopt;
+  return v;
+}
+
+/// Past an identifier's argument: a parenthesised list "(...)" or "=value" (up to the next blank).
+size_t skip_argument(std::string_view s, size_t e) {
+  while (e < s.size() && s[e] == ' ') ++e;
+  if (e < s.size() && s[e] == '(') {
+    int depth = 0;
+    for (; e < s.size(); ++e) {
+      if (s[e] == '(') ++depth;
+      if (s[e] == ')' && --depth == 0) return e + 1;
+    }
+    return s.size();
+  }
+  if (e < s.size() && s[e] == '=') {
+    ++e;
+    int depth = 0;
+    bool quoted = false;
+    for (; e < s.size(); ++e) {
+      if (s[e] == '"') quoted = !quoted;
+      if (quoted) continue;
+      if (s[e] == '(' || s[e] == '[') ++depth;
+      if (s[e] == ')' || s[e] == ']') --depth;
+      if (depth <= 0 && (s[e] == ' ' || s[e] == ';')) break;
+    }
+  }
+  return e;
+}
+
+/// A Heidenhain conversational program starts with "[n] BEGIN PGM name MM|INCH".
+bool is_heidenhain(const std::string& text) {
+  std::string_view all(text);
+  size_t pos = 0;
+  while (pos < all.size()) {
+    size_t nl = all.find('\n', pos);
+    if (nl == std::string_view::npos) nl = all.size();
+    std::string_view l = trim(all.substr(pos, nl - pos));
+    pos = nl + 1;
+    if (l.empty()) continue;
+    while (!l.empty() && std::isdigit(static_cast<unsigned char>(l.front()))) l.remove_prefix(1);
+    return trim(l).rfind("BEGIN PGM", 0) == 0;
+  }
+  return false;
+}
+
+/// Heidenhain conversational: "n L X+1.5 Y-2 Z+0 A+0 C+90 R0 F1500 M3" (FMAX: rapid), M128 / FUNCTION TCPM
+/// switch tool-tip control on; TOOL CALL, CYCL DEF, PLANE and the rest carry no position and are skipped.
+Program read_heidenhain(const std::string& text, const std::string& name, const AxisLetters& letters) {
+  Program prog;
+  prog.file = name;
+  Block state;
+  bool inch = false;
+  double feed = 0.0;
+  std::string_view all(text);
+  size_t pos = 0;
+  int lineno = 0;
+  while (pos <= all.size()) {
+    size_t nl = all.find('\n', pos);
+    if (nl == std::string_view::npos) nl = all.size();
+    const std::string_view raw = all.substr(pos, nl - pos);
+    pos = nl + 1;
+    ++lineno;
+    std::string_view s = trim(raw);
+    const auto fail = [&](std::string_view at, const std::string& what) {
+      throw InputError(SourceLoc{name, lineno, static_cast<int>(at.data() - raw.data()) + 1}, what);
+    };
+    while (!s.empty() && std::isdigit(static_cast<unsigned char>(s.front()))) s.remove_prefix(1);  // block number
+    s = trim(s);
+    if (s.empty()) continue;
+    // Comments ("; ..." and "* - ..."), with our header's tool length and machine in them.
+    if (s.front() == ';' || s.front() == '*') {
+      if (auto p = s.find("cscam tool_length_mm="); p != std::string_view::npos) {
+        const auto v = s.substr(p + 21);
+        double L = 0;
+        if (std::from_chars(v.data(), v.data() + v.size(), L).ec == std::errc()) prog.tool_length_mm = L;
+      }
+      constexpr std::string_view kHeader = "cscam post: machine ";
+      if (const auto p = s.find(kHeader); !prog.header_machine && p != std::string_view::npos) {
+        const auto rest = s.substr(p + kHeader.size());
+        const auto end = rest.find(" dialect ");
+        if (end != std::string_view::npos) {
+          prog.header_machine = std::string(rest.substr(0, end));
+          prog.header_line = lineno;
+        }
+      }
+      continue;
+    }
+    if (s.rfind("BEGIN PGM", 0) == 0) {
+      inch = s.find(" INCH") != std::string_view::npos;
+      continue;
+    }
+    if (s.rfind("END PGM", 0) == 0) break;
+    if (s.rfind("FUNCTION TCPM", 0) == 0) {
+      prog.tcp = true;
+      continue;
+    }
+    const bool is_l = s.size() >= 2 && s[0] == 'L' && s[1] == ' ';
+    // A comment after the block.
+    if (const auto sc = s.find(';'); sc != std::string_view::npos) s = trim(s.substr(0, sc));
+    if (!is_l) {  // M128 on its own line or with other M functions
+      for (size_t p = s.find("M128"); p != std::string_view::npos; p = s.find("M128", p + 1)) prog.tcp = true;
+      continue;
+    }
+    Block b = state;
+    b.words = {};
+    bool rapid = false, any = false;
+    size_t i = 1;
+    while (i < s.size()) {
+      if (s[i] == ' ') {
+        ++i;
+        continue;
+      }
+      const size_t start = i;
+      while (i < s.size() && s[i] != ' ') ++i;
+      const std::string_view tok = s.substr(start, i - start);
+      if (tok == "FMAX" || tok == "FAUTO") {
+        rapid = tok == "FMAX";
+        continue;
+      }
+      if (tok == "R0" || tok == "RL" || tok == "RR" || tok == "R+" || tok == "R-") continue;
+      const char L = tok[0];
+      if (L == 'M') {
+        if (tok == "M128") prog.tcp = true;
+        continue;
+      }
+      size_t k = 1;
+      const auto v = parse_number(tok, k);
+      if (!v || k != tok.size()) fail(tok, fmt::format("malformed word '{}'", std::string(tok)));
+      if (L == 'F') {
+        feed = inch ? *v * kMmPerInch : *v;
+        continue;
+      }
+      for (int a = 0; a < 5; ++a) {
+        if (letters.letter[static_cast<size_t>(a)] != L) continue;
+        double x = *v;
+        if (letters.rotary[static_cast<size_t>(a)]) {
+          x = deg2rad(x);
+          if (letters.modulo[static_cast<size_t>(a)] && b.known[static_cast<size_t>(a)])
+            x = b.axes[static_cast<size_t>(a)] + std::remainder(x - b.axes[static_cast<size_t>(a)], 2.0 * kPi);
+        } else if (inch) {
+          x *= kMmPerInch;
+        }
+        b.axes[static_cast<size_t>(a)] = x;
+        b.known[static_cast<size_t>(a)] = true;
+        b.words[static_cast<size_t>(a)] = true;
+        any = true;
+      }
+      if (std::string_view("XYZABCUVW").find(L) != std::string_view::npos &&
+          std::none_of(letters.letter.begin(), letters.letter.end(), [L](char c) { return c == L; }) &&
+          std::none_of(prog.foreign_axis_words.begin(), prog.foreign_axis_words.end(),
+                       [L](const Program::ForeignWord& f) { return f.letter == L; }))
+        prog.foreign_axis_words.push_back({L, lineno, static_cast<int>(tok.data() - raw.data()) + 1});
+    }
+    if (!any) continue;
+    b.line = lineno;
+    b.motion = rapid ? Motion::Rapid : Motion::Linear;
+    b.inverse_time = false;
+    b.feed = feed;
+    prog.blocks.push_back(b);
+    state = b;
+  }
+  return prog;
+}
+
 }  // namespace
 
 Program read_text(const std::string& text, const std::string& name, const AxisLetters& letters) {
+  if (is_heidenhain(text)) return read_heidenhain(text, name, letters);
   Program prog;
   prog.file = name;
   // Lines before the first lone '%' are a listing header (NX writes one); skip them when a '%' exists.
@@ -50,7 +230,7 @@ Program read_text(const std::string& text, const std::string& name, const AxisLe
 
   Block state;
   Motion motion = Motion::Rapid;
-  bool inch = false, absolute = true, g93 = false;
+  bool inch = false, absolute = true, g93 = false, g435 = false;
   double feed = 0.0;
   for (size_t li = first; li < lines.size(); ++li) {
     const std::string_view raw = lines[li];
@@ -78,7 +258,7 @@ Program read_text(const std::string& text, const std::string& name, const AxisLe
         }
       }
     }
-    bool non_modal_skip = false, tcp_word = false;
+    bool non_modal_skip = false, tcp_word = false, vector_words = false;
     Block b = state;
     b.words = {};
     size_t i = 0;
@@ -86,6 +266,23 @@ Program read_text(const std::string& text, const std::string& name, const AxisLe
       throw InputError(SourceLoc{name, lineno, static_cast<int>(col) + 1}, what);
     };
     std::array<double, 5> word_val{};
+    std::array<bool, 5> word_short{};
+    // An axis word: the machine's letter, or a letter it lacks (noted once).
+    auto axis_word_value = [&](char L, double v, bool short_way, int word_column) {
+      bool axis_word = false;
+      for (int a = 0; a < 5; ++a)
+        if (letters.letter[static_cast<size_t>(a)] == L) {
+          b.words[static_cast<size_t>(a)] = true;
+          word_val[static_cast<size_t>(a)] = v;
+          word_short[static_cast<size_t>(a)] = short_way;
+          axis_word = true;
+        }
+      if (!axis_word && std::string_view("XYZABCUVW").find(L) != std::string_view::npos &&
+          std::none_of(prog.foreign_axis_words.begin(), prog.foreign_axis_words.end(),
+                       [L](const Program::ForeignWord& f) { return f.letter == L; }))
+        prog.foreign_axis_words.push_back({L, lineno, word_column});
+      return axis_word;
+    };
     while (i < s.size()) {
       const char c = s[i];
       if (std::isspace(static_cast<unsigned char>(c)) || c == '%') {
@@ -105,12 +302,67 @@ Program read_text(const std::string& text, const std::string& name, const AxisLe
       if (!std::isalpha(static_cast<unsigned char>(c))) fail(i, fmt::format("unexpected character '{}'", c));
       const char L = static_cast<char>(std::toupper(static_cast<unsigned char>(c)));
       const int word_column = static_cast<int>(i) + 1;
+      if (L == 'O') break;  // program number/name ("O2021-11-28_part"): not a block
+      // Sinumerik identifiers (TRAORI, TRAFOOF, ORIWKS, CYCLE800(...), MCALL ...): skipped, TRAORI noted.
+      if (i + 1 < s.size() && (std::isalpha(static_cast<unsigned char>(s[i + 1])) || s[i + 1] == '_')) {
+        size_t e = i;
+        while (e < s.size() && (std::isalnum(static_cast<unsigned char>(s[e])) || s[e] == '_')) ++e;
+        std::string id(s.substr(i, e - i));
+        for (char& ch : id) ch = static_cast<char>(std::toupper(static_cast<unsigned char>(ch)));
+        if (id == "TRAORI") tcp_word = true;
+        i = skip_argument(s, e);
+        continue;
+      }
+      // Sinumerik "A3=0.5" (tool vector) or "R1=..." (parameter): a letter, digits, '='.
+      {
+        size_t e = i + 1;
+        while (e < s.size() && std::isdigit(static_cast<unsigned char>(s[e]))) ++e;
+        if (e > i + 1 && e < s.size() && s[e] == '=') {
+          const std::string_view ext = s.substr(i + 1, e - i - 1);
+          size_t k = e + 1;
+          if (ext == "3" && (L == 'A' || L == 'B' || L == 'C')) {
+            const auto val = parse_number(s, k);
+            if (!val) fail(k, fmt::format("malformed number after '{}3='", L));
+            b.tool_vector[static_cast<size_t>(L - 'A')] = *val;
+            vector_words = true;
+            i = k;
+          } else {
+            i = skip_argument(s, e);
+          }
+          continue;
+        }
+      }
+      // Sinumerik "X=10", "C=DC(45)", "C=ACP(45)", "T=\"name\"": the value after '=', maybe in a function.
+      bool short_way = false;
       size_t j = i + 1;
       while (j < s.size() && s[j] == ' ') ++j;
+      if (j < s.size() && s[j] == '=') {
+        ++j;
+        if (j < s.size() && s[j] == '"') {  // T="name"
+          const size_t q = s.find('"', j + 1);
+          i = q == std::string_view::npos ? s.size() : q + 1;
+          continue;
+        }
+        if (j < s.size() && std::isalpha(static_cast<unsigned char>(s[j]))) {
+          size_t e = j;
+          while (e < s.size() && std::isalpha(static_cast<unsigned char>(s[e]))) ++e;
+          std::string fn(s.substr(j, e - j));
+          for (char& ch : fn) ch = static_cast<char>(std::toupper(static_cast<unsigned char>(ch)));
+          if (e >= s.size() || s[e] != '(') fail(j, fmt::format("expected a number or a function after '{}='", L));
+          short_way = fn == "DC";
+          if (fn != "DC" && fn != "AC" && fn != "ACP" && fn != "ACN")
+            fail(j, fmt::format("'{}={}()' is not an absolute position this reader knows (DC, AC, ACP, ACN)", L, fn));
+          size_t k = e + 1;
+          const auto val = parse_number(s, k);
+          if (!val || k >= s.size() || s[k] != ')') fail(e + 1, fmt::format("malformed number in '{}={}()'", L, fn));
+          i = k + 1;
+          if (!axis_word_value(L, *val, short_way, word_column)) continue;
+          continue;
+        }
+      }
       size_t k = j;
       if (k < s.size() && (s[k] == '-' || s[k] == '+')) ++k;
       while (k < s.size() && (std::isdigit(static_cast<unsigned char>(s[k])) || s[k] == '.')) ++k;
-      if (L == 'O') break;  // program number/name ("O2021-11-28_part"): not a block
       std::string num(s.substr(j, k - j));
       if (!num.empty() && num[0] == '+') num.erase(0, 1);
       double v = 0;
@@ -167,6 +419,13 @@ Program read_text(const std::string& text, const std::string& name, const AxisLe
           case 2340:
             tcp_word = true;
             break;
+          case 435:  // Fanuc tool-tip control with the tool vector I J K
+            tcp_word = true;
+            g435 = true;
+            break;
+          case 490:
+            g435 = false;
+            break;
           default:
             break;
         }
@@ -176,21 +435,26 @@ Program read_text(const std::string& text, const std::string& name, const AxisLe
         feed = v;
         continue;
       }
-      bool axis_word = false;
-      for (int a = 0; a < 5; ++a)
-        if (letters.letter[static_cast<size_t>(a)] == L) {
-          b.words[static_cast<size_t>(a)] = true;
-          word_val[static_cast<size_t>(a)] = v;
-          axis_word = true;
-        }
-      if (!axis_word && std::string_view("XYZABCUVW").find(L) != std::string_view::npos &&
-          std::none_of(prog.foreign_axis_words.begin(), prog.foreign_axis_words.end(),
-                       [L](const Program::ForeignWord& f) { return f.letter == L; }))
-        prog.foreign_axis_words.push_back({L, lineno, word_column});
+      if (L == 'M') {
+        // LinuxCNC's switchable trunnion kinematics: M428 world (TCP) coordinates, M429 identity (joints).
+        if (std::lround(v) == 428) tcp_word = true;
+        continue;
+      }
+      if (g435 && (L == 'I' || L == 'J' || L == 'K')) {
+        b.tool_vector[static_cast<size_t>(L - 'I')] = v;
+        vector_words = true;
+        continue;
+      }
+      axis_word_value(L, v, false, word_column);
     }
     if (tcp_word) prog.tcp = true;
     bool any_axis = false;
     for (bool w : b.words) any_axis |= w;
+    if (vector_words) {
+      prog.tcp_vectors = true;
+      b.has_vector = true;
+      any_axis = true;  // a change of orientation alone is a move
+    }
     if (non_modal_skip) {
       if (any_axis)
         prog.notes.push_back(fmt::format("{}:{}: G28/G30/G53/G10/G92 block not taken as a position", name, lineno));
@@ -204,6 +468,13 @@ Program read_text(const std::string& text, const std::string& name, const AxisLe
         v = deg2rad(v);
       else if (inch)
         v *= kMmPerInch;
+      const bool unwrap = letters.rotary[static_cast<size_t>(a)] && absolute &&
+                          (letters.modulo[static_cast<size_t>(a)] || word_short[static_cast<size_t>(a)]) &&
+                          b.known[static_cast<size_t>(a)];
+      if (unwrap) {  // the short way from where the axis is
+        const double prev = b.axes[static_cast<size_t>(a)];
+        v = prev + std::remainder(v - prev, 2.0 * kPi);
+      }
       b.axes[static_cast<size_t>(a)] = absolute ? v : b.axes[static_cast<size_t>(a)] + v;
       b.known[static_cast<size_t>(a)] = true;
     }

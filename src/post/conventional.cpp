@@ -106,4 +106,28 @@ double tool_length_for(const machine::Machine& machine, double option_mm) {
   return option_mm > 0 ? option_mm : machine.default_tool_length_mm;
 }
 
+double tool_length_for(const machine::Machine& machine, double option_mm, const cl::Program& program,
+                       std::string& note) {
+  note.clear();
+  if (option_mm > 0) return option_mm;
+  bool head_rotary = false;
+  if (machine.serial)
+    for (const auto& j : machine.serial->joints)
+      head_rotary |= j.type == kin::AxisType::Rotary && j.side == kin::Side::Head;
+  if (!head_rotary) return machine.default_tool_length_mm;
+  for (const auto& t : program.tools)
+    if (t.length_mm > 0) {
+      note = fmt::format(
+          "{}: tool length {:.3f} mm from the CL's tool {} (TLDATA/CUTTER): the head's rotaries turn "
+          "about the gauge point, so it must be the gauge-to-tip length (--tool-length overrides)",
+          program.file, t.length_mm, t.number);
+      return t.length_mm;
+    }
+  note = fmt::format(
+      "{}: machine '{}' has a rotary in the head and neither --tool-length nor the CL (TLDATA/CUTTER) "
+      "gives the tool length: using the machine file's default_tool_length_mm {:.3f} mm",
+      program.file, machine.name, machine.default_tool_length_mm);
+  return machine.default_tool_length_mm;
+}
+
 }  // namespace cscam::post

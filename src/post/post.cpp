@@ -3,7 +3,6 @@
 #include <fmt/format.h>
 
 #include <algorithm>
-#include <charconv>
 #include <cmath>
 #include <limits>
 #include <ostream>
@@ -12,59 +11,18 @@
 #include "cscam/core/tolerances.hpp"
 #include "cscam/core/units.hpp"
 #include "cscam/kin/track.hpp"
+#include "cscam/post/dialect.hpp"
+#include "linearize.hpp"
+
+// The post in three parts: the linearizer (linearize.cpp: where points must be inserted), the motion sequencer
+// (this file: which blocks, in which order: rapids, retracts, flips, feeds, tool-tip control, clamps) and one
+// formatter per dialect (dialects.cpp: how a controller family spells them).
 
 namespace cscam::post {
 
 namespace {
 
 using Vec3 = Eigen::Vector3d;
-
-/// Spherical interpolation of the CL tool axis between two points (angle computed once per segment).
-class Slerp {
- public:
-  Slerp(const Vec3& a, const Vec3& b) : a_(a), b_(b), th_(std::acos(std::clamp(a.dot(b), -1.0, 1.0))) {
-    sn_ = std::sin(th_);
-  }
-  Vec3 operator()(double s) const {
-    if (th_ < 1e-9) return ((1 - s) * a_ + s * b_).normalized();
-    return (std::sin((1 - s) * th_) / sn_ * a_ + std::sin(s * th_) / sn_ * b_).normalized();
-  }
-
- private:
-  Vec3 a_, b_;
-  double th_, sn_ = 0.0;
-};
-
-double point_segment_distance(const Vec3& p, const Vec3& a, const Vec3& b) {
-  const Vec3 ab = b - a;
-  const double L2 = ab.squaredNorm();
-  const double t = L2 > 0 ? std::clamp((p - a).dot(ab) / L2, 0.0, 1.0) : 0.0;
-  return (a + t * ab - p).norm();
-}
-
-/// A piece [sa, sb] of a CL segment (parameter s in [0,1]) with the axis values at its ends.
-struct Piece {
-  double sa, sb;
-  kin::Axes qa, qb;
-  int depth;
-};
-
-struct Dialect {
-  std::string name;
-  bool fanuc = false;
-  bool cartesian = false;  ///< tip X Y Z + tool-vector rotaries; the control does the kinematics
-};
-
-Dialect make_dialect(const std::string& name) {
-  if (name == "linuxcnc") return {name, false, false};
-  if (name == "fanuc") return {name, true, false};
-  // The XMINI (PKM): joint space is the linuxcnc output with the machine's letters (legs + wrist);
-  // Cartesian mode is for a control that runs the PKM transformation itself.
-  if (name == "xmini-joint") return {name, false, false};
-  if (name == "xmini-cartesian") return {name, false, true};
-  throw InputError(
-      fmt::format("unknown post dialect '{}' (known: linuxcnc, fanuc, xmini-joint, xmini-cartesian)", name));
-}
 
 // --- Cartesian (TCP) output --------------------------------------------------------------------
 // Rotary words of the XMINI in Cartesian mode: the tool vector u (W) as the virtual wrist angles (C, A)
@@ -96,53 +54,83 @@ constexpr double kFlipCheckRad = 0.5235987756;  // 30 deg
 /// A retract target counts only if the tool axis points up at least this much (cos of the tilt).
 constexpr double kMinRetractAxisZ = 0.1;
 
-std::string sanitize_comment(std::string s) {
-  for (char& c : s)
-    if (c == '(' || c == ')') c = '_';
-  return s;
-}
+/// Feed for cutting moves without one (the CL reader refuses those unless a default is given).
+constexpr double kFallbackFeedMmMin = 1000.0;
 
-/// Writes blocks with modal suppression of unchanged axis words.
-class Writer {
+/// The motion sequencer: turns CL moves and their axis values into motion blocks for a formatter, with modal
+/// suppression of unchanged axis words.
+class Sequencer {
  public:
-  Writer(std::ostream& out, const cl::Program& program, const machine::Machine& machine, const kin::Kinematics& kin,
-         const Options& opt, Summary& summary)
-      : out_(out), prog_(program), m_(machine), kin_(kin), opt_(opt), sum_(summary) {
-    try {
-      dialect_ = make_dialect(opt.dialect.empty() ? machine.post.dialect : opt.dialect);
-    } catch (const InputError& e) {
-      if (!opt.dialect.empty()) throw InputError("--dialect: " + e.message());
-      throw InputError(machine.where("post.dialect"), e.message());  // the machine file's value
-    }
+  Sequencer(std::ostream& out, const cl::Program& program, const machine::Machine& machine, const kin::Kinematics& kin,
+            const Options& opt, Summary& summary)
+      : out_(out),
+        prog_(program),
+        m_(machine),
+        kin_(kin),
+        traits_(kin.traits()),
+        opt_(opt),
+        sum_(summary),
+        lin_(kin, linearizer_settings(machine, opt)) {
+    const std::string dialect = opt.dialect.empty() ? machine.post.dialect : opt.dialect;
     tol_mm_ = opt.tolerance_mm > 0 ? opt.tolerance_mm : machine.post.tolerance_mm;
     tol_axis_rad_ = deg2rad(opt.axis_tolerance_deg > 0 ? opt.axis_tolerance_deg : machine.post.axis_tolerance_deg);
     cos_tol_axis_ = std::cos(tol_axis_rad_);
+    cart_ = dialect_forces_tcp(dialect) || (opt.tcp ? *opt.tcp : m_.post.tcp);
+    vectors_ = cart_ && m_.post.tcp_form == "vectors" &&
+               traits_.tcp_rotary_words == kin::Traits::TcpRotaryWords::MachineAngles;
+    const double to_inch = m_.post.inch ? 1.0 / kMmPerInch : 1.0;
     for (int i = 0; i < 5; ++i) {
       const auto& a = m_.axes[static_cast<size_t>(i)];
       const int d = a.rotary() ? m_.post.decimals_rotary : m_.post.decimals_linear;
       decimals_[static_cast<size_t>(i)] = d;
       scale_[static_cast<size_t>(i)] = std::pow(10.0, d);
-      to_file_[static_cast<size_t>(i)] = a.rotary() ? 180.0 / kPi : 1.0;
+      to_file_[static_cast<size_t>(i)] = a.rotary() ? 180.0 / kPi : to_inch;
+      shortest_[static_cast<size_t>(i)] = a.rotary() && a.cyclic && m_.post.rotary_output == "shortest";
     }
-    z_ = m_.axis_index("z");
+    feed_to_file_ = to_inch;
+    z_ = traits_.retract_axis;
     safe_z_ = m_.post.safe_z_mm;
     if (z_ >= 0 && std::isnan(safe_z_)) safe_z_ = m_.axes[static_cast<size_t>(z_)].max;
-    letters_ = m_.post.letters;
-    cart_ = dialect_.cartesian || m_.post.tcp;
+    info_.letters = m_.post.letters;
     if (cart_) {  // the tip's words are X Y Z, whatever the machine's linear axes are called
       int k = 0;
       for (size_t i = 0; i < 5; ++i)
-        if (!m_.axes[i].rotary()) letters_[i] = std::string(1, "XYZ"[k++]);
+        if (!m_.axes[i].rotary()) info_.letters[i] = std::string(1, "XYZ"[k++]);
     }
     // Without a Z axis (a PKM), or in Cartesian mode, safe_z_mm is a plane z = const of the part frame
     // and the retract moves the tip along the tool axis up to it.
-    axis_retract_ = (cart_ || z_ < 0) && std::isfinite(m_.post.safe_z_mm);
+    // With a Z axis under TCP, the tip leaves along the tool axis until the machine's Z reaches the safe Z.
+    axis_retract_ = (z_ < 0 && std::isfinite(m_.post.safe_z_mm)) || (cart_ && (z_ >= 0 || std::isfinite(safe_z_)));
+    info_.machine_name = m_.name;
+    info_.program_name = m_.post.program_name;
+    info_.program_number = m_.post.program_number;
+    info_.source_name = opt.source_name;
+    info_.strategy = opt.strategy;
+    info_.tool_length_mm = opt.tool_length_mm;
+    info_.tolerance_mm = tol_mm_;
+    info_.tcp = cart_;
+    info_.tcp_vectors = vectors_;
+    info_.inch = m_.post.inch;
+    info_.work_offset = m_.post.work_offset;
+    for (size_t i = 0; i < 5; ++i) info_.rotary[i] = m_.axes[i].rotary();
+    try {
+      fmt_ = make_formatter(dialect, info_);
+    } catch (const InputError& e) {
+      if (!opt.dialect.empty()) throw InputError("--dialect: " + e.message());
+      throw InputError(machine.where("post.dialect"), e.message());  // the machine file's value
+    }
+    fmt_->number_lines(m_.post.sequence_numbers, m_.post.sequence_step);
+    inverse_time_ = fmt_->has_inverse_time();
+    for (const auto& [axis, codes] : m_.post.clamp) {
+      const int i = m_.axis_index(axis);
+      if (i >= 0) clamp_codes_[static_cast<size_t>(i)] = codes;
+    }
     buf_.reserve(1 << 16);
   }
 
   void run(const std::vector<kin::Axes>& axes) {
     sum_.cl_line_of_nc_line.assign(1, 0);
-    header();
+    fmt_->begin(buf_);
     map_lines(0);
     size_t ev = 0;
     const auto& moves = prog_.moves;
@@ -155,9 +143,11 @@ class Writer {
       ++sum_.cl_points;
       check_limits(axes[i], mv);
       if (cart_) {
+        if (!tcp_on_) tool_tip_control_on(mv.line);
         cartesian(mv, axes[i]);
       } else if (!have_state_ || mv.kind == cl::MotionKind::Rapid) {
         rapid(axes[i], mv);
+        if (indexed_from(axes, i)) clamp_rotaries();
       } else {
         feed(moves[i - 1], axes[i - 1], mv, axes[i]);
       }
@@ -171,9 +161,24 @@ class Writer {
     footer();
     map_lines(0);
     flush();
+    if (capped_blocks_ > 0)
+      sum_.warnings.push_back(
+          fmt::format("{}: {} feed block(s) slowed so that no axis exceeds its max_feed (first at NC line {})",
+                      prog_.file, capped_blocks_, first_capped_line_));
+    sum_.capped_blocks = capped_blocks_;
   }
 
  private:
+  static Linearizer::Settings linearizer_settings(const machine::Machine& m, const Options& opt) {
+    Linearizer::Settings s;
+    s.tolerance_mm = opt.tolerance_mm > 0 ? opt.tolerance_mm : m.post.tolerance_mm;
+    s.axis_tolerance_rad = deg2rad(opt.axis_tolerance_deg > 0 ? opt.axis_tolerance_deg : m.post.axis_tolerance_deg);
+    s.control_offset_mm = opt.control_offset_mm;
+    s.max_depth = opt.max_subdivision_depth;
+    s.enabled = opt.linearise;
+    return s;
+  }
+
   void flush() {
     out_.write(buf_.data(), static_cast<std::streamsize>(buf_.size()));
     buf_.clear();
@@ -186,100 +191,154 @@ class Writer {
       if (buf_[scanned_] == '\n') sum_.cl_line_of_nc_line.push_back(cl_line);
   }
 
-  void line(std::string_view s) {
-    buf_.append(s);
-    buf_.push_back('\n');
+  /// The NC line the next line of text will be.
+  [[nodiscard]] int next_nc_line() const {
+    return static_cast<int>(
+        sum_.cl_line_of_nc_line.size() +
+        static_cast<size_t>(std::count(buf_.begin() + static_cast<std::ptrdiff_t>(scanned_), buf_.end(), '\n')));
   }
 
-  void header() {
-    if (dialect_.fanuc) {
-      line("%");
-      fmt::format_to(std::back_inserter(buf_), "O{:04d} ({})\n", 1, sanitize_comment(m_.post.program_name));
-    } else {
-      line("%");
-      fmt::format_to(std::back_inserter(buf_), "({})\n", sanitize_comment(m_.post.program_name));
+  // --- Program frame and CL records -----------------------------------------------------------------
+
+  void tool_tip_control_on(int cl_line) {
+    if (tool_h_ == 0 && !warned_h0_) {
+      warned_h0_ = true;
+      sum_.warnings.push_back(
+          fmt::format("{}: tool-tip control with length offset register H0: H0 cancels the tool length on "
+                      "most controls",
+                      SourceLoc{prog_.file, cl_line, 0}.str()));
     }
-    fmt::format_to(std::back_inserter(buf_), "(cscam post: machine {} dialect {} strategy {})\n",
-                   sanitize_comment(m_.name), dialect_.name, sanitize_comment(opt_.strategy));
-    if (!opt_.source_name.empty())
-      fmt::format_to(std::back_inserter(buf_), "(source: {})\n", sanitize_comment(opt_.source_name));
-    fmt::format_to(std::back_inserter(buf_), "(cscam tool_length_mm={:.4f} tolerance_mm={:.4f})\n", opt_.tool_length_mm,
-                   tol_mm_);
-    if (cart_)
-      fmt::format_to(std::back_inserter(buf_),
-                     "(cartesian: X Y Z = tool tip, {} {} = tool vector; the control runs the kinematics)\n",
-                     letters_[static_cast<size_t>(kin_.rotary_pair()[0])],
-                     letters_[static_cast<size_t>(kin_.rotary_pair()[1])]);
-    line("G21 G90 G94 G17 G40 G49 G80");
-    mode93_ = false;
+    fmt_->tcp_on(buf_, tool_h_);
+    tcp_on_ = true;
   }
 
   void footer() {
     exit_along_axis();
     if (!cart_ && z_ >= 0 && have_state_) {
-      fmt::format_to(std::back_inserter(buf_), "G0 {}{}\n", letters_[static_cast<size_t>(z_)], fmt_axis(z_, safe_z_));
+      emit_safe_z();
     } else if (have_state_) {
       axis_retract(SourceLoc{prog_.file});
     }
-    line("M5");
-    line("M9");
-    line(dialect_.fanuc ? "M30" : "M2");
-    line("%");
+    unclamp_rotaries();
+    if (tcp_on_) {
+      fmt_->tcp_off(buf_);
+      tcp_on_ = false;
+    }
+    // Rotaries home at the end (machine coordinates: a table turned back, a head upright), above the part.
+    if (!cart_ && have_state_ && m_.post.home_rotaries && z_ >= 0) {
+      kin::Axes home = cur_;
+      for (int i : kin_.rotary_pair())  // a modulo rotary is home at any whole turn: the nearest one
+        home[i] = shortest_[static_cast<size_t>(i)] ? 2.0 * kPi * std::round(cur_[i] / (2.0 * kPi)) : 0.0;
+      if (kin_.check_limits(home).empty()) emit_g0(home);
+    }
+    fmt_->end(buf_);
   }
 
   void event(const cl::Event& e) {
     using K = cl::Event::Kind;
     switch (e.kind) {
       case K::ToolChange: {
-        const int n = (e.tool_index >= 0 && static_cast<size_t>(e.tool_index) < prog_.tools.size())
-                          ? prog_.tools[static_cast<size_t>(e.tool_index)].number
-                          : 0;
-        if (e.tool_index >= 0 && static_cast<size_t>(e.tool_index) < prog_.tools.size())
-          fmt::format_to(std::back_inserter(buf_), "(TOOL {}: {} D{:.3f})\n", n,
-                         sanitize_comment(prog_.tools[static_cast<size_t>(e.tool_index)].name),
-                         prog_.tools[static_cast<size_t>(e.tool_index)].diameter_mm);
+        const bool known = e.tool_index >= 0 && static_cast<size_t>(e.tool_index) < prog_.tools.size();
+        const int n = known ? prog_.tools[static_cast<size_t>(e.tool_index)].number : 0;
         // Retract before the change so the new tool does not come down into the part.
         exit_along_axis();
         if (!cart_ && z_ >= 0 && have_state_)
           emit_safe_z();
         else if (have_state_)
           axis_retract(SourceLoc{prog_.file, e.line, 0});
-        // TCP on a serial machine: G43.4 (LinuxCNC, Fanuc). The XMINI's control runs its own transformation.
-        const bool g434 = cart_ && m_.kind != machine::ModelKind::Xmini;
-        fmt::format_to(std::back_inserter(buf_), "T{} M6\n{} H{}\n", n, g434 ? "G43.4" : "G43", n);
+        unclamp_rotaries();
+        if (tcp_on_) {
+          fmt_->tcp_off(buf_);
+          tcp_on_ = false;
+        }
+        // The length offset register: LOAD/TOOL,n,ADJUST,h, else the tool's own number.
+        tool_h_ = known && prog_.tools[static_cast<size_t>(e.tool_index)].length_register >= 0
+                      ? prog_.tools[static_cast<size_t>(e.tool_index)].length_register
+                      : n;
+        if (tool_h_ == 0)
+          sum_.warnings.push_back(
+              fmt::format("{}: length offset register H0 (tool 0, or ADJUST,0): H0 cancels "
+                          "the tool length on most controls",
+                          SourceLoc{prog_.file, e.line, 0}.str()));
+        fmt_->tool_change(
+            buf_, n, tool_h_,
+            known ? fmt::format("TOOL {}: {} D{:.3f}", n, prog_.tools[static_cast<size_t>(e.tool_index)].name,
+                                prog_.tools[static_cast<size_t>(e.tool_index)].diameter_mm)
+                  : std::string());
+        if (cart_) tool_tip_control_on(e.line);
         break;
       }
       case K::SpindleOn:
-        fmt::format_to(std::back_inserter(buf_), "S{:.0f} {}\n", e.spindle_rpm, e.clockwise ? "M3" : "M4");
+        fmt_->spindle(buf_, e.spindle_rpm, e.clockwise);
         break;
       case K::SpindleOff:
         exit_along_axis();  // leave the cut while the spindle still turns
-        line("M5");
+        if (cart_ && have_state_) axis_retract(SourceLoc{prog_.file, e.line, 0});
+        fmt_->spindle_off(buf_);
         break;
       case K::CoolantOn:
-        line(e.text == "MIST" ? "M7" : "M8");
+        fmt_->coolant(buf_, true, e.text == "MIST");
         break;
       case K::CoolantOff:
-        line("M9");
+        fmt_->coolant(buf_, false, false);
         break;
       case K::Comment:
-        if (!e.text.empty()) fmt::format_to(std::back_inserter(buf_), "({})\n", sanitize_comment(e.text));
+        if (!e.text.empty()) fmt_->comment(buf_, e.text);
         break;
       case K::OperationStart:
-        fmt::format_to(std::back_inserter(buf_), "(OPERATION {})\n", sanitize_comment(e.text));
+        fmt_->comment(buf_, "OPERATION " + e.text);
         break;
       case K::Stop:
-        line("M0");
+        fmt_->stop(buf_, e.text.rfind("OPSTOP", 0) == 0);
+        break;
+      case K::Dwell:
+        fmt_->dwell(buf_, e.seconds);
+        break;
+      case K::Insert:
+        fmt_->insert(buf_, e.text);
         break;
     }
   }
 
-  std::string fmt_axis(int i, double v) const {
-    return fmt::format("{:.{}f}", v * to_file_[static_cast<size_t>(i)], decimals_[static_cast<size_t>(i)]);
+  // --- Rotary clamps around indexed (3+2) stretches -----------------------------------------------------
+
+  /// Whether the stretch of feed moves after the rapid at i keeps every rotary where the rapid put it.
+  bool indexed_from(const std::vector<kin::Axes>& axes, size_t i) const {
+    if (std::all_of(clamp_codes_.begin(), clamp_codes_.end(), [](const auto& c) { return c[0].empty(); })) return false;
+    const auto rp = kin_.rotary_pair();
+    size_t j = i + 1;
+    for (; j < axes.size() && prog_.moves[j].kind == cl::MotionKind::Feed; ++j)
+      for (int r : rp)
+        if (rounded(r, axes[j][r]) != rounded(r, axes[i][r])) return false;
+    return j > i + 1;
   }
 
+  void clamp_rotaries() {
+    for (int r : kin_.rotary_pair()) {
+      const auto& c = clamp_codes_[static_cast<size_t>(r)];
+      if (!c[0].empty() && !clamped_[static_cast<size_t>(r)]) {
+        fmt_->clamp(buf_, c[0]);
+        clamped_[static_cast<size_t>(r)] = true;
+      }
+    }
+  }
+
+  void unclamp_rotaries() {
+    for (int r : kin_.rotary_pair()) {
+      if (!clamped_[static_cast<size_t>(r)]) continue;
+      fmt_->clamp(buf_, clamp_codes_[static_cast<size_t>(r)][1]);
+      clamped_[static_cast<size_t>(r)] = false;
+    }
+  }
+
+  // --- Words and blocks ----------------------------------------------------------------------------------
+
   long long rounded(int i, double v) const {
-    return std::llround(v * to_file_[static_cast<size_t>(i)] * scale_[static_cast<size_t>(i)]);
+    double f = v * to_file_[static_cast<size_t>(i)];
+    if (shortest_[static_cast<size_t>(i)]) f -= 360.0 * std::floor(f / 360.0);  // modulo output in [0, 360)
+    long long r = std::llround(f * scale_[static_cast<size_t>(i)]);
+    if (shortest_[static_cast<size_t>(i)] && r == std::llround(360.0 * scale_[static_cast<size_t>(i)])) r = 0;
+    return r;
   }
 
   void check_limits(const kin::Axes& q, const cl::Move& mv) const {
@@ -289,40 +348,53 @@ class Writer {
                        fmt::format("the post refuses a block outside the limits: {}", v));
   }
 
-  /// Appends the axis words of q that differ from the last written values.
-  bool append_words(const kin::Axes& q, std::initializer_list<int> which, bool force = false) {
+  /// Starts a block of the given motion.
+  void start(BlockSpec::Motion motion) {
+    blk_.motion = motion;
+    blk_.words.clear();
+    blk_.tool_vector.reset();
+    blk_.feed.reset();
+    blk_.feed_mode = BlockSpec::FeedMode::Keep;
+  }
+
+  /// Adds the axis words of q that differ from the last written values.
+  bool add_words(const kin::Axes& q, std::initializer_list<int> which, bool force = false) {
     bool any = false;
     for (int i : which) {
       const long long r = rounded(i, q[i]);
-      if (!force && have_word_[static_cast<size_t>(i)] && r == last_[static_cast<size_t>(i)]) continue;
-      buf_.push_back(' ');
-      buf_.append(letters_[static_cast<size_t>(i)]);
-      append_fixed(r, decimals_[static_cast<size_t>(i)]);
-      last_[static_cast<size_t>(i)] = r;
-      have_word_[static_cast<size_t>(i)] = true;
+      const auto u = static_cast<size_t>(i);
+      if (!force && have_word_[u] && r == last_[u]) continue;
+      // A modulo rotary is reached the short way: one block may not turn it half a turn or more.
+      if (shortest_[u] && have_word_[u] && std::abs(q[i] - written_[u]) >= kPi - 1e-9)
+        throw InputError(SourceLoc{prog_.file, cur_line_, 0},
+                         fmt::format("axis {} would turn {:.3f} deg in one block, but with post.rotary_output "
+                                     "'shortest' the control takes the short way",
+                                     m_.axes[u].name, rad2deg(std::abs(q[i] - written_[u]))));
+      if (!(vectors_ && m_.axes[u].rotary())) blk_.words.push_back({i, r, decimals_[u], shortest_[u]});
+      last_[u] = r;
+      written_[u] = q[i];
+      have_word_[u] = true;
       any = true;
     }
     return any;
   }
 
-  /// Writes r / 10^d with exactly d decimals (the value is already rounded: no float formatting needed).
-  void append_fixed(long long r, int d) {
-    if (r < 0) {
-      buf_.push_back('-');
-      r = -r;
+  /// Writes the block started with start(); `feed` is per minute (G94) or inverse time (G93).
+  void emit(std::optional<double> feed = std::nullopt) {
+    for (const auto& w : blk_.words)
+      if (m_.axes[static_cast<size_t>(w.slot)].rotary() && clamped_[static_cast<size_t>(w.slot)]) {
+        unclamp_rotaries();  // a clamped rotary about to turn: released first, never turned against the brake
+        break;
+      }
+    if (feed) {
+      // Printed rounded down: a block is never faster than the time the sequencer gave it.
+      // Slow per-minute feeds (a capped block that mostly turns a rotary) keep four decimals.
+      blk_.feed_decimals = mode93_ ? 3 : (*feed < 100.0 ? 4 : 1);
+      const double p = std::pow(10.0, blk_.feed_decimals);
+      blk_.feed = std::max(std::floor(*feed * p * (1.0 + 1e-12)) / p, 1.0 / p);
     }
-    long long p = 1;
-    for (int k = 0; k < d; ++k) p *= 10;
-    char tmp[32];
-    auto res = std::to_chars(tmp, tmp + sizeof tmp, r / p);
-    buf_.append(tmp, res.ptr);
-    if (d > 0) {
-      buf_.push_back('.');
-      res = std::to_chars(tmp, tmp + sizeof tmp, r % p);
-      const auto len = res.ptr - tmp;
-      buf_.append(static_cast<size_t>(d - len), '0');
-      buf_.append(tmp, res.ptr);
-    }
+    fmt_->block(buf_, blk_);
+    ++sum_.blocks;
   }
 
   bool rotaries_differ(const kin::Axes& q) const {
@@ -333,25 +405,59 @@ class Writer {
 
   void set_mode94() {
     if (mode93_) {
-      buf_.append("G94 ");
+      blk_.feed_mode = BlockSpec::FeedMode::PerMinute;
       mode93_ = false;
       last_feed_ = -1;
     }
   }
 
   void emit_safe_z() {
-    set_mode94();
     kin::Axes q = cur_;
     q[z_] = safe_z_;
-    buf_.append("G0");
-    append_words(q, {z_});
-    buf_.push_back('\n');
+    start(BlockSpec::Motion::Rapid);
+    if (add_words(q, {z_})) {
+      set_mode94();
+      emit();
+    }
     cur_[z_] = safe_z_;
-    ++sum_.blocks;
+  }
+
+  /// Rapid blocks that bring the rotaries written modulo 360 (reached the short way) to q's in steps of less
+  /// than half a turn, every axis moving proportionally: the control then turns the way the model does.
+  void turn_stepwise(const kin::Axes& q) {
+    double worst = 0.0;
+    for (int i = 0; i < 5; ++i)
+      if (shortest_[static_cast<size_t>(i)] && have_word_[static_cast<size_t>(i)])
+        worst = std::max(worst, std::abs(q[i] - written_[static_cast<size_t>(i)]));
+    const int n = static_cast<int>(std::ceil(worst / deg2rad(170.0)));
+    if (n <= 1) return;
+    kin::Axes from = cur_;
+    for (int i = 0; i < 5; ++i)
+      if (have_word_[static_cast<size_t>(i)]) from[i] = written_[static_cast<size_t>(i)];
+    for (int k = 1; k < n; ++k) {
+      const kin::Axes mid = from + (static_cast<double>(k) / n) * (q - from);
+      start(BlockSpec::Motion::Rapid);
+      if (add_words(mid, {0, 1, 2, 3, 4})) {
+        set_mode94();
+        emit();
+      }
+    }
+  }
+
+  /// One rapid block to q (nothing when every word is unchanged).
+  void emit_g0(const kin::Axes& q) {
+    turn_stepwise(q);
+    start(BlockSpec::Motion::Rapid);
+    if (add_words(q, {0, 1, 2, 3, 4})) {
+      set_mode94();
+      emit();
+    }
+    cur_ = q;
   }
 
   /// Rapid positioning. With a rotary change: retract, rotate, position, plunge.
   void rapid(const kin::Axes& q, const cl::Move& mv) {
+    cur_line_ = mv.line;
     const auto rp = kin_.rotary_pair();
     std::vector<int> lin;
     for (int i = 0; i < 5; ++i)
@@ -364,55 +470,32 @@ class Writer {
       at_safe[rp[0]] = q[rp[0]];
       at_safe[rp[1]] = q[rp[1]];
       check_limits(at_safe, mv);
-      set_mode94();
-      buf_.append("G0");
-      if (!have_state_) {
-        append_words(at_safe, {z_}, true);
-        buf_.append("\nG0");
+      if (!have_state_) {  // the safe start: up first, wherever the tool is
+        start(BlockSpec::Motion::Rapid);
+        set_mode94();
+        add_words(at_safe, {z_}, true);
+        emit();
       }
-      append_words(at_safe, {rp[0], rp[1]});
-      const size_t mark = buf_.size();
-      buf_.append("\nG0");
+      turn_stepwise(at_safe);
+      start(BlockSpec::Motion::Rapid);
+      set_mode94();
+      if (add_words(at_safe, {rp[0], rp[1]})) emit();
       kin::Axes above = q;
       above[z_] = safe_z_;
-      std::vector<int> xy;
-      for (int i : lin)
-        if (i != z_) xy.push_back(i);
+      start(BlockSpec::Motion::Rapid);
       bool any = false;
-      for (int i : xy) any = append_words(above, {i}, !have_word_[static_cast<size_t>(i)]) || any;
-      if (!any) buf_.resize(mark);  // already above the point: no empty block (a control would still move)
-      buf_.push_back('\n');
-      sum_.blocks += any ? 3 : 2;
+      for (int i : lin)
+        if (i != z_) any = add_words(above, {i}, !have_word_[static_cast<size_t>(i)]) || any;
+      if (any) emit();  // already above the point: no empty block (a control would still move)
     }
     if (rotaries_differ(q) && z_ < 0 && axis_retract_) pkm_reposition(q, mv);
+    start(BlockSpec::Motion::Rapid);
     set_mode94();
-    buf_.append("G0");
-    if (!append_words(q, {0, 1, 2, 3, 4}))
-      buf_.append(fmt::format(" {}{}", letters_[static_cast<size_t>(lin[0])], fmt_axis(lin[0], q[lin[0]])));
-    buf_.push_back('\n');
-    ++sum_.blocks;
+    if (!add_words(q, {0, 1, 2, 3, 4})) add_words(q, {lin[0]}, true);
+    emit();
     cur_ = q;
     have_state_ = true;
     at_cut_ = false;
-  }
-
-  /// The largest normalised deviation (1 = at tolerance) of the machine's straight joint-space move
-  /// qa->qb from the CL segment P0P1 (tip) and from the interpolated CL axis.
-  /// Whether the machine's straight joint-space move qa->qb leaves the tolerance of the CL segment P0P1
-  /// (tip) or of the interpolated CL axis, sampled at a quarter, half and three quarters.
-  bool exceeds(const kin::Axes& qa, const kin::Axes& qb, double sa, double sb, const Vec3& P0, const Vec3& P1,
-               const Slerp& axis) {
-    bool bad = false;
-    for (double t : {0.5, 0.25, 0.75}) {
-      const kin::Posed p = kin_.forward(qa + t * (qb - qa));
-      const double dtip = point_segment_distance(p.tip_mm + opt_.control_offset_mm * p.axis, P0, P1);
-      sum_.max_checked_tip_deviation_mm = std::max(sum_.max_checked_tip_deviation_mm, dtip);
-      if (dtip > tol_mm_ || p.axis.dot(axis(sa + t * (sb - sa))) < cos_tol_axis_) {
-        bad = true;
-        break;
-      }
-    }
-    return bad;
   }
 
   /// After a cut, before a retract that is not along the tool axis (machine Z up, a tool change, the end):
@@ -452,12 +535,6 @@ class Writer {
     bool jumped = false;
     if (!kin::track_checked(kin_, q0, pose0, pose1, tracked, jumped)) return false;
     return !jumped && rotary_jump(tracked, q1) < 1e-6;
-  }
-
-  /// One feed block to q at a tip speed of feed_mm_min (an axis never faster than its max_feed).
-  void emit_feed_to(const kin::Axes& from, const kin::Axes& q, double tip_len_mm, double feed_mm_min) {
-    emit_inverse_time(from, q, tip_len_mm, feed_mm_min);
-    cur_ = q;
   }
 
   /// q0 (at m0) and q1 (at m1) lie on different branches or windings: a rotary limit or the branch rule
@@ -544,9 +621,10 @@ class Writer {
   }
 
   void feed(const cl::Move& m0, const kin::Axes& q0_in, const cl::Move& m1, const kin::Axes& q1) {
+    cur_line_ = m1.line;
     kin::Axes q0 = q0_in;
     {
-      const double fr = m1.feed_mm_per_min > 0 ? m1.feed_mm_per_min : 1000.0;
+      const double fr = m1.feed_mm_per_min > 0 ? m1.feed_mm_per_min : kFallbackFeedMmMin;
       const kin::Posed pose0{m0.tip_in_part_mm, m0.axis_in_part.normalized()};
       const kin::Posed pose1{m1.tip_in_part_mm, m1.axis_in_part.normalized()};
       if (!continues_branch(pose0, q0, pose1, q1)) q0 = reconfigure(pose0, q0, pose1, q1, m0, m1, fr);
@@ -554,123 +632,100 @@ class Writer {
     feed_linear(m0, q0, m1, q1);
     at_cut_ = true;
     cut_move_ = m1;
-    if (cut_move_.feed_mm_per_min <= 0) cut_move_.feed_mm_per_min = 1000.0;
+    if (cut_move_.feed_mm_per_min <= 0) cut_move_.feed_mm_per_min = kFallbackFeedMmMin;
+  }
+
+  /// The block time (minutes) for a move qa -> qb at the programmed feed, slowed so that no axis exceeds its
+  /// max_feed; counts the blocks slowed so.
+  double block_minutes(const kin::Axes& qa, const kin::Axes& qb, double programmed_minutes) {
+    double minutes = programmed_minutes;
+    for (int i = 0; i < 5; ++i) {
+      const double vmax = m_.axes[static_cast<size_t>(i)].max_feed;
+      if (vmax <= 0) continue;
+      // The move as the control sees it is between the printed (rounded) words: a short block's rounding may
+      // make it longer than the model's.
+      const double f = to_file_[static_cast<size_t>(i)] * scale_[static_cast<size_t>(i)];
+      const double printed = std::abs(static_cast<double>(std::llround(qb[i] * f) - std::llround(qa[i] * f))) / f;
+      minutes = std::max(minutes, std::max(std::abs(qb[i] - qa[i]), printed) / vmax);
+    }
+    if (minutes > programmed_minutes * (1.0 + 1e-9) + 1e-12 && programmed_minutes > 0) {
+      if (capped_blocks_++ == 0) first_capped_line_ = next_nc_line();
+    }
+    return std::max(minutes, 1e-6);
+  }
+
+  /// The length an RS274 control measures a G94 block by: the linear words' distance (file units), else the
+  /// rotary words' angle (deg).
+  [[nodiscard]] double word_length(const kin::Axes& wa, const kin::Axes& wb) const {
+    double lin2 = 0.0, rot2 = 0.0;
+    for (int i = 0; i < 5; ++i) {  // between the printed (rounded) words, as the control measures it
+      const double f = to_file_[static_cast<size_t>(i)] * scale_[static_cast<size_t>(i)];
+      const double d =
+          static_cast<double>(std::llround(wb[i] * f) - std::llround(wa[i] * f)) / scale_[static_cast<size_t>(i)];
+      (m_.axes[static_cast<size_t>(i)].rotary() ? rot2 : lin2) += d * d;
+    }
+    return lin2 > 1e-18 ? std::sqrt(lin2) : std::sqrt(rot2);
   }
 
   /// Feed from q0 (at m0) to q1 (at m1) on one branch, linearised so that the tip stays within the
   /// tolerance of the straight CL segment and the axis within its tolerance of the interpolated CL axis.
   void feed_linear(const cl::Move& m0, const kin::Axes& q0, const cl::Move& m1, const kin::Axes& q1) {
-    const bool rot_moves = rotaries_differ(q1);
-    const double feed_mm_min = m1.feed_mm_per_min > 0 ? m1.feed_mm_per_min : 1000.0;
-    if (!rot_moves) {
+    const double feed_mm_min = m1.feed_mm_per_min > 0 ? m1.feed_mm_per_min : kFallbackFeedMmMin;
+    if (!rotaries_differ(q1)) {
       // Pure linear motion: the machine moves straight, exactly the CL segment.
+      start(BlockSpec::Motion::Linear);
+      if (!add_words(q1, {0, 1, 2, 3, 4})) return;  // a repeated point: nothing to do
       set_mode94();
-      buf_.append("G1");
-      const bool any = append_words(q1, {0, 1, 2, 3, 4});
-      if (!any) {  // a repeated point: nothing to do
-        buf_.resize(buf_.size() - 2);
-        if (buf_.size() >= 4 && buf_.compare(buf_.size() - 4, 4, "G94 ") == 0) buf_.resize(buf_.size() - 4);
-        return;
+      const double len_mm = (q1 - q0).norm();  // linear axes only differ
+      const double programmed = len_mm / feed_mm_min;
+      const double minutes = block_minutes(q0, q1, programmed);
+      const double f = (minutes > programmed * (1.0 + 1e-9) ? len_mm / minutes : feed_mm_min) * feed_to_file_;
+      std::optional<double> fw;
+      if (std::abs(f - last_feed_) > 1e-9) {
+        fw = f;
+        last_feed_ = f;
       }
-      if (std::abs(feed_mm_min - last_feed_) > 1e-9) {
-        fmt::format_to(std::back_inserter(buf_), " F{:.1f}", feed_mm_min);
-        last_feed_ = feed_mm_min;
-      }
-      buf_.push_back('\n');
-      ++sum_.blocks;
+      emit(fw);
       cur_ = q1;
       return;
     }
-    // The controlled points: tips, or ball centres when the plan keeps those on the CL path.
-    const Vec3 P0 = m0.tip_in_part_mm + opt_.control_offset_mm * m0.axis_in_part.normalized();
-    const Vec3 P1 = m1.tip_in_part_mm + opt_.control_offset_mm * m1.axis_in_part.normalized();
-    const Slerp axis(m0.axis_in_part.normalized(), m1.axis_in_part.normalized());
-    // Explicit stack of pieces [sa, sb] with their axis values; emits pieces in order.
-    stack_.clear();
-    stack_.push_back({0.0, 1.0, q0, q1, 0});
-    while (!stack_.empty()) {
-      Piece pc = stack_.back();
-      stack_.pop_back();
-      if (opt_.linearise && pc.depth < opt_.max_subdivision_depth &&
-          exceeds(pc.qa, pc.qb, pc.sa, pc.sb, P0, P1, axis)) {
-        const double sm = 0.5 * (pc.sa + pc.sb);
-        const Vec3 axis_m = axis(sm);
-        const kin::Posed target{P0 + sm * (P1 - P0) - opt_.control_offset_mm * axis_m, axis_m};
-        const kin::Axes guess = 0.5 * (pc.qa + pc.qb);
-        // First keep the rotaries the machine would pass through anyway and only correct the linear axes:
-        // near the singularity a fresh IK of the interpolated axis is ill-conditioned (its azimuth is
-        // arbitrary) while the interpolated rotaries already give an axis within tolerance.
-        kin::Axes qm = guess;
-        {
-          // The axis the interpolated rotaries give; the controlled point (tip, or ball centre) is put exactly
-          // on the path with that axis, so only the axis error is left to judge.
-          Vec3 a_int;
-          const auto rp = kin_.rotary_pair();
-          const Vec3 ctrl = P0 + sm * (P1 - P0);
-          if (kin_.tool_axis_at(qm[rp[0]], qm[rp[1]], target.tip_mm, a_int) &&
-              a_int.dot(target.axis) >= cos_tol_axis_ &&
-              kin_.solve_for_rotaries(kin::Posed{ctrl - opt_.control_offset_mm * a_int, a_int}, qm) &&
-              kin_.forward(qm).axis.dot(target.axis) >= cos_tol_axis_) {
-            check_limits(qm, m1);
-            ++sum_.inserted_points;
-            stack_.push_back({sm, pc.sb, qm, pc.qb, pc.depth + 1});
-            stack_.push_back({pc.sa, sm, pc.qa, qm, pc.depth + 1});
-            continue;
-          }
-        }
-        // Otherwise continue the solution branch from the piece's start (no flips), as the conventional
-        // strategy does between CL points.
-        const Vec3 axis_a = axis(pc.sa);
-        const kin::Posed from{P0 + pc.sa * (P1 - P0) - opt_.control_offset_mm * axis_a, axis_a};
-        ++sum_.ik_calls;
-        bool jumped = false;
-        std::string why;
-        const bool tracked = kin::track_checked(kin_, pc.qa, from, target, qm, jumped, &why);
-        if (tracked && jumped)
-          throw InputError(SourceLoc{prog_.file, m1.line, 0},
-                           fmt::format("the machine cannot follow the CL segment from line {} to line {} "
-                                       "continuously: inside it a limit{} forces the rotaries to flip (the "
-                                       "tool would leave the path); split the segment or plan it with a cone",
-                                       m0.line, m1.line, why.empty() ? "" : " (" + why + ")"));
-        if (!tracked) {
-          sum_.warnings.push_back(
-              fmt::format("{}: no IK solution while linearising", SourceLoc{prog_.file, m1.line, 0}.str()));
-        } else {
-          check_limits(qm, m1);
-          ++sum_.inserted_points;
-          stack_.push_back({sm, pc.sb, qm, pc.qb, pc.depth + 1});
-          stack_.push_back({pc.sa, sm, pc.qa, qm, pc.depth + 1});
-          continue;
-        }
-      } else if (opt_.linearise && pc.depth >= opt_.max_subdivision_depth &&
-                 exceeds(pc.qa, pc.qb, pc.sa, pc.sb, P0, P1, axis)) {
-        sum_.warnings.push_back(fmt::format("{}: tolerance not reached after {} subdivisions (singular region?)",
-                                            SourceLoc{prog_.file, m1.line, 0}.str(), opt_.max_subdivision_depth));
-      }
-      emit_inverse_time(pc.qa, pc.qb, (pc.sb - pc.sa) * (P1 - P0).norm(), feed_mm_min);
+    Linearizer::Stats st;
+    lin_.split(m0, q0, m1, q1, prog_.file, pieces_, st);
+    sum_.inserted_points += st.inserted_points;
+    sum_.ik_calls += st.ik_calls;
+    sum_.max_checked_tip_deviation_mm = std::max(sum_.max_checked_tip_deviation_mm, st.max_checked_tip_deviation_mm);
+    for (auto& w : st.warnings) sum_.warnings.push_back(std::move(w));
+    kin::Axes qa = q0;
+    for (const auto& pc : pieces_) {
+      emit_timed(qa, pc.q_end, pc.path_mm, feed_mm_min);
+      qa = pc.q_end;
     }
     cur_ = q1;
   }
 
-  void emit_inverse_time(const kin::Axes& qa, const kin::Axes& qb, double tip_len_mm, double feed_mm_min) {
-    // Block time: the tip at the programmed feed, but no axis faster than its maximum feed.
-    double minutes = tip_len_mm / feed_mm_min;
-    for (int i = 0; i < 5; ++i) {
-      const double vmax = m_.axes[static_cast<size_t>(i)].max_feed;
-      if (vmax > 0) minutes = std::max(minutes, std::abs(qb[i] - qa[i]) / vmax);
+  /// A feed block qa -> qb that covers tip_len_mm of the CL path: inverse time (G93) where the dialect has it,
+  /// else a per-minute F that gives the same block time by the control's own measure of the block length.
+  void emit_timed(const kin::Axes& qa, const kin::Axes& qb, double tip_len_mm, double feed_mm_min) {
+    const double minutes = block_minutes(qa, qb, tip_len_mm / feed_mm_min);
+    start(BlockSpec::Motion::Linear);
+    if (!add_words(qb, {0, 1, 2, 3, 4})) return;
+    if (inverse_time_) {
+      if (!mode93_) {
+        blk_.feed_mode = BlockSpec::FeedMode::InverseTime;
+        mode93_ = true;
+      }
+      last_feed_ = -1;
+      emit(std::min(1.0 / minutes, 999999.0));
+    } else {
+      const double f = word_length(qa, qb) / minutes;
+      last_feed_ = f;
+      emit(f);
     }
-    minutes = std::max(minutes, 1e-6);
-    if (!mode93_) {
-      buf_.append("G93 ");
-      mode93_ = true;
-    }
-    buf_.append("G1");
-    if (!append_words(qb, {0, 1, 2, 3, 4})) {
-      buf_.resize(buf_.size() - 2);
-      return;
-    }
-    fmt::format_to(std::back_inserter(buf_), " F{:.3f}\n", std::min(1.0 / minutes, 999999.0));
-    ++sum_.blocks;
+  }
+
+  void emit_feed_to(const kin::Axes& from, const kin::Axes& q, double tip_len_mm, double feed_mm_min) {
+    emit_timed(from, q, tip_len_mm, feed_mm_min);
+    cur_ = q;
   }
 
   // --- Retract along the tool axis (machines without a Z axis, e.g. the XMINI; Cartesian mode) -----
@@ -682,6 +737,22 @@ class Writer {
     if (tip.z() >= safe - tol::kLimitSlackMm) return false;
     const Vec3 dir = axis.z() >= kMinRetractAxisZ ? Vec3(axis.normalized()) : Vec3::UnitZ();
     up = tip + (safe - tip.z()) / dir.z() * dir;
+    return true;
+  }
+
+  /// Under tool-tip control: the point up the tool axis from the tip (machine axes q there) where the machine's
+  /// Z reaches the safe Z; on a machine without one, where the tip reaches the plane z = safe_z_mm. False when
+  /// already there, or when the tool axis does not lift the machine's Z.
+  bool tcp_retract_point(const Vec3& tip, const Vec3& axis, const kin::Axes& q, Vec3& up) const {
+    if (z_ < 0) return retract_point(tip, axis, up);
+    const Vec3 dir = axis.normalized();
+    kin::Axes q1 = q;  // the same rotaries, the tip 1 mm up the axis: the linear axes are affine in it
+    if (!kin_.solve_for_rotaries(kin::Posed{tip + dir, dir}, q1)) return false;
+    const double slope = q1[z_] - q[z_];
+    if (slope < kMinRetractAxisZ) return false;
+    const double d = (safe_z_ - q[z_]) / slope;
+    if (d <= tol::kLimitSlackMm) return false;
+    up = tip + d * dir;
     return true;
   }
 
@@ -699,36 +770,21 @@ class Writer {
     return out;
   }
 
-  /// One rapid block to q (nothing when every word is unchanged).
-  void emit_g0(const kin::Axes& q) {
-    const size_t mark = buf_.size();
-    const bool mode93 = mode93_;
-    const double last_feed = last_feed_;
-    set_mode94();
-    buf_.append("G0");
-    if (append_words(q, {0, 1, 2, 3, 4})) {
-      buf_.push_back('\n');
-      ++sum_.blocks;
-    } else {  // nothing moves: no block, and the feed mode stays as it was
-      buf_.resize(mark);
-      mode93_ = mode93;
-      last_feed_ = last_feed;
-    }
-    cur_ = q;
-  }
-
   /// Retract before a tool change and at the end of the program.
   void axis_retract(const SourceLoc& where) {
     if (!axis_retract_) return;
     if (cart_) {
       Vec3 up;
-      if (!retract_point(cart_tip_, cart_axis_, up)) return;
+      if (!tcp_retract_point(cart_tip_, cart_axis_, cart_q_, up)) return;
       kin::Axes v = cur_;
       int k = 0;
       for (int i = 0; i < 5; ++i)
         if (!m_.axes[static_cast<size_t>(i)].rotary()) v[i] = up[k++];
       emit_g0(v);
+      track_control(v, cart_axis_);
       cart_tip_ = up;
+      kin::Axes q_up = cart_q_;
+      if (kin_.solve_for_rotaries(kin::Posed{up, cart_axis_}, q_up)) cart_q_ = q_up;
       return;
     }
     emit_g0(pkm_retracted(cur_, where));
@@ -753,14 +809,14 @@ class Writer {
   // --- Cartesian mode: one block per CL point, the control interpolates ------------------------
 
   /// The words of a Cartesian block in the machine's axis slots: tip in the linear slots, in the
-  /// rotary slots the machine's rotaries (serial: they alone set the tool vector) or, for the XMINI,
-  /// the virtual wrist angles of the tool vector (xmini_virtual_ca).
+  /// rotary slots the machine's rotaries (serial: they alone set the tool vector) or, for a virtual-wrist
+  /// model (the XMINI), the virtual wrist angles of the tool vector (xmini_virtual_ca).
   kin::Axes cartesian_words(const Vec3& tip, const Vec3& axis, const kin::Axes& q) const {
     kin::Axes v = q;
     int k = 0;
     for (int i = 0; i < 5; ++i)
       if (!m_.axes[static_cast<size_t>(i)].rotary()) v[i] = tip[k++];
-    if (m_.kind == machine::ModelKind::Xmini) {
+    if (traits_.tcp_rotary_words == kin::Traits::TcpRotaryWords::VirtualWrist) {
       const auto rp = kin_.rotary_pair();
       const auto ca = xmini_virtual_ca(axis, q[rp[0]], q[rp[1]]);
       v[rp[0]] = ca[0];
@@ -769,81 +825,237 @@ class Writer {
     return v;
   }
 
+  /// Adds the tool vector to the block when the rotary state changed (vector form of tool-tip control).
+  void add_vector(const Vec3& axis, bool rot_changed) {
+    if (vectors_ && rot_changed) blk_.tool_vector = std::array<double, 3>{axis.x(), axis.y(), axis.z()};
+  }
+
   void cartesian(const cl::Move& mv, const kin::Axes& q) {
+    cur_line_ = mv.line;
     const Vec3 axis = mv.axis_in_part.normalized();
     const kin::Axes v = cartesian_words(mv.tip_in_part_mm, axis, q);
     if (!have_state_ || mv.kind == cl::MotionKind::Rapid) {
       if (axis_retract_ && rotaries_differ(v)) {
         if (have_state_) axis_retract(SourceLoc{prog_.file, mv.line, 0});
         Vec3 above;
-        if (retract_point(mv.tip_in_part_mm, axis, above)) {
+        if (tcp_retract_point(mv.tip_in_part_mm, axis, q, above)) {
           kin::Axes va = v;
           int k = 0;
           for (int i = 0; i < 5; ++i)
             if (!m_.axes[static_cast<size_t>(i)].rotary()) va[i] = above[k++];
-          emit_g0(va);
+          turn_stepwise(va);
+          const bool rot = rotaries_differ(va);
+          start(BlockSpec::Motion::Rapid);
+          if (add_words(va, {0, 1, 2, 3, 4})) {
+            add_vector(axis, rot);
+            set_mode94();
+            emit();
+          }
+          cur_ = va;
+          track_control(va, axis);
         }
       }
-      emit_g0(v);
+      turn_stepwise(v);
+      const bool rot = rotaries_differ(v);
+      start(BlockSpec::Motion::Rapid);
+      if (add_words(v, {0, 1, 2, 3, 4})) {
+        add_vector(axis, rot);
+        set_mode94();
+        emit();
+      }
     } else {
-      const double feed_mm_min = mv.feed_mm_per_min > 0 ? mv.feed_mm_per_min : 1000.0;
-      set_mode94();
-      buf_.append("G1");
-      if (!append_words(v, {0, 1, 2, 3, 4})) {
-        buf_.resize(buf_.size() - 2);
-      } else {
-        if (std::abs(feed_mm_min - last_feed_) > 1e-9) {
-          fmt::format_to(std::back_inserter(buf_), " F{:.1f}", feed_mm_min);
-          last_feed_ = feed_mm_min;
-        }
-        buf_.push_back('\n');
-        ++sum_.blocks;
-      }
+      const double feed_mm_min = mv.feed_mm_per_min > 0 ? mv.feed_mm_per_min : kFallbackFeedMmMin;
+      tcp_pieces(cart_move_, cart_q_, mv, q);
+      for (const auto& pc : tcp_pieces_) emit_tcp_feed(pc.tip, pc.axis, pc.q, feed_mm_min);
     }
+    if (!have_state_ || mv.kind == cl::MotionKind::Rapid) track_control(v, axis);
     cur_ = v;
+    cart_q_ = q;
     cart_tip_ = mv.tip_in_part_mm;
     cart_axis_ = axis;
+    cart_move_ = mv;
     have_state_ = true;
+  }
+
+  /// The tool axis that the words v (tip + rotary words) give, as the control interpolates them.
+  bool axis_of_words(const kin::Axes& v, Vec3& axis) const {
+    const auto rp = kin_.rotary_pair();
+    if (traits_.tcp_rotary_words == kin::Traits::TcpRotaryWords::VirtualWrist) {
+      const double c = v[rp[0]], a = v[rp[1]];
+      axis = Vec3(-std::sin(a) * std::sin(c), -std::sin(a) * std::cos(c), std::cos(a));
+      return true;
+    }
+    Vec3 tip;
+    int k = 0;
+    for (int i = 0; i < 5; ++i)
+      if (!m_.axes[static_cast<size_t>(i)].rotary()) tip[k++] = v[i];
+    return kin_.tool_axis_at(v[rp[0]], v[rp[1]], tip, axis);
+  }
+
+  struct TcpPiece {
+    Vec3 tip, axis;
+    kin::Axes q;
+  };
+
+  /// The linearizer of tool-tip control: the control moves the tip straight (exactly the CL segment) and
+  /// interpolates the rotary words linearly; where that turns the axis away from the CL's interpolated axis by
+  /// more than the axis tolerance, points are inserted (tip on the segment, axis on the CL's great circle).
+  void tcp_pieces(const cl::Move& m0, const kin::Axes& q0, const cl::Move& m1, const kin::Axes& q1) {
+    tcp_pieces_.clear();
+    const Vec3 P0 = m0.tip_in_part_mm, P1 = m1.tip_in_part_mm;
+    const Slerp axis(m0.axis_in_part.normalized(), m1.axis_in_part.normalized());
+    struct Span {
+      double sa, sb;
+      kin::Axes qa, qb;
+      int depth;
+    };
+    std::vector<Span> stack{{0.0, 1.0, q0, q1, 0}};
+    while (!stack.empty()) {
+      const Span sp = stack.back();
+      stack.pop_back();
+      const Vec3 ta = P0 + sp.sa * (P1 - P0), tb = P0 + sp.sb * (P1 - P0);
+      const kin::Axes wa = cartesian_words(ta, axis(sp.sa), sp.qa), wb = cartesian_words(tb, axis(sp.sb), sp.qb);
+      bool bad = false;
+      if (opt_.linearise && sp.depth < opt_.max_subdivision_depth) {
+        const Vec3 ua = axis(sp.sa), ub = axis(sp.sb);
+        for (double t : {0.5, 0.25, 0.75}) {
+          Vec3 u;
+          bool ok = true;
+          if (vectors_) {  // the vector on the great circle, as the gate reads it (gnomonic coordinates)
+            ok = ua.z() > 0 && ub.z() > 0;
+            u = Vec3(ua.x() / ua.z() + t * (ub.x() / ub.z() - ua.x() / ua.z()),
+                     ua.y() / ua.z() + t * (ub.y() / ub.z() - ua.y() / ua.z()), 1.0)
+                    .normalized();
+          } else {
+            ok = axis_of_words(wa + t * (wb - wa), u);
+          }
+          if (!ok || u.dot(axis(sp.sa + t * (sp.sb - sp.sa))) < cos_tol_axis_) {
+            bad = true;
+            break;
+          }
+        }
+      }
+      if (bad) {
+        const double sm = 0.5 * (sp.sa + sp.sb);
+        const Vec3 um = axis(sm);
+        kin::Axes qm;
+        bool jumped = false;
+        const kin::Posed from{ta, axis(sp.sa)}, to{P0 + sm * (P1 - P0), um};
+        ++sum_.ik_calls;
+        if (kin::track_checked(kin_, sp.qa, from, to, qm, jumped) && !jumped) {
+          check_limits(qm, m1);
+          ++sum_.inserted_points;
+          stack.push_back({sm, sp.sb, qm, sp.qb, sp.depth + 1});
+          stack.push_back({sp.sa, sm, sp.qa, qm, sp.depth + 1});
+          continue;
+        }
+      }
+      tcp_pieces_.push_back({tb, axis(sp.sb), sp.qb});
+    }
+  }
+
+  /// The machine axes the control moves to for the tip words v (IK nearest to its previous axes, as the gate
+  /// reads the program back).
+  void track_control(const kin::Axes& v, const Vec3& cl_axis) {
+    Vec3 tip, u = cl_axis;
+    int k = 0;
+    for (int i = 0; i < 5; ++i)
+      if (!m_.axes[static_cast<size_t>(i)].rotary()) tip[k++] = v[i];
+    if (!vectors_ && !axis_of_words(v, u)) return;
+    kin::Axes sol;
+    if (kin::nearest_solution(kin_, kin::Posed{tip, u}, ctrl_q_, sol)) ctrl_q_ = sol;
+  }
+
+  /// One tool-tip-control feed block to (tip, axis) with machine axes q there.
+  void emit_tcp_feed(const Vec3& tip, const Vec3& axis, const kin::Axes& q, double feed_mm_min) {
+    const kin::Axes v = cartesian_words(tip, axis, q);
+    const bool rot = rotaries_differ(v);
+    start(BlockSpec::Motion::Linear);
+    if (add_words(v, {0, 1, 2, 3, 4})) {
+      add_vector(axis, rot);
+      set_mode94();
+      // The control moves the tip at F; slowed so that no machine axis exceeds its max_feed.
+      const double tip_mm = (tip - cart_tip_).norm();
+      const double programmed = tip_mm / feed_mm_min;
+      // Judged by the planned axes and by what the control computes from the words (its IK nearest to where it
+      // is: near a singularity it may turn a rotary much more than the plan).
+      const kin::Axes ctrl_before = ctrl_q_;
+      track_control(v, axis);
+      const double minutes =
+          std::max(block_minutes(cart_q_, q, programmed), block_minutes(ctrl_before, ctrl_q_, programmed));
+      const double f =
+          minutes > programmed * (1.0 + 1e-9) ? word_length(cur_, v) / minutes : feed_mm_min * feed_to_file_;
+      std::optional<double> fw;
+      if (std::abs(f - last_feed_) > 1e-9) {
+        fw = f;
+        last_feed_ = f;
+      }
+      emit(fw);
+    }
+    cur_ = v;
+    cart_q_ = q;
+    cart_tip_ = tip;
+    cart_axis_ = axis;
   }
 
   std::ostream& out_;
   const cl::Program& prog_;
   const machine::Machine& m_;
   const kin::Kinematics& kin_;
+  const kin::Traits traits_;
   const Options& opt_;
   Summary& sum_;
-  Dialect dialect_;
+  Linearizer lin_;
+  std::vector<Linearizer::Piece> pieces_;
+  ProgramInfo info_;
+  std::unique_ptr<Formatter> fmt_;
+  BlockSpec blk_;
+  bool inverse_time_ = true;
   double tol_mm_ = 0.01, tol_axis_rad_ = 0.005, cos_tol_axis_ = 1.0;
   std::array<int, 5> decimals_{};
   std::array<double, 5> scale_{}, to_file_{};
+  std::array<bool, 5> shortest_{};  ///< cyclic rotary written modulo 360, reached the short way
+  double feed_to_file_ = 1.0;       ///< mm/min to the file's feed unit
   std::array<long long, 5> last_{};
+  std::array<double, 5> written_{};  ///< the (unwrapped) value last written per axis
   std::array<bool, 5> have_word_{};
+  std::array<std::array<std::string, 2>, 5> clamp_codes_{};
+  std::array<bool, 5> clamped_{};
   int z_ = -1;
   double safe_z_ = 0.0;
-  std::array<std::string, 5> letters_;  ///< word letter per axis slot (X Y Z for the tip in Cartesian mode)
-  bool cart_ = false;                   ///< Cartesian (TCP) output: slots hold tip + tool-vector rotaries
-  bool axis_retract_ = false;           ///< retract along the tool axis to z = safe_z_mm (no Z axis, or Cartesian)
+  bool cart_ = false;     ///< Cartesian (TCP) output: slots hold tip + tool-vector rotaries
+  bool vectors_ = false;  ///< TCP with the tool vector instead of rotary words
+  bool tcp_on_ = false;   ///< tool-tip control switched on in the program
+  int tool_h_ = 0;        ///< length offset register of the loaded tool
+  bool warned_h0_ = false;
+  bool axis_retract_ = false;  ///< retract along the tool axis to z = safe_z_mm (no Z axis, or Cartesian)
   Vec3 cart_tip_ = Vec3::Zero(), cart_axis_ = Vec3::UnitZ();  ///< last Cartesian position (part frame)
+  kin::Axes cart_q_ = kin::Axes::Zero();                      ///< the machine axes there
+  kin::Axes ctrl_q_ = kin::Axes::Zero();  ///< the machine axes a TCP control reaches (IK nearest, like the gate)
+  cl::Move cart_move_;                    ///< the last CL point posted in Cartesian mode
+  std::vector<TcpPiece> tcp_pieces_;
   bool have_state_ = false;
   bool at_cut_ = false;  ///< the last motion was a feed: the tool may be in the material
   cl::Move cut_move_;    ///< the CL point that feed ended at
   bool mode93_ = false;
   double last_feed_ = -1.0;
   kin::Axes cur_ = kin::Axes::Zero();
+  int cur_line_ = 0;  ///< the CL line being posted (for messages)
+  std::size_t capped_blocks_ = 0;
+  int first_capped_line_ = 0;
   std::string buf_;
   size_t scanned_ = 0;  ///< bytes of buf_ already attributed to a CL line
-  std::vector<Piece> stack_;
 };
 
 }  // namespace
 
-std::vector<std::string> dialects() { return {"linuxcnc", "fanuc", "xmini-joint", "xmini-cartesian"}; }
+std::vector<std::string> dialects() { return dialect_names(); }
 
 void write_nc(std::ostream& out, const cl::Program& program, const machine::Machine& machine,
               const kin::Kinematics& kinematics, const std::vector<kin::Axes>& axes, const Options& options,
               Summary& summary) {
   CSCAM_CHECK(axes.size() == program.moves.size(), "one axis vector per CL move");
-  Writer w(out, program, machine, kinematics, options, summary);
+  Sequencer w(out, program, machine, kinematics, options, summary);
   w.run(axes);
 }
 

@@ -130,7 +130,8 @@ Stats compute_samples(const std::vector<Sample>& s, const std::array<std::string
 
 }  // namespace
 
-Stats compute(const nc::Program& program, const std::array<std::string, 5>& names, const std::array<bool, 5>& rotary) {
+Stats compute(const nc::Program& program, const std::array<std::string, 5>& names, const std::array<bool, 5>& rotary,
+              const std::array<double, 5>* max_feed) {
   std::vector<Sample> s;
   s.reserve(program.blocks.size());
   for (const nc::Block& b : program.blocks) {
@@ -142,6 +143,22 @@ Stats compute(const nc::Program& program, const std::array<std::string, 5>& name
   }
   Stats st = compute_samples(s, names, rotary);
   st.source = program.file;
+  // Cycle time, block by block from the previous block's position.
+  st.rapid_time_known = max_feed != nullptr;
+  for (size_t i = 1; i < s.size(); ++i) {
+    const nc::Block& b = program.blocks[i];
+    double lin2 = 0.0, rot2 = 0.0, rapid_min = 0.0;
+    for (size_t a = 0; a < 5; ++a) {
+      const double d = s[i].v[a] - s[i - 1].v[a];
+      (rotary[a] ? rot2 : lin2) += d * d;
+      if (max_feed && (*max_feed)[a] > 0) rapid_min = std::max(rapid_min, std::abs(d) / (*max_feed)[a]);
+    }
+    if (b.motion == nc::Motion::Rapid) {
+      st.rapid_minutes += rapid_min;
+    } else if (b.feed > 0) {
+      st.feed_minutes += b.inverse_time ? 1.0 / b.feed : (lin2 > 1e-18 ? std::sqrt(lin2) : std::sqrt(rot2)) / b.feed;
+    }
+  }
   return st;
 }
 
@@ -183,7 +200,10 @@ nlohmann::json Stats::json() const {
           {"feed_blocks", feed_blocks},
           {"axes", std::move(ax)},
           {"segments", std::move(segs)},
-          {"feed_blocks_by_simultaneous_axes", blocks_by_simultaneous}};
+          {"feed_blocks_by_simultaneous_axes", blocks_by_simultaneous},
+          {"feed_minutes", rounded(feed_minutes, 4)},
+          {"rapid_minutes", rapid_time_known ? nlohmann::json(rounded(rapid_minutes, 4)) : nlohmann::json()},
+          {"cycle_minutes", rounded(feed_minutes + rapid_minutes, 4)}};
 }
 
 std::string Stats::to_json() const { return json().dump(); }
@@ -212,6 +232,10 @@ std::string table(const std::vector<Stats>& cols, const std::vector<std::string>
       row(fmt::format("{} largest step (deg)", nm),
           [a](const Stats& s) { return fmt::format("{:.3f}", s.axes[a].largest_step); });
   }
+  row("cycle time (min)", [](const Stats& s) {
+    return s.rapid_time_known ? fmt::format("{:.2f}", s.feed_minutes + s.rapid_minutes)
+                              : fmt::format("{:.2f}+rapids", s.feed_minutes);
+  });
   row("cutting segments", [](const Stats& s) { return fmt::format("{}", s.segments.size()); });
   row("max simultaneous axes", [](const Stats& s) {
     int m = 0;

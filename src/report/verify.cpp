@@ -6,11 +6,15 @@
 
 #include <algorithm>
 #include <cmath>
+#include <fstream>
 #include <limits>
+#include <sstream>
+#include <stdexcept>
 
+#include "cscam/core/error.hpp"
 #include "cscam/core/tolerances.hpp"
 #include "cscam/core/units.hpp"
-#include "cscam/kin/xmini_kinematics.hpp"
+#include "cscam/kin/track.hpp"
 #include "cscam/report/json.hpp"
 
 namespace cscam::report {
@@ -58,7 +62,109 @@ bool departure(const kin::Posed* poses, int n, double tip_tol, double cos_axis_t
   return true;
 }
 
+/// A tool-tip-control program holds the tip (part frame) in its linear words and the tool vector in its
+/// rotary words; the control moves both linearly between blocks.
+class TipWordsKinematics final : public kin::Kinematics {
+ public:
+  TipWordsKinematics(const kin::Kinematics& machine_kin, bool gnomonic)
+      : k_(machine_kin),
+        virtual_wrist_(machine_kin.traits().tcp_rotary_words == kin::Traits::TcpRotaryWords::VirtualWrist),
+        gnomonic_(gnomonic) {
+    for (int i = 0; i < 5; ++i)
+      if (!k_.axes()[static_cast<size_t>(i)].rotary()) lin_[static_cast<size_t>(nlin_++)] = i;
+  }
+  [[nodiscard]] const std::vector<kin::AxisInfo>& axes() const override { return k_.axes(); }
+  [[nodiscard]] std::array<int, 2> rotary_pair() const override { return k_.rotary_pair(); }
+  [[nodiscard]] kin::Posed forward(const kin::Axes& q) const override {
+    kin::Posed p;
+    p.tip_mm = Vec3(q[lin_[0]], q[lin_[1]], q[lin_[2]]);
+    const auto rp = k_.rotary_pair();
+    if (gnomonic_) {
+      // Vector form: the rotary slots hold the vector's gnomonic coordinates (x/z, y/z), in which the great
+      // circle between two vectors is the straight line.
+      p.axis = Vec3(q[rp[0]], q[rp[1]], 1.0).normalized();
+    } else if (virtual_wrist_) {
+      // Virtual wrist angles of an untilted platform (the post's Cartesian words): u(C, A).
+      const double c = q[rp[0]], a = q[rp[1]];
+      p.axis = Vec3(-std::sin(a) * std::sin(c), -std::sin(a) * std::cos(c), std::cos(a));
+    } else if (!k_.tool_axis_at(q[rp[0]], q[rp[1]], p.tip_mm, p.axis)) {
+      p.axis = Vec3::Constant(std::numeric_limits<double>::quiet_NaN());
+    }
+    return p;
+  }
+  void inverse_all(const kin::Posed&, const kin::Axes*, std::vector<kin::Solution>&) const override {
+    throw std::logic_error("TipWordsKinematics has no inverse");
+  }
+  void inverse_branches(const kin::Posed&, const kin::Axes*, std::vector<kin::Solution>&) const override {
+    throw std::logic_error("TipWordsKinematics has no inverse");
+  }
+  bool solve_for_rotaries(const kin::Posed&, kin::Axes&) const override { return false; }
+  bool tool_axis_at(double, double, const Vec3&, Vec3&) const override { return false; }
+  [[nodiscard]] kin::Traits traits() const override { return k_.traits(); }
+
+ private:
+  const kin::Kinematics& k_;
+  bool virtual_wrist_;
+  bool gnomonic_;
+  std::array<int, 3> lin_{};
+  int nlin_ = 0;
+};
+
 }  // namespace
+
+bool uses_tool_tip_control(const std::string& t) {
+  for (const char* w : {"(cartesian:", "G43.4", "G43.5", "G234", "M428", "TRAORI", "TCPM", "M128"})
+    if (t.find(w) != std::string::npos) return true;
+  return false;
+}
+
+nc::Program read_for_machine(const std::string& nc_text, const std::string& name, const machine::Machine& m) {
+  nc::AxisLetters letters;
+  for (std::size_t i = 0; i < 5; ++i) {
+    letters.letter[i] = m.post.letters[i][0];
+    letters.rotary[i] = m.axes[i].rotary();
+    letters.modulo[i] = m.axes[i].rotary() && m.axes[i].cyclic && m.post.rotary_output == "shortest";
+  }
+  const bool tcp = uses_tool_tip_control(nc_text);
+  if (tcp) {
+    int k = 0;
+    for (size_t i = 0; i < 5; ++i)
+      if (!letters.rotary[i]) letters.letter[i] = "XYZ"[k++];
+  }
+  nc::Program p = nc::read_text(nc_text, name, letters);
+  p.tcp = p.tcp || tcp;  // our Cartesian header says so too
+  return p;
+}
+
+nc::Program read_file_for_machine(const std::string& path, const machine::Machine& m) {
+  std::ifstream in(path, std::ios::binary);
+  if (!in) throw InputError(SourceLoc{path}, "cannot open NC file");
+  std::stringstream ss;
+  ss << in.rdbuf();
+  return read_for_machine(ss.str(), path, m);
+}
+
+std::unique_ptr<kin::Kinematics> tool_tip_kinematics(const kin::Kinematics& machine_kinematics, bool vectors) {
+  return std::make_unique<TipWordsKinematics>(machine_kinematics, vectors);
+}
+
+std::string resolve_tool_vectors(nc::Program& nc, const kin::Kinematics& k, int* bad_line) {
+  if (!nc.tcp_vectors) return {};
+  const auto rp = k.rotary_pair();
+  for (auto& b : nc.blocks) {
+    if (!b.has_vector) continue;
+    const Vec3 u(b.tool_vector[0], b.tool_vector[1], b.tool_vector[2]);
+    if (!(u.z() > 1e-6 * u.norm())) {
+      if (bad_line) *bad_line = b.line;
+      return fmt::format("{}:{}: tool vector ({:.6f}, {:.6f}, {:.6f}) does not point up from the part", nc.file, b.line,
+                         u.x(), u.y(), u.z());
+    }
+    b.axes[static_cast<size_t>(rp[0])] = u.x() / u.z();
+    b.axes[static_cast<size_t>(rp[1])] = u.y() / u.z();
+    b.known[static_cast<size_t>(rp[0])] = b.known[static_cast<size_t>(rp[1])] = true;
+  }
+  return {};
+}
 
 VerifyOptions verify_options_for(const machine::Machine& machine, double tolerance_mm, double axis_tolerance_deg,
                                  double cone_deg) {
@@ -163,7 +269,7 @@ VerifyResult verify(const nc::Program& nc, const cl::Program& cl, const kin::Kin
   // The XMINI's FK is a Newton solve warm-started from the thread's previous one: its last digits depend on
   // which block a thread solved before, so there the samples are computed in order (numbers independent of the
   // thread count, as everywhere else).
-  const bool fk_in_order = dynamic_cast<const kin::XminiKinematics*>(&kinematics) != nullptr;
+  const bool fk_in_order = kinematics.traits().forward_depends_on_call_order;
   struct AxisSample {
     std::size_t seg;
     double t;

@@ -18,6 +18,7 @@ struct Tool {
   double diameter_mm = 0.0;
   double corner_radius_mm = 0.0;  ///< diameter/2 for a ball mill
   double length_mm = 0.0;         ///< flute/overall length as the CL gives it (0 if unknown)
+  int length_register = -1;       ///< LOAD/TOOL,n,ADJUST,h: the length offset register (-1: the tool number)
 
   /// A ball-end mill: the corner radius equals the radius (then the ball centre is tip + r * axis).
   [[nodiscard]] bool is_ball() const {
@@ -41,14 +42,26 @@ struct Move {
 
 /// A non-motion event, attached to the move that follows it.
 struct Event {
-  enum class Kind { ToolChange, SpindleOn, SpindleOff, CoolantOn, CoolantOff, Comment, OperationStart, Stop };
+  enum class Kind {
+    ToolChange,
+    SpindleOn,
+    SpindleOff,
+    CoolantOn,
+    CoolantOff,
+    Comment,
+    OperationStart,
+    Stop,   ///< STOP (text "STOP") or OPSTOP (text "OPSTOP")
+    Dwell,  ///< DELAY/seconds
+    Insert  ///< INSERT/text: passed to the NC program as it is
+  };
   Kind kind = Kind::Comment;
   std::size_t before_move = 0;  ///< index of the first move after the event
   int line = 0;
   int tool_index = -1;       ///< ToolChange
   double spindle_rpm = 0.0;  ///< SpindleOn
   bool clockwise = true;     ///< SpindleOn
-  std::string text;          ///< Comment / OperationStart name / coolant mode (FLOOD, MIST, ...)
+  std::string text;          ///< Comment / OperationStart name / coolant mode (FLOOD, MIST, ...) / Insert text
+  double seconds = 0.0;      ///< Dwell
 };
 
 struct Warning {

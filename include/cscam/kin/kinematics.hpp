@@ -12,6 +12,24 @@
 
 namespace cscam::kin {
 
+/// What the post and the gate need to know about a machine's kinematics beyond the maths, so that no code
+/// asks which model it is (as LinuxCNC keeps each machine's kinematics behind one interface).
+struct Traits {
+  /// The linear axis the tool retracts along (machine Z), or -1 when no axis is one (a PKM's legs): the
+  /// post then retracts the tip along the tool axis to the safe plane.
+  int retract_axis = -1;
+  /// Rotary words under tool-tip control: the machine's own rotary angles (a serial machine: they alone set
+  /// the tool vector), or the angles of a virtual wrist (C, A) of an untilted platform (the XMINI).
+  enum class TcpRotaryWords { MachineAngles, VirtualWrist } tcp_rotary_words = TcpRotaryWords::MachineAngles;
+  /// Axes the control drives (all five for every model so far).
+  std::array<bool, 5> actuated{true, true, true, true, true};
+  /// A parallel machine (PKM): every Cartesian move moves every actuated leg, so the legs' reversals count.
+  bool parallel = false;
+  /// FK is an iterative solve warm-started from the calling thread's previous call (the XMINI's Newton): its last
+  /// digits depend on call order, so callers that promise the same numbers at any thread count evaluate it in order.
+  bool forward_depends_on_call_order = false;
+};
+
 /// Immutable kinematic model of a 5-axis machine. Implementations are thread-safe for const use.
 class Kinematics {
  public:
@@ -44,6 +62,14 @@ class Kinematics {
   virtual bool link_in_part(int /*axis*/, const Axes& /*q*/, Eigen::Isometry3d& /*T*/) const { return false; }
   /// Limits that the axis values alone do not show, e.g. a PKM's passive joint angles; empty if none broken.
   [[nodiscard]] virtual std::string passive_violation(const Axes& /*q*/) const { return {}; }
+  /// The model's traits; the default: a linear axis named "z" to retract along, machine angles under TCP.
+  [[nodiscard]] virtual Traits traits() const {
+    Traits t;
+    const auto& a = axes();
+    for (std::size_t i = 0; i < a.size(); ++i)
+      if (!a[i].rotary() && a[i].name == "z") t.retract_axis = static_cast<int>(i);
+    return t;
+  }
   /// First limit that q violates, or empty.
   [[nodiscard]] std::string check_limits(const Axes& q) const;
   /// Choose for every rotary of `s` the winding nearest to `prev` (same angle modulo 2 pi), if within limits.

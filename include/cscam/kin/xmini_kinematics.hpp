@@ -42,6 +42,14 @@ class XminiKinematics final : public Kinematics {
 
   [[nodiscard]] const std::vector<AxisInfo>& axes() const override { return axes_; }
   [[nodiscard]] std::array<int, 2> rotary_pair() const override { return {3, 4}; }
+  /// No Z axis (legs): retracts go along the tool axis; under TCP the rotary words are a virtual wrist.
+  [[nodiscard]] Traits traits() const override {
+    Traits t;
+    t.tcp_rotary_words = Traits::TcpRotaryWords::VirtualWrist;
+    t.parallel = true;
+    t.forward_depends_on_call_order = true;
+    return t;
+  }
   /// FK. If the legs admit no assembly (Newton fails), the tip is +infinity in every coordinate so that
   /// every distance test downstream fails loudly instead of passing on NaN.
   [[nodiscard]] Posed forward(const Axes& q) const override;

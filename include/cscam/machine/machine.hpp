@@ -41,6 +41,21 @@ struct PostSettings {
     double retract_mm = 10.0;  ///< how far the tip leaves along the tool axis before turning
   } singularity;
   std::string program_name = "CSCAM";
+  /// Tool-tip control form: angles (rotary words: G43.4, G234, TRAORI ORIAXES, TCPM) or vectors (G43.5 I J K,
+  /// Siemens A3 B3 C3).
+  std::string tcp_form = "angles";
+  std::string work_offset = "G54";  ///< G54..G59 or G54.1 Pn; empty ("none" in the file): none written
+  int program_number = 1;           ///< O-number (fanuc, haas)
+  bool sequence_numbers = false;    ///< N words on every block
+  int sequence_step = 10;
+  bool inch = false;  ///< G20 output: linear words and feeds in inches
+  /// Rotary clamp / unclamp M-codes per rotary axis name (e.g. a: [M10, M11]), written around indexed (3+2)
+  /// moves: clamped once positioned for a stretch of feed moves in which the axis does not turn.
+  std::map<std::string, std::array<std::string, 2>> clamp;
+  /// absolute: rotary words are the axis positions; shortest: cyclic rotaries are written modulo 360 in
+  /// [0, 360) and the control takes the short way (Siemens writes =DC()).
+  std::string rotary_output = "absolute";
+  bool home_rotaries = true;  ///< the end block turns the rotaries back to 0
 };
 
 /// Where a machine body sits in the kinematic structure.

@@ -1,6 +1,8 @@
 #pragma once
 /// @file
-/// Reads G-code (ours and common ISO/Fanuc/LinuxCNC/Haas dialects) back into axis values per motion block.
+/// Reads NC programs back into axis values per motion block: ISO G-code (ours; Fanuc, Haas, LinuxCNC), Siemens
+/// Sinumerik (identifiers such as TRAORI, `X=`, `C=DC()`, A3/B3/C3 vectors, `;` comments) and Heidenhain
+/// conversational (`L X+1 Y-2 FMAX`, detected by its BEGIN PGM line).
 #include <array>
 #include <optional>
 #include <string>
@@ -12,6 +14,9 @@ namespace cscam::nc {
 struct AxisLetters {
   std::array<char, 5> letter{};
   std::array<bool, 5> rotary{};
+  /// Rotary written modulo 360 and reached the short way (Siemens =DC() says so itself): the value read is
+  /// the one nearest to the previous.
+  std::array<bool, 5> modulo{};
 };
 
 enum class Motion { Rapid, Linear, ArcCW, ArcCCW };
@@ -25,14 +30,18 @@ struct Block {
   std::array<double, 5> axes{};
   std::array<bool, 5> known{};  ///< the axis has been programmed at least once so far
   std::array<bool, 5> words{};  ///< the axis word appears in this block
+  /// Tool vector (part frame) of tool-tip control in vector form (G43.5 I J K, Siemens A3 B3 C3), modal.
+  std::array<double, 3> tool_vector{0.0, 0.0, 1.0};
+  bool has_vector = false;  ///< a tool vector has been programmed so far
 };
 
 struct Program {
   std::string file;
   std::vector<Block> blocks;
   std::optional<double> tool_length_mm;  ///< from a "(cscam tool_length_mm=...)" header comment
-  bool tcp = false;                      ///< G43.4 / G234 / TCPM seen: axis values are part coordinates
-  std::vector<std::string> notes;        ///< things skipped on purpose (G28/G53 blocks, arcs treated as chords)
+  bool tcp = false;                ///< G43.4/G43.5/G234/M428/TRAORI/TCPM/M128 seen: axis values are part coordinates
+  bool tcp_vectors = false;        ///< the tool orientation is given as vectors (Block::tool_vector)
+  std::vector<std::string> notes;  ///< things skipped on purpose (G28/G53 blocks, arcs treated as chords)
   /// The machine named by our post's header comment "(cscam post: machine NAME dialect ...)", if present.
   std::optional<std::string> header_machine;
   int header_line = 0;  ///< the line of that comment

@@ -4,6 +4,7 @@
 /// The post linearises rotary motion (inserting points until the real tip path stays within the
 /// tolerance of the straight CL segment), chooses G93/G94 feed modes, and refuses to leave the limits.
 #include <iosfwd>
+#include <optional>
 #include <string>
 #include <vector>
 
@@ -19,6 +20,7 @@ struct Options {
   double tolerance_mm = 0.0;        ///< 0: the machine's
   double axis_tolerance_deg = 0.0;  ///< 0: the machine's
   bool linearise = true;
+  std::optional<bool> tcp;         ///< tool-tip control on/off; unset: the machine's post.tcp
   int max_subdivision_depth = 14;  ///< at most 2^depth pieces per CL segment
   std::string source_name;         ///< shown in the header comment
   std::string strategy = "conventional";
@@ -37,6 +39,7 @@ struct Summary {
   double max_checked_tip_deviation_mm = 0.0;
   std::size_t reorientations = 0;  ///< branch flips or unwinds done with the tip held in place
   std::size_t retracts = 0;        ///< branch flips or unwinds done by retract, rotate and plunge
+  std::size_t capped_blocks = 0;   ///< feed blocks slowed so that no axis exceeds its max_feed
   std::vector<std::string> warnings;
   /// For every NC line (1-based index; index 0 unused) the CL line it came from (0: header, footer).
   std::vector<int> cl_line_of_nc_line;
@@ -59,5 +62,11 @@ std::vector<std::string> dialects();
 
 /// Tool length (gauge to tip, mm) to use for a program: the option if > 0, else the machine default.
 double tool_length_for(const machine::Machine& machine, double option_mm);
+
+/// The same for a CL program. On a machine whose head carries a rotary the tool length changes the kinematics:
+/// without the option it comes from the CL (the first tool's TLDATA/CUTTER length) and `note` says so; when the CL
+/// has none either, the machine default is used and `note` is a warning saying so (never silently).
+double tool_length_for(const machine::Machine& machine, double option_mm, const cl::Program& program,
+                       std::string& note);
 
 }  // namespace cscam::post

@@ -18,6 +18,7 @@ inline nc::AxisLetters axis_letters(const machine::Machine& m) {
   for (std::size_t i = 0; i < 5; ++i) {
     l.letter[i] = m.post.letters[i][0];
     l.rotary[i] = m.axes[i].rotary();
+    l.modulo[i] = m.axes[i].rotary() && m.axes[i].cyclic && m.post.rotary_output == "shortest";
   }
   return l;
 }

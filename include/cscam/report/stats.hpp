@@ -36,13 +36,20 @@ struct Stats {
   std::array<AxisStat, 5> axes;
   std::vector<SegmentStat> segments;
   std::array<int, 6> blocks_by_simultaneous{};  ///< feed blocks by number of moving axes (0..5)
+  /// Cycle-time estimate (NC programs): feed blocks at their programmed rate (G93: 1/F; G94: length by the
+  /// RS274 rule / F), rapids at the slowest axis' max_feed when the axis rates are known. No acceleration.
+  double feed_minutes = 0.0;
+  double rapid_minutes = 0.0;
+  bool rapid_time_known = false;
 
   [[nodiscard]] nlohmann::json json() const;
   [[nodiscard]] std::string to_json() const;  ///< json().dump()
 };
 
-/// Statistics of axis values read from an NC file.
-Stats compute(const nc::Program& program, const std::array<std::string, 5>& names, const std::array<bool, 5>& rotary);
+/// Statistics of axis values read from an NC file. `max_feed` (mm/min, deg/min per axis; 0 unknown), when given,
+/// times the rapids of the cycle-time estimate.
+Stats compute(const nc::Program& program, const std::array<std::string, 5>& names, const std::array<bool, 5>& rotary,
+              const std::array<double, 5>* max_feed = nullptr);
 
 /// Statistics of an axis path (one entry per point; `rapid[i]` marks rapid points). Rotary in radians.
 Stats compute(const std::vector<kin::Axes>& path, const std::vector<bool>& rapid,

@@ -2,6 +2,7 @@
 /// @file
 /// Back-simulation: read NC axis values, run forward kinematics inside every block, and compare the
 /// tool tip and axis with the CL path.
+#include <memory>
 #include <nlohmann/json_fwd.hpp>
 #include <string>
 
@@ -44,6 +45,25 @@ struct VerifyResult {
 /// mill's centre is what stays on the path.
 VerifyOptions verify_options_for(const machine::Machine& machine, double tolerance_mm = 0.0,
                                  double axis_tolerance_deg = 0.0, double cone_deg = 0.0);
+
+/// Whether an NC text uses tool-tip control (G43.4/G43.5, G234, M428, TRAORI, TCPM, M128, or our Cartesian
+/// header): its linear words are then the tip in the part frame.
+bool uses_tool_tip_control(const std::string& nc_text);
+
+/// Reads an NC program for machine `m`: machine letters, or X Y Z for the tip under tool-tip control. Rotaries
+/// written modulo 360 (post.rotary_output: shortest) are read the short way.
+nc::Program read_for_machine(const std::string& nc_text, const std::string& name, const machine::Machine& m);
+nc::Program read_file_for_machine(const std::string& path, const machine::Machine& m);
+
+/// The view of a tool-tip-control program that verify needs: forward() maps the words (tip + rotary angles,
+/// or a virtual wrist's, after kin::Traits) to the tool pose, as the control interpolates them. `vectors`: the
+/// rotary slots hold a tool vector's gnomonic coordinates (resolve_tool_vectors).
+std::unique_ptr<kin::Kinematics> tool_tip_kinematics(const kin::Kinematics& machine_kinematics, bool vectors = false);
+
+/// Vector-form tool-tip control (G43.5 I J K, A3 B3 C3): puts into every block's rotary slots the tool vector's
+/// gnomonic coordinates (x/z, y/z), in which the control's great-circle interpolation is a straight line.
+/// Returns an empty string, or why a vector cannot be used (pointing down; `bad_line` set to its line).
+std::string resolve_tool_vectors(nc::Program& nc, const kin::Kinematics& machine_kinematics, int* bad_line = nullptr);
 
 /// Compares the NC program (machine axis values) with the CL program through `kinematics`.
 VerifyResult verify(const nc::Program& nc, const cl::Program& cl, const kin::Kinematics& kinematics,

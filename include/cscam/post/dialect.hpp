@@ -1,0 +1,111 @@
+#pragma once
+/// @file
+/// Dialects: how one controller family spells a program. The post's sequencer decides what moves (which axis
+/// values, which feed, when to switch tool-tip control on); a dialect only writes it down: the program frame
+/// (number, name, safe start block, end), tool changes, tool-tip control on/off and the syntax of one block.
+/// One small class per controller family; its settings come from the machine file's `post:` section.
+#include <array>
+#include <memory>
+#include <optional>
+#include <string>
+#include <vector>
+
+#include "cscam/machine/machine.hpp"
+
+namespace cscam::post {
+
+/// Everything a dialect may print in the program frame.
+struct ProgramInfo {
+  std::string machine_name;
+  std::string program_name;
+  int program_number = 1;
+  std::string source_name;  ///< the CL file, shown in a comment
+  std::string strategy;
+  double tool_length_mm = 0.0;
+  double tolerance_mm = 0.01;
+  bool tcp = false;                    ///< tool-tip control: linear words are the tip in the part frame
+  bool tcp_vectors = false;            ///< the tool orientation as a vector (G43.5 I J K, Siemens A3 B3 C3), not angles
+  bool inch = false;                   ///< G20 / MM->INCH output
+  std::string work_offset;             ///< "G54", ...; empty: none
+  std::array<std::string, 5> letters;  ///< word letter per axis slot
+  std::array<bool, 5> rotary{};
+  std::array<double, 5> home{};  ///< values the end block returns the rotaries to (rad)
+};
+
+/// One motion block as the sequencer means it. Words are already rounded and modally reduced.
+struct BlockSpec {
+  enum class Motion { Rapid, Linear } motion = Motion::Linear;
+  enum class FeedMode { Keep, PerMinute, InverseTime } feed_mode = FeedMode::Keep;  ///< a change to announce
+  struct Word {
+    int slot = 0;      ///< axis slot 0..4
+    long long scaled;  ///< value * 10^decimals, in file units (mm/inch/deg)
+    int decimals = 4;
+    bool shortest = false;  ///< a rotary to be reached the short way (modulo output)
+  };
+  std::vector<Word> words;
+  std::optional<std::array<double, 3>> tool_vector;  ///< unit tool vector (TCP vector form)
+  std::optional<double> feed;                        ///< F value to print (already in the file's units)
+  int feed_decimals = 1;
+};
+
+/// A controller family.
+class Formatter {
+ public:
+  explicit Formatter(const ProgramInfo& info) : info_(info) {}
+  virtual ~Formatter() = default;
+  [[nodiscard]] virtual std::string name() const = 0;
+  /// Inverse-time feed (G93) exists; otherwise the sequencer converts each block's time to a per-minute F.
+  [[nodiscard]] virtual bool has_inverse_time() const { return true; }
+
+  /// Program start: '%', number and name, the header comments, the safe start block, the work offset.
+  virtual void begin(std::string& out);
+  /// After the last move: tool-tip control off, spindle and coolant off, end of program.
+  virtual void end(std::string& out);
+  /// Tool change to tool `tool` with length offset register `h`; switches tool-tip control on when asked.
+  virtual void tool_change(std::string& out, int tool, int h, const std::string& description);
+  /// Tool-tip control off (before a tool change and at the end) and on (after it), where the dialect needs it.
+  virtual void tcp_on(std::string& out, int h);
+  virtual void tcp_off(std::string& out);
+  /// Rotary clamp / unclamp (M-codes from the machine file) around indexed (3+2) positioning.
+  virtual void clamp(std::string& out, const std::string& code);
+  virtual void spindle(std::string& out, double rpm, bool clockwise);
+  virtual void spindle_off(std::string& out);
+  virtual void coolant(std::string& out, bool on, bool mist);
+  virtual void stop(std::string& out, bool optional);
+  virtual void dwell(std::string& out, double seconds);
+  virtual void comment(std::string& out, const std::string& text);
+  /// A CL INSERT record's text, passed through as a block of its own.
+  virtual void insert(std::string& out, const std::string& text);
+  /// A motion block.
+  virtual void block(std::string& out, const BlockSpec& b);
+
+  /// Appends "N<n> " when sequence numbers are on (every dialect numbers its blocks the same way).
+  void number_lines(bool on, int step) {
+    numbers_ = on;
+    step_ = step;
+  }
+
+ protected:
+  void line_start(std::string& out);
+  /// The comments every dialect writes first: name, "cscam post: machine ...", source, tool length, TCP.
+  void header_comments(std::string& out, bool with_name);
+  /// The ISO safe start block (units, absolute, feed per minute, XY plane, no compensation) and work offset.
+  void start_block(std::string& out);
+  static void append_fixed(std::string& out, long long r, int d, bool plus_sign = false);
+  const ProgramInfo& info_;
+  bool tcp_active_ = false;
+
+ private:
+  bool numbers_ = false;
+  int step_ = 10;
+  long long n_ = 0;
+};
+
+/// The dialects this build knows: linuxcnc, fanuc, haas, siemens, heidenhain, xmini-joint, xmini-cartesian.
+std::vector<std::string> dialect_names();
+/// Whether the dialect always writes tool-tip (Cartesian) words (xmini-cartesian).
+bool dialect_forces_tcp(const std::string& name);
+/// Makes the dialect `name`; throws InputError naming the known ones.
+std::unique_ptr<Formatter> make_formatter(const std::string& name, const ProgramInfo& info);
+
+}  // namespace cscam::post

@@ -1,0 +1,486 @@
+#include <fmt/format.h>
+
+#include <charconv>
+#include <cmath>
+
+#include "cscam/core/error.hpp"
+#include "cscam/core/units.hpp"
+#include "cscam/post/dialect.hpp"
+
+namespace cscam::post {
+
+namespace {
+
+std::string sanitize_comment(std::string s) {
+  for (char& c : s)
+    if (c == '(' || c == ')') c = '_';
+  return s;
+}
+
+}  // namespace
+
+// --- ISO base (RS274/NGC spelling; LinuxCNC) ----------------------------------------------------------
+
+void Formatter::line_start(std::string& out) {
+  if (!numbers_) return;
+  n_ += step_;
+  fmt::format_to(std::back_inserter(out), "N{} ", n_);
+}
+
+void Formatter::append_fixed(std::string& out, long long r, int d, bool plus_sign) {
+  if (r < 0) {
+    out.push_back('-');
+    r = -r;
+  } else if (plus_sign) {
+    out.push_back('+');
+  }
+  long long p = 1;
+  for (int k = 0; k < d; ++k) p *= 10;
+  char tmp[32];
+  auto res = std::to_chars(tmp, tmp + sizeof tmp, r / p);
+  out.append(tmp, res.ptr);
+  if (d > 0) {
+    out.push_back('.');
+    res = std::to_chars(tmp, tmp + sizeof tmp, r % p);
+    const auto len = res.ptr - tmp;
+    out.append(static_cast<size_t>(d - len), '0');
+    out.append(tmp, res.ptr);
+  }
+}
+
+void Formatter::comment(std::string& out, const std::string& text) {
+  fmt::format_to(std::back_inserter(out), "({})\n", sanitize_comment(text));
+}
+
+void Formatter::header_comments(std::string& out, bool with_name) {
+  if (with_name) comment(out, info_.program_name);
+  comment(out, fmt::format("cscam post: machine {} dialect {} strategy {}", sanitize_comment(info_.machine_name),
+                           name(), sanitize_comment(info_.strategy)));
+  if (!info_.source_name.empty()) comment(out, "source: " + info_.source_name);
+  comment(out,
+          fmt::format("cscam tool_length_mm={:.4f} tolerance_mm={:.4f}", info_.tool_length_mm, info_.tolerance_mm));
+  if (info_.tcp) {
+    std::string rot;
+    for (size_t i = 0; i < 5; ++i)
+      if (info_.rotary[i]) rot += (rot.empty() ? "" : " ") + info_.letters[i];
+    comment(out, fmt::format("cartesian: X Y Z = tool tip, {} = tool vector; the control runs the kinematics",
+                             info_.tcp_vectors ? std::string("vector words") : rot));
+  }
+}
+
+void Formatter::start_block(std::string& out) {
+  line_start(out);
+  out += info_.inch ? "G20" : "G21";
+  out += " G90 G94 G17 G40 G49 G80\n";
+  if (!info_.work_offset.empty()) {
+    line_start(out);
+    out += info_.work_offset + "\n";
+  }
+}
+
+void Formatter::begin(std::string& out) {
+  out += "%\n";
+  header_comments(out, true);
+  start_block(out);
+}
+
+void Formatter::end(std::string& out) {
+  line_start(out);
+  out += "M5\n";
+  line_start(out);
+  out += "M9\n";
+  line_start(out);
+  out += "M2\n%\n";
+}
+
+void Formatter::tool_change(std::string& out, int tool, int h, const std::string& description) {
+  if (!description.empty()) comment(out, description);
+  line_start(out);
+  fmt::format_to(std::back_inserter(out), "T{} M6\n", tool);
+  line_start(out);
+  fmt::format_to(std::back_inserter(out), "G43 H{}\n", h);
+}
+
+void Formatter::tcp_on(std::string& /*out*/, int /*h*/) { tcp_active_ = true; }
+void Formatter::tcp_off(std::string& /*out*/) { tcp_active_ = false; }
+
+void Formatter::clamp(std::string& out, const std::string& code) {
+  line_start(out);
+  out += code + "\n";
+}
+
+void Formatter::spindle(std::string& out, double rpm, bool clockwise) {
+  line_start(out);
+  fmt::format_to(std::back_inserter(out), "S{:.0f} {}\n", rpm, clockwise ? "M3" : "M4");
+}
+
+void Formatter::spindle_off(std::string& out) {
+  line_start(out);
+  out += "M5\n";
+}
+
+void Formatter::coolant(std::string& out, bool on, bool mist) {
+  line_start(out);
+  out += on ? (mist ? "M7\n" : "M8\n") : "M9\n";
+}
+
+void Formatter::stop(std::string& out, bool optional) {
+  line_start(out);
+  out += optional ? "M1\n" : "M0\n";
+}
+
+void Formatter::insert(std::string& out, const std::string& text) {
+  line_start(out);
+  out += text;
+  out.push_back('\n');
+}
+
+void Formatter::dwell(std::string& out, double seconds) {
+  line_start(out);
+  fmt::format_to(std::back_inserter(out), "G4 P{:.3f}\n", seconds);
+}
+
+void Formatter::block(std::string& out, const BlockSpec& b) {
+  line_start(out);
+  if (b.feed_mode == BlockSpec::FeedMode::InverseTime) out += "G93 ";
+  if (b.feed_mode == BlockSpec::FeedMode::PerMinute) out += "G94 ";
+  out += b.motion == BlockSpec::Motion::Rapid ? "G0" : "G1";
+  for (const auto& w : b.words) {
+    out.push_back(' ');
+    out += info_.letters[static_cast<size_t>(w.slot)];
+    append_fixed(out, w.scaled, w.decimals);
+  }
+  if (b.tool_vector) {
+    const auto& v = *b.tool_vector;
+    fmt::format_to(std::back_inserter(out), " I{:.6f} J{:.6f} K{:.6f}", v[0], v[1], v[2]);
+  }
+  if (b.feed) fmt::format_to(std::back_inserter(out), " F{:.{}f}", *b.feed, b.feed_decimals);
+  out.push_back('\n');
+}
+
+namespace {
+
+// --- LinuxCNC -----------------------------------------------------------------------------------------
+class Linuxcnc : public Formatter {
+ public:
+  Linuxcnc(const ProgramInfo& info, std::string name, bool switchkins)
+      : Formatter(info), name_(std::move(name)), switchkins_(switchkins) {}
+  [[nodiscard]] std::string name() const override { return name_; }
+  void begin(std::string& out) override {
+    Formatter::begin(out);
+    // The trajectory planner blends corners within G64 P: bounded by the linearisation tolerance, blending
+    // cannot undo it (without P it rounds corners by as much as the accelerations allow).
+    line_start(out);
+    fmt::format_to(std::back_inserter(out), "G64 P{:.4f}\n", info_.tolerance_mm);
+  }
+  // The switchable trunnion kinematics (xyzac-trt, xyzbc-trt sample configs): M428 selects the TCP (world)
+  // kinematics, in which X Y Z are the tip in the table frame and the tool offset of G43 is taken into
+  // account by the kinematics; M429 returns to identity (joint) kinematics.
+  void tcp_on(std::string& out, int h) override {
+    if (switchkins_ && !tcp_active_) {
+      line_start(out);
+      out += "M428 (TCP: world coordinates, the tip in the part frame)\n";
+    }
+    Formatter::tcp_on(out, h);
+  }
+  void tcp_off(std::string& out) override {
+    if (switchkins_ && tcp_active_) {
+      line_start(out);
+      out += "M429\n";
+    }
+    Formatter::tcp_off(out);
+  }
+
+ private:
+  std::string name_;
+  bool switchkins_;
+};
+
+// --- Fanuc --------------------------------------------------------------------------------------------
+class Fanuc : public Formatter {
+ public:
+  using Formatter::Formatter;
+  [[nodiscard]] std::string name() const override { return "fanuc"; }
+  void begin(std::string& out) override {
+    out += "%\n";
+    fmt::format_to(std::back_inserter(out), "O{:04d} ({})\n", info_.program_number,
+                   sanitize_comment(info_.program_name));
+    header_comments(out, false);
+    start_block(out);
+  }
+  void end(std::string& out) override {
+    line_start(out);
+    out += "M5\n";
+    line_start(out);
+    out += "M9\n";
+    line_start(out);
+    out += "M30\n%\n";
+  }
+  // G43.4: tool-tip control with rotary angles; G43.5: with the tool vector I J K. G49 cancels either.
+  void tcp_on(std::string& out, int h) override {
+    if (!tcp_active_) {
+      line_start(out);
+      fmt::format_to(std::back_inserter(out), "{} H{}\n", info_.tcp_vectors ? "G43.5" : "G43.4", h);
+    }
+    Formatter::tcp_on(out, h);
+  }
+  void tcp_off(std::string& out) override {
+    if (tcp_active_) {
+      line_start(out);
+      out += "G49\n";
+    }
+    Formatter::tcp_off(out);
+  }
+  void tool_change(std::string& out, int tool, int h, const std::string& description) override {
+    if (!description.empty()) comment(out, description);
+    line_start(out);
+    fmt::format_to(std::back_inserter(out), "T{} M6\n", tool);
+    if (!info_.tcp) {  // with tool-tip control, G43.4/G43.5 H is the length offset
+      line_start(out);
+      fmt::format_to(std::back_inserter(out), "G43 H{}\n", h);
+    }
+  }
+};
+
+// --- Haas (NGC) ---------------------------------------------------------------------------------------
+class Haas : public Fanuc {
+ public:
+  using Fanuc::Fanuc;
+  [[nodiscard]] std::string name() const override { return "haas"; }
+  void begin(std::string& out) override {
+    out += "%\n";
+    fmt::format_to(std::back_inserter(out), "O{:05d} ({})\n", info_.program_number,
+                   sanitize_comment(info_.program_name));
+    header_comments(out, false);
+    start_block(out);
+  }
+  // G234 TCPC (the vector form does not exist on a Haas: angles always); G49 cancels it.
+  void tcp_on(std::string& out, int h) override {
+    if (!tcp_active_) {
+      line_start(out);
+      fmt::format_to(std::back_inserter(out), "G234 H{}\n", h);
+    }
+    Formatter::tcp_on(out, h);
+  }
+};
+
+// --- Siemens Sinumerik 840D ---------------------------------------------------------------------------
+class Siemens : public Formatter {
+ public:
+  using Formatter::Formatter;
+  [[nodiscard]] std::string name() const override { return "siemens"; }
+  void comment(std::string& out, const std::string& text) override {
+    fmt::format_to(std::back_inserter(out), "; ({})\n", sanitize_comment(text));
+  }
+  void begin(std::string& out) override {
+    // Sinumerik's own start block: G71 metric (G70 inch), TRAFOOF instead of G49, no canned cycles to cancel.
+    header_comments(out, true);
+    line_start(out);
+    out += info_.inch ? "G70" : "G71";
+    out += " G90 G94 G17 G40 G64\n";
+    line_start(out);
+    out += "TRAFOOF\n";
+    if (!info_.work_offset.empty()) {
+      line_start(out);
+      out += info_.work_offset + "\n";
+    }
+  }
+  void end(std::string& out) override {
+    line_start(out);
+    out += "M5\n";
+    line_start(out);
+    out += "M9\n";
+    line_start(out);
+    out += "M30\n";
+  }
+  void tool_change(std::string& out, int tool, int h, const std::string& description) override {
+    if (!description.empty()) comment(out, description);
+    line_start(out);
+    fmt::format_to(std::back_inserter(out), "T{}\n", tool);
+    line_start(out);
+    out += "M6\n";
+    line_start(out);
+    fmt::format_to(std::back_inserter(out), "D{}\n", h > 0 ? h : 1);
+  }
+  // TRAORI: the control's orientation transformation; ORIWKS: orientations in the workpiece frame; ORIAXES
+  // interpolates the rotary angles linearly, ORIVECT the tool vector on a great circle (A3 B3 C3 words).
+  void tcp_on(std::string& out, int h) override {
+    if (!tcp_active_) {
+      line_start(out);
+      out += "TRAORI\n";
+      line_start(out);
+      out += info_.tcp_vectors ? "ORIWKS ORIVECT\n" : "ORIWKS ORIAXES\n";
+    }
+    Formatter::tcp_on(out, h);
+  }
+  void tcp_off(std::string& out) override {
+    if (tcp_active_) {
+      line_start(out);
+      out += "TRAFOOF\n";
+    }
+    Formatter::tcp_off(out);
+  }
+  void dwell(std::string& out, double seconds) override {
+    line_start(out);
+    fmt::format_to(std::back_inserter(out), "G4 F{:.3f}\n", seconds);
+  }
+  void block(std::string& out, const BlockSpec& b) override {
+    line_start(out);
+    if (b.feed_mode == BlockSpec::FeedMode::InverseTime) out += "G93 ";
+    if (b.feed_mode == BlockSpec::FeedMode::PerMinute) out += "G94 ";
+    out += b.motion == BlockSpec::Motion::Rapid ? "G0" : "G1";
+    for (const auto& w : b.words) {
+      out.push_back(' ');
+      out += info_.letters[static_cast<size_t>(w.slot)];
+      if (w.shortest) {  // a modulo rotary reached the short way
+        out += "=DC(";
+        append_fixed(out, w.scaled, w.decimals);
+        out += ")";
+      } else {
+        append_fixed(out, w.scaled, w.decimals);
+      }
+    }
+    if (b.tool_vector) {
+      const auto& v = *b.tool_vector;
+      fmt::format_to(std::back_inserter(out), " A3={:.6f} B3={:.6f} C3={:.6f}", v[0], v[1], v[2]);
+    }
+    if (b.feed) fmt::format_to(std::back_inserter(out), " F{:.{}f}", *b.feed, b.feed_decimals);
+    out.push_back('\n');
+  }
+};
+
+// --- Heidenhain TNC (conversational) ------------------------------------------------------------------
+class Heidenhain : public Formatter {
+ public:
+  using Formatter::Formatter;
+  [[nodiscard]] std::string name() const override { return "heidenhain"; }
+  [[nodiscard]] bool has_inverse_time() const override { return false; }
+  void comment(std::string& out, const std::string& text) override {
+    number(out);
+    fmt::format_to(std::back_inserter(out), "; ({})\n", sanitize_comment(text));
+  }
+  void begin(std::string& out) override {
+    number(out);
+    fmt::format_to(std::back_inserter(out), "BEGIN PGM {} {}\n", pgm(), info_.inch ? "INCH" : "MM");
+    header_comments(out, true);
+    // Datum from the preset table: the work offset's number (G54 -> preset 1).
+    if (info_.work_offset.rfind("G5", 0) == 0 && info_.work_offset.size() == 3) {
+      number(out);
+      fmt::format_to(std::back_inserter(out), "CYCL DEF 247 DATUM SETTING ~\n  Q339=+{} ;DATUM NUMBER\n",
+                     info_.work_offset[2] - '3');
+    }
+  }
+  void end(std::string& out) override {
+    number(out);
+    out += "M5\n";
+    number(out);
+    out += "M9\n";
+    number(out);
+    out += "M30\n";
+    number(out);
+    fmt::format_to(std::back_inserter(out), "END PGM {} {}\n", pgm(), info_.inch ? "INCH" : "MM");
+  }
+  void tool_change(std::string& out, int tool, int /*h*/, const std::string& description) override {
+    if (!description.empty()) comment(out, description);
+    number(out);
+    fmt::format_to(std::back_inserter(out), "TOOL CALL {} Z\n", tool);  // length from the tool table
+  }
+  // FUNCTION TCPM with the rotary words as axis angles, the tip path controlled (M128 on older TNCs).
+  void tcp_on(std::string& out, int h) override {
+    if (!tcp_active_) {
+      number(out);
+      out += "FUNCTION TCPM F TCP AXIS POS PATHCTRL AXIS\n";
+    }
+    Formatter::tcp_on(out, h);
+  }
+  void tcp_off(std::string& out) override {
+    if (tcp_active_) {
+      number(out);
+      out += "FUNCTION RESET TCPM\n";
+    }
+    Formatter::tcp_off(out);
+  }
+  void clamp(std::string& out, const std::string& code) override {
+    number(out);
+    out += code + "\n";
+  }
+  void spindle(std::string& out, double rpm, bool clockwise) override {
+    number(out);
+    fmt::format_to(std::back_inserter(out), "TOOL CALL Z S{:.0f}\n", rpm);
+    number(out);
+    out += clockwise ? "M3\n" : "M4\n";
+  }
+  void spindle_off(std::string& out) override {
+    number(out);
+    out += "M5\n";
+  }
+  void coolant(std::string& out, bool on, bool /*mist*/) override {
+    number(out);
+    out += on ? "M8\n" : "M9\n";
+  }
+  void stop(std::string& out, bool optional) override {
+    number(out);
+    out += optional ? "M1\n" : "STOP M0\n";
+  }
+  void insert(std::string& out, const std::string& text) override {
+    number(out);
+    out += text;
+    out.push_back('\n');
+  }
+  void dwell(std::string& out, double seconds) override {
+    number(out);
+    out += "CYCL DEF 9.0 DWELL TIME\n";
+    number(out);
+    fmt::format_to(std::back_inserter(out), "CYCL DEF 9.1 DWELL {:.3f}\n", seconds);
+  }
+  void block(std::string& out, const BlockSpec& b) override {
+    number(out);
+    out += "L";
+    for (const auto& w : b.words) {
+      out.push_back(' ');
+      out += info_.letters[static_cast<size_t>(w.slot)];
+      append_fixed(out, w.scaled, w.decimals, true);
+    }
+    if (b.motion == BlockSpec::Motion::Rapid) {
+      out += " R0 FMAX\n";
+      return;
+    }
+    out += " R0";
+    if (b.feed) fmt::format_to(std::back_inserter(out), " F{:.{}f}", *b.feed, b.feed_decimals);
+    out.push_back('\n');
+  }
+
+ private:
+  /// Every conversational block carries its number, from 0.
+  void number(std::string& out) { fmt::format_to(std::back_inserter(out), "{} ", block_no_++); }
+  [[nodiscard]] std::string pgm() const {
+    std::string s;
+    for (char c : info_.program_name) s.push_back(std::isalnum(static_cast<unsigned char>(c)) ? c : '_');
+    return s.empty() ? "CSCAM" : s;
+  }
+  long long block_no_ = 0;
+};
+
+}  // namespace
+
+std::vector<std::string> dialect_names() {
+  return {"linuxcnc", "fanuc", "haas", "siemens", "heidenhain", "xmini-joint", "xmini-cartesian"};
+}
+
+bool dialect_forces_tcp(const std::string& name) { return name == "xmini-cartesian"; }
+
+std::unique_ptr<Formatter> make_formatter(const std::string& name, const ProgramInfo& info) {
+  if (name == "linuxcnc") return std::make_unique<Linuxcnc>(info, name, true);
+  // The XMINI (PKM): joint space is the linuxcnc output with the machine's letters (legs + wrist);
+  // Cartesian mode is for a control that runs the PKM transformation itself.
+  if (name == "xmini-joint" || name == "xmini-cartesian") return std::make_unique<Linuxcnc>(info, name, false);
+  if (name == "fanuc") return std::make_unique<Fanuc>(info);
+  if (name == "haas") return std::make_unique<Haas>(info);
+  if (name == "siemens") return std::make_unique<Siemens>(info);
+  if (name == "heidenhain") return std::make_unique<Heidenhain>(info);
+  std::string known;
+  for (const auto& n : dialect_names()) known += (known.empty() ? "" : ", ") + n;
+  throw InputError(fmt::format("unknown post dialect '{}' (known: {})", name, known));
+}
+
+}  // namespace cscam::post

@@ -1,0 +1,125 @@
+#include "linearize.hpp"
+
+#include <fmt/format.h>
+
+#include <algorithm>
+#include <cmath>
+
+#include "cscam/core/error.hpp"
+#include "cscam/kin/track.hpp"
+
+namespace cscam::post {
+
+using Vec3 = Eigen::Vector3d;
+
+namespace {
+
+double point_segment_distance(const Vec3& p, const Vec3& a, const Vec3& b) {
+  const Vec3 ab = b - a;
+  const double L2 = ab.squaredNorm();
+  const double t = L2 > 0 ? std::clamp((p - a).dot(ab) / L2, 0.0, 1.0) : 0.0;
+  return (a + t * ab - p).norm();
+}
+
+}  // namespace
+
+Slerp::Slerp(const Vec3& a, const Vec3& b) : a_(a), b_(b), th_(std::acos(std::clamp(a.dot(b), -1.0, 1.0))) {
+  sn_ = std::sin(th_);
+}
+
+Vec3 Slerp::operator()(double s) const {
+  if (th_ < 1e-9) return ((1 - s) * a_ + s * b_).normalized();
+  return (std::sin((1 - s) * th_) / sn_ * a_ + std::sin(s * th_) / sn_ * b_).normalized();
+}
+
+Linearizer::Linearizer(const kin::Kinematics& k, const Settings& s)
+    : kin_(k), set_(s), cos_tol_axis_(std::cos(s.axis_tolerance_rad)) {}
+
+bool Linearizer::exceeds(const kin::Axes& qa, const kin::Axes& qb, double sa, double sb, const Vec3& P0, const Vec3& P1,
+                         const Slerp& axis, Stats& stats) const {
+  for (double t : {0.5, 0.25, 0.75}) {
+    const kin::Posed p = kin_.forward(qa + t * (qb - qa));
+    const double dtip = point_segment_distance(p.tip_mm + set_.control_offset_mm * p.axis, P0, P1);
+    stats.max_checked_tip_deviation_mm = std::max(stats.max_checked_tip_deviation_mm, dtip);
+    if (dtip > set_.tolerance_mm || p.axis.dot(axis(sa + t * (sb - sa))) < cos_tol_axis_) return true;
+  }
+  return false;
+}
+
+void Linearizer::split(const cl::Move& m0, const kin::Axes& q0, const cl::Move& m1, const kin::Axes& q1,
+                       const std::string& cl_file, std::vector<Piece>& out, Stats& stats) {
+  out.clear();
+  auto check_limits = [&](const kin::Axes& q) {
+    const std::string v = kin_.check_limits(q);
+    if (!v.empty())
+      throw InputError(SourceLoc{cl_file, m1.line, 0},
+                       fmt::format("the post refuses a block outside the limits: {}", v));
+  };
+  const double off = set_.control_offset_mm;
+  // The controlled points: tips, or ball centres when the plan keeps those on the CL path.
+  const Vec3 P0 = m0.tip_in_part_mm + off * m0.axis_in_part.normalized();
+  const Vec3 P1 = m1.tip_in_part_mm + off * m1.axis_in_part.normalized();
+  const Slerp axis(m0.axis_in_part.normalized(), m1.axis_in_part.normalized());
+  // Explicit stack of spans [sa, sb] with their axis values; emits spans in order.
+  stack_.clear();
+  stack_.push_back({0.0, 1.0, q0, q1, 0});
+  while (!stack_.empty()) {
+    const Span pc = stack_.back();
+    stack_.pop_back();
+    if (set_.enabled && pc.depth < set_.max_depth && exceeds(pc.qa, pc.qb, pc.sa, pc.sb, P0, P1, axis, stats)) {
+      const double sm = 0.5 * (pc.sa + pc.sb);
+      const Vec3 axis_m = axis(sm);
+      const kin::Posed target{P0 + sm * (P1 - P0) - off * axis_m, axis_m};
+      // First keep the rotaries the machine would pass through anyway and only correct the linear axes:
+      // near the singularity a fresh IK of the interpolated axis is ill-conditioned (its azimuth is
+      // arbitrary) while the interpolated rotaries already give an axis within tolerance.
+      kin::Axes qm = 0.5 * (pc.qa + pc.qb);
+      {
+        // The axis the interpolated rotaries give; the controlled point is put exactly on the path with that
+        // axis, so only the axis error is left to judge.
+        Vec3 a_int;
+        const auto rp = kin_.rotary_pair();
+        const Vec3 ctrl = P0 + sm * (P1 - P0);
+        if (kin_.tool_axis_at(qm[rp[0]], qm[rp[1]], target.tip_mm, a_int) && a_int.dot(target.axis) >= cos_tol_axis_ &&
+            kin_.solve_for_rotaries(kin::Posed{ctrl - off * a_int, a_int}, qm) &&
+            kin_.forward(qm).axis.dot(target.axis) >= cos_tol_axis_) {
+          check_limits(qm);
+          ++stats.inserted_points;
+          stack_.push_back({sm, pc.sb, qm, pc.qb, pc.depth + 1});
+          stack_.push_back({pc.sa, sm, pc.qa, qm, pc.depth + 1});
+          continue;
+        }
+      }
+      // Otherwise continue the solution branch from the span's start (no flips), as the conventional
+      // strategy does between CL points.
+      const Vec3 axis_a = axis(pc.sa);
+      const kin::Posed from{P0 + pc.sa * (P1 - P0) - off * axis_a, axis_a};
+      ++stats.ik_calls;
+      bool jumped = false;
+      std::string why;
+      const bool tracked = kin::track_checked(kin_, pc.qa, from, target, qm, jumped, &why);
+      if (tracked && jumped)
+        throw InputError(SourceLoc{cl_file, m1.line, 0},
+                         fmt::format("the machine cannot follow the CL segment from line {} to line {} "
+                                     "continuously: inside it a limit{} forces the rotaries to flip (the "
+                                     "tool would leave the path); split the segment or plan it with a cone",
+                                     m0.line, m1.line, why.empty() ? "" : " (" + why + ")"));
+      if (!tracked) {
+        stats.warnings.push_back(
+            fmt::format("{}: no IK solution while linearising", SourceLoc{cl_file, m1.line, 0}.str()));
+      } else {
+        check_limits(qm);
+        ++stats.inserted_points;
+        stack_.push_back({sm, pc.sb, qm, pc.qb, pc.depth + 1});
+        stack_.push_back({pc.sa, sm, pc.qa, qm, pc.depth + 1});
+        continue;
+      }
+    } else if (set_.enabled && pc.depth >= set_.max_depth && exceeds(pc.qa, pc.qb, pc.sa, pc.sb, P0, P1, axis, stats)) {
+      stats.warnings.push_back(fmt::format("{}: tolerance not reached after {} subdivisions (singular region?)",
+                                           SourceLoc{cl_file, m1.line, 0}.str(), set_.max_depth));
+    }
+    out.push_back({pc.qb, (pc.sb - pc.sa) * (P1 - P0).norm()});
+  }
+}
+
+}  // namespace cscam::post

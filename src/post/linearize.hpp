@@ -1,0 +1,72 @@
+#pragma once
+// The linearizer: splits one CL segment, travelled by a straight joint-space move, into pieces whose real tool
+// path stays within the tolerance of the straight CL segment (tip, or ball centre) and of the interpolated CL
+// axis. Pure maths on the kinematics: no G-code, no I/O.
+#include <Eigen/Core>
+#include <string>
+#include <vector>
+
+#include "cscam/cl/program.hpp"
+#include "cscam/kin/kinematics.hpp"
+
+namespace cscam::post {
+
+/// Spherical interpolation of the CL tool axis between two points (angle computed once per segment).
+class Slerp {
+ public:
+  Slerp(const Eigen::Vector3d& a, const Eigen::Vector3d& b);
+  Eigen::Vector3d operator()(double s) const;
+
+ private:
+  Eigen::Vector3d a_, b_;
+  double th_, sn_ = 0.0;
+};
+
+class Linearizer {
+ public:
+  struct Settings {
+    double tolerance_mm = 0.01;
+    double axis_tolerance_rad = 0.005;
+    double control_offset_mm = 0.0;  ///< the controlled point is tip + offset * axis (a ball centre)
+    int max_depth = 14;
+    bool enabled = true;
+  };
+  /// One piece of the segment: the axis values at its end and the length of the CL path it covers.
+  struct Piece {
+    kin::Axes q_end;
+    double path_mm = 0.0;
+  };
+  /// What the linearizer did (added to the post's summary).
+  struct Stats {
+    std::size_t inserted_points = 0;
+    std::size_t ik_calls = 0;
+    double max_checked_tip_deviation_mm = 0.0;
+    std::vector<std::string> warnings;
+  };
+
+  Linearizer(const kin::Kinematics& k, const Settings& s);
+
+  /// Pieces, in order, of the move q0 (at m0) -> q1 (at m1) on one branch. Every inserted point passes
+  /// kin.check_limits, else InputError naming the CL line (file `cl_file`). Throws InputError when a limit
+  /// forces the rotaries to flip inside the segment.
+  void split(const cl::Move& m0, const kin::Axes& q0, const cl::Move& m1, const kin::Axes& q1,
+             const std::string& cl_file, std::vector<Piece>& out, Stats& stats);
+
+  /// Whether the straight joint move qa -> qb leaves the tolerance of the CL segment P0P1 between the
+  /// parameters sa and sb (sampled at a quarter, half and three quarters).
+  bool exceeds(const kin::Axes& qa, const kin::Axes& qb, double sa, double sb, const Eigen::Vector3d& P0,
+               const Eigen::Vector3d& P1, const Slerp& axis, Stats& stats) const;
+
+ private:
+  struct Span {
+    double sa, sb;
+    kin::Axes qa, qb;
+    int depth;
+  };
+  const kin::Kinematics& kin_;
+  Settings set_;
+  double cos_tol_axis_ = 1.0;
+  std::vector<Span> stack_;
+};
+
+}  // namespace cscam::post
