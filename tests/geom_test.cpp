@@ -599,7 +599,8 @@ TEST(MeshFuzzRegressions, MalformedPlyAndOffAreInputErrors) {
                                                        {"mesh-ply-end-header-in-token.bin", ".ply"},
                                                        {"mesh-off-huge-count.bin", ".off"},
                                                        {"mesh-ply-huge-count.bin", ".ply"},
-                                                       {"mesh-off-triangulate-abort.bin", ".off"}};
+                                                       {"mesh-off-triangulate-abort.bin", ".off"},
+                                                       {"mesh-off-no-keyword-huge-count.bin", ".off"}};
   for (const auto& [file, ext] : cases) {
     SCOPED_TRACE(file);
     std::ifstream in(test::source_path(std::string("tests/data/fuzz-regressions/") + file), std::ios::binary);

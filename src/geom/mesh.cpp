@@ -19,6 +19,7 @@
 #include <cstdlib>
 #include <cstring>
 #include <cctype>
+#include <filesystem>
 #include <fstream>
 #include <sstream>
 #include <vector>
@@ -263,10 +264,11 @@ void Mesh::append(const Mesh& other) {
 
 namespace {
 
-/// Element counts an OFF header declares (vertices, faces, edges), after the keyword; comments skipped.
-std::vector<double> off_counts(const std::string& head) {
+/// Element counts an OFF header declares (vertices, faces, edges), after the keyword if there is one (assimp also
+/// reads a .off file without it); comments skipped.
+std::vector<double> off_counts(const std::string& head, bool has_keyword) {
   std::vector<double> counts;
-  size_t i = head.find_first_of(" \t\r\n");  // past the keyword
+  size_t i = has_keyword ? head.find_first_of(" \t\r\n") : 0;  // past the keyword
   while (i != std::string::npos && i < head.size() && counts.size() < 3) {
     if (head[i] == '#') {
       i = head.find('\n', i);
@@ -337,7 +339,9 @@ Mesh load_mesh_here(const std::string& path, double scale_to_mm, bool require_cl
           throw InputError(SourceLoc{path, line, 0}, "OFF mesh contains a byte that is not text");
       }
     }
-    if (is_off) check_declared_counts(path, off_counts(head), file_bytes);
+    std::string ext = std::filesystem::path(path).extension().string();
+    std::transform(ext.begin(), ext.end(), ext.begin(), [](unsigned char c) { return std::tolower(c); });
+    if (is_off || ext == ".off") check_declared_counts(path, off_counts(head, is_off), file_bytes);
     if (head.rfind("ply", 0) == 0) {
       const size_t end = head.find("end_header");
       if (end == std::string::npos)
@@ -467,8 +471,21 @@ Mesh load_mesh(const std::string& path, double scale_to_mm, bool require_closed)
   }
   ::close(fd[0]);
   int status = 0;
-  if (timed_out) ::kill(pid, SIGKILL);
-  while (::waitpid(pid, &status, 0) < 0 && errno == EINTR) {
+  // The child may linger after closing its end of the pipe (a sanitizer or a crash reporter at work in it): the
+  // same deadline bounds its exit, so the loader never waits unbounded.
+  while (!timed_out) {
+    const pid_t done = ::waitpid(pid, &status, WNOHANG);
+    if (done == pid || (done < 0 && errno != EINTR)) break;
+    if (std::chrono::steady_clock::now() >= deadline) {
+      timed_out = true;
+      break;
+    }
+    ::usleep(2000);
+  }
+  if (timed_out) {
+    ::kill(pid, SIGKILL);
+    while (::waitpid(pid, &status, 0) < 0 && errno == EINTR) {
+    }
   }
   const SourceLoc where{path};
   if (timed_out)
