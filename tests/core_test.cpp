@@ -1,5 +1,6 @@
 // Core: error locations, angle helpers, and atomic file writing.
 #include <gtest/gtest.h>
+#include <unistd.h>
 
 #include <filesystem>
 #include <fstream>
@@ -27,7 +28,7 @@ TEST(Core, WrapPi) {
 }
 
 TEST(Core, AtomicWriteLeavesNothingOnError) {
-  const fs::path dir = fs::temp_directory_path() / "cscam_core_test";
+  const fs::path dir = fs::temp_directory_path() / ("cscam_core_test_" + std::to_string(::getpid()));
   fs::create_directories(dir);
   const std::string target = (dir / "out.txt").string();
   std::ofstream(target) << "old";

@@ -7,6 +7,7 @@
 
 #include <fmt/format.h>
 #include <gtest/gtest.h>
+#include <unistd.h>
 
 #include <filesystem>
 #include <fstream>
@@ -175,7 +176,7 @@ TEST(Gate, RefusesASkippedClPoint) {
 
 TEST(Gate, WriteCheckedLeavesNoFileOnFailure) {
   Fixture f;
-  const fs::path dir = fs::temp_directory_path() / "cscam_gate_test";
+  const fs::path dir = fs::temp_directory_path() / ("cscam_gate_test_" + std::to_string(::getpid()));
   fs::create_directories(dir);
   const fs::path out = dir / "bad.ngc";
   fs::remove(out);

@@ -2,6 +2,7 @@
 // Oracles: IK -> FK round trips; LinuxCNC's own interpreter (rs274 -g) on the programs; FK inside every
 // block (report::verify); the analytic XMINI Jacobian; hand-computed play on a linear machine.
 #include <gtest/gtest.h>
+#include <unistd.h>
 
 #include <cmath>
 #include <filesystem>
@@ -650,7 +651,7 @@ TEST(Backlash, OnTheXminiSeedCutTheQ2StepIsTheJacobianColumnMostlyInY) {
 }
 
 TEST(Backlash, CliReportsTheStepPerComponent) {
-  const fs::path dir = fs::temp_directory_path() / "cscam_xmini_backlash_cli";
+  const fs::path dir = fs::temp_directory_path() / ("cscam_xmini_backlash_cli_" + std::to_string(::getpid()));
   fs::create_directories(dir);
   const std::string cli = CSCAM_CLI;
   const std::string nc = (dir / "seed.ngc").string();
