@@ -805,11 +805,21 @@ class Search {
       }
     }
     // 1-D windowed min of g(j) + w |i - j| along a line, via two monotone deques.
+    // Only the span within W of the line's finite entries can change: the rest stays infinite (no source), as the
+    // outputs start, so a line without a finite entry is skipped.
     auto pass = [&](int len, auto&& get, auto&& get_src, auto&& put, double w) {
+      int first = -1, last = -1;
+      for (int i = 0; i < len; ++i)
+        if (get(i) < kInf) {
+          if (first < 0) first = i;
+          last = i;
+        }
+      if (first < 0) return;
+      const int lo = std::max(0, first - W), hi = std::min(len - 1, last + W);
       std::vector<double> out(static_cast<size_t>(len), kInf);
       std::vector<int> arg(static_cast<size_t>(len), -1);
       std::deque<int> dq;
-      for (int i = 0; i < len; ++i) {  // from the left: min_{i-W<=j<=i} g(j) - w j, + w i
+      for (int i = lo; i <= hi; ++i) {  // from the left: min_{i-W<=j<=i} g(j) - w j, + w i
         const double gi = get(i) - w * i;
         while (!dq.empty() && get(dq.back()) - w * dq.back() >= gi) dq.pop_back();
         dq.push_back(i);
@@ -821,7 +831,7 @@ class Search {
         }
       }
       dq.clear();
-      for (int i = len - 1; i >= 0; --i) {  // from the right: min_{i<=j<=i+W} g(j) + w j, - w i
+      for (int i = hi; i >= lo; --i) {  // from the right: min_{i<=j<=i+W} g(j) + w j, - w i
         const double gi = get(i) + w * i;
         while (!dq.empty() && get(dq.back()) + w * dq.back() >= gi) dq.pop_back();
         dq.push_back(i);
@@ -832,7 +842,7 @@ class Search {
           arg[static_cast<size_t>(i)] = dq.front();
         }
       }
-      for (int i = 0; i < len; ++i)
+      for (int i = lo; i <= hi; ++i)
         put(i, out[static_cast<size_t>(i)],
             arg[static_cast<size_t>(i)] >= 0 ? get_src(arg[static_cast<size_t>(i)]) : -1);
     };
