@@ -982,9 +982,9 @@ Plan Planner::run(const cl::Program& program) const {
     std::vector<Layer> layers(e - s + 1);
     // Only the first point's cells are needed by tier 1 (the others are tested cell by cell); the rest
     // are enumerated when a later tier needs them, or for the per-point feasibility check in exact mode.
-    auto enumerate_layer = [&](std::size_t k, std::size_t cap) {
+    auto enumerate_layer = [&](std::size_t k, std::size_t cap, cspace::Counters& counters) {
       Layer& l = layers[k];
-      space_.enumerate(l.cl, l.cells, cap, plan.counters);
+      space_.enumerate(l.cl, l.cells, cap, counters);
       l.truncated = l.cells.size() >= cap;
       l.index.clear();
       if (exact)
@@ -999,7 +999,7 @@ Plan Planner::run(const cl::Program& program) const {
       layers[k].move = s + k;
       layers[k].cl = {moves[s + k].tip_in_part_mm, moves[s + k].axis_in_part.normalized()};
       // Tier 1 takes its candidates from the first point: give it a much larger share.
-      if (k == 0 || exact) enumerate_layer(k, k == 0 ? 64 * opt_.max_cells_per_point : opt_.max_cells_per_point);
+      if (k == 0 || exact) enumerate_layer(k, k == 0 ? 64 * opt_.max_cells_per_point : opt_.max_cells_per_point, plan.counters);
     }
     if (exact) {
       // At a singular point the primary rotary is free: offer every primary that a neighbouring regular
@@ -1048,7 +1048,7 @@ Plan Planner::run(const cl::Program& program) const {
       keep.swap(l.extra);
       for (Cell& c : l.cells)
         if (c.status != Status::Unknown) keep.insert_or_assign(key(c.i1, c.i2), std::move(c));
-      enumerate_layer(k, std::numeric_limits<std::size_t>::max());
+      enumerate_layer(k, std::numeric_limits<std::size_t>::max(), plan.counters);
       for (auto& [kk, c] : keep) {
         if (auto it = l.index.find(kk); it != l.index.end()) {
           if (c.status != Status::Orientation) l.cells[static_cast<size_t>(it->second)] = c;
@@ -1167,11 +1167,13 @@ Plan Planner::run(const cl::Program& program) const {
     } else {
       rep.failures.push_back(f);
       if (!exact && !listed)
-        for (std::size_t k = 1; k < layers.size(); ++k) {
+        // Every layer on its own (in parallel): the same lists, counters summed.
+        parallel_items(layers.size() - 1, plan.counters, [&](std::size_t i, geom::QueryWorkspace&, cspace::Counters& cc) {
+          const std::size_t k = i + 1;
           // Keep what tier 1 already evaluated (the cache) when the full cell list arrives.
           std::unordered_map<std::uint64_t, Cell> keep;
           keep.swap(layers[k].extra);
-          enumerate_layer(k, opt_.max_cells_per_point);
+          enumerate_layer(k, opt_.max_cells_per_point, cc);
           for (auto& [kk, c] : keep) {
             if (auto it = layers[k].index.find(kk); it != layers[k].index.end()) {
               if (c.status != Status::Orientation) layers[k].cells[static_cast<size_t>(it->second)] = c;
@@ -1179,7 +1181,7 @@ Plan Planner::run(const cl::Program& program) const {
               layers[k].extra.emplace(kk, std::move(c));
             }
           }
-        }
+        });
       listed = true;
       check_points();
       if (search.fixed1(path, f, desc)) {
