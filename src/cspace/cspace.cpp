@@ -51,6 +51,9 @@ Space::Space(std::shared_ptr<const kin::Kinematics> kinematics, const geom::Scen
       if (((used_links_ >> l) & 1u) && !a[static_cast<std::size_t>(l)].isApprox(b[static_cast<std::size_t>(l)], 1e-12))
         certify_links_ = false;
   }
+  if (head_)
+    for (std::size_t i = 0; i < head_->obstacle_count(); ++i)
+      if (head_->obstacle_link(i) >= 0) certify_head_ = false;
   if (tool_) {
     tip_tool_.cutter = {tool_->cutter.diameter_mm, 0.0, tool_->cutter.corner_radius_mm + 2.0 * kRapidSweepMarginCapMm + 1e-3};
     double rmax = 0.0, top = 0.0;
@@ -236,10 +239,11 @@ void Space::evaluate(const kin::Posed& cl, Cell& cell, geom::QueryWorkspace& ws,
     LinkPoses links;
     geom::CheckOptions linked;
     const geom::CheckOptions& co = with_links(q, links, linked);
-    const bool certify = !head_ && certify_links_;
-    // A certificate from a neighbouring point covers this pose: same axis, moved less than the margin.
-    if (cert && cert->valid && certify && pose.axis.dot(cert->axis) > 1.0 - 1e-15 &&
-        (pose.tip_mm - cert->tip_mm).norm() < cert->margin_mm) {
+    // Head bodies are certified by their bounding boxes grown by the margin (check_meshes has no clearance).
+    const bool certify = certify_links_ && certify_head_;
+    // A certificate from a neighbouring point covers this pose: same rotaries and axis, moved less than the margin.
+    if (cert && cert->valid && certify && cell.r1 == cert->r1 && cell.r2 == cert->r2 &&
+        pose.axis.dot(cert->axis) > 1.0 - 1e-15 && (pose.tip_mm - cert->tip_mm).norm() < cert->margin_mm) {
       ++c.certified;
       cell.status = Status::Feasible;
       return;
@@ -255,8 +259,10 @@ void Space::evaluate(const kin::Posed& cl, Cell& cell, geom::QueryWorkspace& ws,
       o.cutter_clearance_mm += m;
       o.relief_mm = relief - m;
       ++c.collision;
-      if (m > 0 && !geom::check(*scene_, *tool_, pose, o, ws).collides) {
-        *cert = {true, pose.tip_mm, pose.axis, m};
+      Eigen::Isometry3d T_head_part;
+      if (m > 0 && !geom::check(*scene_, *tool_, pose, o, ws).collides &&
+          (!head_ || !kin_->head_in_part(q, T_head_part) || geom::meshes_apart(*head_, T_head_part, *scene_, co, m))) {
+        *cert = {true, pose.tip_mm, pose.axis, cell.r1, cell.r2, m};
         cell.status = Status::Feasible;
         return;
       }

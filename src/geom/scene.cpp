@@ -52,9 +52,11 @@ double aabb_gap(const Eigen::AlignedBox3d& a, const Eigen::AlignedBox3d& b) {
 }
 
 Eigen::AlignedBox3d transformed_box(const Eigen::AlignedBox3d& box, const Eigen::Isometry3d& T) {
-  Eigen::AlignedBox3d out;
-  for (int c = 0; c < 8; ++c) out.extend(T * box.corner(static_cast<Eigen::AlignedBox3d::CornerType>(c)));
-  return out;
+  // Centre and half extents (|R| h): the same box as the eight transformed corners, without the eight products.
+  if (box.isEmpty()) return box;
+  const Eigen::Vector3d c = T * box.center();
+  const Eigen::Vector3d h = T.linear().cwiseAbs() * (0.5 * box.sizes());
+  return {c - h, c + h};
 }
 
 }  // namespace
@@ -517,6 +519,25 @@ CollisionResult check_meshes(const Scene& moving, const Eigen::Isometry3d& movin
     }
   }
   return out;
+}
+
+bool meshes_apart(const Scene& moving, const Eigen::Isometry3d& moving_in_part, const Scene& fixed,
+                  const CheckOptions& o, double margin_mm) {
+  const Scene::Impl& mv = moving.impl();
+  const Scene::Impl& fx = fixed.impl();
+  CSCAM_CHECK(mv.built && fx.built, "geom::meshes_apart() before Scene::build()");
+  for (const Obstacle& m : mv.obstacles) {
+    if (m.link >= 0) return false;
+    Eigen::AlignedBox3d mbox = transformed_box(m.box, moving_in_part);
+    mbox.min().array() -= margin_mm;
+    mbox.max().array() += margin_mm;
+    for (const Obstacle& f : fx.obstacles) {
+      Eigen::Isometry3d Tf;
+      if (!selected(f, o.roles)) continue;
+      if (!obstacle_pose(f, o, Tf) || mbox.intersects(transformed_box(f.box, Tf))) return false;
+    }
+  }
+  return true;
 }
 
 }  // namespace cscam::geom

@@ -40,6 +40,37 @@ const char* to_string(Tier t) {
 
 namespace {
 
+/// Evaluates cells in parallel over the immutable space, one workspace per thread. `job(i, ws, counters)` must only
+/// touch item i, so the outcome (and the summed counters) does not depend on the thread count.
+template <typename Job>
+void parallel_items(std::size_t n, cspace::Counters& total, Job&& job) {
+  struct Local {
+    geom::QueryWorkspace ws;
+    cspace::Counters c;
+  };
+  tbb::enumerable_thread_specific<Local> locals;
+  tbb::task_arena arena(static_cast<int>(worker_threads()));
+  arena.execute([&] {
+    tbb::parallel_for(tbb::blocked_range<std::size_t>(0, n), [&](const tbb::blocked_range<std::size_t>& r) {
+      Local& l = locals.local();
+      for (std::size_t i = r.begin(); i != r.end(); ++i) job(i, l.ws, l.c);
+    });
+  });
+  for (const Local& l : locals) total += l.c;
+}
+
+/// Runs `job(i)` for i in [0, n) in parallel (pure computations that write slot i only).
+template <typename Job>
+void parallel_indices(std::size_t n, Job&& job) {
+  tbb::task_arena arena(static_cast<int>(worker_threads()));
+  arena.execute([&] {
+    tbb::parallel_for(tbb::blocked_range<std::size_t>(0, n), [&](const tbb::blocked_range<std::size_t>& r) {
+      for (std::size_t i = r.begin(); i != r.end(); ++i) job(i);
+    });
+  });
+}
+
+
 using cspace::Cell;
 using cspace::Status;
 constexpr double kInf = std::numeric_limits<double>::infinity();
@@ -687,28 +718,37 @@ class Search {
       if (k == 0) {
         for (Cell& c : L_[0].cells) tent.push_back({opt_.orientation_weight * c.orient_err, {&c, -1}});
       } else if (exact_ || S[k - 1].size() * L_[k].cells.size() <= 200000) {
-        for (Cell& c : L_[k].cells) {
-          double best = kInf;
-          int arg = -1;
-          for (std::size_t p = 0; p < S[k - 1].size(); ++p) {
-            const Cell* pc = S[k - 1][p].cell;
+        // Each cell's best predecessor on its own (in parallel), then collected in cell order.
+        auto& cells = L_[k].cells;
+        std::vector<std::pair<double, int>> best(cells.size(), {kInf, -1});
+        const auto& prev = S[k - 1];
+        parallel_indices(cells.size(), [&](std::size_t j) {
+          const Cell& c = cells[j];
+          for (std::size_t p = 0; p < prev.size(); ++p) {
+            const Cell* pc = prev[p].cell;
             const double d1 = std::abs(c.r1 - pc->r1), d2 = std::abs(c.r2 - pc->r2);
             if (d1 > max_step + 1e-12 || d2 > max_step + 1e-12) continue;
-            const double v = S[k - 1][p].cost + opt_.weight_primary * d1 + opt_.weight_secondary * d2;
-            if (v < best) {
-              best = v;
-              arg = static_cast<int>(p);
-            }
+            const double v = prev[p].cost + opt_.weight_primary * d1 + opt_.weight_secondary * d2;
+            if (v < best[j].first) best[j] = {v, static_cast<int>(p)};
           }
-          if (arg >= 0) tent.push_back({best + opt_.orientation_weight * c.orient_err, {&c, arg}});
-        }
+        });
+        for (std::size_t j = 0; j < cells.size(); ++j)
+          if (best[j].second >= 0)
+            tent.push_back({best[j].first + opt_.orientation_weight * cells[j].orient_err, {&cells[j], best[j].second}});
       } else {
         distance_transform(S[k - 1], L_[k], max_step, res, tent);
       }
       std::sort(tent.begin(), tent.end(), [](const auto& x, const auto& y) { return x.first < y.first; });
-      for (const auto& t : tent) {
-        if (S[k].size() >= beam) break;
-        if (feasible(k, *t.second.first)) S[k].push_back({t.second.first, t.first, t.second.second});
+      // The beam: the cheapest feasible cells. Evaluated in parallel blocks of exactly as many cells as the beam
+      // still lacks, so the cells evaluated (and the counters) are those of a serial scan, at any thread count.
+      for (std::size_t next = 0; next < tent.size() && S[k].size() < beam;) {
+        const std::size_t b = next, e = std::min(tent.size(), next + (beam - S[k].size()));
+        parallel_items(e - b, c_, [&](std::size_t i, geom::QueryWorkspace& ws, cspace::Counters& cc) {
+          sp_.evaluate(L_[k].cl, *tent[b + i].second.first, ws, cc);
+        });
+        for (std::size_t i = b; i < e; ++i)
+          if (tent[i].second.first->status == Status::Feasible) S[k].push_back({tent[i].second.first, tent[i].first, tent[i].second.second});
+        next = e;
       }
       if (S[k].empty()) {
         fail = {Tier::Shortest, L_[k].move, line(k),
@@ -765,11 +805,21 @@ class Search {
       }
     }
     // 1-D windowed min of g(j) + w |i - j| along a line, via two monotone deques.
+    // Only the span within W of the line's finite entries can change: the rest stays infinite (no source), as the
+    // outputs start, so a line without a finite entry is skipped.
     auto pass = [&](int len, auto&& get, auto&& get_src, auto&& put, double w) {
+      int first = -1, last = -1;
+      for (int i = 0; i < len; ++i)
+        if (get(i) < kInf) {
+          if (first < 0) first = i;
+          last = i;
+        }
+      if (first < 0) return;
+      const int lo = std::max(0, first - W), hi = std::min(len - 1, last + W);
       std::vector<double> out(static_cast<size_t>(len), kInf);
       std::vector<int> arg(static_cast<size_t>(len), -1);
       std::deque<int> dq;
-      for (int i = 0; i < len; ++i) {  // from the left: min_{i-W<=j<=i} g(j) - w j, + w i
+      for (int i = lo; i <= hi; ++i) {  // from the left: min_{i-W<=j<=i} g(j) - w j, + w i
         const double gi = get(i) - w * i;
         while (!dq.empty() && get(dq.back()) - w * dq.back() >= gi) dq.pop_back();
         dq.push_back(i);
@@ -781,7 +831,7 @@ class Search {
         }
       }
       dq.clear();
-      for (int i = len - 1; i >= 0; --i) {  // from the right: min_{i<=j<=i+W} g(j) + w j, - w i
+      for (int i = hi; i >= lo; --i) {  // from the right: min_{i<=j<=i+W} g(j) + w j, - w i
         const double gi = get(i) + w * i;
         while (!dq.empty() && get(dq.back()) + w * dq.back() >= gi) dq.pop_back();
         dq.push_back(i);
@@ -792,14 +842,16 @@ class Search {
           arg[static_cast<size_t>(i)] = dq.front();
         }
       }
-      for (int i = 0; i < len; ++i)
+      for (int i = lo; i <= hi; ++i)
         put(i, out[static_cast<size_t>(i)],
             arg[static_cast<size_t>(i)] >= 0 ? get_src(arg[static_cast<size_t>(i)]) : -1);
     };
     const double w1 = opt_.weight_primary * res, w2 = opt_.weight_secondary * res;
     std::vector<double> g(f.size(), kInf);
     std::vector<int> gsrc(f.size(), -1);
-    for (int b = 0; b < n2; ++b)
+    // Rows, then columns: each line is independent (in parallel).
+    parallel_indices(static_cast<std::size_t>(n2), [&](std::size_t bi) {
+      const int b = static_cast<int>(bi);
       pass(
           n1, [&](int a) { return f[at(a, b)]; }, [&](int a) { return src[at(a, b)]; },
           [&](int a, double v, int s) {
@@ -807,9 +859,11 @@ class Search {
             gsrc[at(a, b)] = s;
           },
           w1);
+    });
     std::vector<double> D(f.size(), kInf);
     std::vector<int> dsrc(f.size(), -1);
-    for (int a = 0; a < n1; ++a)
+    parallel_indices(static_cast<std::size_t>(n1), [&](std::size_t ai) {
+      const int a = static_cast<int>(ai);
       pass(
           n2, [&](int b) { return g[at(a, b)]; }, [&](int b) { return gsrc[at(a, b)]; },
           [&](int b, double v, int s) {
@@ -817,6 +871,7 @@ class Search {
             dsrc[at(a, b)] = s;
           },
           w2);
+    });
     for (Cell& c : cur.cells) {
       const size_t i = at(c.i1 - lo1, c.i2 - lo2);
       if (std::isfinite(D[i]) && dsrc[i] >= 0)
@@ -906,28 +961,6 @@ bool Planner::along_chosen_axis(const cl::Program& cl, Plan& plan, std::size_t m
   return true;
 }
 
-namespace {
-
-/// Evaluates cells in parallel over the immutable space, one workspace per thread. `job(i, ws, counters)` must only
-/// touch item i, so the outcome (and the summed counters) does not depend on the thread count.
-template <typename Job>
-void parallel_items(std::size_t n, cspace::Counters& total, Job&& job) {
-  struct Local {
-    geom::QueryWorkspace ws;
-    cspace::Counters c;
-  };
-  tbb::enumerable_thread_specific<Local> locals;
-  tbb::task_arena arena(static_cast<int>(worker_threads()));
-  arena.execute([&] {
-    tbb::parallel_for(tbb::blocked_range<std::size_t>(0, n), [&](const tbb::blocked_range<std::size_t>& r) {
-      Local& l = locals.local();
-      for (std::size_t i = r.begin(); i != r.end(); ++i) job(i, l.ws, l.c);
-    });
-  });
-  for (const Local& l : locals) total += l.c;
-}
-
-}  // namespace
 
 Plan Planner::run(const cl::Program& program) const {
   const auto t0 = std::chrono::steady_clock::now();
@@ -949,9 +982,9 @@ Plan Planner::run(const cl::Program& program) const {
     std::vector<Layer> layers(e - s + 1);
     // Only the first point's cells are needed by tier 1 (the others are tested cell by cell); the rest
     // are enumerated when a later tier needs them, or for the per-point feasibility check in exact mode.
-    auto enumerate_layer = [&](std::size_t k, std::size_t cap) {
+    auto enumerate_layer = [&](std::size_t k, std::size_t cap, cspace::Counters& counters) {
       Layer& l = layers[k];
-      space_.enumerate(l.cl, l.cells, cap, plan.counters);
+      space_.enumerate(l.cl, l.cells, cap, counters);
       l.truncated = l.cells.size() >= cap;
       l.index.clear();
       if (exact)
@@ -966,7 +999,7 @@ Plan Planner::run(const cl::Program& program) const {
       layers[k].move = s + k;
       layers[k].cl = {moves[s + k].tip_in_part_mm, moves[s + k].axis_in_part.normalized()};
       // Tier 1 takes its candidates from the first point: give it a much larger share.
-      if (k == 0 || exact) enumerate_layer(k, k == 0 ? 64 * opt_.max_cells_per_point : opt_.max_cells_per_point);
+      if (k == 0 || exact) enumerate_layer(k, k == 0 ? 64 * opt_.max_cells_per_point : opt_.max_cells_per_point, plan.counters);
     }
     if (exact) {
       // At a singular point the primary rotary is free: offer every primary that a neighbouring regular
@@ -1015,7 +1048,7 @@ Plan Planner::run(const cl::Program& program) const {
       keep.swap(l.extra);
       for (Cell& c : l.cells)
         if (c.status != Status::Unknown) keep.insert_or_assign(key(c.i1, c.i2), std::move(c));
-      enumerate_layer(k, std::numeric_limits<std::size_t>::max());
+      enumerate_layer(k, std::numeric_limits<std::size_t>::max(), plan.counters);
       for (auto& [kk, c] : keep) {
         if (auto it = l.index.find(kk); it != l.index.end()) {
           if (c.status != Status::Orientation) l.cells[static_cast<size_t>(it->second)] = c;
@@ -1134,11 +1167,13 @@ Plan Planner::run(const cl::Program& program) const {
     } else {
       rep.failures.push_back(f);
       if (!exact && !listed)
-        for (std::size_t k = 1; k < layers.size(); ++k) {
+        // Every layer on its own (in parallel): the same lists, counters summed.
+        parallel_items(layers.size() - 1, plan.counters, [&](std::size_t i, geom::QueryWorkspace&, cspace::Counters& cc) {
+          const std::size_t k = i + 1;
           // Keep what tier 1 already evaluated (the cache) when the full cell list arrives.
           std::unordered_map<std::uint64_t, Cell> keep;
           keep.swap(layers[k].extra);
-          enumerate_layer(k, opt_.max_cells_per_point);
+          enumerate_layer(k, opt_.max_cells_per_point, cc);
           for (auto& [kk, c] : keep) {
             if (auto it = layers[k].index.find(kk); it != layers[k].index.end()) {
               if (c.status != Status::Orientation) layers[k].cells[static_cast<size_t>(it->second)] = c;
@@ -1146,7 +1181,7 @@ Plan Planner::run(const cl::Program& program) const {
               layers[k].extra.emplace(kk, std::move(c));
             }
           }
-        }
+        });
       listed = true;
       check_points();
       if (search.fixed1(path, f, desc)) {

@@ -60,11 +60,13 @@ struct Counters {
 
 /// Reuse between neighbouring points: a pose proven free with an extra margin m (shapes inflated by m,
 /// cutter body extended m toward the tip) stays free under any translation shorter than m with the same
-/// axis, so the next points of a fixed orientation need no query until the tool has moved m.
+/// axis, so the next points of a fixed orientation need no query until the tool has moved m. It is keyed on the
+/// rotary values too: with them fixed, machine bodies keep their pose (table side) or move with the tool (head).
 struct Certificate {
   bool valid = false;
   Eigen::Vector3d tip_mm = Eigen::Vector3d::Zero();
   Eigen::Vector3d axis = Eigen::Vector3d::UnitZ();
+  double r1 = 0.0, r2 = 0.0;  ///< rotary values of the certified pose, rad
   double margin_mm = 0.0;
 };
 
@@ -163,6 +165,7 @@ class Space {
   using LinkPoses = std::array<Eigen::Isometry3d, kMaxLinks>;
   int links_ = 0;               // machine links used by the obstacles (0: none)
   bool certify_links_ = true;   // certificates stay sound with the linked obstacles
+  bool certify_head_ = true;    // head bodies all move rigidly with the spindle (none has a link)
   unsigned used_links_ = 0;     // bit l: an obstacle uses link l
   static bool place_links(const kin::Kinematics& k, const kin::Axes& q, int n, LinkPoses& T, unsigned used);
   /// opt_.collision, or a copy in `scratch` with the link poses for q when obstacles have links.

@@ -266,4 +266,11 @@ struct CollisionResult {
                                            const Scene& fixed, const CheckOptions& options, QueryWorkspace& workspace,
                                            int* moving_obstacle = nullptr);
 
+/// Whether every obstacle of `moving` (placed as in check_meshes()) stays clear of the selected obstacles of `fixed`
+/// under any translation shorter than `margin_mm`: their bounding boxes, the moving one grown by the margin, are
+/// disjoint. A cheap, conservative certificate (false does not mean a collision). Moving obstacles with a link are
+/// not certified (false). Counts no query.
+[[nodiscard]] bool meshes_apart(const Scene& moving, const Eigen::Isometry3d& moving_in_part, const Scene& fixed,
+                                const CheckOptions& options, double margin_mm);
+
 }  // namespace cscam::geom
