@@ -349,8 +349,8 @@ std::string post_arcs_checked(const cl::Program& prog, const std::string& machin
   const auto k = m.make_kinematics(post::tool_length_for(m, 0));
   const Posted p = post_program(prog, m, *k);
   EXPECT_EQ(p.summary.arc_blocks, want_arcs);
-  const auto s = gate::check(p.text, "arcs.ngc", prog, m, *k, gate::options_for(m, 0, 0, 0),
-                             &p.summary.cl_line_of_nc_line);
+  const auto s =
+      gate::check(p.text, "arcs.ngc", prog, m, *k, gate::options_for(m, 0, 0, 0), &p.summary.cl_line_of_nc_line);
   EXPECT_TRUE(s.ok) << s.message;
   test::expect_rs274_agrees(p.text, m, "arcs_" + machine_name);
   const nc::Program ours = nc::read_text(p.text, "arcs.ngc", report::axis_letters(m));
@@ -404,8 +404,8 @@ TEST(GateArcs, RefusesAnArcWhoseCentreMovedAndNamesTheBlock) {
   const auto at = l.find(" I2.5000");
   ASSERT_NE(at, std::string::npos) << l;
   l.replace(at, 8, " I2.6000");  // the centre 0.1 mm along X
-  const auto s = gate::check(join(lines), "t.ngc", prog, m, *k, gate::options_for(m, 0, 0, 0),
-                             &p.summary.cl_line_of_nc_line);
+  const auto s =
+      gate::check(join(lines), "t.ngc", prog, m, *k, gate::options_for(m, 0, 0, 0), &p.summary.cl_line_of_nc_line);
   EXPECT_FALSE(s.ok);
   EXPECT_TRUE(has_kind(s, gate::Violation::Kind::Deviation, n)) << s.message;
 }

@@ -78,7 +78,7 @@ inline std::vector<std::array<double, 6>> rs274_moves(const std::string& text, c
         vs >> x;
         vs.ignore(2, ',');
       }
-      const std::array<int, 3> uvw = plane == 17 ? std::array<int, 3>{0, 1, 2}
+      const std::array<int, 3> uvw = plane == 17   ? std::array<int, 3>{0, 1, 2}
                                      : plane == 18 ? std::array<int, 3>{2, 0, 1}
                                                    : std::array<int, 3>{1, 2, 0};
       std::array<double, 6> v{};

@@ -775,8 +775,8 @@ bool AptReader::statement(const Statement& st) {
            fmt::format("too few values on CIRCLE/ (expected xc,yc,zc,i,j,k,r[,...], got {})", n));
     if (!(v[6] > 0)) fail(st, offs[6], fmt::format("circle radius must be positive (got {})", v[6]));
     if (v[6] * scale_ > kMaxArcRadiusMm)
-      fail(st, offs[6], fmt::format("circle radius {} mm is beyond any machine (at most {} mm)", v[6] * scale_,
-                                    kMaxArcRadiusMm));
+      fail(st, offs[6],
+           fmt::format("circle radius {} mm is beyond any machine (at most {} mm)", v[6] * scale_, kMaxArcRadiusMm));
     const auto [line, col] = st.where(h.keyword_offset);
     circle_ = Circle{Vector3d(v[0], v[1], v[2]) * scale_, unit_vector(st, v + 3, offs[3], "circle axis"), v[6] * scale_,
                      line, col};

@@ -192,8 +192,7 @@ Summary check(const std::string& nc_text, const std::string& nc_name, const cl::
     kin::Axes dq = joints[bi] - joints[bi - 1];
     if (b.arc && !s.tool_tip_control) {
       // On an arc the plane's axes peak at the path speed in the plane: their "distance" is the arc's length.
-      const double in_plane =
-          0.5 * (b.arc->start_radius_mm + b.arc->end_radius_mm) * std::abs(b.arc->sweep_rad);
+      const double in_plane = 0.5 * (b.arc->start_radius_mm + b.arc->end_radius_mm) * std::abs(b.arc->sweep_rad);
       dq[b.arc->slot[0]] = dq[b.arc->slot[1]] = in_plane;
     }
     if (dq.cwiseAbs().maxCoeff() < 1e-12) continue;

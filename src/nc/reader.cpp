@@ -512,7 +512,8 @@ Program read_text(const std::string& text, const std::string& name, const AxisLe
       const std::array<int, 3> uvw = plane == 17   ? std::array<int, 3>{0, 1, 2}
                                      : plane == 18 ? std::array<int, 3>{2, 0, 1}
                                                    : std::array<int, 3>{1, 2, 0};
-      for (int k = 0; k < 3; ++k) g.slot[static_cast<size_t>(k)] = xyz[static_cast<size_t>(uvw[static_cast<size_t>(k)])];
+      for (int k = 0; k < 3; ++k)
+        g.slot[static_cast<size_t>(k)] = xyz[static_cast<size_t>(uvw[static_cast<size_t>(k)])];
       if (g.slot[0] < 0 || g.slot[1] < 0 || g.slot[2] < 0)
         fail(0, fmt::format("G{} arc in the G{} plane, but this machine lacks one of its axes X, Y, Z",
                             motion == Motion::ArcCW ? 2 : 3, plane));

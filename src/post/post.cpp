@@ -131,7 +131,8 @@ class Sequencer {
     for (int k = 0; k < 3; ++k) {
       xyz_[static_cast<size_t>(k)] = -1;
       for (int i = 0; i < 5; ++i)
-        if (!m_.axes[static_cast<size_t>(i)].rotary() && m_.post.letters[static_cast<size_t>(i)] == std::string(1, "XYZ"[k]))
+        if (!m_.axes[static_cast<size_t>(i)].rotary() &&
+            m_.post.letters[static_cast<size_t>(i)] == std::string(1, "XYZ"[k]))
           xyz_[static_cast<size_t>(k)] = i;
       arcs_ = arcs_ && xyz_[static_cast<size_t>(k)] >= 0;
     }
@@ -691,9 +692,7 @@ class Sequencer {
     if (w < 0 || std::abs(n_m.norm() - 1.0) > 1e-9) return 0;  // not a machine plane (or not a rigid map)
     const int plane = w == 2 ? 17 : (w == 1 ? 18 : 19);
     const int u = (w + 1) % 3, v = (w + 2) % 3;  // (X,Y) for G17, (Z,X) for G18, (Y,Z) for G19
-    auto xyz_of = [&](const kin::Axes& q) {
-      return Vec3(q[xyz_[0]], q[xyz_[1]], q[xyz_[2]]);
-    };
+    auto xyz_of = [&](const kin::Axes& q) { return Vec3(q[xyz_[0]], q[xyz_[1]], q[xyz_[2]]); };
     const Vec3 p0 = xyz_of(q0), p1 = xyz_of(axes[end]);
     const double r = arc.radius_mm;
     const double ccw_sign = n_m[w] > 0 ? 1.0 : -1.0;  // the CL's counter-clockwise, seen from +w
@@ -1132,8 +1131,8 @@ class Sequencer {
   std::unique_ptr<Formatter> fmt_;
   BlockSpec blk_;
   bool inverse_time_ = true;
-  bool arcs_ = false;            ///< CL arcs may become G2/G3
-  std::array<int, 3> xyz_{};     ///< slots of the machine's X, Y, Z
+  bool arcs_ = false;         ///< CL arcs may become G2/G3
+  std::array<int, 3> xyz_{};  ///< slots of the machine's X, Y, Z
   double tol_mm_ = 0.01, tol_axis_rad_ = 0.005, cos_tol_axis_ = 1.0;
   std::array<int, 5> decimals_{};
   std::array<double, 5> scale_{}, to_file_{};

@@ -375,7 +375,8 @@ VerifyResult verify(const nc::Program& nc, const cl::Program& cl, const kin::Kin
   // Coverage: every CL feed point must be reached by the NC path (nothing skipped).
   if (!nc_feed_points.empty()) {
     size_t c = 0;
-    const bool nc_arcs = std::any_of(nc.blocks.begin(), nc.blocks.end(), [](const nc::Block& b) { return bool(b.arc); });
+    const bool nc_arcs =
+        std::any_of(nc.blocks.begin(), nc.blocks.end(), [](const nc::Block& b) { return bool(b.arc); });
     for (const ClSeg& s : segs) {
       // Inside a CL arc written as G2/G3 the NC has no block end: the samples along the arc (above) stand for it.
       if (nc_arcs && s.arc_interior) continue;

@@ -46,8 +46,8 @@ struct Arc {
   Eigen::Vector3d centre_in_part_mm = Eigen::Vector3d::Zero();
   Eigen::Vector3d normal_in_part = Eigen::Vector3d::UnitZ();  ///< unit; the motion is counter-clockwise about it
   double radius_mm = 0.0;
-  double sweep_rad = 0.0;  ///< angle travelled, (0, 2 pi]
-  int line = 0;            ///< the CIRCLE/ line
+  double sweep_rad = 0.0;    ///< angle travelled, (0, 2 pi]
+  int line = 0;              ///< the CIRCLE/ line
   std::size_t end_move = 0;  ///< index of the end GOTO in Program::moves (the start is the move before the first point)
 };
 

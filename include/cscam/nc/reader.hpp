@@ -25,11 +25,11 @@ enum class Motion { Rapid, Linear, ArcCW, ArcCCW };
 /// (X, Y, Z) for G17, (Z, X, Y) for G18 and (Y, Z, X) for G19 (RS274: counter-clockwise seen from +w); the
 /// motion along w and of every other axis is linear (a helix).
 struct ArcGeometry {
-  int plane = 17;                    ///< 17, 18 or 19
-  std::array<int, 3> slot{};         ///< axis slots of u, v, w
+  int plane = 17;             ///< 17, 18 or 19
+  std::array<int, 3> slot{};  ///< axis slots of u, v, w
   double centre_u = 0.0, centre_v = 0.0;
-  double start_angle_rad = 0.0;      ///< of the start point about the centre, from +u toward +v
-  double sweep_rad = 0.0;            ///< signed: > 0 counter-clockwise (G3), < 0 clockwise (G2)
+  double start_angle_rad = 0.0;                       ///< of the start point about the centre, from +u toward +v
+  double sweep_rad = 0.0;                             ///< signed: > 0 counter-clockwise (G3), < 0 clockwise (G2)
   double start_radius_mm = 0.0, end_radius_mm = 0.0;  ///< unequal for a malformed arc: read as a spiral
 };
 
@@ -44,7 +44,7 @@ struct Block {
   std::array<bool, 5> words{};  ///< the axis word appears in this block
   /// Tool vector (part frame) of tool-tip control in vector form (G43.5 I J K, Siemens A3 B3 C3), modal.
   std::array<double, 3> tool_vector{0.0, 0.0, 1.0};
-  bool has_vector = false;  ///< a tool vector has been programmed so far
+  bool has_vector = false;         ///< a tool vector has been programmed so far
   std::optional<ArcGeometry> arc;  ///< G2/G3: the circle from the previous block's position to this one's
 };
 

@@ -49,9 +49,9 @@ struct BlockSpec {
   /// A circular (G2/G3) feed block instead of G1: its plane and its centre relative to the start (I J K).
   struct Arc {
     bool clockwise = false;
-    int plane = 17;                   ///< 17 (XY), 18 (ZX), 19 (YZ)
-    std::array<long long, 3> ijk{};   ///< centre - start per X, Y, Z, scaled like the linear words
-    std::array<bool, 3> write{};      ///< which of I J K the plane needs
+    int plane = 17;                  ///< 17 (XY), 18 (ZX), 19 (YZ)
+    std::array<long long, 3> ijk{};  ///< centre - start per X, Y, Z, scaled like the linear words
+    std::array<bool, 3> write{};     ///< which of I J K the plane needs
     int decimals = 4;
   };
   std::optional<Arc> arc;
