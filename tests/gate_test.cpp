@@ -338,3 +338,75 @@ TEST(PostFlips, SameInputGivesByteIdenticalOutput) {
   const Posted b = post_program(prog, m, *k);
   EXPECT_EQ(a.text, b.text);
 }
+
+// --- CL arcs written as G2/G3 (issue 10, part 3) ---------------------------------------------------------------
+
+namespace {
+
+/// Posts `prog`, checks that the gate passes, that rs274 accepts the program and moves to our end points, and that
+/// every rs274 ARC_FEED has the centre and direction our reader took from the same block.
+std::string post_arcs_checked(const cl::Program& prog, const std::string& machine_name, std::size_t want_arcs) {
+  const auto m = load_machine(machine_name);
+  const auto k = m.make_kinematics(post::tool_length_for(m, 0));
+  const Posted p = post_program(prog, m, *k);
+  EXPECT_EQ(p.summary.arc_blocks, want_arcs);
+  const auto s =
+      gate::check(p.text, "arcs.ngc", prog, m, *k, gate::options_for(m, 0, 0, 0), &p.summary.cl_line_of_nc_line);
+  EXPECT_TRUE(s.ok) << s.message;
+  test::expect_rs274_agrees(p.text, m, "arcs_" + machine_name);
+  const nc::Program ours = nc::read_text(p.text, "arcs.ngc", report::axis_letters(m));
+  std::vector<const nc::Block*> arcs;
+  for (const auto& b : ours.blocks)
+    if (b.arc) arcs.push_back(&b);
+  const auto& theirs = test::arcs_out();
+  EXPECT_EQ(arcs.size(), want_arcs);
+  EXPECT_EQ(theirs.size(), arcs.size());
+  for (std::size_t i = 0; i < std::min(theirs.size(), arcs.size()); ++i) {
+    EXPECT_EQ(theirs[i].plane, arcs[i]->arc->plane);
+    EXPECT_NEAR(theirs[i].centre_first, arcs[i]->arc->centre_u, test::kRs274HalfUnit);
+    EXPECT_NEAR(theirs[i].centre_second, arcs[i]->arc->centre_v, test::kRs274HalfUnit);
+    EXPECT_EQ(theirs[i].turn > 0, arcs[i]->arc->sweep_rad > 0) << "arc " << i;
+  }
+  return p.text;
+}
+
+}  // namespace
+
+TEST(GateArcs, NxZigzagCirclesBecomeArcsThatPassTheGateAndRs274) {
+  // NX's own post printed 34 G02/G03 here (the 35th CIRCLE, 0.8 degrees, as a G01); the direction agrees with it.
+  const cl::Program prog = cl::read_file(test::source_path("examples/nx-haas-umc750/zigzag_smoothed.cls"));
+  const std::string text = post_arcs_checked(prog, "haas-umc750", 35);
+  EXPECT_NE(text.find("G3 X-0.0559 Y154.9997 I2.5000 J0.0000"), std::string::npos);  // NX: G03 ... I.0984 J0.0 (inch)
+}
+
+TEST(GateArcs, SyntheticHelixAndZxArcOnTheTrunnion) {
+  // A CCW helix about +Z (NX's CIRCLE runs clockwise about its i,j,k), then a half circle in the ZX plane.
+  const std::string cl =
+      "PARTNO HELIX\nUNITS/MM\nMULTAX/ON\nCUTTER/6,3\nLOADTL/1\nFEDRAT/MMPM,800\nRAPID\nGOTO/10,0,5,0,0,1\n"
+      "GOTO/10,0,0,0,0,1\nCIRCLE/0,0,0,0,0,-1,10,0.01\nGOTO/0,10,-2,0,0,1\nGOTO/0,10,-3\n"
+      "CIRCLE/5,10,-3,0,1,0,5,0.01\nGOTO/10,10,-3\nGOTO/10,10,5\nFINI\n";
+  const cl::Program prog = cl::read_text(cl, "helix.cls");
+  ASSERT_EQ(prog.arcs.size(), 2u);
+  const std::string text = post_arcs_checked(prog, "trunnion-ac", 2);
+  EXPECT_NE(text.find("G18"), std::string::npos);
+}
+
+TEST(GateArcs, RefusesAnArcWhoseCentreMovedAndNamesTheBlock) {
+  const cl::Program prog = cl::read_file(test::source_path("examples/nx-haas-umc750/zigzag_smoothed.cls"));
+  const auto m = load_machine("haas-umc750");
+  const auto k = m.make_kinematics(post::tool_length_for(m, 0));
+  const Posted p = post_program(prog, m, *k);
+  std::vector<std::string> lines;
+  std::istringstream in(p.text);
+  for (std::string l; std::getline(in, l);) lines.push_back(l);
+  const int n = find_line(lines, "G3 ");
+  ASSERT_GT(n, 0);
+  std::string& l = lines[static_cast<size_t>(n - 1)];
+  const auto at = l.find(" I2.5000");
+  ASSERT_NE(at, std::string::npos) << l;
+  l.replace(at, 8, " I2.6000");  // the centre 0.1 mm along X
+  const auto s =
+      gate::check(join(lines), "t.ngc", prog, m, *k, gate::options_for(m, 0, 0, 0), &p.summary.cl_line_of_nc_line);
+  EXPECT_FALSE(s.ok);
+  EXPECT_TRUE(has_kind(s, gate::Violation::Kind::Deviation, n)) << s.message;
+}

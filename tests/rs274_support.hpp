@@ -23,6 +23,16 @@ namespace cscam::test {
 /// rs274 prints 4 decimals: agreement to half a unit in the last place.
 inline constexpr double kRs274HalfUnit = 0.5e-4 + 1e-9;
 
+/// The ARC_FEEDs of the last rs274_moves run: plane, centre (first, second axis of the plane), turn (+1 CCW, -1 CW).
+struct Rs274Arc {
+  int plane;
+  double centre_first, centre_second, turn;
+};
+inline std::vector<Rs274Arc>& arcs_out() {
+  static std::vector<Rs274Arc> a;
+  return a;
+}
+
 /// Runs rs274 -g on the text and returns every STRAIGHT_FEED/TRAVERSE as (x y z a b c), and its output.
 /// `ini_dir`, when given, is a folder of the repository (under tests/data) with an `rs274-*.ini` and what it
 /// names: it is copied beside the program and passed with -i (e.g. the remaps of LinuxCNC's M428/M429).
@@ -47,12 +57,41 @@ inline std::vector<std::array<double, 6>> rs274_moves(const std::string& text, c
   const auto r =
       run_command("cd '" + dir.string() + "' && flock '" + lock + "' rs274 " + ini_arg + "-g '" + path + "'");
   log = r.output;
+  arcs_out().clear();
   std::vector<std::array<double, 6>> moves;
   std::istringstream in(r.output);
   std::string line;
   const std::regex re(R"(STRAIGHT_(FEED|TRAVERSE)\(([^)]*)\))");
+  const std::regex arc_re(R"(ARC_FEED\(([^)]*)\))");
   std::smatch m;
+  int plane = 17;
   while (std::getline(in, line)) {
+    if (line.find("CANON_PLANE_XY") != std::string::npos) plane = 17;
+    if (line.find("CANON_PLANE_XZ") != std::string::npos) plane = 18;
+    if (line.find("CANON_PLANE_YZ") != std::string::npos) plane = 19;
+    if (std::regex_search(line, m, arc_re)) {
+      // ARC_FEED(first end, second end, first centre, second centre, turn, axis end, a, b, c): the plane's first
+      // and second axes are (X, Y) for G17, (Z, X) for G18, (Y, Z) for G19.
+      std::array<double, 9> f{};
+      std::istringstream vs(m[1].str());
+      for (auto& x : f) {
+        vs >> x;
+        vs.ignore(2, ',');
+      }
+      const std::array<int, 3> uvw = plane == 17   ? std::array<int, 3>{0, 1, 2}
+                                     : plane == 18 ? std::array<int, 3>{2, 0, 1}
+                                                   : std::array<int, 3>{1, 2, 0};
+      std::array<double, 6> v{};
+      v[static_cast<size_t>(uvw[0])] = f[0];
+      v[static_cast<size_t>(uvw[1])] = f[1];
+      v[static_cast<size_t>(uvw[2])] = f[5];
+      v[3] = f[6];
+      v[4] = f[7];
+      v[5] = f[8];
+      moves.push_back(v);
+      arcs_out().push_back({plane, f[2], f[3], f[4]});
+      continue;
+    }
     if (!std::regex_search(line, m, re)) continue;
     std::array<double, 6> v{};
     std::istringstream vs(m[2].str());

@@ -388,6 +388,7 @@ class AptReader {
   std::string pending_tool_name_;
   StagedTool staged_;
   std::optional<Circle> circle_;
+  bool arc_open_ = false;  ///< an arc recorded in prog_.arcs waits for its end GOTO
 };
 
 int AptReader::parse_numbers(const Statement& st, string_view s, size_t base, double* v, size_t* offs, int cap) const {
@@ -548,6 +549,11 @@ void AptReader::motion(const Statement& st, const Head& h, MotionKind forced) {
     circle_.reset();
   }
   add_move(tip, axis_, st.line, rapid);
+  if (arc_open_) {
+    prog_.arcs.back().end_move = prog_.moves.size() - 1;
+    prog_.moves.back().arc_index = static_cast<int>(prog_.arcs.size()) - 1;
+    arc_open_ = false;
+  }
   next_rapid_ = false;
 }
 
@@ -602,6 +608,10 @@ void AptReader::emit_arc(const Circle& c, const Vector3d& end_mm, const Vector3d
   const double step = tol >= r ? kMaxArcStepRad : std::min(kMaxArcStepRad, 2.0 * std::acos(1.0 - tol / r));
   const int segments = static_cast<int>(std::min<double>(kMaxArcPoints, std::max(1.0, std::ceil(sweep / step))));
   const bool same_axis = (start_axis - end_axis).squaredNorm() < 1e-24;
+  // The arc's identity (the GOTO that follows ends it): a post may write it as one G2/G3.
+  prog_.arcs.push_back({c.centre_mm, -n, r, sweep, c.line, 0});
+  arc_open_ = true;
+  const int arc_index = static_cast<int>(prog_.arcs.size()) - 1;
   for (int k = 1; k < segments; ++k) {
     const double t = static_cast<double>(k) / segments;
     const double ang = -sweep * t;
@@ -613,6 +623,7 @@ void AptReader::emit_arc(const Circle& c, const Vector3d& end_mm, const Vector3d
     }
     add_move(p, a, c.line, rapid);
     prog_.moves.back().from_arc = true;
+    prog_.moves.back().arc_index = arc_index;
   }
 }
 
@@ -764,8 +775,8 @@ bool AptReader::statement(const Statement& st) {
            fmt::format("too few values on CIRCLE/ (expected xc,yc,zc,i,j,k,r[,...], got {})", n));
     if (!(v[6] > 0)) fail(st, offs[6], fmt::format("circle radius must be positive (got {})", v[6]));
     if (v[6] * scale_ > kMaxArcRadiusMm)
-      fail(st, offs[6], fmt::format("circle radius {} mm is beyond any machine (at most {} mm)", v[6] * scale_,
-                                    kMaxArcRadiusMm));
+      fail(st, offs[6],
+           fmt::format("circle radius {} mm is beyond any machine (at most {} mm)", v[6] * scale_, kMaxArcRadiusMm));
     const auto [line, col] = st.where(h.keyword_offset);
     circle_ = Circle{Vector3d(v[0], v[1], v[2]) * scale_, unit_vector(st, v + 3, offs[3], "circle axis"), v[6] * scale_,
                      line, col};

@@ -70,6 +70,8 @@ Summary check(const std::string& nc_text, const std::string& nc_name, const cl::
   }
   s.blocks = ncp.blocks.size();
   const auto& ax = kinematics.axes();
+  std::array<bool, 5> letters_rotary{};
+  for (size_t i = 0; i < 5; ++i) letters_rotary[i] = ax[i].rotary();
   const auto tip_kin_ptr = report::tool_tip_kinematics(kinematics, ncp.tcp_vectors);
   const kin::Kinematics& tip_kin = *tip_kin_ptr;
 
@@ -147,9 +149,18 @@ Summary check(const std::string& nc_text, const std::string& nc_name, const cl::
     double span = 0.0;
     for (int i = 0; i < 5; ++i)
       span = std::max(span, std::abs(qb[i] - qa[i]) / (ax[static_cast<size_t>(i)].rotary() ? deg2rad(1.0) : 1.0));
+    if (b.arc) span = std::max(span, nc::linear_path_mm(ncp.blocks[bi - 1].axes, b, letters_rotary));
     const int n = std::clamp(static_cast<int>(std::ceil(span / std::max(options.collision_step, 1e-6))), 1, 4000);
     for (int k = 1; k < n; ++k) {
-      const kin::Axes q = qa + (static_cast<double>(k) / n) * (qb - qa);
+      kin::Axes q = qa + (static_cast<double>(k) / n) * (qb - qa);
+      if (b.arc && !s.tool_tip_control) {  // machine words on an arc: its points, inside the limits too
+        const auto p = nc::point_on(ncp.blocks[bi - 1].axes, b, static_cast<double>(k) / n);
+        for (int i = 0; i < 5; ++i) q[i] = p[static_cast<size_t>(i)];
+        if (const std::string v = kinematics.check_limits(q); !v.empty()) {
+          add(Violation::Kind::Limit, b.line, 0, fmt::format("inside the arc: {}", v));
+          break;
+        }
+      }
       if (const std::string v = kinematics.passive_violation(q); !v.empty()) {
         add(Violation::Kind::Limit, b.line, 0, fmt::format("inside the move: {}", v));
         break;
@@ -178,7 +189,12 @@ Summary check(const std::string& nc_text, const std::string& nc_name, const cl::
       wa[i] = ncp.blocks[bi - 1].axes[static_cast<size_t>(i)];
       wb[i] = b.axes[static_cast<size_t>(i)];
     }
-    const kin::Axes dq = joints[bi] - joints[bi - 1];
+    kin::Axes dq = joints[bi] - joints[bi - 1];
+    if (b.arc && !s.tool_tip_control) {
+      // On an arc the plane's axes peak at the path speed in the plane: their "distance" is the arc's length.
+      const double in_plane = 0.5 * (b.arc->start_radius_mm + b.arc->end_radius_mm) * std::abs(b.arc->sweep_rad);
+      dq[b.arc->slot[0]] = dq[b.arc->slot[1]] = in_plane;
+    }
     if (dq.cwiseAbs().maxCoeff() < 1e-12) continue;
     double minutes = 0.0;
     if (b.inverse_time) {
@@ -193,6 +209,7 @@ Summary check(const std::string& nc_text, const std::string& nc_name, const cl::
         const double d = wb[i] - wa[i];
         (ax[static_cast<size_t>(i)].rotary() ? rot2 : lin2) += d * d;
       }
+      if (b.arc) lin2 = std::pow(nc::linear_path_mm(ncp.blocks[bi - 1].axes, b, letters_rotary), 2);
       const double len = lin2 > 1e-18 ? std::sqrt(lin2) : rad2deg(std::sqrt(rot2));
       if (b.feed <= 0) {
         add(Violation::Kind::Velocity, b.line, 0, "feed move with no feed rate (F0)");

@@ -131,7 +131,8 @@ void load_post(const Reader& r, const YAML::Node& n, Machine& m) {
                "inch",
                "clamp",
                "rotary_output",
-               "home_rotaries"});
+               "home_rotaries",
+               "arcs"});
   PostSettings& p = m.post;
   if (n["dialect"]) p.dialect = r.string(n["dialect"], "post.dialect");
   if (n["tcp"]) p.tcp = r.boolean(n["tcp"], "post.tcp");
@@ -185,6 +186,7 @@ void load_post(const Reader& r, const YAML::Node& n, Machine& m) {
   }
   if (n["inch"]) p.inch = r.boolean(n["inch"], "post.inch");
   if (n["home_rotaries"]) p.home_rotaries = r.boolean(n["home_rotaries"], "post.home_rotaries");
+  if (n["arcs"]) p.arcs = r.boolean(n["arcs"], "post.arcs");
   if (n["rotary_output"]) {
     p.rotary_output = r.string(n["rotary_output"], "post.rotary_output");
     if (p.rotary_output != "absolute" && p.rotary_output != "shortest")

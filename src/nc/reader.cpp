@@ -231,6 +231,13 @@ Program read_text(const std::string& text, const std::string& name, const AxisLe
   Block state;
   Motion motion = Motion::Rapid;
   bool inch = false, absolute = true, g93 = false, g435 = false;
+  int plane = 17;
+  // The machine's X, Y and Z slots (arcs are in their planes).
+  std::array<int, 3> xyz{-1, -1, -1};
+  for (int a = 0; a < 5; ++a)
+    for (int k = 0; k < 3; ++k)
+      if (!letters.rotary[static_cast<size_t>(a)] && letters.letter[static_cast<size_t>(a)] == "XYZ"[k])
+        xyz[static_cast<size_t>(k)] = a;
   double feed = 0.0;
   for (size_t li = first; li < lines.size(); ++li) {
     const std::string_view raw = lines[li];
@@ -267,6 +274,10 @@ Program read_text(const std::string& text, const std::string& name, const AxisLe
     };
     std::array<double, 5> word_val{};
     std::array<bool, 5> word_short{};
+    std::array<double, 3> ijk{};
+    std::array<bool, 3> ijk_given{};
+    std::optional<double> r_word;
+    int ijk_column = 0;
     // An axis word: the machine's letter, or a letter it lacks (noted once).
     auto axis_word_value = [&](char L, double v, bool short_way, int word_column) {
       bool axis_word = false;
@@ -390,6 +401,11 @@ Program read_text(const std::string& text, const std::string& name, const AxisLe
           case 30:
             motion = Motion::ArcCCW;
             break;
+          case 170:
+          case 180:
+          case 190:
+            plane = g10 / 10;
+            break;
           case 200:
             inch = true;
             break;
@@ -445,6 +461,17 @@ Program read_text(const std::string& text, const std::string& name, const AxisLe
         vector_words = true;
         continue;
       }
+      if (L == 'I' || L == 'J' || L == 'K') {  // arc centre, incremental from the start (G91.1, the default)
+        ijk[static_cast<size_t>(L - 'I')] = v;
+        ijk_given[static_cast<size_t>(L - 'I')] = true;
+        ijk_column = word_column;
+        continue;
+      }
+      if (L == 'R') {
+        r_word = v;
+        ijk_column = word_column;
+        continue;
+      }
       axis_word_value(L, v, false, word_column);
     }
     if (tcp_word) prog.tcp = true;
@@ -478,8 +505,54 @@ Program read_text(const std::string& text, const std::string& name, const AxisLe
       b.axes[static_cast<size_t>(a)] = absolute ? v : b.axes[static_cast<size_t>(a)] + v;
       b.known[static_cast<size_t>(a)] = true;
     }
-    if ((motion == Motion::ArcCW || motion == Motion::ArcCCW) && prog.notes.size() < 1000)
-      prog.notes.push_back(fmt::format("{}:{}: arc taken as its chord for statistics", name, lineno));
+    b.arc.reset();
+    if (motion == Motion::ArcCW || motion == Motion::ArcCCW) {
+      ArcGeometry g;
+      g.plane = plane;
+      const std::array<int, 3> uvw = plane == 17   ? std::array<int, 3>{0, 1, 2}
+                                     : plane == 18 ? std::array<int, 3>{2, 0, 1}
+                                                   : std::array<int, 3>{1, 2, 0};
+      for (int k = 0; k < 3; ++k)
+        g.slot[static_cast<size_t>(k)] = xyz[static_cast<size_t>(uvw[static_cast<size_t>(k)])];
+      if (g.slot[0] < 0 || g.slot[1] < 0 || g.slot[2] < 0)
+        fail(0, fmt::format("G{} arc in the G{} plane, but this machine lacks one of its axes X, Y, Z",
+                            motion == Motion::ArcCW ? 2 : 3, plane));
+      const auto su = static_cast<size_t>(g.slot[0]), sv = static_cast<size_t>(g.slot[1]);
+      if (!state.known[su] || !state.known[sv])
+        fail(0, "arc before its plane's axes have a position: its start is unknown");
+      const double scale = inch ? kMmPerInch : 1.0;
+      const double u0 = state.axes[su], v0 = state.axes[sv], u1 = b.axes[su], v1 = b.axes[sv];
+      const bool cw = motion == Motion::ArcCW;
+      if (ijk_given[static_cast<size_t>(uvw[0])] || ijk_given[static_cast<size_t>(uvw[1])]) {
+        if (r_word) fail(static_cast<size_t>(ijk_column - 1), "arc with both I J K and R");
+        g.centre_u = u0 + scale * ijk[static_cast<size_t>(uvw[0])];
+        g.centre_v = v0 + scale * ijk[static_cast<size_t>(uvw[1])];
+      } else if (r_word) {
+        const double R = *r_word * scale, du = u1 - u0, dv = v1 - v0, d = std::hypot(du, dv);
+        if (d < 1e-9) fail(static_cast<size_t>(ijk_column - 1), "R arc with its end at its start");
+        if (std::abs(R) < 0.5 * d - 1e-6)
+          fail(static_cast<size_t>(ijk_column - 1),
+               fmt::format("arc radius R{} is less than half the distance to its end ({:.4f} mm)", *r_word, 0.5 * d));
+        const double h = std::sqrt(std::max(0.0, R * R - 0.25 * d * d));
+        // Left of the chord for a counter-clockwise short arc; R < 0 asks for the long arc.
+        const double side = (cw ? -1.0 : 1.0) * (R < 0 ? -1.0 : 1.0);
+        g.centre_u = 0.5 * (u0 + u1) - side * h * dv / d;
+        g.centre_v = 0.5 * (v0 + v1) + side * h * du / d;
+      } else {
+        fail(0, fmt::format("G{} arc without a centre (I J K in its plane) or a radius (R)", cw ? 2 : 3));
+      }
+      g.start_radius_mm = std::hypot(u0 - g.centre_u, v0 - g.centre_v);
+      g.end_radius_mm = std::hypot(u1 - g.centre_u, v1 - g.centre_v);
+      if (g.start_radius_mm < 1e-9 || g.end_radius_mm < 1e-9) fail(0, "arc with its start or end at its centre");
+      g.start_angle_rad = std::atan2(v0 - g.centre_v, u0 - g.centre_u);
+      const double a1 = std::atan2(v1 - g.centre_v, u1 - g.centre_u);
+      double ccw = std::fmod(a1 - g.start_angle_rad + 4.0 * kPi, 2.0 * kPi);  // [0, 2 pi)
+      double cwa = std::fmod(g.start_angle_rad - a1 + 4.0 * kPi, 2.0 * kPi);
+      if (ccw < 1e-12) ccw = 2.0 * kPi;  // end = start: a full circle
+      if (cwa < 1e-12) cwa = 2.0 * kPi;
+      g.sweep_rad = cw ? -cwa : ccw;
+      b.arc = g;
+    }
     b.line = lineno;
     b.motion = motion;
     b.inverse_time = g93;
@@ -488,6 +561,31 @@ Program read_text(const std::string& text, const std::string& name, const AxisLe
     state = b;
   }
   return prog;
+}
+
+std::array<double, 5> point_on(const std::array<double, 5>& start, const Block& b, double t) {
+  std::array<double, 5> q{};
+  for (size_t a = 0; a < 5; ++a) q[a] = start[a] + t * (b.axes[a] - start[a]);
+  if (b.arc) {
+    const ArcGeometry& g = *b.arc;
+    const double ang = g.start_angle_rad + t * g.sweep_rad;
+    const double r = g.start_radius_mm + t * (g.end_radius_mm - g.start_radius_mm);
+    q[static_cast<size_t>(g.slot[0])] = g.centre_u + r * std::cos(ang);
+    q[static_cast<size_t>(g.slot[1])] = g.centre_v + r * std::sin(ang);
+  }
+  return q;
+}
+
+double linear_path_mm(const std::array<double, 5>& start, const Block& b, const std::array<bool, 5>& rotary) {
+  double lin2 = 0.0;
+  for (size_t a = 0; a < 5; ++a)
+    if (!rotary[a] && !(b.arc && (static_cast<int>(a) == b.arc->slot[0] || static_cast<int>(a) == b.arc->slot[1])))
+      lin2 += (b.axes[a] - start[a]) * (b.axes[a] - start[a]);
+  if (b.arc) {
+    const double in_plane = 0.5 * (b.arc->start_radius_mm + b.arc->end_radius_mm) * std::abs(b.arc->sweep_rad);
+    lin2 += in_plane * in_plane;
+  }
+  return std::sqrt(lin2);
 }
 
 Program read_file(const std::string& path, const AxisLetters& letters) {

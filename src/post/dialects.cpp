@@ -140,16 +140,38 @@ void Formatter::dwell(std::string& out, double seconds) {
   fmt::format_to(std::back_inserter(out), "G4 P{:.3f}\n", seconds);
 }
 
+void Formatter::motion_word(std::string& out, const BlockSpec& b) {
+  if (b.arc && b.arc->plane != plane_) {
+    plane_ = b.arc->plane;
+    fmt::format_to(std::back_inserter(out), "G{} ", plane_);
+  }
+  if (b.arc)
+    out += b.arc->clockwise ? "G2" : "G3";
+  else
+    out += b.motion == BlockSpec::Motion::Rapid ? "G0" : "G1";
+}
+
+void Formatter::arc_centre_words(std::string& out, const BlockSpec& b) {
+  if (!b.arc) return;
+  for (int k = 0; k < 3; ++k)
+    if (b.arc->write[static_cast<size_t>(k)]) {
+      out.push_back(' ');
+      out.push_back("IJK"[k]);
+      append_fixed(out, b.arc->ijk[static_cast<size_t>(k)], b.arc->decimals);
+    }
+}
+
 void Formatter::block(std::string& out, const BlockSpec& b) {
   line_start(out);
   if (b.feed_mode == BlockSpec::FeedMode::InverseTime) out += "G93 ";
   if (b.feed_mode == BlockSpec::FeedMode::PerMinute) out += "G94 ";
-  out += b.motion == BlockSpec::Motion::Rapid ? "G0" : "G1";
+  motion_word(out, b);
   for (const auto& w : b.words) {
     out.push_back(' ');
     out += info_.letters[static_cast<size_t>(w.slot)];
     append_fixed(out, w.scaled, w.decimals);
   }
+  arc_centre_words(out, b);
   if (b.tool_vector) {
     const auto& v = *b.tool_vector;
     fmt::format_to(std::back_inserter(out), " I{:.6f} J{:.6f} K{:.6f}", v[0], v[1], v[2]);
@@ -166,6 +188,8 @@ class Linuxcnc : public Formatter {
   Linuxcnc(const ProgramInfo& info, std::string name, bool switchkins)
       : Formatter(info), name_(std::move(name)), switchkins_(switchkins) {}
   [[nodiscard]] std::string name() const override { return name_; }
+  // The XMINI's joint words are legs, not a Cartesian X Y Z: no arcs there.
+  [[nodiscard]] bool has_arcs() const override { return switchkins_; }
   void begin(std::string& out) override {
     Formatter::begin(out);
     // The trajectory planner blends corners within G64 P: bounded by the linearisation tolerance, blending
@@ -328,7 +352,7 @@ class Siemens : public Formatter {
     line_start(out);
     if (b.feed_mode == BlockSpec::FeedMode::InverseTime) out += "G93 ";
     if (b.feed_mode == BlockSpec::FeedMode::PerMinute) out += "G94 ";
-    out += b.motion == BlockSpec::Motion::Rapid ? "G0" : "G1";
+    motion_word(out, b);  // Sinumerik: I J K incremental by default, as in ISO
     for (const auto& w : b.words) {
       out.push_back(' ');
       out += info_.letters[static_cast<size_t>(w.slot)];
@@ -340,6 +364,7 @@ class Siemens : public Formatter {
         append_fixed(out, w.scaled, w.decimals);
       }
     }
+    arc_centre_words(out, b);
     if (b.tool_vector) {
       const auto& v = *b.tool_vector;
       fmt::format_to(std::back_inserter(out), " A3={:.6f} B3={:.6f} C3={:.6f}", v[0], v[1], v[2]);
@@ -355,6 +380,8 @@ class Heidenhain : public Formatter {
   using Formatter::Formatter;
   [[nodiscard]] std::string name() const override { return "heidenhain"; }
   [[nodiscard]] bool has_inverse_time() const override { return false; }
+  // Conversational arcs (CC + C, helices with CP IPA) are not written: arcs stay G1-style L points.
+  [[nodiscard]] bool has_arcs() const override { return false; }
   void comment(std::string& out, const std::string& text) override {
     number(out);
     fmt::format_to(std::back_inserter(out), "; ({})\n", sanitize_comment(text));

@@ -126,6 +126,16 @@ class Sequencer {
       if (i >= 0) clamp_codes_[static_cast<size_t>(i)] = codes;
     }
     buf_.reserve(1 << 16);
+    // Arcs: a dialect with I J K arcs, machine (not tool-tip) words, and linear axes lettered X, Y, Z.
+    arcs_ = m_.post.arcs && fmt_->has_arcs() && !cart_;
+    for (int k = 0; k < 3; ++k) {
+      xyz_[static_cast<size_t>(k)] = -1;
+      for (int i = 0; i < 5; ++i)
+        if (!m_.axes[static_cast<size_t>(i)].rotary() &&
+            m_.post.letters[static_cast<size_t>(i)] == std::string(1, "XYZ"[k]))
+          xyz_[static_cast<size_t>(k)] = i;
+      arcs_ = arcs_ && xyz_[static_cast<size_t>(k)] >= 0;
+    }
   }
 
   void run(const std::vector<kin::Axes>& axes) {
@@ -148,10 +158,17 @@ class Sequencer {
       } else if (!have_state_ || mv.kind == cl::MotionKind::Rapid) {
         rapid(axes[i], mv);
         if (indexed_from(axes, i)) clamp_rotaries();
+      } else if (const std::size_t end = arc_end(axes, i); end > 0) {
+        // One G2/G3 for the whole CIRCLE/: its points are checked, not written.
+        for (std::size_t k = i + 1; k <= end; ++k) {
+          ++sum_.cl_points;
+          check_limits(axes[k], moves[k]);
+        }
+        i = end;
       } else {
         feed(moves[i - 1], axes[i - 1], mv, axes[i]);
       }
-      map_lines(mv.line);
+      map_lines(moves[i].line);
       if (buf_.size() > (1 << 15)) flush();
     }
     while (ev < prog_.events.size()) {
@@ -353,6 +370,7 @@ class Sequencer {
     blk_.motion = motion;
     blk_.words.clear();
     blk_.tool_vector.reset();
+    blk_.arc.reset();
     blk_.feed.reset();
     blk_.feed_mode = BlockSpec::FeedMode::Keep;
   }
@@ -633,6 +651,108 @@ class Sequencer {
     at_cut_ = true;
     cut_move_ = m1;
     if (cut_move_.feed_mm_per_min <= 0) cut_move_.feed_mm_per_min = kFallbackFeedMmMin;
+  }
+
+  /// When moves[i] is the first point of a CL arc that can be one circular block (rotaries fixed over the whole
+  /// arc, its machine-coordinate plane XY, ZX or YZ, no event inside), writes that block and returns the index
+  /// of the arc's end move; else returns 0 and writes nothing.
+  std::size_t arc_end(const std::vector<kin::Axes>& axes, std::size_t i) {
+    if (!arcs_ || i == 0) return 0;
+    const auto& moves = prog_.moves;
+    const int a = moves[i].arc_index;
+    if (a < 0 || moves[i - 1].arc_index == a || moves[i - 1].kind != cl::MotionKind::Feed) return 0;
+    const cl::Arc& arc = prog_.arcs[static_cast<std::size_t>(a)];
+    const std::size_t end = arc.end_move;
+    if (end < i || end >= moves.size()) return 0;
+    for (std::size_t k = i; k <= end; ++k)
+      if (moves[k].arc_index != a || moves[k].kind != cl::MotionKind::Feed ||
+          moves[k].feed_mm_per_min != moves[end].feed_mm_per_min || rotaries_differ(axes[k]))
+        return 0;
+    for (const cl::Event& e : prog_.events)
+      if (e.before_move > i && e.before_move <= end) return 0;
+    // The rotaries are fixed: the machine's linear axes follow the tip rigidly. Where do the centre and the
+    // normal go?
+    const kin::Axes& q0 = axes[i - 1];
+    const Vec3 cl_axis = moves[i - 1].axis_in_part.normalized();
+    const Vec3 lift = opt_.control_offset_mm * cl_axis;  // the controlled point (a ball centre) moves in parallel
+    auto machine_xyz = [&](const Vec3& p, Vec3& out) {
+      kin::Axes q = q0;
+      if (!kin_.solve_for_rotaries(kin::Posed{p, cl_axis}, q)) return false;
+      for (int k = 0; k < 3; ++k) out[k] = q[xyz_[static_cast<size_t>(k)]];
+      return true;
+    };
+    Vec3 c_m, cn_m;
+    if (!machine_xyz(arc.centre_in_part_mm + lift, c_m) ||
+        !machine_xyz(arc.centre_in_part_mm + lift + arc.normal_in_part, cn_m))
+      return 0;
+    const Vec3 n_m = cn_m - c_m;
+    int w = -1;
+    for (int k = 0; k < 3; ++k)
+      if (std::abs(std::abs(n_m[k]) - 1.0) < 1e-9) w = k;
+    if (w < 0 || std::abs(n_m.norm() - 1.0) > 1e-9) return 0;  // not a machine plane (or not a rigid map)
+    const int plane = w == 2 ? 17 : (w == 1 ? 18 : 19);
+    const int u = (w + 1) % 3, v = (w + 2) % 3;  // (X,Y) for G17, (Z,X) for G18, (Y,Z) for G19
+    auto xyz_of = [&](const kin::Axes& q) { return Vec3(q[xyz_[0]], q[xyz_[1]], q[xyz_[2]]); };
+    const Vec3 p0 = xyz_of(q0), p1 = xyz_of(axes[end]);
+    const double r = arc.radius_mm;
+    const double ccw_sign = n_m[w] > 0 ? 1.0 : -1.0;  // the CL's counter-clockwise, seen from +w
+    const double sweep = ccw_sign * arc.sweep_rad;
+    const double ang0 = std::atan2(p0[v] - c_m[v], p0[u] - c_m[u]);
+    // Every CL point of the arc on the machine helix (else the map is not what we assumed: points).
+    const double on_helix = 0.1 * tol_mm_;
+    for (std::size_t k = i; k <= end; ++k) {
+      const Vec3 p = xyz_of(axes[k]);
+      const double rk = std::hypot(p[u] - c_m[u], p[v] - c_m[v]);
+      double d = std::atan2(p[v] - c_m[v], p[u] - c_m[u]) - ang0;
+      d = sweep > 0 ? std::fmod(d + 4 * kPi, 2 * kPi) : -std::fmod(-d + 4 * kPi, 2 * kPi);
+      if (k == end && std::abs(d) < 1e-9) d = sweep;  // a full circle ends where it started
+      const double t = d / sweep;
+      if (std::abs(rk - r) > on_helix || t < -1e-9 || t > 1 + 1e-9 ||
+          std::abs(p[w] - (p0[w] + t * (p1[w] - p0[w]))) > on_helix)
+        return 0;
+    }
+    // The centre relative to the printed start, as the control reads I J K; a short radius would be all rounding.
+    const auto su = static_cast<size_t>(xyz_[static_cast<size_t>(u)]);
+    if (r < 100.0 / scale_[su] || !have_word_[su]) return 0;
+    BlockSpec::Arc words;
+    words.clockwise = sweep < 0;
+    words.plane = plane;
+    words.decimals = decimals_[su];
+    for (int k : {u, v}) {
+      const auto s = static_cast<size_t>(xyz_[static_cast<size_t>(k)]);
+      if (!have_word_[s]) return 0;
+      words.ijk[static_cast<size_t>(k)] = std::llround(c_m[k] * to_file_[s] * scale_[s]) - last_[s];
+      words.write[static_cast<size_t>(k)] = true;
+    }
+    // Feed: the path's speed F; no axis of the plane exceeds max_feed (each peaks at F r |sweep| / L).
+    cur_line_ = arc.line;
+    const double dw = p1[w] - p0[w];
+    const double len = std::hypot(r * arc.sweep_rad, dw);
+    double f_mm = moves[end].feed_mm_per_min > 0 ? moves[end].feed_mm_per_min : kFallbackFeedMmMin;
+    const double programmed = f_mm;
+    for (int k = 0; k < 3; ++k) {
+      const double vmax = m_.axes[static_cast<size_t>(xyz_[static_cast<size_t>(k)])].max_feed;
+      const double share = k == w ? std::abs(dw) / len : r * arc.sweep_rad / len;
+      if (vmax > 0 && share > 0) f_mm = std::min(f_mm, vmax / share);
+    }
+    if (f_mm < programmed * (1.0 - 1e-9) && capped_blocks_++ == 0) first_capped_line_ = next_nc_line();
+    start(BlockSpec::Motion::Linear);
+    if (!add_words(axes[end], {0, 1, 2, 3, 4})) add_words(axes[end], {xyz_[static_cast<size_t>(u)]}, true);
+    blk_.arc = words;
+    set_mode94();
+    std::optional<double> fw;
+    const double f = f_mm * feed_to_file_;
+    if (std::abs(f - last_feed_) > 1e-9) {
+      fw = f;
+      last_feed_ = f;
+    }
+    emit(fw);
+    ++sum_.arc_blocks;
+    cur_ = axes[end];
+    at_cut_ = true;
+    cut_move_ = moves[end];
+    if (cut_move_.feed_mm_per_min <= 0) cut_move_.feed_mm_per_min = kFallbackFeedMmMin;
+    return end;
   }
 
   /// The block time (minutes) for a move qa -> qb at the programmed feed, slowed so that no axis exceeds its
@@ -1011,6 +1131,8 @@ class Sequencer {
   std::unique_ptr<Formatter> fmt_;
   BlockSpec blk_;
   bool inverse_time_ = true;
+  bool arcs_ = false;         ///< CL arcs may become G2/G3
+  std::array<int, 3> xyz_{};  ///< slots of the machine's X, Y, Z
   double tol_mm_ = 0.01, tol_axis_rad_ = 0.005, cos_tol_axis_ = 1.0;
   std::array<int, 5> decimals_{};
   std::array<double, 5> scale_{}, to_file_{};

@@ -156,6 +156,7 @@ Stats compute(const nc::Program& program, const std::array<std::string, 5>& name
     if (b.motion == nc::Motion::Rapid) {
       st.rapid_minutes += rapid_min;
     } else if (b.feed > 0) {
+      if (b.arc) lin2 = std::pow(nc::linear_path_mm(program.blocks[i - 1].axes, b, rotary), 2);  // the arc's length
       st.feed_minutes += b.inverse_time ? 1.0 / b.feed : (lin2 > 1e-18 ? std::sqrt(lin2) : std::sqrt(rot2)) / b.feed;
     }
   }

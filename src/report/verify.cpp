@@ -26,6 +26,7 @@ using Vec3 = Eigen::Vector3d;
 struct ClSeg {
   Vec3 p0, p1, u0, u1;
   int line;
+  bool arc_interior = false;  ///< p1 is a point generated inside a CIRCLE/ (an NC arc passes it between its ends)
 };
 
 Vec3 slerp(const Vec3& a, const Vec3& b, double s) {
@@ -191,7 +192,7 @@ VerifyResult verify(const nc::Program& nc, const cl::Program& cl, const kin::Kin
     const auto& b = cl.moves[i];
     if (b.kind != cl::MotionKind::Feed) continue;
     const Vec3 ua = a.axis_in_part.normalized(), ub = b.axis_in_part.normalized();
-    segs.push_back({point(a.tip_in_part_mm, ua), point(b.tip_in_part_mm, ub), ua, ub, b.line});
+    segs.push_back({point(a.tip_in_part_mm, ua), point(b.tip_in_part_mm, ub), ua, ub, b.line, b.from_arc});
   }
   if (segs.empty()) {
     r.ok = true;
@@ -286,7 +287,18 @@ VerifyResult verify(const nc::Program& nc, const cl::Program& cl, const kin::Kin
         if (bi == 0 || nc.blocks[bi].motion == nc::Motion::Rapid) continue;
         const kin::Axes qa = to_axes(nc.blocks[bi - 1]), qb = to_axes(nc.blocks[bi]);
         kin::Posed* out = &poses[(bi - c0) * stride];
-        for (int k = 0; k <= n; ++k) out[k] = kinematics.forward(qa + (static_cast<double>(k) / n) * (qb - qa));
+        const nc::Block& nb = nc.blocks[bi];
+        for (int k = 0; k <= n; ++k) {
+          const double t = static_cast<double>(k) / n;
+          if (nb.arc) {  // along the arc the control moves on, not its chord
+            const auto p = nc::point_on(nc.blocks[bi - 1].axes, nb, t);
+            kin::Axes q;
+            for (int a = 0; a < 5; ++a) q[a] = p[static_cast<size_t>(a)];
+            out[k] = kinematics.forward(q);
+          } else {
+            out[k] = kinematics.forward(qa + t * (qb - qa));
+          }
+        }
         out[n + 1] = kinematics.forward(qb);
       }
     };
@@ -363,7 +375,11 @@ VerifyResult verify(const nc::Program& nc, const cl::Program& cl, const kin::Kin
   // Coverage: every CL feed point must be reached by the NC path (nothing skipped).
   if (!nc_feed_points.empty()) {
     size_t c = 0;
+    const bool nc_arcs =
+        std::any_of(nc.blocks.begin(), nc.blocks.end(), [](const nc::Block& b) { return bool(b.arc); });
     for (const ClSeg& s : segs) {
+      // Inside a CL arc written as G2/G3 the NC has no block end: the samples along the arc (above) stand for it.
+      if (nc_arcs && s.arc_interior) continue;
       double best = std::numeric_limits<double>::infinity();
       const size_t lo = c > 4 ? c - 4 : 0, hi = std::min(nc_feed_points.size(), c + 256);
       size_t arg = c;

@@ -38,6 +38,17 @@ struct Move {
   int line = 0;                  ///< CL line this point comes from (arc points: the CIRCLE/ line)
   int tool_index = -1;           ///< index into Program::tools, -1 before any tool
   bool from_arc = false;         ///< an intermediate point generated from a CIRCLE/ record
+  int arc_index = -1;  ///< index into Program::arcs for the points of a CIRCLE/ and the GOTO that ends it; -1 else
+};
+
+/// A CIRCLE/ record as the CL gave it: the arc runs from the move before its first point to its end GOTO.
+struct Arc {
+  Eigen::Vector3d centre_in_part_mm = Eigen::Vector3d::Zero();
+  Eigen::Vector3d normal_in_part = Eigen::Vector3d::UnitZ();  ///< unit; the motion is counter-clockwise about it
+  double radius_mm = 0.0;
+  double sweep_rad = 0.0;    ///< angle travelled, (0, 2 pi]
+  int line = 0;              ///< the CIRCLE/ line
+  std::size_t end_move = 0;  ///< index of the end GOTO in Program::moves (the start is the move before the first point)
 };
 
 /// A non-motion event, attached to the move that follows it.
@@ -78,6 +89,7 @@ struct Program {
   std::optional<Eigen::Matrix<double, 3, 4>> msys;  ///< NX MSYS (origin, x axis, y axis), mm
   std::vector<Tool> tools;
   std::vector<Move> moves;
+  std::vector<Arc> arcs;      ///< CIRCLE/ records turned into points (Move::arc_index)
   std::vector<Event> events;  ///< ordered by before_move, then by line
   std::vector<Warning> warnings;
 };

@@ -56,6 +56,9 @@ struct PostSettings {
   /// [0, 360) and the control takes the short way (Siemens writes =DC()).
   std::string rotary_output = "absolute";
   bool home_rotaries = true;  ///< the end block turns the rotaries back to 0
+  /// CL CIRCLE/ records as G2/G3 where the rotaries stay fixed and the arc lies in a machine XY, ZX or YZ plane
+  /// (dialects with I J K arcs); false, another dialect or another arc: its points as linear blocks.
+  bool arcs = true;
 };
 
 /// Where a machine body sits in the kinematic structure.

@@ -21,6 +21,18 @@ struct AxisLetters {
 
 enum class Motion { Rapid, Linear, ArcCW, ArcCCW };
 
+/// The circle of a G2/G3 block, in machine coordinates (mm). The plane's axes (u, v) and its normal w are
+/// (X, Y, Z) for G17, (Z, X, Y) for G18 and (Y, Z, X) for G19 (RS274: counter-clockwise seen from +w); the
+/// motion along w and of every other axis is linear (a helix).
+struct ArcGeometry {
+  int plane = 17;             ///< 17, 18 or 19
+  std::array<int, 3> slot{};  ///< axis slots of u, v, w
+  double centre_u = 0.0, centre_v = 0.0;
+  double start_angle_rad = 0.0;                       ///< of the start point about the centre, from +u toward +v
+  double sweep_rad = 0.0;                             ///< signed: > 0 counter-clockwise (G3), < 0 clockwise (G2)
+  double start_radius_mm = 0.0, end_radius_mm = 0.0;  ///< unequal for a malformed arc: read as a spiral
+};
+
 /// One motion block with the full modal axis state after it. Linear axes in mm, rotary in radians.
 struct Block {
   int line = 0;
@@ -32,8 +44,15 @@ struct Block {
   std::array<bool, 5> words{};  ///< the axis word appears in this block
   /// Tool vector (part frame) of tool-tip control in vector form (G43.5 I J K, Siemens A3 B3 C3), modal.
   std::array<double, 3> tool_vector{0.0, 0.0, 1.0};
-  bool has_vector = false;  ///< a tool vector has been programmed so far
+  bool has_vector = false;         ///< a tool vector has been programmed so far
+  std::optional<ArcGeometry> arc;  ///< G2/G3: the circle from the previous block's position to this one's
 };
+
+/// The axis values at parameter t in [0, 1] of block `b` travelled from `start` (the previous block's axes):
+/// along its arc for G2/G3, else straight.
+std::array<double, 5> point_on(const std::array<double, 5>& start, const Block& b, double t);
+/// The length of the linear axes' path of block `b` from `start` (mm): the helix of an arc, else the chord.
+double linear_path_mm(const std::array<double, 5>& start, const Block& b, const std::array<bool, 5>& rotary);
 
 struct Program {
   std::string file;
@@ -41,7 +60,7 @@ struct Program {
   std::optional<double> tool_length_mm;  ///< from a "(cscam tool_length_mm=...)" header comment
   bool tcp = false;                ///< G43.4/G43.5/G234/M428/TRAORI/TCPM/M128 seen: axis values are part coordinates
   bool tcp_vectors = false;        ///< the tool orientation is given as vectors (Block::tool_vector)
-  std::vector<std::string> notes;  ///< things skipped on purpose (G28/G53 blocks, arcs treated as chords)
+  std::vector<std::string> notes;  ///< things skipped on purpose (G28/G53 blocks)
   /// The machine named by our post's header comment "(cscam post: machine NAME dialect ...)", if present.
   std::optional<std::string> header_machine;
   int header_line = 0;  ///< the line of that comment

@@ -46,6 +46,15 @@ struct BlockSpec {
   std::optional<std::array<double, 3>> tool_vector;  ///< unit tool vector (TCP vector form)
   std::optional<double> feed;                        ///< F value to print (already in the file's units)
   int feed_decimals = 1;
+  /// A circular (G2/G3) feed block instead of G1: its plane and its centre relative to the start (I J K).
+  struct Arc {
+    bool clockwise = false;
+    int plane = 17;                  ///< 17 (XY), 18 (ZX), 19 (YZ)
+    std::array<long long, 3> ijk{};  ///< centre - start per X, Y, Z, scaled like the linear words
+    std::array<bool, 3> write{};     ///< which of I J K the plane needs
+    int decimals = 4;
+  };
+  std::optional<Arc> arc;
 };
 
 /// A controller family.
@@ -56,6 +65,8 @@ class Formatter {
   [[nodiscard]] virtual std::string name() const = 0;
   /// Inverse-time feed (G93) exists; otherwise the sequencer converts each block's time to a per-minute F.
   [[nodiscard]] virtual bool has_inverse_time() const { return true; }
+  /// Circular blocks (G2/G3 with an incremental centre I J K in the G17/G18/G19 planes) exist.
+  [[nodiscard]] virtual bool has_arcs() const { return true; }
 
   /// Program start: '%', number and name, the header comments, the safe start block, the work offset.
   virtual void begin(std::string& out);
@@ -92,6 +103,11 @@ class Formatter {
   /// The ISO safe start block (units, absolute, feed per minute, XY plane, no compensation) and work offset.
   void start_block(std::string& out);
   static void append_fixed(std::string& out, long long r, int d, bool plus_sign = false);
+  /// "G0", "G1" or "G2"/"G3" (after a plane word when the plane changes).
+  void motion_word(std::string& out, const BlockSpec& b);
+  /// " I.. J.." of an arc block.
+  static void arc_centre_words(std::string& out, const BlockSpec& b);
+  int plane_ = 17;  ///< the plane the start block selected
   const ProgramInfo& info_;
   bool tcp_active_ = false;
 

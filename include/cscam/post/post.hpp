@@ -40,6 +40,7 @@ struct Summary {
   std::size_t reorientations = 0;  ///< branch flips or unwinds done with the tip held in place
   std::size_t retracts = 0;        ///< branch flips or unwinds done by retract, rotate and plunge
   std::size_t capped_blocks = 0;   ///< feed blocks slowed so that no axis exceeds its max_feed
+  std::size_t arc_blocks = 0;      ///< CL arcs written as one G2/G3 block
   std::vector<std::string> warnings;
   /// For every NC line (1-based index; index 0 unused) the CL line it came from (0: header, footer).
   std::vector<int> cl_line_of_nc_line;
