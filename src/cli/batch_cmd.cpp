@@ -87,6 +87,26 @@ std::string status_name(JobStatus s) {
   return "?";
 }
 
+}  // namespace
+
+void add_written_json(nlohmann::json& j, const JobResult& r) {
+  j["cl_points"] = r.cl_points;
+  j["blocks"] = r.blocks;
+  j["inserted_points"] = r.inserted_points;
+  j["reorientations"] = r.reorientations;
+  j["retracts"] = r.retracts;
+  j["travel_mm"] = r.travel_mm;
+  j["travel_deg"] = r.travel_deg;
+  j["reversals"] = r.reversals;
+  j["gate"] = {{"ok", true},
+               {"message", r.message},
+               {"max_tip_deviation_mm", r.max_tip_deviation_mm},
+               {"max_axis_deviation_deg", r.max_axis_deviation_deg},
+               {"max_velocity_ratio", r.max_velocity_ratio}};
+}
+
+namespace {
+
 nlohmann::json job_json(const PostJob& job, const JobResult& r) {
   nlohmann::json j;
   j["cl"] = job.cl;
@@ -96,19 +116,7 @@ nlohmann::json job_json(const PostJob& job, const JobResult& r) {
   j["machine"] = r.machine_name;
   j["strategy"] = job.strategy == Strategy::Planner ? "planner" : "conventional";
   if (r.status == JobStatus::Ok) {
-    j["cl_points"] = r.cl_points;
-    j["blocks"] = r.blocks;
-    j["inserted_points"] = r.inserted_points;
-    j["reorientations"] = r.reorientations;
-    j["retracts"] = r.retracts;
-    j["travel_mm"] = r.travel_mm;
-    j["travel_deg"] = r.travel_deg;
-    j["reversals"] = r.reversals;
-    j["gate"] = {{"ok", true},
-                 {"message", r.message},
-                 {"max_tip_deviation_mm", r.max_tip_deviation_mm},
-                 {"max_axis_deviation_deg", r.max_axis_deviation_deg},
-                 {"max_velocity_ratio", r.max_velocity_ratio}};
+    add_written_json(j, r);
     j["stats"] = r.stats;
   }
   j["warnings"] = r.warnings;

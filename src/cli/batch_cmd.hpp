@@ -48,6 +48,10 @@ struct JobResult {
   nlohmann::json stats;  ///< report::Stats of the written program
 };
 
+/// The figures of a written program (points, blocks, travel, reversals, the gate's verdict) into `j`: the same
+/// fields for a single `post --json` and for each file of a batch.
+void add_written_json(nlohmann::json& j, const JobResult& r);
+
 /// Converts one file and writes its NC program through the safety gate. Throws InputError on bad input
 /// (the caller decides whether that stops anything); fills `result` on success.
 void run_job(const PostJob& job, JobResult& result);

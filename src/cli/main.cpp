@@ -127,19 +127,7 @@ int cmd_post(const PostArgs& a) {
     nlohmann::json j;
     j["nc"] = out;
     j["machine"] = r.machine_name;
-    j["cl_points"] = r.cl_points;
-    j["blocks"] = r.blocks;
-    j["inserted_points"] = r.inserted_points;
-    j["reorientations"] = r.reorientations;
-    j["retracts"] = r.retracts;
-    j["travel_mm"] = r.travel_mm;
-    j["travel_deg"] = r.travel_deg;
-    j["reversals"] = r.reversals;
-    j["gate"] = {{"ok", true},
-                 {"message", r.message},
-                 {"max_tip_deviation_mm", r.max_tip_deviation_mm},
-                 {"max_axis_deviation_deg", r.max_axis_deviation_deg},
-                 {"max_velocity_ratio", r.max_velocity_ratio}};
+    cli::add_written_json(j, r);
     j["warnings"] = r.warnings;
     j["seconds"] = r.seconds;
     std::cout << j.dump() << "\n";
