@@ -227,7 +227,7 @@ class Fanuc : public Formatter {
   [[nodiscard]] std::string name() const override { return "fanuc"; }
   void begin(std::string& out) override {
     out += "%\n";
-    fmt::format_to(std::back_inserter(out), "O{:04d} ({})\n", info_.program_number,
+    fmt::format_to(std::back_inserter(out), "O{:0{}d} ({})\n", info_.program_number, program_number_digits(),
                    sanitize_comment(info_.program_name));
     header_comments(out, false);
     start_block(out);
@@ -264,6 +264,10 @@ class Fanuc : public Formatter {
       fmt::format_to(std::back_inserter(out), "G43 H{}\n", h);
     }
   }
+
+ protected:
+  /// Digits of the O number: Fanuc O0001, Haas (NGC) O00001.
+  [[nodiscard]] virtual int program_number_digits() const { return 4; }
 };
 
 // --- Haas (NGC) ---------------------------------------------------------------------------------------
@@ -271,13 +275,7 @@ class Haas : public Fanuc {
  public:
   using Fanuc::Fanuc;
   [[nodiscard]] std::string name() const override { return "haas"; }
-  void begin(std::string& out) override {
-    out += "%\n";
-    fmt::format_to(std::back_inserter(out), "O{:05d} ({})\n", info_.program_number,
-                   sanitize_comment(info_.program_name));
-    header_comments(out, false);
-    start_block(out);
-  }
+  [[nodiscard]] int program_number_digits() const override { return 5; }
   // G234 TCPC (the vector form does not exist on a Haas: angles always); G49 cancels it.
   void tcp_on(std::string& out, int h) override {
     if (!tcp_active_) {
