@@ -178,6 +178,19 @@ void print_table(const std::vector<PostJob>& jobs, const std::vector<JobResult>&
       std::cout << fmt::format("{}: {}\n", fs::path(jobs[i].cl).filename().string(), results[i].message);
 }
 
+/// The post's and the gate's figures of a written program, whichever strategy chose the axes.
+void take_summaries(JobResult& r, const post::Summary& sum, const gate::Summary& gs) {
+  r.cl_points = sum.cl_points;
+  r.blocks = sum.blocks;
+  r.inserted_points = sum.inserted_points;
+  r.reorientations = sum.reorientations;
+  r.retracts = sum.retracts;
+  r.message = gs.message;
+  r.max_tip_deviation_mm = gs.deviation.max_tip_deviation_mm;
+  r.max_axis_deviation_deg = gs.deviation.max_axis_deviation_deg;
+  r.max_velocity_ratio = gs.max_velocity_ratio;
+}
+
 }  // namespace
 
 void make_output_dir(const std::string& dir) {
@@ -205,16 +218,8 @@ void run_job(const PostJob& job, JobResult& r) {
     a.default_feed = job.default_feed_mm_per_min;
     PlanWritten w = plan_and_write(a, job.out);
     r.machine_name = w.machine_name;
-    r.cl_points = w.post.cl_points;
-    r.blocks = w.post.blocks;
-    r.inserted_points = w.post.inserted_points;
-    r.reorientations = w.post.reorientations;
-    r.retracts = w.post.retracts;
+    take_summaries(r, w.post, w.gate);
     r.warnings = std::move(w.warnings);
-    r.message = w.gate.message;
-    r.max_tip_deviation_mm = w.gate.deviation.max_tip_deviation_mm;
-    r.max_axis_deviation_deg = w.gate.deviation.max_axis_deviation_deg;
-    r.max_velocity_ratio = w.gate.max_velocity_ratio;
     add_stats(w.nc_text, job.out, *machine_for(job.machine), r);
   } else {
     const auto mp = machine_for(job.machine);
@@ -259,15 +264,7 @@ void run_job(const PostJob& job, JobResult& r) {
       tbb::parallel_invoke(gate_and_write, stats);
     }
     r.machine_name = m.name;
-    r.cl_points = sum.cl_points;
-    r.blocks = sum.blocks;
-    r.inserted_points = sum.inserted_points;
-    r.reorientations = sum.reorientations;
-    r.retracts = sum.retracts;
-    r.message = gs.message;
-    r.max_tip_deviation_mm = gs.deviation.max_tip_deviation_mm;
-    r.max_axis_deviation_deg = gs.deviation.max_axis_deviation_deg;
-    r.max_velocity_ratio = gs.max_velocity_ratio;
+    take_summaries(r, sum, gs);
   }
   r.status = JobStatus::Ok;
   r.seconds = std::chrono::duration<double>(std::chrono::steady_clock::now() - t0).count();
