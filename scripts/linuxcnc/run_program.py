@@ -56,6 +56,87 @@ def stop_group(proc):
             pass
 
 
+# The processes a running LinuxCNC instance consists of (linuxcnc is a shell script; the rest are binaries).
+LINUXCNC_PROCESS_NAMES = {"rtapi_app", "linuxcncsvr", "milltask", "io", "iocontrol", "halui", "linuxcnc"}
+
+
+def linuxcnc_processes():
+    """'name[pid]' of every live LinuxCNC process on the host, from /proc (the comm name, or the script name)."""
+    found = []
+    for pid in filter(str.isdigit, os.listdir("/proc")):
+        try:
+            with open(f"/proc/{pid}/stat") as f:
+                # A zombie is dead and holds nothing; where PID 1 does not reap (containers) they stay listed.
+                if f.read().rsplit(")", 1)[1].split()[0] == "Z":
+                    continue
+            with open(f"/proc/{pid}/comm") as f:
+                comm = f.read().strip()
+            with open(f"/proc/{pid}/cmdline", "rb") as f:
+                argv = [a.decode(errors="replace") for a in f.read().split(b"\0") if a]
+        except OSError:
+            continue  # gone meanwhile
+        names = {comm} | {os.path.basename(a) for a in argv[:2]}
+        hit = names & LINUXCNC_PROCESS_NAMES
+        if hit:
+            found.append(f"{sorted(hit)[0]}[{pid}]")
+    return found
+
+
+# The SysV shared memory a LinuxCNC instance leaves behind when it is killed outright: the NML channels (keys in
+# LinuxCNC's NML file), motion's segment (its DEFAULT_SHMEM_KEY, 100), HAL and RTAPI ('HAL2', 'HHL4') and the
+# sampler's streams ('HSA0' + n). A new instance attaches to stale NML channels and its task then times out
+# talking to IO, so a stale instance must be cleared before the next one starts.
+NML_FILE = "/usr/share/linuxcnc/linuxcnc.nml"
+FIXED_SHM_KEYS = {100, 0x48414C32, 0x48484C34} | {0x48534130 + n for n in range(16)}
+
+
+def linuxcnc_shm_keys():
+    keys = set(FIXED_SHM_KEYS)
+    try:
+        with open(NML_FILE) as f:
+            for line in f:
+                fields = line.split()
+                # B name SHMEM host size neut 0 buffer_number max_procs key ...
+                if len(fields) >= 10 and fields[0] == "B" and fields[2] == "SHMEM":
+                    keys.add(int(fields[9]))
+    except (OSError, ValueError):
+        pass
+    return keys
+
+
+def clear_stale_instance(env, cwd):
+    """Unload what is left of a LinuxCNC that no longer runs: HAL and RTAPI (halrun -U), then the shared memory
+    segments of LinuxCNC's keys that no process is attached to. Returns a note of what was removed."""
+    try:
+        subprocess.run(["halrun", "-U"], env=env, cwd=cwd, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL,
+                       timeout=30, start_new_session=True)
+    except (subprocess.TimeoutExpired, OSError):
+        pass
+    keys = linuxcnc_shm_keys()
+    removed = []
+    out = subprocess.run(["ipcs", "-m"], stdout=subprocess.PIPE, stderr=subprocess.DEVNULL, text=True).stdout
+    for line in out.splitlines():
+        fields = line.split()  # key shmid owner perms bytes nattch [status]
+        if len(fields) < 6 or not fields[0].startswith("0x"):
+            continue
+        try:
+            key, shmid, nattch = int(fields[0], 16), fields[1], int(fields[5])
+        except ValueError:
+            continue
+        if key in keys and nattch == 0:
+            if subprocess.run(["ipcrm", "-m", shmid], stderr=subprocess.DEVNULL).returncode == 0:
+                removed.append(fields[0])
+    return f"removed {len(removed)} stale shared memory segment(s)" if removed else "no stale shared memory"
+
+
+def die_with_parent():
+    """In the linuxcnc child: SIGTERM when this script dies, even by SIGKILL (a test runner's hard timeout), so
+    that linuxcnc's own trap shuts the instance down instead of leaving it running with its lock."""
+    import ctypes
+    PR_SET_PDEATHSIG = 1
+    ctypes.CDLL(None, use_errno=True).prctl(PR_SET_PDEATHSIG, signal.SIGTERM, 0, 0, 0)
+
+
 def on_sigterm(signum, frame):
     raise KeyboardInterrupt  # the same cleanup as Ctrl-C (a test runner's timeout sends SIGTERM)
 
@@ -95,6 +176,7 @@ def main():
         CSCAM_LCNC_SAMPLES=os.path.join(run_dir, "samples.txt"),
         CSCAM_LCNC_RESULT=os.path.join(run_dir, "result.json"),
         CSCAM_LCNC_TIMEOUT_S=str(args.timeout),
+        CSCAM_LCNC_OWNER_PID=str(os.getpid()),
         CSCAM_LCNC_MDI="\n".join(args.mdi),
     )
     if uid is not None:
@@ -124,13 +206,22 @@ def main():
                     raise TimeoutError("another LinuxCNC run held the host lock for too long")
                 time.sleep(0.2)
         if os.path.exists(LINUXCNC_LOCK):
-            # Not one of ours (we hold the flock): a LinuxCNC someone else started, or a stale lock.
-            # linuxcnc would try to kill that instance; refuse instead.
-            raise RuntimeError(f"{LINUXCNC_LOCK} exists: another LinuxCNC is running (or remove the stale lock)")
+            # Not one of ours (we hold the flock): a LinuxCNC someone else started, or the lock of a run that was
+            # killed outright (SIGKILL leaves no chance to clean up). linuxcnc itself would kill a live instance;
+            # we never do: a live one is refused, a stale lock (no LinuxCNC process on the host) is removed.
+            live = linuxcnc_processes()
+            if live:
+                raise RuntimeError(f"{LINUXCNC_LOCK} exists and LinuxCNC is running "
+                                   f"({', '.join(live)}): wait for it to stop")
+            note = clear_stale_instance(env, cfg)
+            os.remove(LINUXCNC_LOCK)
+            print(f"run_program: removed the stale {LINUXCNC_LOCK} (no LinuxCNC process is running); {note}",
+                  file=sys.stderr)
         t0 = time.monotonic()
         with open(log_path, "w") as log:
             proc = subprocess.Popen(["linuxcnc", "-r", os.path.join(cfg, INI)], cwd=cfg, env=env, stdout=log,
-                                    stderr=subprocess.STDOUT, stdin=subprocess.DEVNULL, start_new_session=True)
+                                    stderr=subprocess.STDOUT, stdin=subprocess.DEVNULL, start_new_session=True,
+                                    preexec_fn=die_with_parent)
             try:
                 proc.wait(args.timeout + 30)  # the driver has its own timeouts; this one is the backstop
             except subprocess.TimeoutExpired:
@@ -158,12 +249,12 @@ def main():
         if proc is not None and proc.poll() is None:
             stop_group(proc)
         if proc is not None and status != 0:
-            # After a kill the realtime side may linger: unload it, release LinuxCNC's lock.
-            try:
-                subprocess.run(["halrun", "-U"], env=env, cwd=cfg, stdout=subprocess.DEVNULL,
-                               stderr=subprocess.DEVNULL, timeout=30, start_new_session=True)
-            except subprocess.TimeoutExpired:
-                message += "\n(halrun -U did not finish: the realtime side may need `halrun -U` by hand)"
+            # After a kill the realtime side and the shared memory may linger: clear them, release LinuxCNC's lock.
+            live = linuxcnc_processes()
+            if live:
+                message += f"\n(LinuxCNC processes still running after the stop: {', '.join(live)})"
+            else:
+                clear_stale_instance(env, cfg)
             if os.path.exists(LINUXCNC_LOCK):
                 os.remove(LINUXCNC_LOCK)
         fcntl.flock(lock, fcntl.LOCK_UN)

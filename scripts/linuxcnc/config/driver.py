@@ -10,6 +10,7 @@ shuts down when its display exits. Settings come from the environment (set by ru
   CSCAM_LCNC_RESULT    where this driver writes its JSON status
   CSCAM_LCNC_TIMEOUT_S the longest the program may run (seconds)
   CSCAM_LCNC_MDI       MDI commands (one a line) run after homing, before the program, e.g. G64 P0.01
+  CSCAM_LCNC_OWNER_PID the run_program.py that started this run: if it dies (even by SIGKILL), the run stops
 Uses /usr/bin/python3: the `linuxcnc` module is installed for the system Python only.
 """
 import json
@@ -26,6 +27,7 @@ SAMPLES = os.environ["CSCAM_LCNC_SAMPLES"]
 RESULT = os.environ["CSCAM_LCNC_RESULT"]
 TIMEOUT_S = float(os.environ.get("CSCAM_LCNC_TIMEOUT_S", "60"))
 MDI = [c for c in os.environ.get("CSCAM_LCNC_MDI", "").split("\n") if c.strip()]
+OWNER_PID = int(os.environ.get("CSCAM_LCNC_OWNER_PID", "0"))
 
 stat = linuxcnc.stat()
 cmd = linuxcnc.command()
@@ -49,9 +51,25 @@ def drain_errors():
             raise Failure(f"LinuxCNC error: {text}")
 
 
+def owner_alive():
+    if OWNER_PID <= 0:
+        return True
+    try:
+        os.kill(OWNER_PID, 0)
+        return True
+    except ProcessLookupError:
+        return False
+    except PermissionError:
+        return True
+
+
 def wait_for(what, predicate, timeout_s):
     deadline = time.monotonic() + timeout_s
     while True:
+        if not owner_alive():
+            # Nobody will read the result: stop the program now, so that LinuxCNC shuts down and frees the host.
+            cmd.abort()
+            raise Failure(f"the run's owner (pid {OWNER_PID}) is gone while waiting for {what}")
         stat.poll()
         drain_errors()
         if predicate():
