@@ -158,28 +158,32 @@ TEST(Cli, PlanRejectsAnOpenMeshNamingTheFile) {
   EXPECT_FALSE(fs::exists(out));
 }
 
+namespace {
+/// An ASCII STL with the winding of its first `n` facets reversed (the 2nd and 3rd vertex lines swapped).
+std::string with_flipped_facets(const std::string& stl_path, int n) {
+  std::ifstream in(stl_path);
+  std::string t((std::istreambuf_iterator<char>(in)), {});
+  std::size_t at = 0;
+  for (int k = 0; k < n; ++k) {
+    at = t.find("outer loop", at);
+    const std::size_t v1 = t.find("vertex", t.find("vertex", at) + 1), v2 = t.find("vertex", v1 + 1);
+    const std::size_t e1 = t.find('\n', v1), e2 = t.find('\n', v2);
+    const std::string a = t.substr(v1, e1 - v1), b = t.substr(v2, e2 - v2);
+    t.replace(v2, b.size(), a);
+    t.replace(v1, a.size(), b);
+    at = e2;
+  }
+  return t;
+}
+}  // namespace
+
 TEST(Cli, MachineGeometryRulesOutTheClAxisAndRepairedMeshesAreReported) {
   // examples/machine-limits: only the Haas platter and spindle nose forbid the horizontal CL axis.
   TempDir d;
   const std::string cl = cscam::test::source_path("examples/machine-limits/wall.cls");
   const std::string part = cscam::test::source_path("examples/machine-limits/block.stl");
   // The block as a fixture again, with three triangles wound the wrong way: repaired, said so.
-  std::ifstream in(part);
-  std::string stl((std::istreambuf_iterator<char>(in)), {});
-  const std::string flipped = d.file("flipped.stl", [&] {
-    std::string t = stl;
-    std::size_t at = 0;
-    for (int k = 0; k < 3; ++k) {  // swap the 2nd and 3rd vertex lines of the first three facets
-      at = t.find("outer loop", at);
-      const std::size_t v1 = t.find("vertex", t.find("vertex", at) + 1), v2 = t.find("vertex", v1 + 1);
-      const std::size_t e1 = t.find('\n', v1), e2 = t.find('\n', v2);
-      const std::string a = t.substr(v1, e1 - v1), b = t.substr(v2, e2 - v2);
-      t.replace(v2, b.size(), a);
-      t.replace(v1, a.size(), b);
-      at = e2;
-    }
-    return t;
-  }());
+  const std::string flipped = d.file("flipped.stl", with_flipped_facets(part, 3));
   const std::string json = d.file("m.json"), out = d.file("m.ngc");
   auto r = run_command(kCli + " compare " + cl + " --machine haas-umc750 --part " + part + " --fixture " + flipped +
                        " --cone 60 --json-out " + json + " -o " + out);
@@ -512,7 +516,8 @@ TEST(Cli, TraceRejectsLostSamplesWithLocation) {
   EXPECT_EQ(r.status, 2) << r.output;
   EXPECT_NE(r.output.find("s.txt:3"), std::string::npos) << r.output;
   // Well-formed but the tool never cut: a failed check (exit 1) that says so.
-  const std::string idle = d.file("idle.txt", "0 0 0 250 0 0 0 0 250 0 0 14 1 0 0\n1 0 0 250 0 0 0 0 250 0 0 14 1 0 0\n");
+  const std::string idle =
+      d.file("idle.txt", "0 0 0 250 0 0 0 0 250 0 0 14 1 0 0\n1 0 0 250 0 0 0 0 250 0 0 14 1 0 0\n");
   r = run_command(kCli + " trace " + idle + " --machine trunnion-ac --cl " + cl);
   EXPECT_EQ(r.status, 1) << r.output;
   EXPECT_NE(r.output.find("did not cut"), std::string::npos) << r.output;
@@ -695,6 +700,47 @@ TEST(Cli, JobsFileWithPerFileSettingsMatchesSingleRuns) {
   EXPECT_EQ(j["files"][3]["strategy"], "planner");
   EXPECT_EQ(j["files"][3]["status"], "ok");
   EXPECT_EQ(j["files"][4]["status"], "failed");
+}
+
+TEST(Cli, PlannerJobsHonourTcpAndReportMeshRepairsAsWarnings) {
+  // A planner job with tcp and a fixture mesh that needs repair: the output equals `cscam plan --tcp`, and the
+  // repair is among the job's warnings in the JSON summary (not only on stderr).
+  TempDir d;
+  fs::copy_file(cscam::test::source_path("examples/machine-limits/wall.cls"), d.path / "wall.cls");
+  fs::copy_file(cscam::test::source_path("examples/machine-limits/block.stl"), d.path / "block.stl");
+  d.file("flipped.stl", with_flipped_facets((d.path / "block.stl").string(), 3));
+  d.file("jobs.yaml",
+         "output_dir: nc\n"
+         "jobs:\n"
+         "  - cl: wall.cls\n"
+         "    machine: haas-umc750\n"
+         "    strategy: planner\n"
+         "    cone: 60\n"
+         "    part: block.stl\n"
+         "    fixture: flipped.stl\n"
+         "    tcp: true\n");
+  const std::string here = "cd " + q(d.path.string()) + " && ";
+  auto r = run_command(here + kCli + " batch jobs.yaml --json 2>/dev/null");
+  ASSERT_EQ(r.status, 0) << r.output;
+  const auto j = nlohmann::json::parse(r.output);
+  ASSERT_EQ(j["files"].size(), 1u);
+  bool repaired = false;
+  for (const auto& w : j["files"][0]["warnings"])
+    repaired =
+        repaired || w.get<std::string>().find("flipped.stl: repaired: reversed the winding of 3") != std::string::npos;
+  EXPECT_TRUE(repaired) << j.dump(1);
+  r = run_command(here + kCli +
+                  " plan wall.cls --machine haas-umc750 --cone 60 --part block.stl --fixture flipped.stl --tcp"
+                  " -o single.ngc");
+  ASSERT_EQ(r.status, 0) << r.output;
+  const std::string single = slurp((d.path / "single.ngc").string());
+  EXPECT_NE(single.find("M428"), std::string::npos) << "TCP in the machine's dialect (linuxcnc: M428) expected";
+  EXPECT_EQ(slurp((d.path / "nc" / "wall.ngc").string()), single);
+  // Without --tcp the same plan is written in machine coordinates.
+  r = run_command(here + kCli +
+                  " plan wall.cls --machine haas-umc750 --cone 60 --part block.stl --fixture flipped.stl -o m.ngc");
+  ASSERT_EQ(r.status, 0) << r.output;
+  EXPECT_EQ(slurp((d.path / "m.ngc").string()).find("M428"), std::string::npos);
 }
 
 TEST(Cli, JobsFileErrorsNameTheLineAndRunNothing) {

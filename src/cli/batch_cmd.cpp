@@ -216,6 +216,7 @@ void run_job(const PostJob& job, JobResult& r) {
     a.tool_length = job.tool_length_mm;
     a.tolerance = job.tolerance_mm;
     a.default_feed = job.default_feed_mm_per_min;
+    a.tcp = job.tcp;
     PlanWritten w = plan_and_write(a, job.out);
     r.machine_name = w.machine_name;
     take_summaries(r, w.post, w.gate);

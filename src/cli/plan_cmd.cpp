@@ -16,12 +16,12 @@
 #include "cscam/core/tolerances.hpp"
 #include "cscam/core/units.hpp"
 #include "cscam/cspace/machine_scene.hpp"
+#include "cscam/gate/gate.hpp"
 #include "cscam/geom/mesh.hpp"
 #include "cscam/geom/mesh_check.hpp"
 #include "cscam/geom/scene.hpp"
 #include "cscam/machine/machine.hpp"
 #include "cscam/nc/reader.hpp"
-#include "cscam/gate/gate.hpp"
 #include "cscam/plan/plan.hpp"
 #include "cscam/post/post.hpp"
 #include "cscam/report/json.hpp"
@@ -50,17 +50,31 @@ struct Setup {
   bool has_meshes = false;
   std::vector<geom::MeshCheckReport> mesh_reports;  ///< validation of every mesh file loaded
   std::size_t machine_bodies = 0;
-  bool planner_ignores_machine = false;  ///< --no-machine-geometry
+  bool planner_ignores_machine = false;          ///< --no-machine-geometry
+  std::vector<std::string>* warnings = nullptr;  ///< where warnings go (batch); null: printed to stderr
+  void warn(const std::string& message) const {
+    if (warnings)
+      warnings->push_back(message);
+    else
+      std::cerr << "warning: " << message << "\n";
+  }
   /// The head scene the planner sees.
-  [[nodiscard]] const geom::Scene* planner_head() const { return has_head && !planner_ignores_machine ? &head : nullptr; }
+  [[nodiscard]] const geom::Scene* planner_head() const {
+    return has_head && !planner_ignores_machine ? &head : nullptr;
+  }
 };
 
-/// A part, fixture or machine mesh file, validated and repaired; repairs and warnings go to stderr.
+/// Says what validation repaired in a mesh, and what it warns about, as warnings of the run.
+void warn_mesh_report(const Setup& s, const std::string& path, const geom::MeshCheckReport& r) {
+  for (const auto& line : r.repairs) s.warn(path + ": repaired: " + line);
+  for (const auto& line : r.warnings) s.warn(path + ": " + line);
+}
+
+/// A part, fixture or machine mesh file, validated and repaired (what was repaired becomes a warning).
 geom::Mesh checked_mesh(Setup& s, const std::string& path, double scale) {
   geom::MeshCheckReport r;
   geom::Mesh mesh = geom::load_checked_mesh(path, scale, {}, &r);
-  for (const auto& line : r.repairs) std::cerr << "warning: " << path << ": repaired: " << line << "\n";
-  for (const auto& line : r.warnings) std::cerr << "warning: " << path << ": " << line << "\n";
+  warn_mesh_report(s, path, r);
   s.mesh_reports.push_back(std::move(r));
   return mesh;
 }
@@ -88,19 +102,19 @@ nlohmann::json mesh_reports_json(const Setup& s) {
 
 std::unique_ptr<Setup> setup(const PlanArgs& a, std::vector<std::string>* warnings = nullptr) {
   auto s = std::make_unique<Setup>();
+  s->warnings = warnings;
   s->m = machine::load(resolve_machine(a.machine));
   cl::ReadOptions ro;
   ro.units = parse_units(a.units);
   ro.require_feed = true;
   if (a.default_feed > 0) ro.default_feed_mm_per_min = a.default_feed;
   s->prog = cl::read_file(a.cl, ro);
-  for (const auto& w : s->prog.warnings) {
-    if (warnings)
-      warnings->push_back(w.where.str() + ": " + w.message);
-    else
-      std::cerr << "warning: " << w.where.str() << ": " << w.message << "\n";
-  }
-  s->tool_length = post::tool_length_for(s->m, a.tool_length);
+  for (const auto& w : s->prog.warnings) s->warn(w.where.str() + ": " + w.message);
+  // On a head-side rotary machine the tool length is part of the kinematics: from the option, else the CL's
+  // tool, else the machine default with a warning (as the post command does).
+  std::string tool_note;
+  s->tool_length = post::tool_length_for(s->m, a.tool_length, s->prog, tool_note);
+  if (!tool_note.empty()) s->warn(tool_note);
   s->kin = s->m.make_kinematics(s->tool_length);
   for (const auto& p : a.parts)
     s->scene.add(fs::path(p).filename().string(), geom::ObstacleRole::Part, checked_mesh(*s, p, a.mesh_scale));
@@ -153,13 +167,12 @@ std::unique_ptr<Setup> setup(const PlanArgs& a, std::vector<std::string>* warnin
   // With --no-machine-geometry the planner ignores them, but the report's independent collision count and the
   // safety gate still check against them (as with --no-collision).
   if (!s->m.geometry.bodies.empty() && !s->tool)
-    std::cerr << "warning: " << a.cl << ": no CUTTER/ or TLDATA/: the machine's bodies are not checked\n";
+    s->warn(a.cl + ": no CUTTER/ or TLDATA/: the machine's bodies are not checked");
   if (!s->m.geometry.bodies.empty() && s->tool) {
     const double lift = std::max(0.0, s->tool->gauge_length_mm() - s->tool_length);
     auto bodies = cspace::add_machine_bodies(s->m, lift, s->scene, s->head);
     for (auto& r : bodies.mesh_reports) {
-      for (const auto& line : r.repairs) std::cerr << "warning: " << r.source << ": repaired: " << line << "\n";
-      for (const auto& line : r.warnings) std::cerr << "warning: " << r.source << ": " << line << "\n";
+      warn_mesh_report(*s, r.source, r);
       s->mesh_reports.push_back(std::move(r));
     }
     s->machine_bodies = bodies.fixed_bodies + bodies.head_bodies;
@@ -172,8 +185,8 @@ std::unique_ptr<Setup> setup(const PlanArgs& a, std::vector<std::string>* warnin
   s->has_meshes = meshes;
   o.cspace.check_collision = meshes && !a.no_collision;
   if (a.no_machine_geometry) {
-    o.cspace.collision.roles = static_cast<unsigned>(geom::ObstacleRole::Part) |
-                               static_cast<unsigned>(geom::ObstacleRole::Fixture);
+    o.cspace.collision.roles =
+        static_cast<unsigned>(geom::ObstacleRole::Part) | static_cast<unsigned>(geom::ObstacleRole::Fixture);
     s->planner_ignores_machine = true;
   }
   if (meshes && !t)
@@ -190,6 +203,7 @@ std::string post_to_string(const Setup& s, const cl::Program& prog, const std::v
   po.source_name = fs::path(a.cl).filename().string();
   po.strategy = strategy;
   po.tool_length_mm = s.tool_length;
+  po.tcp = a.tcp;
   // A tilted ball mill keeps its centre on the CL path: post (and verify) the centre. At cone 0 the
   // orientation is the CL's and the tip is controlled as usual.
   if (strategy != "conventional" && s.opt.cspace.cone_rad > 0) po.control_offset_mm = s.opt.cspace.ball_radius_mm;
@@ -217,7 +231,8 @@ gate::Options gate_options(const Setup& s, const PlanArgs& a, double cone_deg) {
     cspace::Options co = s.opt.cspace;
     co.check_collision = true;
     co.collision.roles = geom::kAllRoles;
-    auto space = std::make_shared<const cspace::Space>(s.kin, &s.scene, s.tool.get(), co, s.has_head ? &s.head : nullptr);
+    auto space =
+        std::make_shared<const cspace::Space>(s.kin, &s.scene, s.tool.get(), co, s.has_head ? &s.head : nullptr);
     auto ws = std::make_shared<geom::QueryWorkspace>();
     auto cc = std::make_shared<cspace::Counters>();
     g.collision = [space, ws, cc](const kin::Axes& q) { return space->collision_at_axes(q, *ws, *cc); };
@@ -264,8 +279,8 @@ int run_plan(const PlanArgs& a) {
   post::Summary sum;
   const std::string text = post_to_string(*s, p.program, p.axes, a, "cspace-planner", sum);
   const std::string out = a.out.empty() ? fs::path(a.cl).stem().string() + ".planned.ngc" : a.out;
-  const gate::Summary v =
-      gate::write_checked(out, text, p.program, s->m, *s->kin, gate_options(*s, a, a.cone_deg), &sum.cl_line_of_nc_line);
+  const gate::Summary v = gate::write_checked(out, text, p.program, s->m, *s->kin, gate_options(*s, a, a.cone_deg),
+                                              &sum.cl_line_of_nc_line);
   if (!a.svg_dir.empty()) write_svgs(*s, planner, p, post::conventional_axes(s->prog, s->m, *s->kin), a.svg_dir);
   std::cout << p.summary();
   std::cout << fmt::format("wrote {} ({} blocks); verify: {}\n", out, sum.blocks, v.message);
@@ -292,7 +307,8 @@ std::vector<std::string> segment_reports(const Setup& s, const plan::Plan& p, co
     for (int j = 0; j < 5; ++j) {
       const auto J = static_cast<std::size_t>(j);
       const bool rot = s.m.axes[J].rotary();
-      const double scale = rot ? 180.0 / kPi : 1.0, hyst = rot ? tol::kReversalHysteresisDeg : tol::kReversalHysteresisMm;
+      const double scale = rot ? 180.0 / kPi : 1.0,
+                   hyst = rot ? tol::kReversalHysteresisDeg : tol::kReversalHysteresisMm;
       auto walk = [&](const std::vector<kin::Axes>& q, double& travel, int& reversals, double& lo, double& hi) {
         travel = 0;
         reversals = 0;
@@ -327,28 +343,29 @@ std::vector<std::string> segment_reports(const Setup& s, const plan::Plan& p, co
                                    {"unit", rot ? "deg" : "mm"}};
       // A fixed orientation can turn a short path into long linear strokes (the table no longer follows it).
       if (!rot && tp > 1.25 * tc && tp - tc > 10.0)
-        notes.push_back(fmt::format("segment {} (CL lines {}-{}): the {} makes {} travel {:.0f} mm instead of {:.0f} "
-                                    "mm (x{:.2f}) at the CL points",
-                                    g + 1, seg.first_line, seg.last_line,
-                                    seg.tier == plan::Tier::Fixed2 ? "fixed (3+2) orientation" : "chosen orientation",
-                                    s.m.post.letters[J], tp, tc, tp / tc));
+        notes.push_back(
+            fmt::format("segment {} (CL lines {}-{}): the {} makes {} travel {:.0f} mm instead of {:.0f} "
+                        "mm (x{:.2f}) at the CL points",
+                        g + 1, seg.first_line, seg.last_line,
+                        seg.tier == plan::Tier::Fixed2 ? "fixed (3+2) orientation" : "chosen orientation",
+                        s.m.post.letters[J], tp, tc, tp / tc));
     }
-    out.push_back({{"cl_lines", {seg.first_line, seg.last_line}},
-                   {"tier", static_cast<int>(seg.tier)},
-                   {"tier_name", plan::to_string(seg.tier)},
-                   {"description", seg.description},
-                   {"earlier_tiers_failed", std::move(fails)},
-                   {"axes", std::move(axes)},
-                   {"reorientation", plan::to_string(seg.reorientation)},
-                   {"reorientation_detail", seg.reorientation_detail},
-                   {"swept_collisions", seg.swept_collisions},
-                   {"swept_uncertified", seg.swept_uncertified},
-                   {"swept_first", seg.swept_collisions + seg.swept_uncertified
-                                       ? nlohmann::json{{"cl_line", seg.swept_first_line},
-                                                        {"detail", seg.swept_first_detail}}
-                                       : nlohmann::json()},
-                   {"approach_moves_replaced", seg.approach_moves_replaced},
-                   {"legs", seg.legs}});
+    out.push_back(
+        {{"cl_lines", {seg.first_line, seg.last_line}},
+         {"tier", static_cast<int>(seg.tier)},
+         {"tier_name", plan::to_string(seg.tier)},
+         {"description", seg.description},
+         {"earlier_tiers_failed", std::move(fails)},
+         {"axes", std::move(axes)},
+         {"reorientation", plan::to_string(seg.reorientation)},
+         {"reorientation_detail", seg.reorientation_detail},
+         {"swept_collisions", seg.swept_collisions},
+         {"swept_uncertified", seg.swept_uncertified},
+         {"swept_first", seg.swept_collisions + seg.swept_uncertified
+                             ? nlohmann::json{{"cl_line", seg.swept_first_line}, {"detail", seg.swept_first_detail}}
+                             : nlohmann::json()},
+         {"approach_moves_replaced", seg.approach_moves_replaced},
+         {"legs", seg.legs}});
   }
   return notes;
 }
@@ -428,10 +445,11 @@ int run_compare(const PlanArgs& a) {
   auto first_swept = [&](const char* who, const Hits& h) {
     for (const auto& x : h.swept.hits)
       if (x.result.status == cspace::SweepStatus::Collides) {
-        std::cout << fmt::format("the {} program collides between points at {} moves (first: the {} into CL line {}, "
-                                 "{:.0f} % along: {})\n",
-                                 who, h.swept.collisions, x.reorientation ? "reorientation" : "move", x.line,
-                                 100.0 * x.result.t, x.result.detail);
+        std::cout << fmt::format(
+            "the {} program collides between points at {} moves (first: the {} into CL line {}, "
+            "{:.0f} % along: {})\n",
+            who, h.swept.collisions, x.reorientation ? "reorientation" : "move", x.line, 100.0 * x.result.t,
+            x.result.detail);
         return;
       }
   };
@@ -446,38 +464,38 @@ int run_compare(const PlanArgs& a) {
   const std::vector<std::string> flags = segment_reports(*s, p, conv, segs);
   for (const auto& f : flags) std::cout << "note: " << f << "\n";
   nlohmann::json jc = {{"cl", a.cl},
-                             {"machine", s->m.name},
-                             {"cone_deg", a.cone_deg},
-                             {"resolution_deg", a.resolution_deg},
-                             {"collision", s->opt.cspace.check_collision},
-                             {"machine_bodies", s->machine_bodies},
-                             {"meshes", mesh_reports_json(*s)},
-                             {"conventional",
-                              {{"stats", stc.json()},
-                               {"blocks", sc.blocks},
-                               {"verify_ok", vc.ok},
-                               {"colliding_points", conv_collisions},
-                               {"colliding_moves_swept", hc.swept.collisions},
-                               {"uncertified_moves_swept", hc.swept.uncertified},
-                               {"seconds", report::rounded(conv_s, 4)}}},
-                             {"planner",
-                              {{"stats", stp.json()},
-                               {"blocks", sp.blocks},
-                               {"verify_ok", vp.ok},
-                               {"colliding_points", hp.n},
-                               {"colliding_moves_swept", hp.swept.collisions},
-                               {"uncertified_moves_swept", hp.swept.uncertified},
-                               {"points_beyond_cell_cap", p.points_beyond_cap},
-                               {"seconds", report::rounded(p.seconds, 4)},
-                               {"tiers", std::move(tier_list)},
-                               {"queries",
-                                {{"cells", p.counters.cells_enumerated},
-                                 {"ik", p.counters.ik},
-                                 {"stroke", p.counters.stroke},
-                                 {"collision", p.counters.collision},
-                                 {"swept_moves", p.counters.swept},
-                                 {"swept_queries", p.counters.swept_queries}}},
-                               {"peak_memory_mb", report::rounded(p.peak_memory_mb, 1)}}}};
+                       {"machine", s->m.name},
+                       {"cone_deg", a.cone_deg},
+                       {"resolution_deg", a.resolution_deg},
+                       {"collision", s->opt.cspace.check_collision},
+                       {"machine_bodies", s->machine_bodies},
+                       {"meshes", mesh_reports_json(*s)},
+                       {"conventional",
+                        {{"stats", stc.json()},
+                         {"blocks", sc.blocks},
+                         {"verify_ok", vc.ok},
+                         {"colliding_points", conv_collisions},
+                         {"colliding_moves_swept", hc.swept.collisions},
+                         {"uncertified_moves_swept", hc.swept.uncertified},
+                         {"seconds", report::rounded(conv_s, 4)}}},
+                       {"planner",
+                        {{"stats", stp.json()},
+                         {"blocks", sp.blocks},
+                         {"verify_ok", vp.ok},
+                         {"colliding_points", hp.n},
+                         {"colliding_moves_swept", hp.swept.collisions},
+                         {"uncertified_moves_swept", hp.swept.uncertified},
+                         {"points_beyond_cell_cap", p.points_beyond_cap},
+                         {"seconds", report::rounded(p.seconds, 4)},
+                         {"tiers", std::move(tier_list)},
+                         {"queries",
+                          {{"cells", p.counters.cells_enumerated},
+                           {"ik", p.counters.ik},
+                           {"stroke", p.counters.stroke},
+                           {"collision", p.counters.collision},
+                           {"swept_moves", p.counters.swept},
+                           {"swept_queries", p.counters.swept_queries}}},
+                         {"peak_memory_mb", report::rounded(p.peak_memory_mb, 1)}}}};
   jc["planner"]["segments"] = std::move(segs);
   // JSON only where asked: a run must not leave files in the working directory it was not told to write.
   if (!a.json_out.empty()) {
@@ -514,6 +532,11 @@ void common_options(CLI::App* c, PlanArgs& a) {
       ->check(CLI::PositiveNumber);
   c->add_option("--svg", a.svg_dir, "write C-space and axis pictures into this directory");
   c->add_flag("--no-collision", a.no_collision, "ignore the meshes (to show what the plan would hit)");
+  auto* tcp = c->add_flag_function(
+      "--tcp", [&a](std::int64_t) { a.tcp = true; }, "tool-tip control on (default: the machine's post.tcp)");
+  c->add_flag_function(
+       "--no-tcp", [&a](std::int64_t) { a.tcp = false; }, "tool-tip control off: machine coordinates")
+      ->excludes(tcp);
   c->add_flag("--no-machine-geometry", a.no_machine_geometry,
               "leave the machine file's bodies (geometry.bodies) out of the collision scene");
 }

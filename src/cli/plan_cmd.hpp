@@ -21,6 +21,7 @@ struct PlanArgs {
   double default_feed = 0;  ///< mm/min for feed moves without a feed rate; 0: such a CL file is an error
   bool no_collision = false, json = false;
   bool no_machine_geometry = false;  ///< leave the machine file's bodies out of the scene
+  std::optional<bool> tcp;           ///< tool-tip control on/off; unset: the machine's post.tcp
 };
 
 /// What plan_and_write did.
