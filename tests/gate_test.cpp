@@ -324,6 +324,20 @@ TEST(Gate, RefusesARapidThroughThePart) {
   const auto bad = gate::check(join(lines), "g.ngc", planned.program, m, *k, opt, nullptr);
   ASSERT_FALSE(bad.ok);
   EXPECT_TRUE(has_kind(bad, gate::Violation::Kind::Collision, last_g0 + 1)) << bad.message;
+
+  // Feed moves are checked too, not only the CL points: a feed block inserted in the middle of the cut that
+  // dives 20 mm through the floor and the next block back up. Its end and its inside collide; the CL points
+  // around it are the planner's, certified free.
+  lines = lines_of(os.str());
+  int mid_g1 = 0;
+  for (int from = 0, i, n = 0; (i = find_line(lines, "G1", from)) > 0; from = i)
+    if (++n == 40) mid_g1 = i;
+  ASSERT_GT(mid_g1, 0);
+  lines.insert(lines.begin() + mid_g1, "G1 Z-20.0");
+  const auto feed = gate::check(join(lines), "g.ngc", planned.program, m, *k, opt, nullptr);
+  ASSERT_FALSE(feed.ok);
+  EXPECT_TRUE(has_kind(feed, gate::Violation::Kind::Collision, mid_g1 + 1)) << feed.message;
+  EXPECT_NE(feed.message.find("feed move collides"), std::string::npos) << feed.message;
 }
 
 TEST(PostFlips, SameInputGivesByteIdenticalOutput) {

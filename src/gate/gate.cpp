@@ -139,7 +139,10 @@ Summary check(const std::string& nc_text, const std::string& nc_name, const cl::
     prev = q;
   }
 
-  // Inside every move: passive joints (nonlinear in the axes) and, for rapids, collisions.
+  // Inside every move: passive joints (nonlinear in the axes) and collisions. Feed moves are checked as well
+  // as rapids: the planner certifies the motion between CL points, but the machine moves between NC blocks,
+  // and the points the post inserted (linearisation, retracts, arcs) are only checked here. The collision
+  // test excludes the cutting end of the tool (see geom::CheckOptions::relief_mm), so cutting is not a hit.
   for (size_t bi = 1; bi < ncp.blocks.size(); ++bi) {
     if (!joints_ok[bi] || !joints_ok[bi - 1]) continue;
     const nc::Block& b = ncp.blocks[bi];
@@ -166,13 +169,17 @@ Summary check(const std::string& nc_text, const std::string& nc_name, const cl::
         break;
       }
     }
-    if (rapid && options.collision) {
+    if (options.collision) {
       const int nc = std::clamp(static_cast<int>(std::ceil(span / std::max(options.collision_step, 1e-6))), 1, 20000);
       for (int k = 1; k <= nc; ++k) {
-        const kin::Axes q = qa + (static_cast<double>(k) / nc) * (qb - qa);
+        kin::Axes q = qa + (static_cast<double>(k) / nc) * (qb - qa);
+        if (b.arc && !s.tool_tip_control) {
+          const auto p = nc::point_on(ncp.blocks[bi - 1].axes, b, static_cast<double>(k) / nc);
+          for (int i = 0; i < 5; ++i) q[i] = p[static_cast<size_t>(i)];
+        }
         ++s.collision_checks;
         if (const std::string c = options.collision(q); !c.empty()) {
-          add(Violation::Kind::Collision, b.line, 0, fmt::format("rapid move collides: {}", c));
+          add(Violation::Kind::Collision, b.line, 0, fmt::format("{} move collides: {}", rapid ? "rapid" : "feed", c));
           break;
         }
       }
@@ -259,7 +266,7 @@ Summary check(const std::string& nc_text, const std::string& nc_name, const cl::
         "passed: {} blocks inside the limits, axis velocities up to {:.0f}% of max_feed, max tip deviation {:.5f} mm, "
         "max axis deviation {:.4f} deg{}",
         s.blocks, 100.0 * s.max_velocity_ratio, d.max_tip_deviation_mm, d.max_axis_deviation_deg,
-        options.collision ? fmt::format(", {} collision checks on rapids", s.collision_checks) : std::string());
+        options.collision ? fmt::format(", {} collision checks inside the moves", s.collision_checks) : std::string());
   } else {
     const Violation& v = s.violations.front();
     s.message = fmt::format("{}{}{}", v.message, v.nc_line ? fmt::format(" at NC line {}", v.nc_line) : std::string(),

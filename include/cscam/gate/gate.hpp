@@ -29,10 +29,10 @@ struct Options {
   bool ball_centre = false;   ///< compare ball centres (a planner that tilts a ball mill keeps those)
   int samples_per_block = 8;  ///< FK samples inside every feed block
   double feed_slack = 1e-3;   ///< relative slack on max_feed (printed F words are rounded)
-  /// Largest joint step between collision samples of rapid/reorientation moves (mm or rad).
+  /// Largest joint step between collision samples inside every move (mm or deg).
   double collision_step = 0.5;
   /// Optional collision check of a machine configuration against the part/fixture: returns a
-  /// description of the collision, or an empty string when free. Applied to rapid moves.
+  /// description of the collision, or an empty string when free. Applied inside every move, rapid or feed.
   std::function<std::string(const kin::Axes&)> collision;
 };
 
