@@ -420,6 +420,33 @@ TEST(XminiPost, JointProgramsGoThroughRs274AndStayWithinTheTolerance) {
   }
 }
 
+TEST(XminiPost, ABranchChangeInsideASegmentIsRefusedWithItsCause) {
+  // NX's zigzag passes close to the wrist singularity inside the long cut from CL line 149 to 151 (a = 0.66 deg
+  // on both sides): with psi != 0 the two wrist branches are not the same pose, so the joint move between them
+  // sweeps the tip about 2 * 50 mm * sin(0.66 deg) = 1.15 mm. Once the post wrote that block with a warning and
+  // only the gate stopped it (naming a later block); now the post names the segment and the cause.
+  const machine::Machine m = xmini_machine();
+  const auto k = m.kinematics();
+  const cl::Program prog = cl::read_file(test::source_path("examples/nx-haas-umc750/zigzag_smoothed.cls"));
+  try {
+    post_text(prog, m, *k, "");
+    FAIL() << "the post wrote a program whose tip leaves the path";
+  } catch (const InputError& e) {
+    const std::string what = e.what();
+    EXPECT_NE(what.find("zigzag_smoothed.cls:151"), std::string::npos) << what;
+    EXPECT_NE(what.find("from line 149 to line 151"), std::string::npos) << what;
+    EXPECT_NE(what.find("IK branch"), std::string::npos) << what;
+    // The sweep it reports is the closed-form one within 10 %.
+    const std::smatch mm = [&] {
+      std::smatch r;
+      std::regex_search(what, r, std::regex("leave the path by ([0-9.]+) mm"));
+      return r;
+    }();
+    ASSERT_EQ(mm.size(), 2u) << what;
+    EXPECT_NEAR(std::stod(mm[1]), 2 * 50.0 * std::sin(0.66 * M_PI / 180.0), 0.12);
+  }
+}
+
 TEST(XminiPost, WithoutLinearisationTheTipLeavesTheTolerance) {
   // The oracle is able to fail: the same raster without subdivision is off by more than the tolerance.
   const machine::Machine m = xmini_machine();

@@ -6,6 +6,7 @@
 #include <cmath>
 
 #include "cscam/core/error.hpp"
+#include "cscam/core/tolerances.hpp"
 #include "cscam/kin/track.hpp"
 
 namespace cscam::post {
@@ -32,6 +33,12 @@ Vec3 Slerp::operator()(double s) const {
   return (std::sin((1 - s) * th_) / sn_ * a_ + std::sin(s * th_) / sn_ * b_).normalized();
 }
 
+namespace {
+// Two axis vectors this far apart in rotary travel at the same pose are different IK branches, not a
+// continuous turn (a subdivided span's rotaries move far less than this).
+constexpr double kBranchChangeRad = 1e-3;
+}  // namespace
+
 Linearizer::Linearizer(const kin::Kinematics& k, const Settings& s)
     : kin_(k), set_(s), cos_tol_axis_(std::cos(s.axis_tolerance_rad)) {}
 
@@ -44,6 +51,17 @@ bool Linearizer::exceeds(const kin::Axes& qa, const kin::Axes& qb, double sa, do
     if (dtip > set_.tolerance_mm || p.axis.dot(axis(sa + t * (sb - sa))) < cos_tol_axis_) return true;
   }
   return false;
+}
+
+void Linearizer::worst_deviation(const kin::Axes& qa, const kin::Axes& qb, double sa, double sb, const Vec3& P0,
+                                 const Vec3& P1, const Slerp& axis, double& tip_mm, double& axis_rad) const {
+  tip_mm = axis_rad = 0.0;
+  for (int i = 1; i < 16; ++i) {
+    const double t = i / 16.0;
+    const kin::Posed p = kin_.forward(qa + t * (qb - qa));
+    tip_mm = std::max(tip_mm, point_segment_distance(p.tip_mm + set_.control_offset_mm * p.axis, P0, P1));
+    axis_rad = std::max(axis_rad, std::acos(std::clamp(p.axis.dot(axis(sa + t * (sb - sa))), -1.0, 1.0)));
+  }
 }
 
 void Linearizer::split(const cl::Move& m0, const kin::Axes& q0, const cl::Move& m1, const kin::Axes& q1,
@@ -115,6 +133,35 @@ void Linearizer::split(const cl::Move& m0, const kin::Axes& q0, const cl::Move& 
         continue;
       }
     } else if (set_.enabled && pc.depth >= set_.max_depth && exceeds(pc.qa, pc.qb, pc.sa, pc.sb, P0, P1, axis, stats)) {
+      // A span this short that still misses the tolerance is a singular region (the rotaries turn fast but the
+      // tool stays close) or a branch change hidden between two subdivision points (a limit met inside the span,
+      // the tool swept across the part). The first is written with a warning and judged by the gate; the second
+      // would be refused by the gate anyway, so it is refused here with its cause.
+      double tip_mm = 0.0, axis_rad = 0.0;
+      worst_deviation(pc.qa, pc.qb, pc.sa, pc.sb, P0, P1, axis, tip_mm, axis_rad);
+      if (tip_mm > set_.tolerance_mm + tol::kVerifySlackMm ||
+          axis_rad > set_.axis_tolerance_rad + tol::kVerifySlackDeg * M_PI / 180.0) {
+        const Vec3 axis_a = axis(pc.sa), axis_b = axis(pc.sb);
+        const kin::Posed from{P0 + pc.sa * (P1 - P0) - off * axis_a, axis_a};
+        const kin::Posed to{P0 + pc.sb * (P1 - P0) - off * axis_b, axis_b};
+        kin::Axes qt;
+        bool jumped = false;
+        std::string why;
+        const bool tracked = kin::track_checked(kin_, pc.qa, from, to, qt, jumped, &why);
+        const auto rp = kin_.rotary_pair();
+        const bool branch_change =
+            !tracked || jumped ||
+            std::abs(qt[rp[0]] - pc.qb[rp[0]]) + std::abs(qt[rp[1]] - pc.qb[rp[1]]) > kBranchChangeRad;
+        throw InputError(
+            SourceLoc{cl_file, m1.line, 0},
+            fmt::format("the machine cannot follow the CL segment from line {} to line {}: {:.1f}% along it {} "
+                        "(one block would leave the path by {:.4f} mm and {:.3f} deg); split the segment or plan it "
+                        "with a cone",
+                        m0.line, m1.line, 100.0 * pc.sb,
+                        branch_change ? "the rotaries must change IK branch" + (why.empty() ? "" : " (" + why + ")")
+                                      : std::string("the rotaries turn too fast to stay within the tolerance"),
+                        tip_mm, axis_rad * 180.0 / M_PI));
+      }
       stats.warnings.push_back(fmt::format("{}: tolerance not reached after {} subdivisions (singular region?)",
                                            SourceLoc{cl_file, m1.line, 0}.str(), set_.max_depth));
     }

@@ -54,6 +54,9 @@ class Linearizer {
 
   /// Whether the straight joint move qa -> qb leaves the tolerance of the CL segment P0P1 between the
   /// parameters sa and sb (sampled at a quarter, half and three quarters).
+  /// The largest tip (mm) and axis (rad) deviation of the joint interpolation qa -> qb from the CL segment.
+  void worst_deviation(const kin::Axes& qa, const kin::Axes& qb, double sa, double sb, const Eigen::Vector3d& P0,
+                       const Eigen::Vector3d& P1, const Slerp& axis, double& tip_mm, double& axis_rad) const;
   bool exceeds(const kin::Axes& qa, const kin::Axes& qb, double sa, double sb, const Eigen::Vector3d& P0,
                const Eigen::Vector3d& P1, const Slerp& axis, Stats& stats) const;
 
