@@ -94,7 +94,7 @@ TEST(Planner, AzimuthSweepAtFixedTiltFixesTheTiltAxis) {
   ASSERT_EQ(p.segments.size(), 1u);
   EXPECT_EQ(p.segments[0].tier, plan::Tier::Fixed1);
   ASSERT_EQ(p.segments[0].failures.size(), 1u);
-  EXPECT_EQ(p.segments[0].failures[0].line, 6) << p.segments[0].failures[0].reason;  // 2nd point: the axis changed
+  EXPECT_EQ(p.segments[0].failures[0].line, 6) << p.segments[0].failures[0].reason();  // 2nd point: the axis changed
   const auto a = column(p, 3), c = column(p, 4);
   for (double v : a) EXPECT_NEAR(std::abs(rad2deg(v)), 30.0, 1e-9);
   EXPECT_TRUE(monotone(c));
@@ -120,7 +120,7 @@ TEST(Planner, ThereAndBackNeedsTheShortestPathTier) {
   EXPECT_EQ(p.segments[0].tier, plan::Tier::Shortest);
   EXPECT_EQ(p.segments[0].failures.size(), 3u);
   // Reached at the turning point (the 21st point = CL line 5 + 20), not before.
-  EXPECT_EQ(p.segments[0].failures[2].line, 5 + 21) << p.segments[0].failures[2].reason;
+  EXPECT_EQ(p.segments[0].failures[2].line, 5 + 21) << p.segments[0].failures[2].reason();
 }
 
 TEST(Planner, AConeTurnsAVaryingAxisIntoThreePlusTwoAndKeepsTheBallCentre) {
@@ -242,14 +242,18 @@ TEST(PlannerXmini, ExactOrientationCrossesTheSingularityKeepingC) {
   for (std::size_t i = a; i <= b; ++i) EXPECT_NEAR(p.axes[i][3], p.axes[a][3], 1e-9) << "C constant";
   EXPECT_EQ(reversals(p, 4, a, b), 0) << "A monotonic";
   EXPECT_EQ(reversals(p, 1, a, b), 1) << "q2 keeps its reversal at cone 0";
-  EXPECT_NE(g.legs.find("q2 reverses"), std::string::npos) << g.legs;
-  EXPECT_NE(g.legs.find("cannot be avoided"), std::string::npos) << g.legs;
+  EXPECT_EQ(g.legs.state, plan::Legs::Reverses) << g.legs.text();
+  EXPECT_EQ(g.legs.axes, "q2");
+  EXPECT_NE(g.legs.text().find("q2 reverses"), std::string::npos) << g.legs.text();
+  EXPECT_NE(g.legs.text().find("cannot be avoided"), std::string::npos) << g.legs.text();
 }
 
 TEST(PlannerXmini, ASmallConeRemovesTheQ2Reversal) {
   const auto p = plan_xmini(1.0, 0.25, 0.05);
   const auto& g = p.segments[0];
-  EXPECT_NE(g.legs.find("monotonic"), std::string::npos) << g.legs;
+  EXPECT_EQ(g.legs.state, plan::Legs::TiltedMonotonic) << g.legs.text();
+  EXPECT_TRUE(g.legs.monotonic());
+  EXPECT_EQ(g.legs.text().rfind("monotonic: the reversal of q2", 0), 0u) << g.legs.text();
   EXPECT_EQ(reversals(p, 1, g.first_move + 1, g.last_move), 0);
   // Within the cone, the tip where the CL says (end mill: tip controlled).
   const auto m = machine::load(test::source_path("machines/xmini.yaml"));
