@@ -134,9 +134,11 @@ class Planner {
   /// Plans a whole program. Throws InputError (CL line, point, the constraint that emptied the cells and
   /// the nearest feasible cell) when a point has no feasible cell.
   Plan run(const cl::Program& program) const;
-  /// Samples the C-space of one planned segment on the full grid (for pictures; costs many queries).
+  /// The C-space of one planned segment at up to `max_panels` evenly spaced CL points (the first and the last
+  /// included), each cell of a window around the planned path evaluated there, and the plan's own cell (for
+  /// pictures; costs many queries, not counted in the plan's).
   SegmentSpace sample_segment(const cl::Program& program, const Plan& plan, std::size_t segment,
-                              std::size_t max_points = 24) const;
+                              std::size_t max_panels = 12) const;
 
  private:
   const machine::Machine& machine_;
