@@ -99,6 +99,8 @@ TEST(Planner, AzimuthSweepAtFixedTiltFixesTheTiltAxis) {
   EXPECT_EQ(p.segments[0].tier, plan::Tier::Fixed1);
   ASSERT_EQ(p.segments[0].failures.size(), 1u);
   EXPECT_EQ(p.segments[0].failures[0].line, 6) << p.segments[0].failures[0].reason();  // 2nd point: the axis changed
+  EXPECT_EQ(p.segments[0].failures[0].cause, plan::FailureCause::Orientation);
+  EXPECT_EQ(p.segments[0].failures[0].reason().rfind("orientation: no single orientation", 0), 0u);
   const auto a = column(p, 3), c = column(p, 4);
   for (double v : a) EXPECT_NEAR(std::abs(rad2deg(v)), 30.0, 1e-9);
   EXPECT_TRUE(monotone(c));
@@ -125,6 +127,9 @@ TEST(Planner, ThereAndBackNeedsTheShortestPathTier) {
   EXPECT_EQ(p.segments[0].failures.size(), 3u);
   // Reached at the turning point (the 21st point = CL line 5 + 20), not before.
   EXPECT_EQ(p.segments[0].failures[2].line, 5 + 21) << p.segments[0].failures[2].reason();
+  // Every cell is feasible there (no meshes, within the strokes): what is missing is a monotonic transition.
+  EXPECT_EQ(p.segments[0].failures[2].cause, plan::FailureCause::Transition);
+  EXPECT_EQ(p.segments[0].failures[2].reason(), p.segments[0].failures[2].detail);
 }
 
 TEST(Planner, AConeTurnsAVaryingAxisIntoThreePlusTwoAndKeepsTheBallCentre) {
@@ -774,4 +779,28 @@ TEST(PlannerPictures, MovingPathHasOnePanelPerPointWhenFewAndStaysSmall) {
   std::size_t polylines = 0;
   for (std::size_t at = svg.find("<polyline"); at != std::string::npos; at = svg.find("<polyline", at + 1)) ++polylines;
   EXPECT_EQ(polylines, 9u);
+}
+
+TEST(PlannerReports, FailureCausesAndLegStatesBecomeTextOnlyInReports) {
+  EXPECT_EQ(plan::failure_text(plan::FailureCause::Collision, "holder hits part"), "collision: holder hits part");
+  EXPECT_EQ(plan::failure_text(plan::FailureCause::Orientation, ""), "orientation");
+  EXPECT_EQ(plan::failure_text(plan::FailureCause::Transition, "no continuous (flip-free) transition"),
+            "no continuous (flip-free) transition");
+  plan::LegReport legs;
+  EXPECT_EQ(legs.text(), "");
+  EXPECT_FALSE(legs.monotonic());
+  legs.state = plan::Legs::Reverses;
+  legs.axes = "q2";
+  legs.line = 12;
+  legs.tip_mm = {1, 2, 3};
+  legs.blocked_line = 20;
+  legs.why = "stroke: q2 below its minimum";
+  EXPECT_FALSE(legs.monotonic());
+  EXPECT_EQ(legs.text(),
+            "q2 reverses at CL line 12 (1.0000, 2.0000, 3.0000); it cannot be avoided at this cone (no monotonic path "
+            "beyond CL line 20: stroke: q2 below its minimum)");
+  legs.state = plan::Legs::TiltedMonotonic;
+  legs.max_tilt_rad = deg2rad(0.5);
+  EXPECT_TRUE(legs.monotonic());
+  EXPECT_EQ(legs.text(), "monotonic: the reversal of q2 at CL line 12 removed by tilting at most 0.500 deg");
 }
