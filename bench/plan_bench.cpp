@@ -89,7 +89,7 @@ void BM_XminiSeed000(benchmark::State& state) {
   cscam::plan::Plan p;
   for (auto _ : state) p = planner.run(prog);
   state.counters["grid_deg"] = static_cast<double>(state.range(0)) / 100.0;
-  state.counters["legs_monotonic"] = p.segments.empty() ? 0 : p.segments[0].legs.rfind("monotonic", 0) == 0;
+  state.counters["legs_monotonic"] = p.segments.empty() ? 0 : p.segments[0].legs.monotonic();
 }
 BENCHMARK(BM_XminiSeed000)->Arg(25)->Arg(5)->Unit(benchmark::kMillisecond)->Iterations(1);
 

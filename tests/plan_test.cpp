@@ -4,8 +4,11 @@
 
 #include <gtest/gtest.h>
 
+#include <array>
 #include <cmath>
 #include <cstdlib>
+#include <map>
+#include <regex>
 #include <sstream>
 
 #include "cscam/cl/program.hpp"
@@ -17,6 +20,7 @@
 #include "cscam/machine/machine.hpp"
 #include "cscam/nc/reader.hpp"
 #include "cscam/post/post.hpp"
+#include "cscam/report/svg.hpp"
 #include "cscam/report/verify.hpp"
 #include "test_support.hpp"
 
@@ -94,7 +98,9 @@ TEST(Planner, AzimuthSweepAtFixedTiltFixesTheTiltAxis) {
   ASSERT_EQ(p.segments.size(), 1u);
   EXPECT_EQ(p.segments[0].tier, plan::Tier::Fixed1);
   ASSERT_EQ(p.segments[0].failures.size(), 1u);
-  EXPECT_EQ(p.segments[0].failures[0].line, 6) << p.segments[0].failures[0].reason;  // 2nd point: the axis changed
+  EXPECT_EQ(p.segments[0].failures[0].line, 6) << p.segments[0].failures[0].reason();  // 2nd point: the axis changed
+  EXPECT_EQ(p.segments[0].failures[0].cause, plan::FailureCause::Orientation);
+  EXPECT_EQ(p.segments[0].failures[0].reason().rfind("orientation: no single orientation", 0), 0u);
   const auto a = column(p, 3), c = column(p, 4);
   for (double v : a) EXPECT_NEAR(std::abs(rad2deg(v)), 30.0, 1e-9);
   EXPECT_TRUE(monotone(c));
@@ -120,7 +126,10 @@ TEST(Planner, ThereAndBackNeedsTheShortestPathTier) {
   EXPECT_EQ(p.segments[0].tier, plan::Tier::Shortest);
   EXPECT_EQ(p.segments[0].failures.size(), 3u);
   // Reached at the turning point (the 21st point = CL line 5 + 20), not before.
-  EXPECT_EQ(p.segments[0].failures[2].line, 5 + 21) << p.segments[0].failures[2].reason;
+  EXPECT_EQ(p.segments[0].failures[2].line, 5 + 21) << p.segments[0].failures[2].reason();
+  // Every cell is feasible there (no meshes, within the strokes): what is missing is a monotonic transition.
+  EXPECT_EQ(p.segments[0].failures[2].cause, plan::FailureCause::Transition);
+  EXPECT_EQ(p.segments[0].failures[2].reason(), p.segments[0].failures[2].detail);
 }
 
 TEST(Planner, AConeTurnsAVaryingAxisIntoThreePlusTwoAndKeepsTheBallCentre) {
@@ -242,14 +251,18 @@ TEST(PlannerXmini, ExactOrientationCrossesTheSingularityKeepingC) {
   for (std::size_t i = a; i <= b; ++i) EXPECT_NEAR(p.axes[i][3], p.axes[a][3], 1e-9) << "C constant";
   EXPECT_EQ(reversals(p, 4, a, b), 0) << "A monotonic";
   EXPECT_EQ(reversals(p, 1, a, b), 1) << "q2 keeps its reversal at cone 0";
-  EXPECT_NE(g.legs.find("q2 reverses"), std::string::npos) << g.legs;
-  EXPECT_NE(g.legs.find("cannot be avoided"), std::string::npos) << g.legs;
+  EXPECT_EQ(g.legs.state, plan::Legs::Reverses) << g.legs.text();
+  EXPECT_EQ(g.legs.axes, "q2");
+  EXPECT_NE(g.legs.text().find("q2 reverses"), std::string::npos) << g.legs.text();
+  EXPECT_NE(g.legs.text().find("cannot be avoided"), std::string::npos) << g.legs.text();
 }
 
 TEST(PlannerXmini, ASmallConeRemovesTheQ2Reversal) {
   const auto p = plan_xmini(1.0, 0.25, 0.05);
   const auto& g = p.segments[0];
-  EXPECT_NE(g.legs.find("monotonic"), std::string::npos) << g.legs;
+  EXPECT_EQ(g.legs.state, plan::Legs::TiltedMonotonic) << g.legs.text();
+  EXPECT_TRUE(g.legs.monotonic());
+  EXPECT_EQ(g.legs.text().rfind("monotonic: the reversal of q2", 0), 0u) << g.legs.text();
   EXPECT_EQ(reversals(p, 1, g.first_move + 1, g.last_move), 0);
   // Within the cone, the tip where the CL says (end mill: tip controlled).
   const auto m = machine::load(test::source_path("machines/xmini.yaml"));
@@ -630,4 +643,164 @@ TEST(PlannerIssue11, CompareCountsSweptCollisionsAndReportsSegmentsInJson) {
   EXPECT_EQ(segs[0]["approach_moves_replaced"].get<int>(), 1);
   EXPECT_EQ(segs[0]["axes"]["A"]["reversals"].get<int>(), 0);
   EXPECT_GT(segs[0]["axes"]["A"]["conventional_reversals"].get<int>(), 0);
+}
+
+namespace {
+/// One panel of a C-space picture, read back from the SVG.
+struct PanelSvg {
+  int line = 0;
+  std::string chosen_status;
+  int chosen_a = 0, chosen_b = 0;                               ///< the planned cell, window cell indices
+  std::map<std::string, std::vector<std::array<int, 3>>> runs;  ///< status -> runs (a, b, length)
+};
+
+std::vector<PanelSvg> read_panels(const std::string& svg) {
+  std::vector<PanelSvg> out;
+  const std::regex line_re("data-line=\"(\\d+)\""),
+      chosen_re("class=\"chosen\" data-status=\"(\\w+)\" data-cell=\"(-?\\d+) (-?\\d+)\""),
+      path_re("<path class=\"(\\w+)\" fill=\"[^\"]*\" d=\"([^\"]*)\""), run_re("M(\\d+) (\\d+)h(\\d+)v1h-\\d+z");
+  for (std::size_t at = svg.find("<g class=\"panel\""); at != std::string::npos;) {
+    const std::size_t next = svg.find("<g class=\"panel\"", at + 1);
+    const std::string chunk = svg.substr(at, next == std::string::npos ? std::string::npos : next - at);
+    PanelSvg p;
+    std::smatch m;
+    if (std::regex_search(chunk, m, line_re)) p.line = std::stoi(m[1]);
+    if (std::regex_search(chunk, m, chosen_re)) {
+      p.chosen_status = m[1];
+      p.chosen_a = std::stoi(m[2]);
+      p.chosen_b = std::stoi(m[3]);
+    }
+    for (auto it = std::sregex_iterator(chunk.begin(), chunk.end(), path_re); it != std::sregex_iterator(); ++it) {
+      const std::string d = (*it)[2];
+      for (auto r = std::sregex_iterator(d.begin(), d.end(), run_re); r != std::sregex_iterator(); ++r)
+        p.runs[(*it)[1]].push_back({std::stoi((*r)[1]), std::stoi((*r)[2]), std::stoi((*r)[3])});
+    }
+    out.push_back(std::move(p));
+    at = next;
+  }
+  return out;
+}
+
+bool drawn_as(const PanelSvg& p, const std::string& status, int a, int b) {
+  auto it = p.runs.find(status);
+  if (it == p.runs.end()) return false;
+  for (const auto& r : it->second)
+    if (r[1] == b && a >= r[0] && a < r[0] + r[2]) return true;
+  return false;
+}
+}  // namespace
+
+TEST(PlannerPictures, GroovePanelsPerPointShowFeasibleCollidingAndThePlannedCell) {
+  // examples/groove at cone 25: the lip rules out the steep tilts. The picture has 12 panels, one per evenly spaced
+  // CL point; in each the planned cell is drawn feasible, and a cell drawn colliding does collide there (checked
+  // with a separate C-space, no picture code).
+  geom::Scene scene;
+  scene.add("groove", geom::ObstacleRole::Part, geom::load_mesh(test::source_path("examples/groove/groove.stl")));
+  scene.build(false);
+  const cl::Program prog = cl::read_file(test::source_path("examples/groove/groove.cls"));
+  const auto tool = geom::ToolShape::from_cutter(10, 5, 30);
+  const auto m = trunnion();
+  plan::Options o;
+  o.cspace.cone_rad = deg2rad(25.0);
+  o.cspace.ball_radius_mm = 5.0;
+  const plan::Planner planner(m, m.kinematics(), &scene, &tool, o);
+  const plan::Plan p = planner.run(prog);
+  ASSERT_EQ(p.segments.size(), 1u);
+  const auto& seg = p.segments[0];
+  const plan::SegmentSpace sp = planner.sample_segment(prog, p, 0);
+  const std::string svg = report::cspace_svg(sp, "C", "A", "groove");
+  EXPECT_LT(svg.size(), 100000u);
+  EXPECT_NE(svg.find("outside the cone"), std::string::npos);
+  EXPECT_NE(svg.find("class=\"summary\""), std::string::npos);
+  const auto panels = read_panels(svg);
+  ASSERT_EQ(panels.size(), 12u);
+  ASSERT_EQ(sp.panels.size(), 12u);
+  EXPECT_EQ(panels.front().line, seg.first_line);
+  EXPECT_EQ(panels.back().line, seg.last_line);
+  const auto k = m.kinematics();
+  const auto rp = k->rotary_pair();
+  cspace::Options co = o.cspace;
+  co.check_collision = true;
+  const cspace::Space oracle(k, &scene, &tool, co);
+  geom::QueryWorkspace ws;
+  cspace::Counters c;
+  std::size_t colliding_checked = 0;
+  for (std::size_t i = 0; i < panels.size(); ++i) {
+    const std::size_t point = sp.panels[i].point;
+    const std::size_t move = seg.first_move + point;
+    EXPECT_EQ(panels[i].line, prog.moves[move].line);
+    // Evenly spaced: point i of 12 is round(i * (n - 1) / 11).
+    EXPECT_EQ(point, static_cast<std::size_t>(std::lround(i * (sp.points - 1) / 11.0)));
+    EXPECT_EQ(panels[i].chosen_status, "feasible") << "panel " << i;
+    EXPECT_TRUE(drawn_as(panels[i], "feasible", panels[i].chosen_a, panels[i].chosen_b)) << "panel " << i;
+    EXPECT_EQ(panels[i].chosen_a, sp.i1_of(p.axes[move][rp[0]]) - sp.i1_min);
+    EXPECT_EQ(panels[i].chosen_b, sp.i2_of(p.axes[move][rp[1]]) - sp.i2_min);
+    // The planned axes themselves: within the limits and free.
+    EXPECT_TRUE(k->check_limits(p.axes[move]).empty());
+    EXPECT_TRUE(oracle.collision_at_axes(p.axes[move], ws, c).empty());
+    // The first cell of the first colliding run: it collides at this point.
+    auto it = panels[i].runs.find("collision");
+    if (it == panels[i].runs.end() || it->second.empty()) continue;
+    const auto& r = it->second.front();
+    cspace::Cell cell;
+    cell.r1 = (sp.i1_min + r[0]) * sp.resolution1_rad;
+    cell.r2 = (sp.i2_min + r[1]) * sp.resolution2_rad;
+    const kin::Posed cl{prog.moves[move].tip_in_part_mm, prog.moves[move].axis_in_part.normalized()};
+    ASSERT_TRUE(oracle.in_cone(cl, cell.r1, cell.r2));
+    oracle.evaluate(cl, cell, ws, c);
+    EXPECT_EQ(cell.status, cspace::Status::Collision) << "panel " << i;
+    ++colliding_checked;
+  }
+  EXPECT_GE(colliding_checked, 10u) << "the lip rules out the steep tilts at almost every point";
+}
+
+TEST(PlannerPictures, MovingPathHasOnePanelPerPointWhenFewAndStaysSmall) {
+  // Azimuth 0 -> 60 -> 0 at rising tilt (the shortest-path tier at cone 0), 9 points: 9 panels, each with the
+  // planned cell drawn feasible; the path's polyline is drawn in every panel.
+  const auto prog = sweep(
+      9, [](double s) { return 10.0 + 30.0 * s; }, [](double s) { return 60.0 * (1 - std::abs(2 * s - 1)); });
+  static const machine::Machine m = trunnion();
+  plan::Options o;
+  o.cspace.cone_rad = deg2rad(3.0);
+  o.cspace.check_collision = false;
+  const plan::Planner planner(m, m.kinematics(), nullptr, nullptr, o);
+  const plan::Plan p = planner.run(prog);
+  ASSERT_EQ(p.segments.size(), 1u);
+  const auto sp = planner.sample_segment(prog, p, 0);
+  const std::string svg = report::cspace_svg(sp, "C", "A", "sweep");
+  EXPECT_LT(svg.size(), 100000u);
+  const auto panels = read_panels(svg);
+  ASSERT_EQ(panels.size(), 9u);
+  for (std::size_t i = 0; i < panels.size(); ++i) {
+    EXPECT_EQ(panels[i].line, prog.moves[i].line);
+    EXPECT_EQ(panels[i].chosen_status, "feasible");
+    EXPECT_TRUE(drawn_as(panels[i], "feasible", panels[i].chosen_a, panels[i].chosen_b)) << "panel " << i;
+  }
+  std::size_t polylines = 0;
+  for (std::size_t at = svg.find("<polyline"); at != std::string::npos; at = svg.find("<polyline", at + 1)) ++polylines;
+  EXPECT_EQ(polylines, 9u);
+}
+
+TEST(PlannerReports, FailureCausesAndLegStatesBecomeTextOnlyInReports) {
+  EXPECT_EQ(plan::failure_text(plan::FailureCause::Collision, "holder hits part"), "collision: holder hits part");
+  EXPECT_EQ(plan::failure_text(plan::FailureCause::Orientation, ""), "orientation");
+  EXPECT_EQ(plan::failure_text(plan::FailureCause::Transition, "no continuous (flip-free) transition"),
+            "no continuous (flip-free) transition");
+  plan::LegReport legs;
+  EXPECT_EQ(legs.text(), "");
+  EXPECT_FALSE(legs.monotonic());
+  legs.state = plan::Legs::Reverses;
+  legs.axes = "q2";
+  legs.line = 12;
+  legs.tip_mm = {1, 2, 3};
+  legs.blocked_line = 20;
+  legs.why = "stroke: q2 below its minimum";
+  EXPECT_FALSE(legs.monotonic());
+  EXPECT_EQ(legs.text(),
+            "q2 reverses at CL line 12 (1.0000, 2.0000, 3.0000); it cannot be avoided at this cone (no monotonic path "
+            "beyond CL line 20: stroke: q2 below its minimum)");
+  legs.state = plan::Legs::TiltedMonotonic;
+  legs.max_tilt_rad = deg2rad(0.5);
+  EXPECT_TRUE(legs.monotonic());
+  EXPECT_EQ(legs.text(), "monotonic: the reversal of q2 at CL line 12 removed by tilting at most 0.500 deg");
 }

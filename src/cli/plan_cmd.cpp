@@ -302,7 +302,7 @@ std::vector<std::string> segment_reports(const Setup& s, const plan::Plan& p, co
     const auto& seg = p.segments[g];
     nlohmann::json fails = nlohmann::json::array();
     for (const auto& f : seg.failures)
-      fails.push_back({{"tier", static_cast<int>(f.tier)}, {"cl_line", f.line}, {"reason", f.reason}});
+      fails.push_back({{"tier", static_cast<int>(f.tier)}, {"cl_line", f.line}, {"reason", f.reason()}});
     nlohmann::json axes = nlohmann::json::object();
     for (int j = 0; j < 5; ++j) {
       const auto J = static_cast<std::size_t>(j);
@@ -365,7 +365,7 @@ std::vector<std::string> segment_reports(const Setup& s, const plan::Plan& p, co
                              ? nlohmann::json{{"cl_line", seg.swept_first_line}, {"detail", seg.swept_first_detail}}
                              : nlohmann::json()},
          {"approach_moves_replaced", seg.approach_moves_replaced},
-         {"legs", seg.legs}});
+         {"legs", seg.legs.text()}});
   }
   return notes;
 }

@@ -41,12 +41,51 @@ struct Options {
 enum class Reorientation : std::uint8_t { None, Clear, Collides, Uncertified };
 const char* to_string(Reorientation r);
 
+/// What made a tier impossible at a point.
+enum class FailureCause : std::uint8_t {
+  Orientation,  ///< no cell of the tier's shape within the cone
+  Stroke,       ///< the cells it needed break a limit
+  Collision,    ///< the cells it needed collide (at the point, or on the move into it)
+  Transition,   ///< feasible cells, but no allowed step (flip-free, within the step bound) from the previous point
+};
+const char* to_string(FailureCause c);
+/// A cause and its detail as reports print them: "collision: holder hits part" (the cell causes), the detail alone
+/// (Transition).
+std::string failure_text(FailureCause cause, const std::string& detail);
+
 /// Why an earlier tier failed on a segment: the first point at which it became impossible.
 struct TierFailure {
   Tier tier = Tier::Fixed2;
   std::size_t move = 0;  ///< index into Program::moves
   int line = 0;          ///< CL line of that point
-  std::string reason;    ///< "orientation", "stroke", "collision" and details
+  FailureCause cause = FailureCause::Orientation;
+  std::string detail;  ///< the broken limit, what collides, the best candidate
+  [[nodiscard]] std::string reason() const { return failure_text(cause, detail); }
+};
+
+/// Whether the counted axes (Options::monotone_axes) move monotonically along a segment.
+enum class Legs : std::uint8_t {
+  NotCounted,       ///< no counted axes, or a segment of two points or fewer
+  Monotonic,        ///< the tiers' path keeps them monotonic
+  ReversalRemoved,  ///< cone 0: other IK branches remove the reversal
+  TiltedMonotonic,  ///< a re-plan on a tilt grid inside the cone removes it
+  Reverses,         ///< they reverse and no path within the cone avoids it
+};
+const char* to_string(Legs l);
+
+struct LegReport {
+  Legs state = Legs::NotCounted;
+  std::string axes;  ///< names of the counted axes that reversed on the tiers' path ("U, V")
+  int line = 0;      ///< CL line of the first reversal
+  Eigen::Vector3d tip_mm = Eigen::Vector3d::Zero();  ///< tip of that CL point
+  double max_tilt_rad = 0.0;  ///< TiltedMonotonic: largest tilt of the re-planned path from the CL axis
+  int blocked_line = 0;       ///< Reverses: no monotonic path goes beyond this CL line
+  std::string why;            ///< Reverses: what stops it there
+  [[nodiscard]] bool monotonic() const {
+    return state == Legs::Monotonic || state == Legs::ReversalRemoved || state == Legs::TiltedMonotonic;
+  }
+  /// The report text ("" when not counted).
+  [[nodiscard]] std::string text() const;
 };
 
 struct SegmentReport {
@@ -66,8 +105,8 @@ struct SegmentReport {
   std::string swept_first_detail;
   /// Approach / retract moves re-placed along the chosen tool axis (the CL's ran along the CL axis).
   int approach_moves_replaced = 0;
-  /// With Options::monotone_axes: "monotonic", or which axis still reverses, where, and why it cannot be avoided.
-  std::string legs;
+  /// With Options::monotone_axes: monotonic, or which axis still reverses, where, and why it cannot be avoided.
+  LegReport legs;
 };
 
 /// The plan: axis values for every CL move, and a CL program whose tips/axes are the planned ones
@@ -95,16 +134,13 @@ class Planner {
   /// Plans a whole program. Throws InputError (CL line, point, the constraint that emptied the cells and
   /// the nearest feasible cell) when a point has no feasible cell.
   Plan run(const cl::Program& program) const;
-  /// Samples the C-space of one planned segment on the full grid (for pictures; costs many queries).
+  /// The C-space of one planned segment at up to `max_panels` evenly spaced CL points (the first and the last
+  /// included), each cell of a window around the planned path evaluated there, and the plan's own cell (for
+  /// pictures; costs many queries, not counted in the plan's).
   SegmentSpace sample_segment(const cl::Program& program, const Plan& plan, std::size_t segment,
-                              std::size_t max_points = 24) const;
+                              std::size_t max_panels = 12) const;
 
  private:
-  /// Re-places move m (an approach into, or retract out of, move ref along ref's CL axis) along ref's chosen
-  /// axis at the same distance, with ref's rotaries. False (nothing changed) when m is not such a move or the
-  /// re-placed point breaks a limit.
-  bool along_chosen_axis(const cl::Program& cl, Plan& plan, std::size_t m, std::size_t ref) const;
-
   const machine::Machine& machine_;
   std::shared_ptr<const kin::Kinematics> kin_;
   cspace::Space space_;

@@ -6,13 +6,14 @@
 #include <string>
 #include <vector>
 
-#include "cscam/kin/types.hpp"
 #include "cscam/cspace/status.hpp"
+#include "cscam/kin/types.hpp"
 
 namespace cscam::report {
 
-/// The C-space of one segment: cells feasible at every point (green), and why the others failed
-/// (orientation grey, stroke orange, collision red), with the planned path over it.
+/// The C-space of one segment, one panel per sampled CL point (labelled with its CL line): which cells are
+/// feasible (green), outside stroke (orange), colliding (red) or outside the cone (grey) there, the planned path
+/// over it and the plan's cell at that point outlined; a legend and a summary line.
 std::string cspace_svg(const plan::SegmentSpace& space, const std::string& primary_name,
                        const std::string& secondary_name, const std::string& title);
 

@@ -1,0 +1,289 @@
+#pragma once
+// Private to src/plan: what the tiers of the planner share. A segment's search is split as Pinocchio splits a
+// model from its data: SegmentView holds what does not change during the search (the C-space, the options, the
+// program, where the previous segment ended), SegmentCells the per-point cells, evaluated lazily, the counters and
+// a query workspace. Each tier is a free function of the two; the layered dynamic programme (forward pass over the
+// points, backtrack from the cheapest end) is written once, in LayeredDp, and the exact-orientation search on it
+// (dp_exact) serves every tier at cone 0.
+#include <fmt/format.h>
+#include <tbb/blocked_range.h>
+#include <tbb/enumerable_thread_specific.h>
+#include <tbb/parallel_for.h>
+#include <tbb/task_arena.h>
+
+#include <cmath>
+#include <cstdint>
+#include <limits>
+#include <memory>
+#include <string>
+#include <unordered_map>
+#include <utility>
+#include <vector>
+
+#include "cscam/core/threads.hpp"
+#include "cscam/kin/track.hpp"
+#include "cscam/plan/plan.hpp"
+
+namespace cscam::plan::detail {
+
+using cspace::Cell;
+using cspace::Status;
+inline constexpr double kInf = std::numeric_limits<double>::infinity();
+/// Exact-orientation (cone 0) cells are keyed on a 1e-6 rad lattice so that "the same cell" and
+/// "monotonic" mean the same thing as on the grid.
+inline constexpr double kExactKeyRad = 1e-6;
+
+inline std::uint64_t key(int i1, int i2) {
+  return (static_cast<std::uint64_t>(static_cast<std::uint32_t>(i1)) << 32) | static_cast<std::uint32_t>(i2);
+}
+
+/// Evaluates items in parallel over the immutable space, one workspace per thread. `job(i, ws, counters)` must only
+/// touch item i, so the outcome (and the summed counters) does not depend on the thread count.
+template <typename Job>
+void parallel_items(std::size_t n, cspace::Counters& total, Job&& job) {
+  struct Local {
+    geom::QueryWorkspace ws;
+    cspace::Counters c;
+  };
+  tbb::enumerable_thread_specific<Local> locals;
+  tbb::task_arena arena(static_cast<int>(worker_threads()));
+  arena.execute([&] {
+    tbb::parallel_for(tbb::blocked_range<std::size_t>(0, n), [&](const tbb::blocked_range<std::size_t>& r) {
+      Local& l = locals.local();
+      for (std::size_t i = r.begin(); i != r.end(); ++i) job(i, l.ws, l.c);
+    });
+  });
+  for (const Local& l : locals) total += l.c;
+}
+
+/// Runs `job(i)` for i in [0, n) in parallel (pure computations that write slot i only).
+template <typename Job>
+void parallel_indices(std::size_t n, Job&& job) {
+  tbb::task_arena arena(static_cast<int>(worker_threads()));
+  arena.execute([&] {
+    tbb::parallel_for(tbb::blocked_range<std::size_t>(0, n), [&](const tbb::blocked_range<std::size_t>& r) {
+      for (std::size_t i = r.begin(); i != r.end(); ++i) job(i);
+    });
+  });
+}
+
+/// One CL point of a segment and its orientation cells.
+struct Layer {
+  std::size_t move = 0;
+  kin::Posed cl;
+  std::vector<Cell> cells;                        ///< orientation cells, closest first (capped)
+  std::unordered_map<std::uint64_t, int> index;   ///< (i1,i2) -> position in cells
+  std::unordered_map<std::uint64_t, Cell> extra;  ///< evaluated cells outside the cap
+  bool truncated = false;                         ///< `cells` stopped at the cap: the cone holds more
+};
+
+/// What does not change while a segment is searched.
+struct SegmentView {
+  const cspace::Space& space;
+  const Options& options;
+  const cl::Program& program;
+  const std::shared_ptr<const kin::Kinematics>& kinematics;
+  bool exact = false;                 ///< cone 0: the cells are the exact IK solutions
+  const kin::Axes* prefer = nullptr;  ///< rotaries the previous segment ended at (tie-break); null: home
+  /// Names of the primary and secondary rotaries, for reports.
+  [[nodiscard]] std::string n1() const;
+  [[nodiscard]] std::string n2() const;
+};
+
+/// The cells of a segment's points as the search evaluates them, its counters and its query workspace.
+struct SegmentCells {
+  std::vector<Layer> layers;
+  cspace::Counters& counters;
+  geom::QueryWorkspace ws;
+  /// The full (capped) cell lists of the points after the first are in the layers (tier 1 needs only the first's).
+  bool listed = false;
+  explicit SegmentCells(cspace::Counters& c) : counters(c) {}
+};
+
+/// The layers of the moves [first, last]: every point's pose; the first point's cells (a large share: tier 1 takes its
+/// candidates there) and, at cone 0, every point's IK cells, singular points offered their neighbours' primaries.
+SegmentCells make_cells(const SegmentView& v, std::size_t first, std::size_t last, cspace::Counters& counters);
+/// Lists point k's cells afresh, at most `cap` of them.
+void enumerate_layer(const SegmentView& v, Layer& l, std::size_t cap, cspace::Counters& counters);
+/// Replaces a truncated cell list with every cell of the cone, keeping what was evaluated already.
+void extend_layer(const SegmentView& v, SegmentCells& d, std::size_t k);
+/// The capped cell lists of every point after the first (in parallel), keeping what tier 1 evaluated.
+void list_layers(const SegmentView& v, SegmentCells& d);
+/// Every point needs at least one feasible cell: a truncated list whose cells all fail is first extended to the
+/// whole cone (counted in `points_beyond_cap`). Throws InputError naming the CL line, the constraint that emptied
+/// the cone and the nearest feasible cell beyond it.
+void check_points(const SegmentView& v, SegmentCells& d, std::size_t& points_beyond_cap);
+
+/// The cell (i1, i2) at layer k, created (with its orientation test) if needed; null if outside the cone.
+Cell* cell_at(const SegmentView& v, SegmentCells& d, std::size_t k, int i1, int i2);
+/// Stroke and collision of a cell of layer k (cached in the cell).
+bool feasible(const SegmentView& v, SegmentCells& d, std::size_t k, Cell& c, cspace::Certificate* cert = nullptr);
+/// CL line of layer k.
+inline int line_of(const SegmentView& v, const SegmentCells& d, std::size_t k) {
+  return v.program.moves[d.layers[k].move].line;
+}
+/// Extra clearance (mm, coarse steps) a path keeps at its first, middle and last points.
+double room(const SegmentView& v, SegmentCells& d, const std::vector<const Cell*>& path);
+
+/// The layered dynamic programme. Node is a state of one layer with at least `double cost` (cost of the best path
+/// to it) and `int pred` (its predecessor's index in the previous layer, -1 at the first layer).
+template <typename Node>
+struct LayeredDp {
+  std::vector<std::vector<Node>> nodes;  ///< per layer
+
+  /// Forward pass: `build(k, prev, cur)` fills layer k (`cur`, empty on entry) from layer k - 1 (`prev`, empty at
+  /// k = 0) and returns whether any of its states is reachable. Stops at the first layer without one. Returns the
+  /// number of layers built before that: n when the pass went through.
+  template <typename Build>
+  std::size_t forward(std::size_t n, Build&& build) {
+    static const std::vector<Node> none;
+    nodes.assign(n, {});
+    for (std::size_t k = 0; k < n; ++k)
+      if (!build(k, k ? nodes[k - 1] : none, nodes[k])) return k;
+    return n;
+  }
+  /// The cheapest state of the last layer (the first of equals).
+  [[nodiscard]] int cheapest_last() const {
+    const auto& last = nodes.back();
+    std::size_t best = 0;
+    for (std::size_t j = 1; j < last.size(); ++j)
+      if (last[j].cost < last[best].cost) best = j;
+    return static_cast<int>(best);
+  }
+  /// Backtrack: the state index per layer of the path that ends at state `last` of the last layer.
+  [[nodiscard]] std::vector<int> backtrack(int last) const {
+    std::vector<int> idx(nodes.size(), -1);
+    for (std::size_t k = nodes.size(); k-- > 0;) {
+      idx[k] = last;
+      last = nodes[k][static_cast<std::size_t>(last)].pred;
+    }
+    return idx;
+  }
+};
+
+/// The cause of a failed cell.
+inline FailureCause cause_of(Status s) {
+  return s == Status::Stroke      ? FailureCause::Stroke
+         : s == Status::Collision ? FailureCause::Collision
+                                  : FailureCause::Orientation;
+}
+
+/// Why a search stopped: a cause and its detail (TierFailure's text without the place).
+struct Why {
+  FailureCause cause = FailureCause::Transition;
+  std::string detail;
+  [[nodiscard]] std::string text() const { return failure_text(cause, detail); }
+};
+
+/// A state of a DP over a layer's own cell list: cost and predecessor per cell (kInf / -1: unreachable).
+struct CostNode {
+  double cost = kInf;
+  int pred = -1;
+};
+
+/// Exact orientations (cone 0): a layered DP over the IK cells where a transition must satisfy `allowed`
+/// and be continuously trackable (following the CL pose from one cell reaches the other without a
+/// flip). Least L1 rotary travel. Returns false with the first layer that no allowed path reaches.
+/// On failure `why` holds the last infeasible cell's cause (a flip-free transition missing when every cell was
+/// feasible).
+template <typename Allowed>
+bool dp_exact(const SegmentView& v, SegmentCells& d, Allowed&& allowed, std::vector<const Cell*>& path,
+              std::size_t& fail_layer, Why& why) {
+  auto& L = d.layers;
+  const std::size_t n = L.size();
+  const auto& sp = v.space;
+  const auto rp = sp.kinematics().rotary_pair();
+  LayeredDp<CostNode> dp;
+  const std::size_t built =
+      dp.forward(n, [&](std::size_t k, const std::vector<CostNode>& prev, std::vector<CostNode>& cur) {
+        auto& cells = L[k].cells;
+        cur.assign(cells.size(), CostNode{});
+        bool any = false;
+        for (std::size_t j = 0; j < cells.size(); ++j) {
+          if (!feasible(v, d, k, cells[j])) {
+            why = {cause_of(cells[j].status), cells[j].detail};
+            continue;
+          }
+          if (k == 0) {
+            // Ties (windings of a cyclic axis) go to the start nearest the previous segment's rotaries (or home).
+            const double r1 = v.prefer ? (*v.prefer)[rp[0]] : 0.0, r2 = v.prefer ? (*v.prefer)[rp[1]] : 0.0;
+            cur[j].cost = 1e-9 * (std::abs(cells[j].r1 - r1) + std::abs(cells[j].r2 - r2));
+            any = true;
+            continue;
+          }
+          for (std::size_t i = 0; i < L[k - 1].cells.size(); ++i) {
+            if (!std::isfinite(prev[i].cost)) continue;
+            const Cell& a = L[k - 1].cells[i];
+            const Cell& b = cells[j];
+            if (!allowed(a, b)) continue;
+            const double val = prev[i].cost + v.options.weight_primary * std::abs(b.r1 - a.r1) +
+                               v.options.weight_secondary * std::abs(b.r2 - a.r2);
+            if (val >= cur[j].cost) continue;
+            kin::Axes out;
+            const kin::Posed pa = sp.tool_pose(L[k - 1].cl, a.r1, a.r2), pb = sp.tool_pose(L[k].cl, b.r1, b.r2);
+            if (!kin::track(sp.kinematics(), a.axes, pa, pb, out)) continue;
+            if (std::abs(out[rp[0]] - b.r1) + std::abs(out[rp[1]] - b.r2) > 1e-6) continue;  // would flip
+            cur[j] = {val, static_cast<int>(i)};
+            any = true;
+          }
+        }
+        return any;
+      });
+  if (built < n) {
+    fail_layer = built;
+    if (why.cause == FailureCause::Transition && why.detail.empty())
+      why.detail = "no continuous (flip-free) transition from the previous point";
+    return false;
+  }
+  const std::vector<int> idx = dp.backtrack(dp.cheapest_last());
+  path.assign(n, nullptr);
+  for (std::size_t k = 0; k < n; ++k) path[k] = &L[k].cells[static_cast<std::size_t>(idx[k])];
+  return true;
+}
+
+/// What a tier found: the cell per point, its description, or why it failed.
+struct TierOutcome {
+  std::vector<const Cell*> path;
+  std::string description;
+  TierFailure failure;
+};
+
+/// Tier 1 (tier_fixed.cpp): one cell feasible at every point (3+2); ties broken by clearance, then by nearness to
+/// the previous segment's rotaries.
+bool tier_fixed(const SegmentView& v, SegmentCells& d, TierOutcome& out);
+/// Tier 2 (tier_one_fixed.cpp): one rotary fixed, the other monotonic.
+bool tier_one_fixed(const SegmentView& v, SegmentCells& d, TierOutcome& out);
+/// Tier 3 (tier_monotonic.cpp): both rotaries monotonic (reachability through Pareto staircases).
+bool tier_monotonic(const SegmentView& v, SegmentCells& d, TierOutcome& out);
+/// Tier 4 (tier_shortest.cpp): least weighted rotary travel, bounded step per point.
+bool tier_shortest(const SegmentView& v, SegmentCells& d, TierOutcome& out);
+
+/// The answer of the tier cascade for a segment.
+struct Cascade {
+  Tier tier = Tier::Shortest;
+  std::vector<TierFailure> failures;  ///< one per tier tried before the one reached
+  std::string description;
+  std::vector<const Cell*> path;
+};
+/// Runs the tiers in order (cascade.cpp); between tier 1 and 2 the points' cell lists are completed and every point
+/// is checked for a feasible cell. Before tier 4 gives up, truncated cell lists are extended to the whole cone.
+/// Throws InputError when no tier finds a path.
+Cascade run_cascade(const SegmentView& v, SegmentCells& d, std::size_t& points_beyond_cap);
+/// Between the points: a move whose sweep collides rules out the cell it leads into (conservative: that cell might
+/// be fine from another predecessor), and the tiers run again on what is left, a few rounds at most. `kept` holds
+/// the cells of an answer that stands when nothing is left without them (c.path may then point into it). Moves
+/// certified free are flagged in `swept_ok`.
+void avoid_swept_collisions(const SegmentView& v, SegmentCells& d, Cascade& c, std::vector<Cell>& kept,
+                            std::vector<char>& swept_ok, std::size_t& points_beyond_cap);
+
+/// With Options::monotone_axes (legs.cpp): the counted axes' reversals along `path`; a reversing path is re-planned
+/// inside the cone so that they move monotonically, if it can be. May replace `path`, the tier and the description.
+LegReport replan_legs(const SegmentView& v, SegmentCells& d, std::vector<const Cell*>& path, Tier& tier,
+                      std::string& description);
+
+/// Re-places move m (an approach into, or retract out of, move ref along ref's CL axis; approach.cpp) along ref's
+/// chosen axis at the same distance, with ref's rotaries. False (nothing changed) when m is not such a move or the
+/// re-placed point breaks a limit.
+bool along_chosen_axis(const kin::Kinematics& kin, const cl::Program& cl, Plan& plan, std::size_t m, std::size_t ref);
+
+}  // namespace cscam::plan::detail

@@ -1,0 +1,253 @@
+// A segment's points and their cells: building the layers, lazy cell access, and the per-point feasibility check
+// that runs before the tiers that move the rotaries.
+#include <fmt/format.h>
+
+#include <algorithm>
+#include <cmath>
+
+#include "cscam/core/error.hpp"
+#include "cscam/core/units.hpp"
+#include "detail/search.hpp"
+
+namespace cscam::plan::detail {
+
+std::string SegmentView::n1() const {
+  return space.kinematics().axes()[static_cast<size_t>(space.kinematics().rotary_pair()[0])].name;
+}
+std::string SegmentView::n2() const {
+  return space.kinematics().axes()[static_cast<size_t>(space.kinematics().rotary_pair()[1])].name;
+}
+
+void enumerate_layer(const SegmentView& v, Layer& l, std::size_t cap, cspace::Counters& counters) {
+  v.space.enumerate(l.cl, l.cells, cap, counters);
+  l.truncated = l.cells.size() >= cap;
+  l.index.clear();
+  if (v.exact)
+    for (Cell& c : l.cells) {
+      c.i1 = static_cast<int>(std::lround(c.r1 / kExactKeyRad));
+      c.i2 = static_cast<int>(std::lround(c.r2 / kExactKeyRad));
+    }
+  for (std::size_t j = 0; j < l.cells.size(); ++j)
+    l.index.emplace(key(l.cells[j].i1, l.cells[j].i2), static_cast<int>(j));
+}
+
+namespace {
+
+/// At a singular point the primary rotary is free: offer every primary that a neighbouring regular point uses, so
+/// that continuous (flip-free) paths can pass straight through the singularity.
+void expand_singular(std::vector<Layer>& layers) {
+  for (std::size_t k = 0; k < layers.size(); ++k) {
+    auto& cells = layers[k].cells;
+    if (std::none_of(cells.begin(), cells.end(), [](const Cell& c) { return c.singular; })) continue;
+    std::vector<double> primaries;
+    for (long d = 1; d < static_cast<long>(layers.size()) && primaries.size() < 64; ++d)
+      for (long kk : {static_cast<long>(k) - d, static_cast<long>(k) + d}) {
+        if (kk < 0 || kk >= static_cast<long>(layers.size())) continue;
+        bool regular = false;
+        for (const Cell& c : layers[static_cast<size_t>(kk)].cells)
+          if (!c.singular) {
+            primaries.push_back(c.r1);
+            regular = true;
+          }
+        if (regular && d > 1) d = static_cast<long>(layers.size());  // nearest regular layers on each side only
+      }
+    std::vector<Cell> out;
+    for (const Cell& c : cells) {
+      // No regular neighbour (e.g. a whole segment along the primary axis): the IK's own choice stands.
+      if (!c.singular || primaries.empty()) {
+        out.push_back(c);
+        continue;
+      }
+      for (double r1 : primaries) {
+        Cell n = c;
+        n.r1 = r1;
+        n.i1 = static_cast<int>(std::lround(r1 / kExactKeyRad));
+        n.status = Status::Unknown;
+        if (std::none_of(out.begin(), out.end(), [&](const Cell& o) { return o.i1 == n.i1 && o.i2 == n.i2; }))
+          out.push_back(n);
+      }
+    }
+    cells = std::move(out);
+    layers[k].index.clear();
+    for (std::size_t j = 0; j < cells.size(); ++j)
+      layers[k].index.emplace(key(cells[j].i1, cells[j].i2), static_cast<int>(j));
+  }
+}
+
+/// Puts cells evaluated before a re-listing back: into the list where they are in it, else among the extras.
+void restore(Layer& l, std::unordered_map<std::uint64_t, Cell>& keep) {
+  for (auto& [kk, c] : keep) {
+    if (auto it = l.index.find(kk); it != l.index.end()) {
+      if (c.status != Status::Orientation) l.cells[static_cast<size_t>(it->second)] = c;
+    } else {
+      l.extra.emplace(kk, std::move(c));
+    }
+  }
+}
+
+}  // namespace
+
+SegmentCells make_cells(const SegmentView& v, std::size_t first, std::size_t last, cspace::Counters& counters) {
+  SegmentCells d(counters);
+  d.layers.resize(last - first + 1);
+  const auto& moves = v.program.moves;
+  // Only the first point's cells are needed by tier 1 (the others are tested cell by cell); the rest
+  // are enumerated when a later tier needs them, or for the per-point feasibility check in exact mode.
+  for (std::size_t k = 0; k < d.layers.size(); ++k) {
+    Layer& l = d.layers[k];
+    l.move = first + k;
+    l.cl = {moves[first + k].tip_in_part_mm, moves[first + k].axis_in_part.normalized()};
+    // Tier 1 takes its candidates from the first point: give it a much larger share.
+    if (k == 0 || v.exact)
+      enumerate_layer(v, l, k == 0 ? 64 * v.options.max_cells_per_point : v.options.max_cells_per_point, counters);
+  }
+  if (v.exact) expand_singular(d.layers);
+  return d;
+}
+
+void extend_layer(const SegmentView& v, SegmentCells& d, std::size_t k) {
+  Layer& l = d.layers[k];
+  std::unordered_map<std::uint64_t, Cell> keep;
+  keep.swap(l.extra);
+  for (Cell& c : l.cells)
+    if (c.status != Status::Unknown) keep.insert_or_assign(key(c.i1, c.i2), std::move(c));
+  enumerate_layer(v, l, std::numeric_limits<std::size_t>::max(), d.counters);
+  restore(l, keep);
+}
+
+void list_layers(const SegmentView& v, SegmentCells& d) {
+  // Every layer on its own (in parallel): the same lists, counters summed.
+  parallel_items(d.layers.size() - 1, d.counters, [&](std::size_t i, geom::QueryWorkspace&, cspace::Counters& cc) {
+    Layer& l = d.layers[i + 1];
+    // Keep what tier 1 already evaluated (the cache) when the full cell list arrives.
+    std::unordered_map<std::uint64_t, Cell> keep;
+    keep.swap(l.extra);
+    enumerate_layer(v, l, v.options.max_cells_per_point, cc);
+    restore(l, keep);
+  });
+}
+
+Cell* cell_at(const SegmentView& v, SegmentCells& d, std::size_t k, int i1, int i2) {
+  Layer& l = d.layers[k];
+  const auto kk = key(i1, i2);
+  if (auto it = l.index.find(kk); it != l.index.end()) return &l.cells[static_cast<size_t>(it->second)];
+  if (auto it = l.extra.find(kk); it != l.extra.end())
+    return it->second.status == Status::Orientation ? nullptr : &it->second;
+  if (v.exact) return nullptr;  // exact cells are all enumerated
+  Cell c;
+  c.i1 = i1;
+  c.i2 = i2;
+  c.r1 = v.space.r1_of(i1);
+  c.r2 = v.space.r2_of(i2);
+  if (!v.space.in_cone(l.cl, c.r1, c.r2, &c.orient_err)) c.status = Status::Orientation;
+  auto& slot = l.extra.emplace(kk, c).first->second;
+  return slot.status == Status::Orientation ? nullptr : &slot;
+}
+
+bool feasible(const SegmentView& v, SegmentCells& d, std::size_t k, Cell& c, cspace::Certificate* cert) {
+  v.space.evaluate(d.layers[k].cl, c, d.ws, d.counters, cert);
+  return c.status == Status::Feasible;
+}
+
+double room(const SegmentView& v, SegmentCells& d, const std::vector<const Cell*>& p) {
+  const std::size_t n = p.size();
+  double r = 0.0;
+  for (double m : {0.5, 1.0, 2.0, 4.0, 8.0, 16.0}) {
+    for (std::size_t k : {std::size_t{0}, n / 2, n - 1})
+      if (!v.space.free_with_margin(d.layers[k].cl, *p[k], m, d.ws, d.counters)) return r;
+    r = m;
+  }
+  return r;
+}
+
+void check_points(const SegmentView& v, SegmentCells& d, std::size_t& points_beyond_cap) {
+  auto& layers = d.layers;
+  const auto& space = v.space;
+  // Every point needs at least one feasible cell; otherwise say which constraint emptied it. A point is
+  // called infeasible only once every cell of its cone has been shown infeasible: a truncated list whose
+  // cells all fail is first extended to the whole cone.
+  // In parallel first: each point's cells in order up to its first feasible one (what the loop below needs).
+  parallel_items(layers.size(), d.counters, [&](std::size_t k, geom::QueryWorkspace& ws, cspace::Counters& c) {
+    for (Cell& cell : layers[k].cells) {
+      space.evaluate(layers[k].cl, cell, ws, c);
+      if (cell.status == Status::Feasible) break;
+    }
+  });
+  for (std::size_t k = 0; k < layers.size(); ++k) {
+    bool any = false;
+    int n_stroke = 0, n_coll = 0;
+    std::string example;
+    for (bool extended = false;;) {
+      n_stroke = n_coll = 0;
+      for (Cell& c : layers[k].cells) {
+        if (feasible(v, d, k, c)) {
+          any = true;
+          break;
+        }
+        (c.status == Status::Stroke ? n_stroke : n_coll)++;
+        if (example.empty()) example = c.detail;
+      }
+      if (any || extended || !layers[k].truncated) break;
+      extend_layer(v, d, k);
+      ++points_beyond_cap;
+      extended = true;
+      // The whole cone, nearest first, in parallel blocks; stop after the first block holding a feasible cell.
+      auto& cells = layers[k].cells;
+      constexpr std::size_t kBlock = 1024;
+      for (std::size_t b = 0; b < cells.size(); b += kBlock) {
+        const std::size_t e = std::min(cells.size(), b + kBlock);
+        parallel_items(e - b, d.counters, [&](std::size_t i, geom::QueryWorkspace& ws, cspace::Counters& c) {
+          space.evaluate(layers[k].cl, cells[b + i], ws, c);
+        });
+        if (std::any_of(cells.begin() + static_cast<std::ptrdiff_t>(b), cells.begin() + static_cast<std::ptrdiff_t>(e),
+                        [](const Cell& x) { return x.status == Status::Feasible; }))
+          break;
+      }
+    }
+    if (any) continue;
+    const cl::Move& mv = v.program.moves[layers[k].move];
+    std::string why;
+    if (layers[k].cells.empty())
+      why = "orientation: no rotary cell gives a tool axis within the cone (the machine cannot reach this axis" +
+            std::string(v.exact ? ")" : "; try a finer --resolution or a larger --cone)");
+    else if (n_coll == 0)
+      why = fmt::format("stroke: all {} cells in the cone break a limit (e.g. {})", n_stroke, example);
+    else if (n_stroke == 0)
+      why = fmt::format("collision: all {} cells in the cone collide (e.g. {})", n_coll, example);
+    else
+      why = fmt::format("stroke ({} cells) and collision ({} cells), e.g. {}", n_stroke, n_coll, example);
+    // The nearest feasible cell beyond the cone, for the user to decide.
+    std::string nearest = "none found within 90 deg";
+    for (double cone_deg : {5.0, 15.0, 45.0, 90.0}) {
+      cspace::Options wider = space.options();
+      if (wider.cone_rad >= deg2rad(cone_deg)) continue;
+      wider.cone_rad = deg2rad(cone_deg);
+      wider.min_tilt_rad = 0;
+      wider.resolution_rad = std::max(wider.resolution_rad, deg2rad(1.0));
+      const cspace::Space wide(v.kinematics, nullptr, nullptr, wider);
+      std::vector<Cell> cells;
+      cspace::Counters dummy;
+      wide.enumerate(layers[k].cl, cells, 20000, dummy);
+      geom::QueryWorkspace ws;
+      bool found = false;
+      for (Cell& c : cells) {
+        // Re-check with the real space (collision included) on the wider grid.
+        space.evaluate(layers[k].cl, c, ws, d.counters);
+        if (c.status == Status::Feasible) {
+          nearest = fmt::format("({:.3f}, {:.3f}) deg, {:.2f} deg from the CL axis", rad2deg(c.r1), rad2deg(c.r2),
+                                rad2deg(c.orient_err));
+          found = true;
+          break;
+        }
+      }
+      if (found) break;
+    }
+    throw InputError(SourceLoc{v.program.file, mv.line, 0},
+                     fmt::format("no feasible orientation at CL point ({:.4f}, {:.4f}, {:.4f}) axis ({:.5f}, {:.5f}, "
+                                 "{:.5f}): {}; nearest feasible cell: {}",
+                                 mv.tip_in_part_mm.x(), mv.tip_in_part_mm.y(), mv.tip_in_part_mm.z(),
+                                 mv.axis_in_part.x(), mv.axis_in_part.y(), mv.axis_in_part.z(), why, nearest));
+  }
+}
+
+}  // namespace cscam::plan::detail

@@ -1,0 +1,130 @@
+// Tier 3: both rotaries monotonic along the segment.
+#include <fmt/format.h>
+
+#include <algorithm>
+#include <cmath>
+
+#include "cscam/core/units.hpp"
+#include "detail/search.hpp"
+
+namespace cscam::plan::detail {
+
+namespace {
+/// Cone 0: the exact IK cells, through the shared DP with a transition rule per pair of directions.
+bool exact_monotonic(const SegmentView& v, SegmentCells& d, TierOutcome& out) {
+  std::size_t worst = 0;
+  Why why;
+  for (int d1 : {+1, -1})
+    for (int d2 : {+1, -1}) {
+      std::size_t fl = 0;
+      Why w;
+      auto allowed = [&](const Cell& a, const Cell& b) {
+        return d1 * (static_cast<long long>(b.i1) - a.i1) >= 0 && d2 * (static_cast<long long>(b.i2) - a.i2) >= 0;
+      };
+      if (dp_exact(v, d, allowed, out.path, fl, w)) {
+        out.description =
+            fmt::format("{} {}, {} {}", v.n1(), d1 > 0 ? "rising" : "falling", v.n2(), d2 > 0 ? "rising" : "falling");
+        return true;
+      }
+      if (fl >= worst) {
+        worst = fl;
+        why = w;
+      }
+    }
+  out.failure = {Tier::Monotonic, d.layers[worst].move, line_of(v, d, worst), why.cause, why.detail};
+  return false;
+}
+
+/// A state of the staircase DP: a cell, in the directed coordinates a (primary) and b (secondary), reachable
+/// from the predecessor `pred` of the previous point's staircase. Only the Pareto front (least a for each b, a
+/// falling as b rises) is kept: any cell it dominates is reachable from a front cell too.
+struct Step {
+  long long a, b;
+  Cell* cell;
+  int pred;
+  double cost = 0.0;  // unused: any final step is reachable, the least travel picks one
+};
+}  // namespace
+
+bool tier_monotonic(const SegmentView& v, SegmentCells& d, TierOutcome& out) {
+  if (v.exact) return exact_monotonic(v, d, out);
+  const std::size_t n = d.layers.size();
+  auto& L = d.layers;
+  std::size_t furthest = 0;
+  Why furthest_why{FailureCause::Orientation, ""};
+  double best_travel = kInf;
+  for (int d1 : {+1, -1})
+    for (int d2 : {+1, -1}) {
+      Why why{FailureCause::Orientation, ""};
+      LayeredDp<Step> dp;
+      const std::size_t k_end =
+          dp.forward(n, [&](std::size_t k, const std::vector<Step>& prev, std::vector<Step>& stair) {
+            // Rows by b (ascending), a ascending inside a row.
+            std::vector<std::pair<std::pair<long long, long long>, Cell*>> cells;
+            cells.reserve(L[k].cells.size());
+            for (Cell& c : L[k].cells)
+              cells.push_back({{static_cast<long long>(d2) * c.i2, static_cast<long long>(d1) * c.i1}, &c});
+            std::sort(cells.begin(), cells.end(), [](const auto& x, const auto& y) { return x.first < y.first; });
+            std::size_t pi = 0;
+            long long lb = std::numeric_limits<long long>::max();  // min a over prev staircase with b' <= b
+            int lb_idx = -1;
+            long long cur_min_a = std::numeric_limits<long long>::max();
+            for (std::size_t i = 0; i < cells.size();) {
+              const long long b = cells[i].first.first;
+              std::size_t j = i;
+              while (j < cells.size() && cells[j].first.first == b) ++j;
+              while (pi < prev.size() && prev[pi].b <= b) {
+                if (prev[pi].a < lb) {
+                  lb = prev[pi].a;
+                  lb_idx = static_cast<int>(pi);
+                }
+                ++pi;
+              }
+              if (k == 0) lb = std::numeric_limits<long long>::min();
+              if (k == 0 || lb_idx >= 0) {
+                for (std::size_t t = i; t < j; ++t) {
+                  const long long a = cells[t].first.second;
+                  if (a < lb) continue;
+                  if (a >= cur_min_a) break;  // dominated by a reachable cell of a lower row
+                  if (feasible(v, d, k, *cells[t].second)) {
+                    stair.push_back({a, b, cells[t].second, lb_idx});
+                    cur_min_a = a;
+                    break;
+                  }
+                  why = {cause_of(cells[t].second->status), cells[t].second->detail};
+                }
+              }
+              i = j;
+            }
+            return !stair.empty();
+          });
+      if (k_end < n) {
+        if (k_end >= furthest) {
+          furthest = k_end;
+          furthest_why = why;
+        }
+        continue;
+      }
+      // Any final staircase cell is reachable; take the one with the least travel.
+      for (std::size_t e = 0; e < dp.nodes[n - 1].size(); ++e) {
+        const std::vector<int> idx = dp.backtrack(static_cast<int>(e));
+        std::vector<const Cell*> p(n);
+        for (std::size_t kk = 0; kk < n; ++kk) p[kk] = dp.nodes[kk][static_cast<size_t>(idx[kk])].cell;
+        const double travel = v.options.weight_primary * std::abs(p[n - 1]->r1 - p[0]->r1) +
+                              v.options.weight_secondary * std::abs(p[n - 1]->r2 - p[0]->r2);
+        if (travel < best_travel - 1e-12) {
+          best_travel = travel;
+          out.path = p;
+          out.description =
+              fmt::format("{} {} by {:.3f} deg, {} {} by {:.3f} deg", v.n1(), d1 > 0 ? "rising" : "falling",
+                          rad2deg(std::abs(p[n - 1]->r1 - p[0]->r1)), v.n2(), d2 > 0 ? "rising" : "falling",
+                          rad2deg(std::abs(p[n - 1]->r2 - p[0]->r2)));
+        }
+      }
+    }
+  if (std::isfinite(best_travel)) return true;
+  out.failure = {Tier::Monotonic, L[furthest].move, line_of(v, d, furthest), furthest_why.cause, furthest_why.detail};
+  return false;
+}
+
+}  // namespace cscam::plan::detail

@@ -1,0 +1,123 @@
+// Tier 2: one rotary fixed along the segment, the other monotonic.
+#include <fmt/format.h>
+
+#include <algorithm>
+#include <cmath>
+
+#include "cscam/core/units.hpp"
+#include "detail/search.hpp"
+
+namespace cscam::plan::detail {
+
+namespace {
+/// Cone 0: the exact IK cells, through the shared DP with a transition rule per (fixed axis, direction).
+bool exact_one_fixed(const SegmentView& v, SegmentCells& d, TierOutcome& out) {
+  std::size_t worst = 0;
+  Why why;
+  for (int f = 1; f >= 0; --f)
+    for (int dir : {+1, -1}) {
+      std::size_t fl = 0;
+      Why w;
+      auto allowed = [&](const Cell& a, const Cell& b) {
+        const long long fa = f == 0 ? a.i1 : a.i2, fb = f == 0 ? b.i1 : b.i2;
+        const long long ma = f == 0 ? a.i2 : a.i1, mb = f == 0 ? b.i2 : b.i1;
+        return fa == fb && dir * (mb - ma) >= 0;
+      };
+      if (dp_exact(v, d, allowed, out.path, fl, w)) {
+        out.description =
+            fmt::format("{} fixed at {:.3f} deg, the other {}", f == 0 ? v.n1() : v.n2(),
+                        rad2deg(f == 0 ? out.path[0]->r1 : out.path[0]->r2), dir > 0 ? "rising" : "falling");
+        return true;
+      }
+      if (fl >= worst) {
+        worst = fl;
+        why = w;
+      }
+    }
+  out.failure = {Tier::Fixed1, d.layers[worst].move, line_of(v, d, worst), why.cause, why.detail};
+  return false;
+}
+}  // namespace
+
+bool tier_one_fixed(const SegmentView& v, SegmentCells& d, TierOutcome& out) {
+  if (v.exact) return exact_one_fixed(v, d, out);
+  const std::size_t n = d.layers.size();
+  const auto& sp = v.space;
+  std::size_t furthest = 0;
+  Why furthest_why{FailureCause::Orientation, ""};
+  double best_travel = kInf;
+  std::vector<const Cell*> best;
+  for (int f = 1; f >= 0; --f) {  // fix the secondary first (e.g. the tilt), then the primary
+    // Candidate fixed values: present at the first point, closest orientation first. Later points are
+    // scanned lazily along the moving axis (no per-point cell lists, so no cap can hide a cell).
+    std::unordered_map<int, double> first_err;
+    for (const Cell& c : d.layers[0].cells) {
+      const int val = f == 0 ? c.i1 : c.i2;
+      auto it = first_err.find(val);
+      if (it == first_err.end() || c.orient_err < it->second) first_err[val] = c.orient_err;
+    }
+    std::vector<std::pair<double, int>> vals;
+    for (const auto& [val, e] : first_err) vals.emplace_back(e, val);
+    std::sort(vals.begin(), vals.end());
+    if (vals.size() > static_cast<size_t>(v.options.max_fixed_candidates))
+      vals.resize(static_cast<size_t>(v.options.max_fixed_candidates));
+    const int mlo = f == 0 ? sp.i2_min() : sp.i1_min(), mhi = f == 0 ? sp.i2_max() : sp.i1_max();
+    for (const auto& [e0, val] : vals) {
+      for (int dir : {+1, -1}) {
+        std::vector<const Cell*> p(n, nullptr);
+        int prev = dir > 0 ? mlo : mhi;
+        std::size_t k = 0;
+        Why why{FailureCause::Orientation, ""};
+        for (; k < n; ++k) {
+          Cell* chosen = nullptr;
+          bool entered = false;
+          for (int m = prev; m >= mlo && m <= mhi; m += dir) {
+            Cell* c = f == 0 ? cell_at(v, d, k, val, m) : cell_at(v, d, k, m, val);
+            if (!c) {
+              if (entered || k > 0) {
+                if (entered) break;  // left the cone's run along the moving axis
+                // before entering: keep scanning, but only within a turn of the previous value
+                if (std::abs(m - prev) * sp.options().resolution_rad > 2 * kPi) break;
+              }
+              continue;
+            }
+            entered = true;
+            if (feasible(v, d, k, *c)) {
+              chosen = c;
+              break;
+            }
+            why = {cause_of(c->status), c->detail};
+          }
+          if (!chosen) break;
+          p[k] = chosen;
+          prev = f == 0 ? chosen->i2 : chosen->i1;
+        }
+        if (k < n) {
+          if (k >= furthest) {
+            furthest = k;
+            furthest_why = why;
+          }
+          continue;
+        }
+        const double travel = std::abs((f == 0 ? p[n - 1]->r2 - p[0]->r2 : p[n - 1]->r1 - p[0]->r1));
+        if (travel < best_travel - 1e-12) {
+          best_travel = travel;
+          best = p;
+          out.description = fmt::format("{} fixed at {:.3f} deg, {} {} by {:.3f} deg", f == 0 ? v.n1() : v.n2(),
+                                        rad2deg(f == 0 ? p[0]->r1 : p[0]->r2), f == 0 ? v.n2() : v.n1(),
+                                        dir > 0 ? "rising" : "falling", rad2deg(travel));
+        }
+      }
+      if (!best.empty()) break;  // candidates are in order of orientation closeness
+    }
+  }
+  if (!best.empty()) {
+    out.path = best;
+    return true;
+  }
+  out.failure = {Tier::Fixed1, d.layers[furthest].move, line_of(v, d, furthest), furthest_why.cause,
+                 furthest_why.detail};
+  return false;
+}
+
+}  // namespace cscam::plan::detail

@@ -1,0 +1,212 @@
+// Tier 4: least weighted rotary travel along the segment, with a bounded rotary step per point.
+#include <fmt/format.h>
+
+#include <algorithm>
+#include <cmath>
+#include <deque>
+
+#include "cscam/core/units.hpp"
+#include "detail/search.hpp"
+
+namespace cscam::plan::detail {
+
+namespace {
+/// A state of the beam: a feasible cell, the cost of the best path to it and its predecessor.
+struct State {
+  Cell* cell;
+  double cost;
+  int pred;
+};
+/// Tentative states of a layer before the beam is filled: cost, cell, predecessor.
+using Tentative = std::vector<std::pair<double, std::pair<Cell*, int>>>;
+
+/// Windowed L1 distance transform of the previous states' costs onto the grid, separable in the two
+/// rotaries: D(c) = min over |di1|,|di2| <= W of cost(p) + w1 |dr1| + w2 |dr2|.
+void distance_transform(const Options& opt, const std::vector<State>& prev, Layer& cur, double max_step, double res,
+                        Tentative& tent) {
+  int lo1 = std::numeric_limits<int>::max(), hi1 = std::numeric_limits<int>::min();
+  int lo2 = lo1, hi2 = hi1;
+  for (const Cell& c : cur.cells) {
+    lo1 = std::min(lo1, c.i1);
+    hi1 = std::max(hi1, c.i1);
+    lo2 = std::min(lo2, c.i2);
+    hi2 = std::max(hi2, c.i2);
+  }
+  const int W = static_cast<int>(std::floor(max_step / res + 1e-9));
+  lo1 -= W;
+  hi1 += W;
+  lo2 -= W;
+  hi2 += W;
+  const int n1 = hi1 - lo1 + 1, n2 = hi2 - lo2 + 1;
+  std::vector<double> f(static_cast<size_t>(n1) * n2, kInf);
+  std::vector<int> src(static_cast<size_t>(n1) * n2, -1);
+  auto at = [&](int a, int b) { return static_cast<size_t>(b) * n1 + a; };
+  for (std::size_t p = 0; p < prev.size(); ++p) {
+    const Cell* c = prev[p].cell;
+    const int a = c->i1 - lo1, b = c->i2 - lo2;
+    if (a < 0 || a >= n1 || b < 0 || b >= n2) continue;
+    if (prev[p].cost < f[at(a, b)]) {
+      f[at(a, b)] = prev[p].cost;
+      src[at(a, b)] = static_cast<int>(p);
+    }
+  }
+  // 1-D windowed min of g(j) + w |i - j| along a line, via two monotone deques.
+  // Only the span within W of the line's finite entries can change: the rest stays infinite (no source), as the
+  // outputs start, so a line without a finite entry is skipped.
+  auto pass = [&](int len, auto&& get, auto&& get_src, auto&& put, double w) {
+    int first = -1, last = -1;
+    for (int i = 0; i < len; ++i)
+      if (get(i) < kInf) {
+        if (first < 0) first = i;
+        last = i;
+      }
+    if (first < 0) return;
+    const int lo = std::max(0, first - W), hi = std::min(len - 1, last + W);
+    std::vector<double> out(static_cast<size_t>(len), kInf);
+    std::vector<int> arg(static_cast<size_t>(len), -1);
+    std::deque<int> dq;
+    for (int i = lo; i <= hi; ++i) {  // from the left: min_{i-W<=j<=i} g(j) - w j, + w i
+      const double gi = get(i) - w * i;
+      while (!dq.empty() && get(dq.back()) - w * dq.back() >= gi) dq.pop_back();
+      dq.push_back(i);
+      while (dq.front() < i - W) dq.pop_front();
+      const double val = get(dq.front()) - w * dq.front() + w * i;
+      if (val < out[static_cast<size_t>(i)]) {
+        out[static_cast<size_t>(i)] = val;
+        arg[static_cast<size_t>(i)] = dq.front();
+      }
+    }
+    dq.clear();
+    for (int i = hi; i >= lo; --i) {  // from the right: min_{i<=j<=i+W} g(j) + w j, - w i
+      const double gi = get(i) + w * i;
+      while (!dq.empty() && get(dq.back()) + w * dq.back() >= gi) dq.pop_back();
+      dq.push_back(i);
+      while (dq.front() > i + W) dq.pop_front();
+      const double val = get(dq.front()) + w * dq.front() - w * i;
+      if (val < out[static_cast<size_t>(i)]) {
+        out[static_cast<size_t>(i)] = val;
+        arg[static_cast<size_t>(i)] = dq.front();
+      }
+    }
+    for (int i = lo; i <= hi; ++i)
+      put(i, out[static_cast<size_t>(i)], arg[static_cast<size_t>(i)] >= 0 ? get_src(arg[static_cast<size_t>(i)]) : -1);
+  };
+  const double w1 = opt.weight_primary * res, w2 = opt.weight_secondary * res;
+  std::vector<double> g(f.size(), kInf);
+  std::vector<int> gsrc(f.size(), -1);
+  // Rows, then columns: each line is independent (in parallel).
+  parallel_indices(static_cast<std::size_t>(n2), [&](std::size_t bi) {
+    const int b = static_cast<int>(bi);
+    pass(
+        n1, [&](int a) { return f[at(a, b)]; }, [&](int a) { return src[at(a, b)]; },
+        [&](int a, double val, int s) {
+          g[at(a, b)] = val;
+          gsrc[at(a, b)] = s;
+        },
+        w1);
+  });
+  std::vector<double> D(f.size(), kInf);
+  std::vector<int> dsrc(f.size(), -1);
+  parallel_indices(static_cast<std::size_t>(n1), [&](std::size_t ai) {
+    const int a = static_cast<int>(ai);
+    pass(
+        n2, [&](int b) { return g[at(a, b)]; }, [&](int b) { return gsrc[at(a, b)]; },
+        [&](int b, double val, int s) {
+          D[at(a, b)] = val;
+          dsrc[at(a, b)] = s;
+        },
+        w2);
+  });
+  for (Cell& c : cur.cells) {
+    const size_t i = at(c.i1 - lo1, c.i2 - lo2);
+    if (std::isfinite(D[i]) && dsrc[i] >= 0)
+      tent.push_back({D[i] + opt.orientation_weight * c.orient_err, {&c, dsrc[i]}});
+  }
+}
+
+double rotary_travel(const std::vector<const Cell*>& path) {
+  double travel = 0;
+  for (std::size_t k = 1; k < path.size(); ++k)
+    travel += std::abs(path[k]->r1 - path[k - 1]->r1) + std::abs(path[k]->r2 - path[k - 1]->r2);
+  return travel;
+}
+}  // namespace
+
+bool tier_shortest(const SegmentView& v, SegmentCells& d, TierOutcome& out) {
+  auto& L = d.layers;
+  const std::size_t n = L.size();
+  const Options& opt = v.options;
+  const double res = v.space.options().resolution_rad;
+  // Exact orientations (cone 0) must be free to turn fast near the singularity: no default bound there.
+  const double max_step = opt.max_step_rad > 0 ? opt.max_step_rad : v.exact ? kPi : 20.0 * res;
+  const std::size_t beam = 256;
+  if (v.exact) {
+    std::size_t fl = 0;
+    Why w;
+    auto allowed = [&](const Cell& a, const Cell& b) {
+      return std::abs(b.r1 - a.r1) <= max_step + 1e-12 && std::abs(b.r2 - a.r2) <= max_step + 1e-12;
+    };
+    if (!dp_exact(v, d, allowed, out.path, fl, w)) {
+      out.failure = {Tier::Shortest, L[fl].move, line_of(v, d, fl), w.cause, w.detail};
+      return false;
+    }
+    out.description =
+        fmt::format("rotary travel {:.3f} deg along continuous IK branches", rad2deg(rotary_travel(out.path)));
+    return true;
+  }
+  LayeredDp<State> dp;
+  const std::size_t built = dp.forward(n, [&](std::size_t k, const std::vector<State>& prev, std::vector<State>& S) {
+    Tentative tent;
+    tent.reserve(L[k].cells.size());
+    if (k == 0) {
+      for (Cell& c : L[0].cells) tent.push_back({opt.orientation_weight * c.orient_err, {&c, -1}});
+    } else if (prev.size() * L[k].cells.size() <= 200000) {
+      // Each cell's best predecessor on its own (in parallel), then collected in cell order.
+      auto& cells = L[k].cells;
+      std::vector<std::pair<double, int>> best(cells.size(), {kInf, -1});
+      parallel_indices(cells.size(), [&](std::size_t j) {
+        const Cell& c = cells[j];
+        for (std::size_t p = 0; p < prev.size(); ++p) {
+          const Cell* pc = prev[p].cell;
+          const double d1 = std::abs(c.r1 - pc->r1), d2 = std::abs(c.r2 - pc->r2);
+          if (d1 > max_step + 1e-12 || d2 > max_step + 1e-12) continue;
+          const double val = prev[p].cost + opt.weight_primary * d1 + opt.weight_secondary * d2;
+          if (val < best[j].first) best[j] = {val, static_cast<int>(p)};
+        }
+      });
+      for (std::size_t j = 0; j < cells.size(); ++j)
+        if (best[j].second >= 0)
+          tent.push_back({best[j].first + opt.orientation_weight * cells[j].orient_err, {&cells[j], best[j].second}});
+    } else {
+      distance_transform(opt, prev, L[k], max_step, res, tent);
+    }
+    std::sort(tent.begin(), tent.end(), [](const auto& x, const auto& y) { return x.first < y.first; });
+    // The beam: the cheapest feasible cells. Evaluated in parallel blocks of exactly as many cells as the beam
+    // still lacks, so the cells evaluated (and the counters) are those of a serial scan, at any thread count.
+    for (std::size_t next = 0; next < tent.size() && S.size() < beam;) {
+      const std::size_t b = next, e = std::min(tent.size(), next + (beam - S.size()));
+      parallel_items(e - b, d.counters, [&](std::size_t i, geom::QueryWorkspace& ws, cspace::Counters& cc) {
+        v.space.evaluate(L[k].cl, *tent[b + i].second.first, ws, cc);
+      });
+      for (std::size_t i = b; i < e; ++i)
+        if (tent[i].second.first->status == Status::Feasible)
+          S.push_back({tent[i].second.first, tent[i].first, tent[i].second.second});
+      next = e;
+    }
+    return !S.empty();
+  });
+  if (built < n) {
+    out.failure = {
+        Tier::Shortest, L[built].move, line_of(v, d, built), FailureCause::Transition,
+        fmt::format("no feasible cell within a rotary step of {:.2f} deg of the previous point", rad2deg(max_step))};
+    return false;
+  }
+  const std::vector<int> idx = dp.backtrack(dp.cheapest_last());
+  out.path.assign(n, nullptr);
+  for (std::size_t k = 0; k < n; ++k) out.path[k] = dp.nodes[k][static_cast<size_t>(idx[k])].cell;
+  out.description = fmt::format("rotary travel {:.3f} deg (steps bounded by {:.2f} deg)",
+                                rad2deg(rotary_travel(out.path)), rad2deg(max_step));
+  return true;
+}
+
+}  // namespace cscam::plan::detail
