@@ -204,6 +204,7 @@ std::string post_to_string(const Setup& s, const cl::Program& prog, const std::v
   po.strategy = strategy;
   po.tool_length_mm = s.tool_length;
   po.tcp = a.tcp;
+  po.work_plane = a.work_plane;
   // A tilted ball mill keeps its centre on the CL path: post (and verify) the centre. At cone 0 the
   // orientation is the CL's and the tip is controlled as usual.
   if (strategy != "conventional" && s.opt.cspace.cone_rad > 0) po.control_offset_mm = s.opt.cspace.ball_radius_mm;
@@ -537,6 +538,10 @@ void common_options(CLI::App* c, PlanArgs& a) {
   c->add_flag_function(
        "--no-tcp", [&a](std::int64_t) { a.tcp = false; }, "tool-tip control off: machine coordinates")
       ->excludes(tcp);
+  c->add_option("--work-plane", a.work_plane,
+                "3+2 segments: tilted (G68.2, G254, CYCLE800, PLANE SPATIAL) or machine coordinates (default: the "
+                "machine's post.work_plane)")
+      ->check(CLI::IsMember({"tilted", "machine"}));
   c->add_flag("--no-machine-geometry", a.no_machine_geometry,
               "leave the machine file's bodies (geometry.bodies) out of the collision scene");
 }
