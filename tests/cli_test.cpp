@@ -847,3 +847,45 @@ TEST(Cli, ProgressLineOnlyOnATerminal) {
   EXPECT_NE(r.output.find("] 3/3 files"), std::string::npos) << r.output;
   EXPECT_NE(r.output.find("\r\033[K"), std::string::npos) << r.output;
 }
+
+TEST(Cli, WorkPlaneOptionBatchKeyVerifyAndStats) {
+  // Two tilted faces (3+2): --work-plane tilted writes G68.2 planes; verify and stats read them back; a batch job
+  // with work_plane: tilted writes the same bytes; bad values are refused.
+  TempDir d;
+  d.file("faces.cls",
+         "UNITS/MM\nMULTAX\nFEDRAT/MMPM,1000\nRAPID\nGOTO/0,0,20,0.3,0,0.9539392\nGOTO/20,0,20,0.3,0,0.9539392\n"
+         "GOTO/20,20,20,0.3,0,0.9539392\nRAPID\nGOTO/0,60,20,0,0.3,0.9539392\nGOTO/-20,60,20,0,0.3,0.9539392\nFINI\n");
+  const std::string here = "cd " + q(d.path.string()) + " && ";
+  auto r =
+      run_command(here + kCli + " post faces.cls --machine haas-umc750 --dialect fanuc --work-plane tilted -o f.nc");
+  ASSERT_EQ(r.status, 0) << r.output;
+  const std::string single = slurp((d.path / "f.nc").string());
+  EXPECT_NE(single.find("G68.2 "), std::string::npos) << single;
+  EXPECT_NE(single.find("G69\n"), std::string::npos);
+  r = run_command(here + kCli + " verify f.nc --machine haas-umc750 --cl faces.cls");
+  EXPECT_EQ(r.status, 0) << r.output;
+  r = run_command(here + kCli + " post faces.cls --machine haas-umc750 --dialect fanuc -o m.nc");
+  ASSERT_EQ(r.status, 0) << r.output;
+  // stats read the plane words as the machine axes they move: the same travel as the machine-coordinate program
+  r = run_command(here + kCli + " stats f.nc m.nc --machine haas-umc750 --json");
+  ASSERT_EQ(r.status, 0) << r.output;
+  const auto st = nlohmann::json::parse(r.output);
+  ASSERT_EQ(st.size(), 2u);
+  for (const auto& ax : {0, 1, 2}) {
+    const double a = st[0]["axes"][ax]["travel"].get<double>(), b = st[1]["axes"][ax]["travel"].get<double>();
+    EXPECT_NEAR(a, b, 0.01) << "axis " << ax;
+  }
+  d.file("jobs.yaml",
+         "output_dir: nc\njobs:\n  - cl: faces.cls\n    machine: haas-umc750\n    dialect: fanuc\n"
+         "    work_plane: tilted\n");
+  r = run_command(here + kCli + " batch jobs.yaml");
+  ASSERT_EQ(r.status, 0) << r.output;
+  EXPECT_EQ(slurp((d.path / "nc" / "faces.ngc").string()), single);
+  d.file("bad.yaml", "jobs:\n  - cl: faces.cls\n    machine: haas-umc750\n    work_plane: rotated\n");
+  r = run_command(here + kCli + " batch bad.yaml");
+  EXPECT_EQ(r.status, 2) << r.output;
+  EXPECT_NE(r.output.find("work_plane"), std::string::npos) << r.output;
+  r = run_command(here + kCli + " post faces.cls --machine haas-umc750 --work-plane rotated -o x.nc");
+  EXPECT_NE(r.status, 0) << r.output;
+  EXPECT_FALSE(fs::exists(d.path / "x.nc"));
+}

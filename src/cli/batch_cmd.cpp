@@ -62,7 +62,9 @@ void add_stats(const std::string& nc_text, const std::string& nc_name, const mac
   }
   report::Stats st;
   try {
-    st = report::compute(nc::read_text(nc_text, nc_name, report::axis_letters(m)), names, rotary);
+    nc::Program ncp = nc::read_text(nc_text, nc_name, report::axis_letters(m));
+    report::resolve_work_planes(ncp, m);  // tilted-plane words as the machine axes they move
+    st = report::compute(ncp, names, rotary);
   } catch (const InputError& e) {  // the gate judges the program; the table just has no figures then
     r.warnings.push_back("no statistics: " + e.message());
     return;

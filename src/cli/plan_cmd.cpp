@@ -220,7 +220,9 @@ report::Stats stats_of(const Setup& s, const std::string& text, const std::strin
     names[i] = s.m.post.letters[i];
     rot[i] = s.m.axes[i].rotary();
   }
-  auto st = report::compute(nc::read_text(text, name, report::axis_letters(s.m)), names, rot);
+  nc::Program ncp = nc::read_text(text, name, report::axis_letters(s.m));
+  report::resolve_work_planes(ncp, s.m);  // tilted-plane words as the machine axes they move
+  auto st = report::compute(ncp, names, rot);
   st.source = name;
   return st;
 }
@@ -249,7 +251,9 @@ report::VerifyResult verify_text(const Setup& s, const std::string& text, double
   cl::Program ref = s.prog;
   if (planned)
     for (std::size_t m : planned->replaced_moves) ref.moves[m] = planned->program.moves[m];
-  return report::verify(nc::read_text(text, "planned.ngc", report::axis_letters(s.m)), ref, *s.kin, vo);
+  nc::Program ncp = nc::read_text(text, "planned.ngc", report::axis_letters(s.m));
+  if (const std::string why = report::resolve_work_planes(ncp, *s.kin); !why.empty()) throw InputError(why);
+  return report::verify(ncp, ref, *s.kin, vo);
 }
 
 void write_svgs(const Setup& s, const plan::Planner& planner, const plan::Plan& p, const std::vector<kin::Axes>& conv,

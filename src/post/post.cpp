@@ -565,9 +565,10 @@ class Sequencer {
     std::vector<int> lin;
     for (int i = 0; i < 5; ++i)
       if (i != rp[0] && i != rp[1]) lin.push_back(i);
-    // Leaving a plane: out along the tool axis (in the plane), then the plane off before the machine moves.
+    // Leaving a plane: before the rotaries turn, out along the tool axis (in the plane) first; a rapid that keeps
+    // them (and no 3+2 stretch after it) just ends the plane, the same motion as in machine coordinates.
     if (plane_active_ && (rotaries_differ(q) || !pending_plane_)) {
-      exit_along_axis();
+      if (rotaries_differ(q)) exit_along_axis();
       work_plane_off();
     }
     if (pending_plane_ && !rotaries_differ(q)) work_plane_on(q);  // the rotaries are already there

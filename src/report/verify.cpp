@@ -135,12 +135,7 @@ nc::Program read_for_machine(const std::string& nc_text, const std::string& name
   }
   nc::Program p = nc::read_text(nc_text, name, letters);
   p.tcp = p.tcp || tcp;  // our Cartesian header says so too
-  if (p.work_planes) {
-    const auto k = m.make_kinematics(p.tool_length_mm.value_or(m.default_tool_length_mm));
-    int bad_line = 0;
-    if (const std::string why = resolve_work_planes(p, *k, &bad_line); !why.empty())
-      throw InputError(why);  // it names the file and line
-  }
+  resolve_work_planes(p, m);
   return p;
 }
 
@@ -259,6 +254,12 @@ std::string resolve_work_planes(nc::Program& nc, const kin::Kinematics& k, int* 
     have_prev = true;
   }
   return {};
+}
+
+void resolve_work_planes(nc::Program& nc, const machine::Machine& m) {
+  if (!nc.work_planes) return;
+  const auto k = m.make_kinematics(nc.tool_length_mm.value_or(m.default_tool_length_mm));
+  if (const std::string why = resolve_work_planes(nc, *k); !why.empty()) throw InputError(why);  // names file:line
 }
 
 VerifyOptions verify_options_for(const machine::Machine& machine, double tolerance_mm, double axis_tolerance_deg,

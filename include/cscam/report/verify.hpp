@@ -74,6 +74,9 @@ std::string resolve_tool_vectors(nc::Program& nc, const kin::Kinematics& machine
 /// (file:line: ..., `bad_line` set): the plane's Z is not the tool axis of the positioned rotaries (G53.1 / TURN
 /// would turn them: not read), a rotary turns inside the plane, the position at the plane's start is unknown.
 std::string resolve_work_planes(nc::Program& nc, const kin::Kinematics& machine_kinematics, int* bad_line = nullptr);
+/// The same with machine `m`'s kinematics at the program's header tool length (else the machine default); throws
+/// InputError where a block cannot be resolved. Nothing to do without work planes.
+void resolve_work_planes(nc::Program& nc, const machine::Machine& m);
 
 /// Compares the NC program (machine axis values) with the CL program through `kinematics`.
 VerifyResult verify(const nc::Program& nc, const cl::Program& cl, const kin::Kinematics& kinematics,
