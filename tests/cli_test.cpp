@@ -889,3 +889,25 @@ TEST(Cli, WorkPlaneOptionBatchKeyVerifyAndStats) {
   EXPECT_NE(r.status, 0) << r.output;
   EXPECT_FALSE(fs::exists(d.path / "x.nc"));
 }
+
+TEST(Cli, PlannerFixedTierIsWrittenInATiltedWorkPlane) {
+  // At a 10 deg cone the planner holds the groove at fixed rotaries (tier 1): with --work-plane tilted that segment
+  // is one tilted plane in each dialect, through the safety gate (meshes included), and verify reads it back.
+  TempDir d;
+  const std::string cl = cscam::test::source_path("examples/groove/groove.cls");
+  const std::string stl = cscam::test::source_path("examples/groove/groove.stl");
+  for (const auto& [dialect, code] : std::map<std::string, std::string>{
+           {"fanuc", "G68.2 "}, {"siemens", "CYCLE800(0,"}, {"heidenhain", "PLANE SPATIAL "}}) {
+    const std::string out = d.file(dialect + ".nc");
+    auto r = run_command(kCli + " plan " + cl + " --machine trunnion-ac --part " + stl +
+                         " --cone 10 --work-plane tilted --dialect " + dialect + " -o " + out);
+    ASSERT_EQ(r.status, 0) << r.output;
+    EXPECT_NE(r.output.find("fixed 2 axes"), std::string::npos) << r.output;
+    const std::string text = slurp(out);
+    size_t n = 0;
+    for (size_t p = text.find(code); p != std::string::npos; p = text.find(code, p + 1)) ++n;
+    EXPECT_EQ(n, 1u) << dialect << "\n" << text.substr(0, 1500);
+    r = run_command(kCli + " verify " + out + " --machine trunnion-ac --cl " + cl + " --cone 10");
+    EXPECT_EQ(r.status, 0) << r.output;
+  }
+}
