@@ -29,7 +29,6 @@
 #include "plan_cmd.hpp"
 #include "sim_cmd.hpp"
 #include "trace_cmd.hpp"
-#include "calib_cmd.hpp"
 
 namespace fs = std::filesystem;
 using namespace cscam;
@@ -236,8 +235,9 @@ int cmd_backlash(const BacklashArgs& a) {
   const double step = a.max_step > 0 ? (rotary ? deg2rad(a.max_step) : a.max_step) : (width > 0 ? width / 10 : 0.001);
   std::vector<report::BacklashResult> results;
   for (const auto& f : a.nc) {
-    const nc::Program ncp = nc::read_file(f, report::axis_letters(m));
+    nc::Program ncp = nc::read_file(f, report::axis_letters(m));
     if (const auto mismatch = report::check_machine_of(ncp, m)) throw *mismatch;
+    report::resolve_work_planes(ncp, m);  // tilted-plane words as the machine axes they move
     if (ncp.tcp)
       throw InputError(SourceLoc{f}, "this program uses TCP (G43.4/G234): its axis values are not machine coordinates");
     const double L = a.tool_length >= 0 ? a.tool_length : ncp.tool_length_mm.value_or(m.default_tool_length_mm);
