@@ -29,6 +29,7 @@
 #include "plan_cmd.hpp"
 #include "sim_cmd.hpp"
 #include "trace_cmd.hpp"
+#include "calib_cmd.hpp"
 
 namespace fs = std::filesystem;
 using namespace cscam;
