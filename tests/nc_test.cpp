@@ -152,3 +152,103 @@ TEST(NcReader, HeidenhainConversational) {
     EXPECT_NE(std::string(e.what()).find("bad.h:2:"), std::string::npos) << e.what();
   }
 }
+
+// --- Tilted work planes -----------------------------------------------------------------------------------
+// The frames are checked against rotations written out by hand (the reader uses core/rotations.hpp).
+namespace {
+Eigen::Matrix3d hand_rx(double d) {
+  const double a = deg2rad(d);
+  Eigen::Matrix3d m;
+  m << 1, 0, 0, 0, std::cos(a), -std::sin(a), 0, std::sin(a), std::cos(a);
+  return m;
+}
+Eigen::Matrix3d hand_ry(double d) {
+  const double a = deg2rad(d);
+  Eigen::Matrix3d m;
+  m << std::cos(a), 0, std::sin(a), 0, 1, 0, -std::sin(a), 0, std::cos(a);
+  return m;
+}
+Eigen::Matrix3d hand_rz(double d) {
+  const double a = deg2rad(d);
+  Eigen::Matrix3d m;
+  m << std::cos(a), -std::sin(a), 0, std::sin(a), std::cos(a), 0, 0, 0, 1;
+  return m;
+}
+}  // namespace
+
+TEST(NcReader, FanucG682FrameWordsAndG69) {
+  const auto p = nc::read_text(
+      "%\nG0 X0 Y0 Z100 B0 C0\nG0 B30 C45\nG68.2 X10. Y0 Z-5 I45 J30 K0\nG53.1\nG0 X1 Y2 Z3\nG1 X4 F100\nG69\n"
+      "G0 Z100\nM30\n%\n",
+      "f.ngc", xyzbc());
+  EXPECT_TRUE(p.work_planes);
+  ASSERT_EQ(p.blocks.size(), 5u);  // G68.2's X Y Z are its origin, not a move
+  EXPECT_FALSE(p.blocks[1].plane.has_value());
+  ASSERT_TRUE(p.blocks[2].plane.has_value());
+  const nc::WorkPlane& w = *p.blocks[2].plane;
+  EXPECT_LT((w.R_part_plane - hand_rz(45) * hand_rx(30)).norm(), 1e-12);
+  EXPECT_LT((w.origin_in_part_mm - Eigen::Vector3d(10, 0, -5)).norm(), 1e-12);
+  EXPECT_EQ(w.line, 4);
+  EXPECT_EQ(w.form, "G68.2");
+  EXPECT_DOUBLE_EQ(p.blocks[2].axes[0], 1.0);  // plane coordinates until resolve_work_planes
+  EXPECT_TRUE(p.blocks[3].words[0]);
+  EXPECT_FALSE(p.blocks[3].words[1]);
+  ASSERT_TRUE(p.blocks[3].plane.has_value());
+  EXPECT_FALSE(p.blocks[4].plane.has_value());  // after G69
+  EXPECT_EQ(p.xyz_slots, (std::array<int, 3>{0, 1, 2}));
+}
+
+TEST(NcReader, SiemensCycle800Mode57AndHeidenhainPlaneSpatial) {
+  const auto s = nc::read_text(
+      "G71 G90\nG0 X0 Y0 Z100 B0 C0\nG0 B20 C10\nCYCLE800(0,\"TC1\",0,57,1,2,3,10,20,30,0,0,5,1,0)\nG0 X1 Y1 Z1\n"
+      "CYCLE800()\nG0 Z100\nM30\n",
+      "s.mpf", xyzbc());
+  ASSERT_EQ(s.blocks.size(), 4u);
+  ASSERT_TRUE(s.blocks[2].plane.has_value());
+  const Eigen::Matrix3d Rs = hand_rx(10) * hand_ry(20) * hand_rz(30);  // axis by axis X, Y', Z''
+  EXPECT_LT((s.blocks[2].plane->R_part_plane - Rs).norm(), 1e-12);
+  // origin: the reference point X0 Y0 Z0 plus the zero point X1 Y1 Z1 of the rotated frame
+  EXPECT_LT((s.blocks[2].plane->origin_in_part_mm - (Eigen::Vector3d(1, 2, 3) + Rs * Eigen::Vector3d(0, 0, 5))).norm(),
+            1e-12);
+  EXPECT_FALSE(s.blocks[3].plane.has_value());
+
+  const auto h = nc::read_text(
+      "0 BEGIN PGM P MM\n1 L X+0 Y+0 Z+100 B+0 C+0 R0 FMAX\n2 L B+20 C+10 R0 FMAX\n"
+      "3 PLANE SPATIAL SPA+10 SPB-20 SPC+30 STAY\n4 L X+1 Y+1 Z+1 R0 FMAX\n5 L X+2 R0 F500\n6 PLANE RESET STAY\n"
+      "7 L Z+100 R0 FMAX\n8 L Z+500 R0 FMAX M91\n9 END PGM P MM\n",
+      "h.h", xyzbc());
+  ASSERT_EQ(h.blocks.size(), 5u);  // the M91 block is a machine position: noted, not taken
+  ASSERT_TRUE(h.blocks[2].plane.has_value());
+  EXPECT_LT((h.blocks[2].plane->R_part_plane - hand_rz(30) * hand_ry(-20) * hand_rx(10)).norm(), 1e-12);
+  EXPECT_TRUE(h.blocks[3].plane.has_value());
+  EXPECT_FALSE(h.blocks[4].plane.has_value());
+  ASSERT_EQ(h.notes.size(), 1u);
+  EXPECT_NE(h.notes[0].find("h.h:9: M91"), std::string::npos) << h.notes[0];
+}
+
+TEST(NcReader, WorkPlaneFormsItCannotFollowAreRefusedWithTheirLine) {
+  auto error_of = [](const std::string& text) {
+    try {
+      nc::read_text(text, "e.ngc", xyzbc());
+    } catch (const InputError& e) {
+      return std::string(e.what());
+    }
+    return std::string("no error");
+  };
+  EXPECT_NE(error_of("G0 X0 Y0 Z0 B0 C0\nCYCLE800(0,\"TC1\",0,27,0,0,0,10,0,0,0,0,0,1,0)\n")
+                .find("CYCLE800 mode 27 is not read"),
+            std::string::npos);
+  EXPECT_NE(error_of("G0 X0 Y0 Z0 B0 C0\nG68.2 X0 Y0 Z0 I0 J10 K0\nG2 X1 Y1 I1 J0 F100\n")
+                .find("e.ngc:3:1: arcs in a tilted work plane (G68.2) are not read"),
+            std::string::npos);
+  EXPECT_NE(error_of("G0 X0 Y0 Z0 B0 C0\nG68.2 X0 Y0 Z0 I0 J10 K0\nG91 G1 X1 F100\n")
+                .find("e.ngc:3:1: incremental (G91) words in a tilted work plane (G68.2) are not read"),
+            std::string::npos);
+  EXPECT_NE(error_of("0 BEGIN PGM P MM\n1 PLANE PROJECTED PROPR+0 PROMIN+0 ROT+0 STAY\n").find("e.ngc:2:"),
+            std::string::npos);
+  // SUPA and G53 are machine positions: noted, not taken as work positions
+  const auto p = nc::read_text("G0 X1 Y2 Z3 B0 C0\nG0 SUPA Z0\nG53 G0 Z0\nG1 X2 F100\n", "m.mpf", xyzbc());
+  ASSERT_EQ(p.blocks.size(), 2u);
+  EXPECT_DOUBLE_EQ(p.blocks[1].axes[2], 3.0);
+  EXPECT_EQ(p.notes.size(), 2u);
+}

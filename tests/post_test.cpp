@@ -11,6 +11,7 @@
 #include <cstdlib>
 #include <filesystem>
 #include <fstream>
+#include <map>
 #include <optional>
 #include <random>
 #include <regex>
@@ -691,4 +692,217 @@ TEST(PostProgram, DwellInsertAdjustRegisterAndCutcomPolicy) {
   } catch (const InputError& e) {
     EXPECT_NE(std::string(e.what()).find("bad.cls:2:"), std::string::npos) << e.what();
   }
+}
+
+// --- Tilted work planes (3+2) ---------------------------------------------------------------------------
+
+namespace {
+
+/// Two 3+2 faces, a simultaneous stretch, a third face between it and another simultaneous stretch.
+std::string faces_between_simultaneous_cl() {
+  return "UNITS/MM\nMULTAX\nFEDRAT/MMPM,1000\nRAPID\nGOTO/0,0,20,0.3,0,0.9539392\nGOTO/20,0,20,0.3,0,0.9539392\n"
+         "GOTO/20,20,20,0.3,0,0.9539392\nRAPID\nGOTO/0,60,20,0,0.3,0.9539392\nGOTO/-20,60,20,0,0.3,0.9539392\n"
+         "RAPID\nGOTO/0,-60,20,0,0,1\nGOTO/10,-60,20,0.1,0,0.9949874\nGOTO/20,-60,20,0.2,0,0.9797959\n"
+         "RAPID\nGOTO/-30,-20,25,-0.2,0.25,0.9474704\nGOTO/-30,0,25,-0.2,0.25,0.9474704\n"
+         "GOTO/-10,0,25,-0.2,0.25,0.9474704\nRAPID\nGOTO/0,0,25,-0.1,0.25,0.9630680\nGOTO/10,0,25,0,0.2,0.9797959\n"
+         "GOTO/20,0,25,0.1,0.2,0.9746794\nFINI\n";
+}
+
+/// The CL program turned rigidly by R and moved by t (points, axes and arcs): a 3-axis program becomes 3+2.
+cl::Program turned(cl::Program p, const Eigen::Matrix3d& R, const Vec3& t) {
+  for (auto& mv : p.moves) {
+    mv.tip_in_part_mm = R * mv.tip_in_part_mm + t;
+    mv.axis_in_part = R * mv.axis_in_part;
+  }
+  for (auto& a : p.arcs) {
+    a.centre_in_part_mm = R * a.centre_in_part_mm + t;
+    a.normal_in_part = R * a.normal_in_part;
+  }
+  return p;
+}
+
+Posted post_with_plane(const cl::Program& prog, const machine::Machine& m, const kin::Kinematics& k,
+                       const std::string& dialect, const std::string& work_plane) {
+  const auto axes = post::conventional_axes(prog, m, k);
+  std::ostringstream os;
+  post::Options o;
+  o.dialect = dialect;
+  o.work_plane = work_plane;
+  o.tcp = false;
+  Posted p;
+  post::write_nc(os, prog, m, k, axes, o, p.summary);
+  p.text = os.str();
+  return p;
+}
+
+/// The machine positions a program moves through, read back (work planes resolved), repeated positions dropped.
+std::vector<kin::Axes> machine_path(const std::string& text, const machine::Machine& m, const std::string& tag) {
+  const nc::Program ncp = report::read_for_machine(text, tag, m);
+  std::vector<kin::Axes> out;
+  for (const auto& b : ncp.blocks) {
+    if (!std::all_of(b.known.begin(), b.known.end(), [](bool x) { return x; })) continue;
+    kin::Axes q;
+    for (int i = 0; i < 5; ++i) q[i] = b.axes[static_cast<size_t>(i)];
+    if (!out.empty() && (q - out.back()).cwiseAbs().maxCoeff() < 1e-3) continue;
+    out.push_back(q);
+  }
+  return out;
+}
+
+/// Oracle: the plane program, its words resolved into machine axes, moves through the same machine positions as
+/// the machine-coordinate program of the same CL (whose words are the axes themselves), within the rounding of
+/// the printed words (plane coordinates and angles: 1e-4 mm / deg at 4 decimals, through a rotation).
+void expect_same_machine_path(const std::string& plane_text, const std::string& machine_text, const machine::Machine& m,
+                              const std::string& tag) {
+  const auto a = machine_path(plane_text, m, tag + "-plane"), b = machine_path(machine_text, m, tag + "-machine");
+  for (size_t i = 0; i < std::min(a.size(), b.size()); ++i)
+    if ((a[i] - b[i]).cwiseAbs().maxCoeff() > 2e-3) {
+      ADD_FAILURE() << tag << ": position " << i << " differs: " << a[i].transpose() << " vs " << b[i].transpose();
+      break;
+    }
+  ASSERT_EQ(a.size(), b.size()) << tag;
+  double worst_mm = 0.0, worst_rad = 0.0;
+  for (size_t i = 0; i < a.size(); ++i)
+    for (int j = 0; j < 5; ++j)
+      (m.axes[static_cast<size_t>(j)].rotary() ? worst_rad : worst_mm) =
+          std::max(m.axes[static_cast<size_t>(j)].rotary() ? worst_rad : worst_mm, std::abs(a[i][j] - b[i][j]));
+  EXPECT_LT(worst_mm, 2e-3) << tag;
+  EXPECT_LT(worst_rad, 1e-9) << tag;  // the rotaries are the same words
+}
+
+size_t count_of(const std::string& text, const std::string& w) {
+  size_t n = 0;
+  for (size_t pos = text.find(w); pos != std::string::npos; pos = text.find(w, pos + 1)) ++n;
+  return n;
+}
+
+const std::map<std::string, std::pair<std::string, std::string>>& plane_codes() {
+  static const std::map<std::string, std::pair<std::string, std::string>> codes{
+      {"fanuc", {"G68.2 ", "G69\n"}},
+      {"haas", {"G254\n", "G255\n"}},
+      {"siemens", {"CYCLE800(0,", "CYCLE800()\n"}},
+      {"heidenhain", {"PLANE SPATIAL SPA", "PLANE RESET STAY\n"}}};
+  return codes;
+}
+
+}  // namespace
+
+TEST(PostWorkPlane, EachDialectWritesItsPlaneBetweenSimultaneousStretchesAndReadsBackToTheMachineProgram) {
+  const cl::Program prog = cl::read_text(faces_between_simultaneous_cl(), "faces.cls");
+  for (const char* name : {"haas-umc750", "trunnion-ac"}) {
+    const auto m = load_machine(name);
+    const auto k = m.kinematics();
+    for (const auto& [dialect, codes] : plane_codes()) {
+      const std::string tag = std::string(name) + "-" + dialect;
+      SCOPED_TRACE(tag);
+      const Posted p = post_with_plane(prog, m, *k, dialect, "tilted");
+      const Posted q = post_with_plane(prog, m, *k, dialect, "machine");
+      EXPECT_EQ(p.summary.work_planes, 3u);  // the three fixed faces; the simultaneous stretches stay outside
+      EXPECT_EQ(count_of(p.text, codes.first), 3u) << p.text;
+      EXPECT_EQ(count_of(p.text, codes.second), 3u) << p.text;
+      EXPECT_EQ(count_of(q.text, codes.first), 0u);
+      expect_every_cl_point_reached(p.text, prog, m, *k, tag);
+      expect_same_machine_path(p.text, q.text, m, tag);
+      const auto gs = gate::check(p.text, tag, prog, m, *k, gate::options_for(m, 0, 0, 0));
+      EXPECT_TRUE(gs.ok) << gs.message << "\n" << p.text;
+      // no rotary word while a plane is on
+      std::istringstream in(p.text);
+      std::string line;
+      bool on = false;
+      const std::string rot = "[" + m.post.letters[3] + m.post.letters[4] + "][-+]?[0-9]";
+      while (std::getline(in, line)) {
+        if (line.find(codes.first) != std::string::npos) on = true;
+        if ((line + "\n").find(codes.second) != std::string::npos) on = false;
+        if (on) EXPECT_FALSE(std::regex_search(line, std::regex(" " + rot))) << line;
+      }
+    }
+  }
+}
+
+TEST(PostWorkPlane, NxZigzagTurnedIntoA3Plus2FaceRoundTripsInEveryDialect) {
+  // NX's 3-axis zigzag, its part turned 25 deg about X and 10 deg about Z: one fixed orientation, a real 3+2 job.
+  const cl::Program flat = cl::read_file(test::source_path("examples/nx-haas-umc750/zigzag_smoothed.cls"));
+  const Eigen::Matrix3d R =
+      (Eigen::AngleAxisd(deg2rad(10.0), Vec3::UnitZ()) * Eigen::AngleAxisd(deg2rad(25.0), Vec3::UnitX()))
+          .toRotationMatrix();
+  const cl::Program prog = turned(flat, R, Vec3(0, -40, -30));
+  // CL arcs are points inside a plane: the machine program compared with has them as points too
+  const auto m = machine_with_post("haas-umc750", "  arcs: false\n");
+  const auto k = m.kinematics();
+  for (const auto& [dialect, codes] : plane_codes()) {
+    SCOPED_TRACE(dialect);
+    const Posted p = post_with_plane(prog, m, *k, dialect, "tilted");
+    const Posted q = post_with_plane(prog, m, *k, dialect, "machine");
+    EXPECT_GE(p.summary.work_planes, 1u);
+    EXPECT_EQ(count_of(p.text, codes.first), p.summary.work_planes);
+    expect_every_cl_point_reached(p.text, prog, m, *k, "nx-" + dialect);
+    expect_same_machine_path(p.text, q.text, m, "nx-" + dialect);
+    const auto gs = gate::check(p.text, "nx-" + dialect, prog, m, *k, gate::options_for(m, 0, 0, 0));
+    EXPECT_TRUE(gs.ok) << gs.message;
+  }
+}
+
+TEST(PostWorkPlane, SimultaneousExamplesAndLinuxcncKeepMachineCoordinates) {
+  // groove and NX's variable-axis job have no 3+2 stretch: a tilted setting writes the same program.
+  for (const auto& [cl_path, name] :
+       {std::pair<std::string, std::string>{"examples/groove/groove.cls", "trunnion-ac"},
+        std::pair<std::string, std::string>{"examples/nx-haas-umc750/variable_axis.cls", "haas-umc750"}}) {
+    const cl::Program prog = cl::read_file(test::source_path(cl_path));
+    const auto m = load_machine(name);
+    const auto k = m.kinematics();
+    for (const auto& d : {"fanuc", "haas", "siemens", "heidenhain"}) {
+      const Posted p = post_with_plane(prog, m, *k, d, "tilted");
+      EXPECT_EQ(p.summary.work_planes, 0u) << cl_path << " " << d;
+      EXPECT_EQ(p.text, post_with_plane(prog, m, *k, d, "machine").text) << cl_path << " " << d;
+    }
+  }
+  // linuxcnc has no tilted plane: machine coordinates with a warning, and rs274 accepts them
+  const cl::Program prog = cl::read_text(faces_between_simultaneous_cl(), "faces.cls");
+  const auto m = load_machine("trunnion-ac");
+  const auto k = m.kinematics();
+  const Posted p = post_with_plane(prog, m, *k, "linuxcnc", "tilted");
+  EXPECT_EQ(p.text, post_with_plane(prog, m, *k, "linuxcnc", "machine").text);
+  EXPECT_EQ(p.summary.work_planes, 0u);
+  ASSERT_FALSE(p.summary.warnings.empty());
+  EXPECT_NE(p.summary.warnings.back().find("has no tilted work plane"), std::string::npos);
+  expect_rs274_agrees(p.text, m, "linuxcnc-tilted");
+}
+
+TEST(PostWorkPlane, PlaneUnderTcpIsRefusedAndAWrongPlaneIsCaughtByTheGate) {
+  const cl::Program prog = cl::read_text(faces_between_simultaneous_cl(), "faces.cls");
+  const auto m = load_machine("haas-umc750");
+  const auto k = m.kinematics();
+  post::Options o;
+  o.dialect = "fanuc";
+  o.work_plane = "tilted";
+  o.tcp = true;
+  post::Summary sum;
+  std::ostringstream os;
+  try {
+    post::write_nc(os, prog, m, *k, post::conventional_axes(prog, m, *k), o, sum);
+    ADD_FAILURE() << "a plane under tool-tip control was written";
+  } catch (const InputError& e) {
+    EXPECT_NE(std::string(e.what()).find("under tool-tip control is not written"), std::string::npos) << e.what();
+  }
+  // One Euler angle changed by 0.1 deg: the plane no longer matches the rotaries positioned for it.
+  std::string text = post_with_plane(prog, m, *k, "fanuc", "tilted").text;
+  const std::regex j_word("J([0-9]+\\.[0-9]+)");
+  std::smatch mt;
+  ASSERT_TRUE(std::regex_search(text, mt, j_word));
+  text.replace(static_cast<size_t>(mt.position(1)), static_cast<size_t>(mt.length(1)),
+               fmt::format("{:.4f}", std::stod(mt.str(1)) + 0.1));
+  const auto gs = gate::check(text, "bent.nc", prog, m, *k, gate::options_for(m, 0, 0, 0));
+  EXPECT_FALSE(gs.ok);
+  EXPECT_NE(gs.message.find("the Z axis of G68.2"), std::string::npos) << gs.message;
+  // the machine file setting
+  const auto bad = [&] {
+    try {
+      machine_with_post("haas-umc750", "  work_plane: rotated\n");
+    } catch (const InputError& e) {
+      return std::string(e.what());
+    }
+    return std::string();
+  }();
+  EXPECT_NE(bad.find("post.work_plane"), std::string::npos) << bad;
+  EXPECT_EQ(machine_with_post("haas-umc750", "  work_plane: tilted\n").post.work_plane, "tilted");
 }

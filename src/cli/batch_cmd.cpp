@@ -62,7 +62,9 @@ void add_stats(const std::string& nc_text, const std::string& nc_name, const mac
   }
   report::Stats st;
   try {
-    st = report::compute(nc::read_text(nc_text, nc_name, report::axis_letters(m)), names, rotary);
+    nc::Program ncp = nc::read_text(nc_text, nc_name, report::axis_letters(m));
+    report::resolve_work_planes(ncp, m);  // tilted-plane words as the machine axes they move
+    st = report::compute(ncp, names, rotary);
   } catch (const InputError& e) {  // the gate judges the program; the table just has no figures then
     r.warnings.push_back("no statistics: " + e.message());
     return;
@@ -217,6 +219,7 @@ void run_job(const PostJob& job, JobResult& r) {
     a.tolerance = job.tolerance_mm;
     a.default_feed = job.default_feed_mm_per_min;
     a.tcp = job.tcp;
+    a.work_plane = job.work_plane;
     PlanWritten w = plan_and_write(a, job.out);
     r.machine_name = w.machine_name;
     take_summaries(r, w.post, w.gate);
@@ -242,6 +245,7 @@ void run_job(const PostJob& job, JobResult& r) {
     po.axis_tolerance_deg = job.axis_tolerance_deg;
     po.linearise = job.linearise;
     po.tcp = job.tcp;
+    po.work_plane = job.work_plane;
     po.source_name = fs::path(job.cl).filename().string();
     po.tool_length_mm = L;
     post::Summary sum;
@@ -455,6 +459,10 @@ class JobsReader {
       j.linearise = boolean(v, k);
     } else if (k == "tcp") {
       j.tcp = boolean(v, k);
+    } else if (k == "work_plane") {
+      j.work_plane = str(v, k);
+      if (j.work_plane != "tilted" && j.work_plane != "machine")
+        fail(v, k, fmt::format("expected tilted or machine, got '{}'", j.work_plane));
     } else if (k == "part") {
       j.parts = paths(v, k);
     } else if (k == "fixture") {
@@ -474,7 +482,7 @@ class JobsReader {
 
 constexpr const char* kJobKeys =
     "cl, output, machine, dialect, units, strategy, tolerance, axis_tolerance, tool_length, cone, default_feed, "
-    "linearise, tcp, part, fixture";
+    "linearise, tcp, work_plane, part, fixture";
 
 }  // namespace
 

@@ -29,7 +29,8 @@ struct PostJob {
   std::vector<std::string> parts, fixtures;  ///< planner only: meshes for collision checking
   bool linearise = true;
   std::optional<bool> tcp;  ///< tool-tip control on/off; unset: the machine's post.tcp
-  SourceLoc entry;  ///< where the job was given (jobs file line); empty for the command line
+  std::string work_plane;   ///< tilted | machine for 3+2 stretches; empty: the machine's post.work_plane
+  SourceLoc entry;          ///< where the job was given (jobs file line); empty for the command line
 };
 
 enum class JobStatus { Ok, Failed, InternalError };

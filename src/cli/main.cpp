@@ -77,7 +77,7 @@ std::array<bool, 5> rotary_of(const machine::Machine& m) {
 
 struct PostArgs {
   std::vector<std::string> cl;
-  std::string machine, out, dialect, units;
+  std::string machine, out, dialect, units, work_plane;
   double tolerance = 0, axis_tolerance = 0, tool_length = 0;
   double default_feed = 0;  ///< mm/min for feed moves without a feed rate; 0: such a CL file is an error
   bool json = false, no_linearise = false, tcp = false, no_tcp = false;
@@ -96,6 +96,7 @@ cli::PostJob job_of(const PostArgs& a, const std::string& cl, const std::string&
   j.default_feed_mm_per_min = a.default_feed;
   j.linearise = !a.no_linearise;
   if (a.tcp || a.no_tcp) j.tcp = a.tcp;
+  j.work_plane = a.work_plane;
   return j;
 }
 
@@ -235,8 +236,9 @@ int cmd_backlash(const BacklashArgs& a) {
   const double step = a.max_step > 0 ? (rotary ? deg2rad(a.max_step) : a.max_step) : (width > 0 ? width / 10 : 0.001);
   std::vector<report::BacklashResult> results;
   for (const auto& f : a.nc) {
-    const nc::Program ncp = nc::read_file(f, report::axis_letters(m));
+    nc::Program ncp = nc::read_file(f, report::axis_letters(m));
     if (const auto mismatch = report::check_machine_of(ncp, m)) throw *mismatch;
+    report::resolve_work_planes(ncp, m);  // tilted-plane words as the machine axes they move
     if (ncp.tcp)
       throw InputError(SourceLoc{f}, "this program uses TCP (G43.4/G234): its axis values are not machine coordinates");
     const double L = a.tool_length >= 0 ? a.tool_length : ncp.tool_length_mm.value_or(m.default_tool_length_mm);
@@ -313,6 +315,11 @@ int main(int argc, char** argv) {
   post_cmd->add_flag("--no-linearise", pa.no_linearise, "do not insert points between CL points");
   auto* tcp_flag = post_cmd->add_flag("--tcp", pa.tcp, "tool-tip control on (default: the machine's post.tcp)");
   post_cmd->add_flag("--no-tcp", pa.no_tcp, "tool-tip control off: machine coordinates")->excludes(tcp_flag);
+  post_cmd
+      ->add_option("--work-plane", pa.work_plane,
+                   "3+2 stretches: tilted (G68.2, G254, CYCLE800, PLANE SPATIAL) or machine coordinates (default: "
+                   "the machine's post.work_plane)")
+      ->check(CLI::IsMember({"tilted", "machine"}));
   post_cmd->add_flag("--json", pa.json, "print a JSON summary");
 
   VerifyArgs va;

@@ -204,6 +204,7 @@ std::string post_to_string(const Setup& s, const cl::Program& prog, const std::v
   po.strategy = strategy;
   po.tool_length_mm = s.tool_length;
   po.tcp = a.tcp;
+  po.work_plane = a.work_plane;
   // A tilted ball mill keeps its centre on the CL path: post (and verify) the centre. At cone 0 the
   // orientation is the CL's and the tip is controlled as usual.
   if (strategy != "conventional" && s.opt.cspace.cone_rad > 0) po.control_offset_mm = s.opt.cspace.ball_radius_mm;
@@ -219,7 +220,9 @@ report::Stats stats_of(const Setup& s, const std::string& text, const std::strin
     names[i] = s.m.post.letters[i];
     rot[i] = s.m.axes[i].rotary();
   }
-  auto st = report::compute(nc::read_text(text, name, report::axis_letters(s.m)), names, rot);
+  nc::Program ncp = nc::read_text(text, name, report::axis_letters(s.m));
+  report::resolve_work_planes(ncp, s.m);  // tilted-plane words as the machine axes they move
+  auto st = report::compute(ncp, names, rot);
   st.source = name;
   return st;
 }
@@ -248,7 +251,9 @@ report::VerifyResult verify_text(const Setup& s, const std::string& text, double
   cl::Program ref = s.prog;
   if (planned)
     for (std::size_t m : planned->replaced_moves) ref.moves[m] = planned->program.moves[m];
-  return report::verify(nc::read_text(text, "planned.ngc", report::axis_letters(s.m)), ref, *s.kin, vo);
+  nc::Program ncp = nc::read_text(text, "planned.ngc", report::axis_letters(s.m));
+  if (const std::string why = report::resolve_work_planes(ncp, *s.kin); !why.empty()) throw InputError(why);
+  return report::verify(ncp, ref, *s.kin, vo);
 }
 
 void write_svgs(const Setup& s, const plan::Planner& planner, const plan::Plan& p, const std::vector<kin::Axes>& conv,
@@ -537,6 +542,10 @@ void common_options(CLI::App* c, PlanArgs& a) {
   c->add_flag_function(
        "--no-tcp", [&a](std::int64_t) { a.tcp = false; }, "tool-tip control off: machine coordinates")
       ->excludes(tcp);
+  c->add_option("--work-plane", a.work_plane,
+                "3+2 segments: tilted (G68.2, G254, CYCLE800, PLANE SPATIAL) or machine coordinates (default: the "
+                "machine's post.work_plane)")
+      ->check(CLI::IsMember({"tilted", "machine"}));
   c->add_flag("--no-machine-geometry", a.no_machine_geometry,
               "leave the machine file's bodies (geometry.bodies) out of the collision scene");
 }

@@ -22,6 +22,7 @@ struct PlanArgs {
   bool no_collision = false, json = false;
   bool no_machine_geometry = false;  ///< leave the machine file's bodies out of the scene
   std::optional<bool> tcp;           ///< tool-tip control on/off; unset: the machine's post.tcp
+  std::string work_plane;            ///< tilted | machine for 3+2 segments; empty: the machine's post.work_plane
 };
 
 /// What plan_and_write did.

@@ -18,6 +18,7 @@
 #include "cscam/machine/machine.hpp"
 #include "cscam/nc/reader.hpp"
 #include "cscam/report/letters.hpp"
+#include "cscam/report/verify.hpp"
 #include "cscam/sim/simulate.hpp"
 #include "plan_cmd.hpp"
 
@@ -145,7 +146,8 @@ int cmd_simulate(const SimArgs& a) {
   }
   std::vector<sim::Block> blocks;
   if (is_nc(a.program)) {
-    const nc::Program p = nc::read_file(a.program, report::axis_letters(m));
+    nc::Program p = nc::read_file(a.program, report::axis_letters(m));
+    report::resolve_work_planes(p, m);  // tilted-plane words as the machine axes they move
     if (p.tcp)
       throw InputError(SourceLoc{a.program}, "this program uses TCP: simulate needs machine-coordinate axis values");
     if (a.tool_length < 0 && p.tool_length_mm) L = *p.tool_length_mm;

@@ -41,6 +41,8 @@ int cmd_trace(const TraceArgs& a) {
   }
   if (L < 0) L = m.default_tool_length_mm;
   const auto kin = m.make_kinematics(L);
+  if (ncp)  // tilted-plane words as the machine axes they move
+    if (const std::string why = report::resolve_work_planes(*ncp, *kin); !why.empty()) throw InputError(why);
   std::array<bool, 5> rotary{};
   for (size_t i = 0; i < 5; ++i) rotary[i] = m.axes[i].rotary();
   const report::Trace trace = report::read_halsampler(a.samples, rotary);

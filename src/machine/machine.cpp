@@ -132,7 +132,8 @@ void load_post(const Reader& r, const YAML::Node& n, Machine& m) {
                "clamp",
                "rotary_output",
                "home_rotaries",
-               "arcs"});
+               "arcs",
+               "work_plane"});
   PostSettings& p = m.post;
   if (n["dialect"]) p.dialect = r.string(n["dialect"], "post.dialect");
   if (n["tcp"]) p.tcp = r.boolean(n["tcp"], "post.tcp");
@@ -187,6 +188,11 @@ void load_post(const Reader& r, const YAML::Node& n, Machine& m) {
   if (n["inch"]) p.inch = r.boolean(n["inch"], "post.inch");
   if (n["home_rotaries"]) p.home_rotaries = r.boolean(n["home_rotaries"], "post.home_rotaries");
   if (n["arcs"]) p.arcs = r.boolean(n["arcs"], "post.arcs");
+  if (n["work_plane"]) {
+    p.work_plane = r.string(n["work_plane"], "post.work_plane");
+    if (p.work_plane != "tilted" && p.work_plane != "machine")
+      r.fail(n["work_plane"], "post.work_plane", fmt::format("expected tilted or machine, got '{}'", p.work_plane));
+  }
   if (n["rotary_output"]) {
     p.rotary_output = r.string(n["rotary_output"], "post.rotary_output");
     if (p.rotary_output != "absolute" && p.rotary_output != "shortest")

@@ -7,10 +7,12 @@
 #include <charconv>
 #include <cmath>
 #include <fstream>
+#include <functional>
 #include <optional>
 #include <sstream>
 
 #include "cscam/core/error.hpp"
+#include "cscam/core/rotations.hpp"
 #include "cscam/core/units.hpp"
 
 namespace cscam::nc {
@@ -68,6 +70,51 @@ size_t skip_argument(std::string_view s, size_t e) {
   return e;
 }
 
+/// The arguments of "CYCLE800(...)" (s[open] is '('), split at commas; empty ones stay empty.
+std::vector<std::string_view> call_arguments(std::string_view s, size_t open) {
+  std::vector<std::string_view> args;
+  size_t start = open + 1;
+  bool quoted = false;
+  for (size_t k = open + 1; k < s.size(); ++k) {
+    if (s[k] == '"') quoted = !quoted;
+    if (quoted) continue;
+    if (s[k] == ',' || s[k] == ')') {
+      args.push_back(trim(s.substr(start, k - start)));
+      start = k + 1;
+      if (s[k] == ')') break;
+    }
+  }
+  if (args.size() == 1 && args[0].empty()) args.clear();  // "CYCLE800()"
+  return args;
+}
+
+/// Siemens CYCLE800(_FR, _TC, _ST, _MODE, _X0, _Y0, _Z0, _A, _B, _C, _X1, _Y1, _Z1, _DIR, ...): the swivelled
+/// frame (origin X0 + R X1) for mode 57 (axis by axis X, Y, Z), or nothing for CYCLE800() (reset). Other modes
+/// and kinematics-dependent forms (direct rotary angles) are refused: the reader cannot compute their frame.
+std::optional<WorkPlane> cycle800(std::string_view s, size_t open, double scale,
+                                  const std::function<void(size_t, const std::string&)>& fail) {
+  const auto args = call_arguments(s, open);
+  if (args.empty()) return std::nullopt;
+  auto num = [&](size_t k) {
+    if (k >= args.size() || args[k].empty()) return 0.0;
+    size_t j = 0;
+    const auto v = parse_number(args[k], j);
+    if (!v || j != args[k].size())
+      fail(static_cast<size_t>(args[k].data() - s.data()),
+           fmt::format("CYCLE800: argument {} '{}' is not a number", k + 1, std::string(args[k])));
+    return *v;
+  };
+  const double mode = num(3);
+  if (mode != 57)
+    fail(open, fmt::format("CYCLE800 mode {} is not read: only mode 57 (axis by axis about X, Y, Z) is", mode));
+  WorkPlane w;
+  w.R_part_plane = rot::from_axis_by_axis_xyz(deg2rad(num(7)), deg2rad(num(8)), deg2rad(num(9)));
+  const Eigen::Vector3d x0(num(4), num(5), num(6)), x1(num(10), num(11), num(12));
+  w.origin_in_part_mm = scale * (x0 + w.R_part_plane * x1);
+  w.form = "CYCLE800";
+  return w;
+}
+
 /// A Heidenhain conversational program starts with "[n] BEGIN PGM name MM|INCH".
 bool is_heidenhain(const std::string& text) {
   std::string_view all(text);
@@ -89,6 +136,11 @@ bool is_heidenhain(const std::string& text) {
 Program read_heidenhain(const std::string& text, const std::string& name, const AxisLetters& letters) {
   Program prog;
   prog.file = name;
+  for (int a = 0; a < 5; ++a)
+    for (int k = 0; k < 3; ++k)
+      if (!letters.rotary[static_cast<size_t>(a)] && letters.letter[static_cast<size_t>(a)] == "XYZ"[k])
+        prog.xyz_slots[static_cast<size_t>(k)] = a;
+  std::optional<WorkPlane> plane;  // the tilted work plane in force
   Block state;
   bool inch = false;
   double feed = 0.0;
@@ -135,6 +187,41 @@ Program read_heidenhain(const std::string& text, const std::string& name, const 
       prog.tcp = true;
       continue;
     }
+    // PLANE SPATIAL SPA SPB SPC (spatial angles about the fixed X, Y, Z) ... STAY|TURN|MOVE; PLANE RESET.
+    if (s.rfind("PLANE ", 0) == 0) {
+      const std::string_view rest = trim(s.substr(6));
+      if (rest.rfind("RESET", 0) == 0) {
+        plane.reset();
+        continue;
+      }
+      if (rest.rfind("SPATIAL", 0) != 0)
+        fail(rest, fmt::format("'PLANE {}' is not read: only PLANE SPATIAL and PLANE RESET are",
+                               std::string(rest.substr(0, rest.find(' ')))));
+      std::array<double, 3> ang{};
+      std::array<bool, 3> got{};
+      for (int k = 0; k < 3; ++k) {
+        const std::string key = std::string(" SP") + "ABC"[k];  // not the SPA of SPATIAL
+        const auto p = rest.find(key);
+        if (p == std::string_view::npos) continue;
+        size_t j = p + 4;
+        const auto v = parse_number(rest, j);
+        if (!v) fail(rest.substr(p), fmt::format("malformed number after '{}'", key));
+        ang[static_cast<size_t>(k)] = *v;
+        got[static_cast<size_t>(k)] = true;
+      }
+      if (!got[0] || !got[1] || !got[2]) fail(rest, "PLANE SPATIAL needs SPA, SPB and SPC");
+      WorkPlane w;
+      w.R_part_plane = rot::from_spatial(deg2rad(ang[0]), deg2rad(ang[1]), deg2rad(ang[2]));
+      w.form = "PLANE SPATIAL";
+      w.line = lineno;
+      if (w.R_part_plane.isIdentity(1e-15)) {
+        plane.reset();  // the identity frame changes nothing
+      } else {
+        plane = w;
+        prog.work_planes = true;
+      }
+      continue;
+    }
     const bool is_l = s.size() >= 2 && s[0] == 'L' && s[1] == ' ';
     // A comment after the block.
     if (const auto sc = s.find(';'); sc != std::string_view::npos) s = trim(s.substr(0, sc));
@@ -144,7 +231,7 @@ Program read_heidenhain(const std::string& text, const std::string& name, const 
     }
     Block b = state;
     b.words = {};
-    bool rapid = false, any = false;
+    bool rapid = false, any = false, machine_coords = false;
     size_t i = 1;
     while (i < s.size()) {
       if (s[i] == ' ') {
@@ -162,6 +249,7 @@ Program read_heidenhain(const std::string& text, const std::string& name, const 
       const char L = tok[0];
       if (L == 'M') {
         if (tok == "M128") prog.tcp = true;
+        if (tok == "M91" || tok == "M92") machine_coords = true;  // machine datum: not a work position
         continue;
       }
       size_t k = 1;
@@ -193,6 +281,12 @@ Program read_heidenhain(const std::string& text, const std::string& name, const 
         prog.foreign_axis_words.push_back({L, lineno, static_cast<int>(tok.data() - raw.data()) + 1});
     }
     if (!any) continue;
+    if (machine_coords) {
+      prog.notes.push_back(fmt::format("{}:{}: M91/M92 block not taken as a position", name, lineno));
+      continue;
+    }
+    b.plane = plane;
+    if (plane && prog.tcp) fail(s, "a tilted work plane (PLANE SPATIAL) under tool-tip control is not read");
     b.line = lineno;
     b.motion = rapid ? Motion::Rapid : Motion::Linear;
     b.inverse_time = false;
@@ -238,6 +332,8 @@ Program read_text(const std::string& text, const std::string& name, const AxisLe
     for (int k = 0; k < 3; ++k)
       if (!letters.rotary[static_cast<size_t>(a)] && letters.letter[static_cast<size_t>(a)] == "XYZ"[k])
         xyz[static_cast<size_t>(k)] = a;
+  prog.xyz_slots = xyz;
+  std::optional<WorkPlane> work_plane;  // the tilted work plane in force
   double feed = 0.0;
   for (size_t li = first; li < lines.size(); ++li) {
     const std::string_view raw = lines[li];
@@ -266,6 +362,9 @@ Program read_text(const std::string& text, const std::string& name, const AxisLe
       }
     }
     bool non_modal_skip = false, tcp_word = false, vector_words = false;
+    bool plane_def = false, plane_cancel = false;
+    std::optional<WorkPlane> cycle_plane;
+    bool cycle_seen = false;
     Block b = state;
     b.words = {};
     size_t i = 0;
@@ -321,6 +420,14 @@ Program read_text(const std::string& text, const std::string& name, const AxisLe
         std::string id(s.substr(i, e - i));
         for (char& ch : id) ch = static_cast<char>(std::toupper(static_cast<unsigned char>(ch)));
         if (id == "TRAORI") tcp_word = true;
+        if (id == "SUPA") non_modal_skip = true;  // machine coordinates: every frame suppressed for this block
+        if (id == "CYCLE800") {
+          size_t open = e;
+          while (open < s.size() && s[open] == ' ') ++open;
+          if (open >= s.size() || s[open] != '(') fail(e, "CYCLE800 without its argument list");
+          cycle_seen = true;
+          cycle_plane = cycle800(s, open, inch ? kMmPerInch : 1.0, fail);
+        }
         i = skip_argument(s, e);
         continue;
       }
@@ -424,6 +531,17 @@ Program read_text(const std::string& text, const std::string& name, const AxisLe
           case 940:
             g93 = false;
             break;
+          case 682:  // G68.2 X Y Z I J K: a tilted work plane (ZXZ Euler angles) about the origin X Y Z
+            plane_def = true;
+            break;
+          case 531:  // G53.1: tool axis to the plane (the rotaries positioned before it; see resolve_work_planes)
+            break;
+          case 690:
+            plane_cancel = true;
+            break;
+          case 2540:  // Haas G254 / G255 dynamic work offset on / off: the control carries the work offset with the
+          case 2550:  // rotaries; the words stay the post's machine coordinates (Haas mill manual, G254)
+            break;
           case 280:
           case 300:
           case 530:
@@ -456,7 +574,7 @@ Program read_text(const std::string& text, const std::string& name, const AxisLe
         if (std::lround(v) == 428) tcp_word = true;
         continue;
       }
-      if (g435 && (L == 'I' || L == 'J' || L == 'K')) {
+      if (!plane_def && g435 && (L == 'I' || L == 'J' || L == 'K')) {
         b.tool_vector[static_cast<size_t>(L - 'I')] = v;
         vector_words = true;
         continue;
@@ -477,6 +595,44 @@ Program read_text(const std::string& text, const std::string& name, const AxisLe
     if (tcp_word) prog.tcp = true;
     bool any_axis = false;
     for (bool w : b.words) any_axis |= w;
+    if (plane_def || cycle_seen) {
+      if (cycle_seen && !cycle_plane) {
+        work_plane.reset();  // CYCLE800(): the swivelled frame reset
+      } else {
+        WorkPlane w;
+        if (cycle_plane) {
+          w = *cycle_plane;
+        } else if (plane_def) {
+          w.R_part_plane = rot::from_euler_zxz(deg2rad(ijk[0]), deg2rad(ijk[1]), deg2rad(ijk[2]));
+          for (int k = 0; k < 3; ++k) {
+            const int slot = xyz[static_cast<size_t>(k)];
+            if (slot >= 0 && b.words[static_cast<size_t>(slot)])
+              w.origin_in_part_mm[k] = word_val[static_cast<size_t>(slot)] * (inch ? kMmPerInch : 1.0);
+          }
+          w.form = "G68.2";
+        }
+        if (!plane_def && any_axis) fail(0, fmt::format("{} with axis words is not read", w.form));
+        w.line = lineno;
+        // The identity frame (no rotation, no offset: e.g. CYCLE800 to the basic position) changes nothing.
+        if (w.R_part_plane.isIdentity(1e-15) && w.origin_in_part_mm.isZero(0.0)) {
+          work_plane.reset();
+        } else {
+          work_plane = w;
+          prog.work_planes = true;
+        }
+      }
+      continue;  // the plane's words (G68.2 X Y Z I J K) are its origin and angles, not a position
+    }
+    if (plane_cancel) work_plane.reset();
+    if (work_plane && (any_axis || vector_words)) {
+      if (!absolute)
+        fail(0, fmt::format("incremental (G91) words in a tilted work plane ({}) are not read", work_plane->form));
+      if (motion == Motion::ArcCW || motion == Motion::ArcCCW)
+        fail(0, fmt::format("arcs in a tilted work plane ({}) are not read", work_plane->form));
+      if (vector_words || g435 || prog.tcp)
+        fail(0, fmt::format("a tilted work plane ({}) under tool-tip control is not read", work_plane->form));
+    }
+    b.plane = work_plane;
     if (vector_words) {
       prog.tcp_vectors = true;
       b.has_vector = true;
@@ -484,7 +640,8 @@ Program read_text(const std::string& text, const std::string& name, const AxisLe
     }
     if (non_modal_skip) {
       if (any_axis)
-        prog.notes.push_back(fmt::format("{}:{}: G28/G30/G53/G10/G92 block not taken as a position", name, lineno));
+        prog.notes.push_back(
+            fmt::format("{}:{}: G28/G30/G53/G10/G92 or SUPA block not taken as a position", name, lineno));
       continue;
     }
     if (!any_axis) continue;

@@ -2,14 +2,26 @@
 
 #include <charconv>
 #include <cmath>
+#include <stdexcept>
 
 #include "cscam/core/error.hpp"
+#include "cscam/core/rotations.hpp"
 #include "cscam/core/units.hpp"
 #include "cscam/post/dialect.hpp"
 
 namespace cscam::post {
 
 namespace {
+
+/// An angle (rad) as printed with 4 decimals in degrees, and back in radians: the plane the control reads.
+double printed_deg(double rad) { return std::round(rad2deg(rad) * 1e4) / 1e4; }
+
+/// "+12.5000" / "-3.0000" (Heidenhain) or "12.5000" (ISO, Siemens) for a printed angle.
+std::string angle_word(double deg, bool plus_sign) {
+  std::string s = fmt::format("{:.4f}", deg);
+  if (s == "-0.0000") s = "0.0000";
+  return plus_sign && s[0] != '-' ? "+" + s : s;
+}
 
 std::string sanitize_comment(std::string s) {
   for (char& c : s)
@@ -103,6 +115,11 @@ void Formatter::tool_change(std::string& out, int tool, int h, const std::string
 
 void Formatter::tcp_on(std::string& /*out*/, int /*h*/) { tcp_active_ = true; }
 void Formatter::tcp_off(std::string& /*out*/) { tcp_active_ = false; }
+
+Eigen::Matrix3d Formatter::plane_on(std::string& /*out*/, const Eigen::Matrix3d& /*R_part_plane*/) {
+  throw std::logic_error("plane_on on a dialect without work planes");
+}
+void Formatter::plane_off(std::string& /*out*/) {}
 
 void Formatter::clamp(std::string& out, const std::string& code) {
   line_start(out);
@@ -255,6 +272,23 @@ class Fanuc : public Formatter {
     }
     Formatter::tcp_off(out);
   }
+  // G68.2: the feature coordinate system by its origin and ZXZ Euler angles I J K; G53.1 turns the tool
+  // perpendicular to it (the rotaries are there already: the sequencer positioned them); G69 cancels.
+  [[nodiscard]] PlaneForm plane_form() const override { return PlaneForm::Rotated; }
+  Eigen::Matrix3d plane_on(std::string& out, const Eigen::Matrix3d& R_part_plane) override {
+    const auto e = rot::euler_zxz(R_part_plane);
+    const double i = printed_deg(e[0]), j = printed_deg(e[1]), k = printed_deg(e[2]);
+    line_start(out);
+    fmt::format_to(std::back_inserter(out), "G68.2 X0. Y0. Z0. I{} J{} K{}\n", angle_word(i, false),
+                   angle_word(j, false), angle_word(k, false));
+    line_start(out);
+    out += "G53.1\n";
+    return rot::from_euler_zxz(deg2rad(i), deg2rad(j), deg2rad(k));
+  }
+  void plane_off(std::string& out) override {
+    line_start(out);
+    out += "G69\n";
+  }
   void tool_change(std::string& out, int tool, int h, const std::string& description) override {
     if (!description.empty()) comment(out, description);
     line_start(out);
@@ -276,6 +310,19 @@ class Haas : public Fanuc {
   using Fanuc::Fanuc;
   [[nodiscard]] std::string name() const override { return "haas"; }
   [[nodiscard]] int program_number_digits() const override { return 5; }
+  // G254 dynamic work offset (Haas mill manual): after the rotaries are positioned the control carries the work
+  // offset with them; the words stay the machine coordinates of a part at the rotation centre, and X Y Z must all be
+  // given again before cutting (the sequencer writes them). G255 cancels it before any rotary motion.
+  [[nodiscard]] PlaneForm plane_form() const override { return PlaneForm::WorkOffset; }
+  Eigen::Matrix3d plane_on(std::string& out, const Eigen::Matrix3d& /*R_part_plane*/) override {
+    line_start(out);
+    out += "G254\n";
+    return Eigen::Matrix3d::Identity();
+  }
+  void plane_off(std::string& out) override {
+    line_start(out);
+    out += "G255\n";
+  }
   // G234 TCPC (the vector form does not exist on a Haas: angles always); G49 cancels it.
   void tcp_on(std::string& out, int h) override {
     if (!tcp_active_) {
@@ -345,6 +392,22 @@ class Siemens : public Formatter {
   void dwell(std::string& out, double seconds) override {
     line_start(out);
     fmt::format_to(std::back_inserter(out), "G4 F{:.3f}\n", seconds);
+  }
+  // CYCLE800(_FR, _TC, _ST, _MODE, _X0, _Y0, _Z0, _A, _B, _C, _X1, _Y1, _Z1, _DIR, _FR_I): no retraction (the
+  // sequencer retracted and positioned the rotaries), swivel data record "TC1", a new frame, mode 57 = axis by
+  // axis X, Y, Z (bits 1-0, 3-2, 5-4 = 01, 10, 11; bits 7-6 = 00), no offsets, direction +. CYCLE800() resets.
+  [[nodiscard]] PlaneForm plane_form() const override { return PlaneForm::Rotated; }
+  Eigen::Matrix3d plane_on(std::string& out, const Eigen::Matrix3d& R_part_plane) override {
+    const auto e = rot::axis_by_axis_xyz(R_part_plane);
+    const double a = printed_deg(e[0]), b = printed_deg(e[1]), c = printed_deg(e[2]);
+    line_start(out);
+    fmt::format_to(std::back_inserter(out), "CYCLE800(0,\"TC1\",0,57,0,0,0,{},{},{},0,0,0,1,0)\n", angle_word(a, false),
+                   angle_word(b, false), angle_word(c, false));
+    return rot::from_axis_by_axis_xyz(deg2rad(a), deg2rad(b), deg2rad(c));
+  }
+  void plane_off(std::string& out) override {
+    line_start(out);
+    out += "CYCLE800()\n";
   }
   void block(std::string& out, const BlockSpec& b) override {
     line_start(out);
@@ -428,6 +491,21 @@ class Heidenhain : public Formatter {
   void clamp(std::string& out, const std::string& code) override {
     number(out);
     out += code + "\n";
+  }
+  // PLANE SPATIAL: spatial angles about the fixed X, Y, Z (in that order); STAY: the rotaries are already where
+  // the plane needs them (the sequencer positioned them). PLANE RESET STAY cancels.
+  [[nodiscard]] PlaneForm plane_form() const override { return PlaneForm::Rotated; }
+  Eigen::Matrix3d plane_on(std::string& out, const Eigen::Matrix3d& R_part_plane) override {
+    const auto e = rot::spatial(R_part_plane);
+    const double a = printed_deg(e[0]), b = printed_deg(e[1]), c = printed_deg(e[2]);
+    number(out);
+    fmt::format_to(std::back_inserter(out), "PLANE SPATIAL SPA{} SPB{} SPC{} STAY\n", angle_word(a, true),
+                   angle_word(b, true), angle_word(c, true));
+    return rot::from_spatial(deg2rad(a), deg2rad(b), deg2rad(c));
+  }
+  void plane_off(std::string& out) override {
+    number(out);
+    out += "PLANE RESET STAY\n";
   }
   void spindle(std::string& out, double rpm, bool clockwise) override {
     number(out);

@@ -8,6 +8,7 @@
 #include <ostream>
 
 #include "cscam/core/error.hpp"
+#include "cscam/core/rotations.hpp"
 #include "cscam/core/tolerances.hpp"
 #include "cscam/core/units.hpp"
 #include "cscam/kin/track.hpp"
@@ -136,6 +137,23 @@ class Sequencer {
           xyz_[static_cast<size_t>(k)] = i;
       arcs_ = arcs_ && xyz_[static_cast<size_t>(k)] >= 0;
     }
+    // Tilted work planes for 3+2 stretches: machine coordinates with a Z, linear axes X Y Z, a dialect that has them.
+    const std::string work_plane = opt.work_plane.empty() ? m_.post.work_plane : opt.work_plane;
+    if (work_plane == "tilted") {
+      if (cart_)
+        throw InputError(
+            fmt::format("{}: a tilted work plane (post.work_plane: tilted) under tool-tip control is not "
+                        "written: post with --no-tcp, or with --work-plane machine",
+                        prog_.file));
+      const bool xyz = std::all_of(xyz_.begin(), xyz_.end(), [](int s) { return s >= 0; });
+      if (fmt_->plane_form() == Formatter::PlaneForm::None || z_ < 0 || !xyz)
+        sum_.warnings.push_back(
+            fmt::format("{}: dialect {} on machine {} has no tilted work plane: 3+2 stretches are "
+                        "written in machine coordinates",
+                        prog_.file, fmt_->name(), m_.name));
+      else
+        planes_ = true;
+    }
   }
 
   void run(const std::vector<kin::Axes>& axes) {
@@ -156,7 +174,9 @@ class Sequencer {
         if (!tcp_on_) tool_tip_control_on(mv.line);
         cartesian(mv, axes[i]);
       } else if (!have_state_ || mv.kind == cl::MotionKind::Rapid) {
+        pending_plane_ = planes_ && fixed_from(axes, i) && !at_rotary_zero(axes[i]);
         rapid(axes[i], mv);
+        pending_plane_ = false;
         if (indexed_from(axes, i)) clamp_rotaries();
       } else if (const std::size_t end = arc_end(axes, i); end > 0) {
         // One G2/G3 for the whole CIRCLE/: its points are checked, not written.
@@ -231,6 +251,7 @@ class Sequencer {
 
   void footer() {
     exit_along_axis();
+    work_plane_off();
     if (!cart_ && z_ >= 0 && have_state_) {
       emit_safe_z();
     } else if (have_state_) {
@@ -259,6 +280,7 @@ class Sequencer {
         const int n = known ? prog_.tools[static_cast<size_t>(e.tool_index)].number : 0;
         // Retract before the change so the new tool does not come down into the part.
         exit_along_axis();
+        work_plane_off();
         if (!cart_ && z_ >= 0 && have_state_)
           emit_safe_z();
         else if (have_state_)
@@ -319,15 +341,77 @@ class Sequencer {
 
   // --- Rotary clamps around indexed (3+2) stretches -----------------------------------------------------
 
-  /// Whether the stretch of feed moves after the rapid at i keeps every rotary where the rapid put it.
+  /// Whether the stretch of feed moves after the rapid at i keeps every rotary where the rapid put it (and clamp
+  /// codes are given).
   bool indexed_from(const std::vector<kin::Axes>& axes, size_t i) const {
     if (std::all_of(clamp_codes_.begin(), clamp_codes_.end(), [](const auto& c) { return c[0].empty(); })) return false;
+    return fixed_from(axes, i);
+  }
+
+  /// Whether the stretch of feed moves after the rapid at i keeps every rotary where the rapid put it (3+2).
+  bool fixed_from(const std::vector<kin::Axes>& axes, size_t i) const {
     const auto rp = kin_.rotary_pair();
     size_t j = i + 1;
     for (; j < axes.size() && prog_.moves[j].kind == cl::MotionKind::Feed; ++j)
       for (int r : rp)
         if (rounded(r, axes[j][r]) != rounded(r, axes[i][r])) return false;
     return j > i + 1;
+  }
+
+  /// Every rotary at 0 as printed: machine and part frames agree, a plane would add nothing.
+  bool at_rotary_zero(const kin::Axes& q) const {
+    for (int r : kin_.rotary_pair())
+      if (rounded(r, q[r]) != 0) return false;
+    return true;
+  }
+
+  // --- Tilted work planes (3+2) ------------------------------------------------------------------------
+
+  /// Switches the work plane of the rotaries in q on: its Z is the tool axis there (origin: the part's).
+  void work_plane_on(const kin::Axes& q) {
+    if (plane_active_) return;
+    plane_R_ = fmt_->plane_on(buf_, rot::plane_for_tool_axis(kin_.forward(q).axis));
+    plane_active_ = true;
+    plane_words_ = fmt_->plane_form() == Formatter::PlaneForm::Rotated;
+    plane_rot_ = {rounded(kin_.rotary_pair()[0], q[kin_.rotary_pair()[0]]),
+                  rounded(kin_.rotary_pair()[1], q[kin_.rotary_pair()[1]])};
+    for (int s : xyz_) have_word_[static_cast<size_t>(s)] = false;  // the words now mean plane coordinates
+    ++sum_.work_planes;
+  }
+
+  void work_plane_off() {
+    if (!plane_active_) return;
+    fmt_->plane_off(buf_);
+    plane_active_ = false;
+    for (int s : xyz_) have_word_[static_cast<size_t>(s)] = false;  // machine coordinates again: all written
+  }
+
+  /// add_words in a work plane: the tip of q in the plane's X Y Z (all three whenever a linear word is asked
+  /// for: one machine axis moves the tip along a tilted direction); the rotaries must not turn.
+  bool add_plane_words(const kin::Axes& q, std::initializer_list<int> which, bool force) {
+    bool linear = false;
+    for (int i : which) {
+      if (!m_.axes[static_cast<size_t>(i)].rotary()) {
+        linear = true;
+        continue;
+      }
+      const auto rp = kin_.rotary_pair();
+      CSCAM_CHECK(rounded(i, q[i]) == plane_rot_[i == rp[0] ? 0 : 1], "a rotary turns inside a tilted work plane");
+    }
+    if (!linear) return false;
+    const Vec3 p = plane_R_.transpose() * kin_.forward(q).tip_mm;
+    bool any = false;
+    for (int k = 0; k < 3; ++k) {
+      const auto u = static_cast<size_t>(xyz_[static_cast<size_t>(k)]);
+      const long long r = std::llround(p[k] * to_file_[u] * scale_[u]);
+      if (!force && have_word_[u] && r == last_[u]) continue;
+      blk_.words.push_back({static_cast<int>(u), r, decimals_[u], false});
+      last_[u] = r;
+      written_[u] = p[k];
+      have_word_[u] = true;
+      any = true;
+    }
+    return any;
   }
 
   void clamp_rotaries() {
@@ -377,6 +461,7 @@ class Sequencer {
 
   /// Adds the axis words of q that differ from the last written values.
   bool add_words(const kin::Axes& q, std::initializer_list<int> which, bool force = false) {
+    if (plane_active_ && plane_words_) return add_plane_words(q, which, force);
     bool any = false;
     for (int i : which) {
       const long long r = rounded(i, q[i]);
@@ -480,6 +565,13 @@ class Sequencer {
     std::vector<int> lin;
     for (int i = 0; i < 5; ++i)
       if (i != rp[0] && i != rp[1]) lin.push_back(i);
+    // Leaving a plane: before the rotaries turn, out along the tool axis (in the plane) first; a rapid that keeps
+    // them (and no 3+2 stretch after it) just ends the plane, the same motion as in machine coordinates.
+    if (plane_active_ && (rotaries_differ(q) || !pending_plane_)) {
+      if (rotaries_differ(q)) exit_along_axis();
+      work_plane_off();
+    }
+    if (pending_plane_ && !rotaries_differ(q)) work_plane_on(q);  // the rotaries are already there
     if (rotaries_differ(q) && z_ >= 0) {
       exit_along_axis();
       if (have_state_) emit_safe_z();
@@ -498,6 +590,7 @@ class Sequencer {
       start(BlockSpec::Motion::Rapid);
       set_mode94();
       if (add_words(at_safe, {rp[0], rp[1]})) emit();
+      if (pending_plane_) work_plane_on(at_safe);  // positioned: the plane, then the approach in it
       kin::Axes above = q;
       above[z_] = safe_z_;
       start(BlockSpec::Motion::Rapid);
@@ -657,7 +750,7 @@ class Sequencer {
   /// arc, its machine-coordinate plane XY, ZX or YZ, no event inside), writes that block and returns the index
   /// of the arc's end move; else returns 0 and writes nothing.
   std::size_t arc_end(const std::vector<kin::Axes>& axes, std::size_t i) {
-    if (!arcs_ || i == 0) return 0;
+    if (!arcs_ || i == 0 || plane_active_) return 0;  // arcs in a tilted plane: written as points
     const auto& moves = prog_.moves;
     const int a = moves[i].arc_index;
     if (a < 0 || moves[i - 1].arc_index == a || moves[i - 1].kind != cl::MotionKind::Feed) return 0;
@@ -1133,6 +1226,13 @@ class Sequencer {
   bool inverse_time_ = true;
   bool arcs_ = false;         ///< CL arcs may become G2/G3
   std::array<int, 3> xyz_{};  ///< slots of the machine's X, Y, Z
+  // Tilted work planes (3+2).
+  bool planes_ = false;         ///< 3+2 stretches in a tilted work plane
+  bool pending_plane_ = false;  ///< the rapid being written starts a 3+2 stretch that gets a plane
+  bool plane_active_ = false;
+  bool plane_words_ = false;  ///< in the plane the linear words are its coordinates (not Haas G254's machine words)
+  Eigen::Matrix3d plane_R_ = Eigen::Matrix3d::Identity();  ///< the plane as printed (columns: its axes, part frame)
+  std::array<long long, 2> plane_rot_{};                   ///< the rotaries (printed) the plane was switched on at
   double tol_mm_ = 0.01, tol_axis_rad_ = 0.005, cos_tol_axis_ = 1.0;
   std::array<int, 5> decimals_{};
   std::array<double, 5> scale_{}, to_file_{};

@@ -12,6 +12,7 @@
 #include <stdexcept>
 
 #include "cscam/core/error.hpp"
+#include "cscam/core/rotations.hpp"
 #include "cscam/core/tolerances.hpp"
 #include "cscam/core/units.hpp"
 #include "cscam/kin/track.hpp"
@@ -134,6 +135,7 @@ nc::Program read_for_machine(const std::string& nc_text, const std::string& name
   }
   nc::Program p = nc::read_text(nc_text, name, letters);
   p.tcp = p.tcp || tcp;  // our Cartesian header says so too
+  resolve_work_planes(p, m);
   return p;
 }
 
@@ -165,6 +167,99 @@ std::string resolve_tool_vectors(nc::Program& nc, const kin::Kinematics& k, int*
     b.known[static_cast<size_t>(rp[0])] = b.known[static_cast<size_t>(rp[1])] = true;
   }
   return {};
+}
+
+std::string resolve_work_planes(nc::Program& nc, const kin::Kinematics& k, int* bad_line) {
+  if (!nc.work_planes) return {};
+  const auto rp = k.rotary_pair();
+  const auto& xyz = nc.xyz_slots;
+  auto fail = [&](const nc::Block& b, const std::string& what) {
+    if (bad_line) *bad_line = b.line;
+    return what;
+  };
+  if (xyz[0] < 0 || xyz[1] < 0 || xyz[2] < 0)
+    return fail(nc.blocks.empty() ? nc::Block{} : nc.blocks.front(),
+                "a tilted work plane on a machine without linear axes lettered X, Y, Z is not read");
+  kin::Axes prev = kin::Axes::Zero();
+  bool have_prev = false;
+  int plane_line = -1;          // the plane the blocks are in
+  Vec3 p_plane = Vec3::Zero();  // the modal plane coordinates
+  std::array<bool, 3> p_known{};
+  std::array<double, 2> rot_at{};  // the rotaries the plane was switched on at
+  const double cos_tol = std::cos(deg2rad(tol::kVerifySlackDeg));
+  for (auto& b : nc.blocks) {
+    if (!b.plane) {
+      plane_line = -1;
+      if (have_prev)  // a word not given: the axis stays where it is (also after a plane)
+        for (int i = 0; i < 5; ++i)
+          if (!b.words[static_cast<size_t>(i)]) {
+            b.axes[static_cast<size_t>(i)] = prev[i];
+            b.known[static_cast<size_t>(i)] = true;
+          }
+      if (std::all_of(b.known.begin(), b.known.end(), [](bool x) { return x; })) {
+        for (int i = 0; i < 5; ++i) prev[i] = b.axes[static_cast<size_t>(i)];
+        have_prev = true;
+      }
+      continue;
+    }
+    const nc::WorkPlane& w = *b.plane;
+    const std::string where = fmt::format("{}:{}: ", nc.file, b.line);
+    if (!b.known[static_cast<size_t>(rp[0])] || !b.known[static_cast<size_t>(rp[1])])
+      return fail(b, where + fmt::format("{} (line {}) before the rotaries were positioned", w.form, w.line));
+    kin::Axes q = prev;
+    q[rp[0]] = b.axes[static_cast<size_t>(rp[0])];
+    q[rp[1]] = b.axes[static_cast<size_t>(rp[1])];
+    const bool new_plane = w.line != plane_line;
+    if (new_plane) {  // the words not given are where the machine is
+      p_known = {have_prev, have_prev, have_prev};
+      if (have_prev) p_plane = rot::to_plane(w.R_part_plane, w.origin_in_part_mm, k.forward(prev).tip_mm);
+      rot_at = {q[rp[0]], q[rp[1]]};
+      plane_line = w.line;
+    }
+    if (std::abs(q[rp[0]] - rot_at[0]) > 1e-12 || std::abs(q[rp[1]] - rot_at[1]) > 1e-12)
+      return fail(b, where + fmt::format("a rotary turns inside the tilted work plane {} (line {})", w.form, w.line));
+    for (int c = 0; c < 3; ++c)
+      if (b.words[static_cast<size_t>(xyz[static_cast<size_t>(c)])]) {
+        p_plane[c] = b.axes[static_cast<size_t>(xyz[static_cast<size_t>(c)])];
+        p_known[static_cast<size_t>(c)] = true;
+      }
+    if (!p_known[0] || !p_known[1] || !p_known[2])
+      return fail(b, where + fmt::format("the first block in {} (line {}) must give X, Y and Z: no machine position "
+                                         "is known before it",
+                                         w.form, w.line));
+    const Vec3 tip = rot::from_plane(w.R_part_plane, w.origin_in_part_mm, p_plane);
+    Vec3 axis;
+    if (!k.tool_axis_at(q[rp[0]], q[rp[1]], tip, axis))
+      return fail(b, where + "no tool axis at the positioned rotaries");
+    const Vec3 z = w.R_part_plane.col(2);
+    if (new_plane && axis.dot(z) < cos_tol)
+      return fail(b, where + fmt::format("the Z axis of {} (line {}) is ({:.6f}, {:.6f}, {:.6f}) but the rotaries "
+                                         "positioned before it hold the tool along ({:.6f}, {:.6f}, {:.6f}): the "
+                                         "control would turn them (G53.1, TURN, CYCLE800), which this reader does "
+                                         "not follow; position the rotaries before the plane",
+                                         w.form, w.line, z.x(), z.y(), z.z(), axis.x(), axis.y(), axis.z()));
+    if (!k.solve_for_rotaries(kin::Posed{tip, axis}, q))
+      return fail(b, where + fmt::format("no machine axis values put the tip at ({:.4f}, {:.4f}, {:.4f}) in {} "
+                                         "(line {}) at the positioned rotaries",
+                                         tip.x(), tip.y(), tip.z(), w.form, w.line));
+    for (int i = 0; i < 5; ++i) {
+      b.axes[static_cast<size_t>(i)] = q[i];
+      b.known[static_cast<size_t>(i)] = true;
+      // every linear axis may move in a plane block (its words were plane coordinates)
+      if (!k.axes()[static_cast<size_t>(i)].rotary() && std::abs(q[i] - prev[i]) > 0)
+        b.words[static_cast<size_t>(i)] = true;
+    }
+    b.plane.reset();
+    prev = q;
+    have_prev = true;
+  }
+  return {};
+}
+
+void resolve_work_planes(nc::Program& nc, const machine::Machine& m) {
+  if (!nc.work_planes) return;
+  const auto k = m.make_kinematics(nc.tool_length_mm.value_or(m.default_tool_length_mm));
+  if (const std::string why = resolve_work_planes(nc, *k); !why.empty()) throw InputError(why);  // names file:line
 }
 
 VerifyOptions verify_options_for(const machine::Machine& machine, double tolerance_mm, double axis_tolerance_deg,

@@ -59,6 +59,10 @@ struct PostSettings {
   /// CL CIRCLE/ records as G2/G3 where the rotaries stay fixed and the arc lies in a machine XY, ZX or YZ plane
   /// (dialects with I J K arcs); false, another dialect or another arc: its points as linear blocks.
   bool arcs = true;
+  /// machine: 3+2 stretches in machine coordinates (today's output); tilted: each stretch whose feeds keep the
+  /// rotaries fixed (and not all at 0) is written in a tilted work plane (G68.2 / G254 / CYCLE800 / PLANE
+  /// SPATIAL) whose Z is the tool axis; linuxcnc has none and keeps machine coordinates (docs/posts.md).
+  std::string work_plane = "machine";
 };
 
 /// Where a machine body sits in the kinematic structure.

@@ -2,7 +2,10 @@
 /// @file
 /// Reads NC programs back into axis values per motion block: ISO G-code (ours; Fanuc, Haas, LinuxCNC), Siemens
 /// Sinumerik (identifiers such as TRAORI, `X=`, `C=DC()`, A3/B3/C3 vectors, `;` comments) and Heidenhain
-/// conversational (`L X+1 Y-2 FMAX`, detected by its BEGIN PGM line).
+/// conversational (`L X+1 Y-2 FMAX`, detected by its BEGIN PGM line). Tilted work planes (G68.2 / G69, CYCLE800,
+/// PLANE SPATIAL / PLANE RESET) are read as frames (Block::plane); their words become machine axis values with the
+/// kinematics (report::resolve_work_planes). Haas G254 / G255 (dynamic work offset) keep the words as they are.
+#include <Eigen/Core>
 #include <array>
 #include <optional>
 #include <string>
@@ -33,6 +36,15 @@ struct ArcGeometry {
   double start_radius_mm = 0.0, end_radius_mm = 0.0;  ///< unequal for a malformed arc: read as a spiral
 };
 
+/// A tilted work plane in force: the linear words of a block in it are the tip in this frame (part frame:
+/// origin + R_part_plane * words), the rotaries stay where they were positioned before it.
+struct WorkPlane {
+  Eigen::Matrix3d R_part_plane = Eigen::Matrix3d::Identity();  ///< columns: the plane's X, Y, Z in the part frame
+  Eigen::Vector3d origin_in_part_mm = Eigen::Vector3d::Zero();
+  int line = 0;      ///< where it was switched on (a new plane, even an equal one, starts a new frame)
+  std::string form;  ///< "G68.2", "CYCLE800", "PLANE SPATIAL" (for messages)
+};
+
 /// One motion block with the full modal axis state after it. Linear axes in mm, rotary in radians.
 struct Block {
   int line = 0;
@@ -46,6 +58,9 @@ struct Block {
   std::array<double, 3> tool_vector{0.0, 0.0, 1.0};
   bool has_vector = false;         ///< a tool vector has been programmed so far
   std::optional<ArcGeometry> arc;  ///< G2/G3: the circle from the previous block's position to this one's
+  /// The work plane in force: the linear slots whose `words` are set hold the plane coordinates (mm) until
+  /// report::resolve_work_planes replaces them by machine values and clears this.
+  std::optional<WorkPlane> plane;
 };
 
 /// The axis values at parameter t in [0, 1] of block `b` travelled from `start` (the previous block's axes):
@@ -60,7 +75,9 @@ struct Program {
   std::optional<double> tool_length_mm;  ///< from a "(cscam tool_length_mm=...)" header comment
   bool tcp = false;                ///< G43.4/G43.5/G234/M428/TRAORI/TCPM/M128 seen: axis values are part coordinates
   bool tcp_vectors = false;        ///< the tool orientation is given as vectors (Block::tool_vector)
-  std::vector<std::string> notes;  ///< things skipped on purpose (G28/G53 blocks)
+  std::vector<std::string> notes;  ///< things skipped on purpose (G28/G53, SUPA, M91/M92 blocks)
+  bool work_planes = false;        ///< some block is in a tilted work plane (Block::plane)
+  std::array<int, 3> xyz_slots{-1, -1, -1};  ///< the slots lettered X, Y, Z (the plane words' axes)
   /// The machine named by our post's header comment "(cscam post: machine NAME dialect ...)", if present.
   std::optional<std::string> header_machine;
   int header_line = 0;  ///< the line of that comment

@@ -4,6 +4,7 @@
 /// values, which feed, when to switch tool-tip control on); a dialect only writes it down: the program frame
 /// (number, name, safe start block, end), tool changes, tool-tip control on/off and the syntax of one block.
 /// One small class per controller family; its settings come from the machine file's `post:` section.
+#include <Eigen/Core>
 #include <array>
 #include <memory>
 #include <optional>
@@ -67,6 +68,18 @@ class Formatter {
   [[nodiscard]] virtual bool has_inverse_time() const { return true; }
   /// Circular blocks (G2/G3 with an incremental centre I J K in the G17/G18/G19 planes) exist.
   [[nodiscard]] virtual bool has_arcs() const { return true; }
+
+  /// Tilted work planes for 3+2 stretches (rotaries fixed; docs/posts.md): none (machine coordinates: linuxcnc),
+  /// a rotated frame whose Z is the tool axis (G68.2, CYCLE800, PLANE SPATIAL; origin: the part's), or a work
+  /// offset the control carries with the rotaries while the words stay machine coordinates (Haas G254 DWO).
+  enum class PlaneForm { None, Rotated, WorkOffset };
+  [[nodiscard]] virtual PlaneForm plane_form() const { return PlaneForm::None; }
+  /// Switches the work plane with axes R_part_plane (columns, part frame) on, after the rotaries are positioned.
+  /// Returns the rotation the printed words define (angles rounded as printed): the linear words that follow are
+  /// the tip in that frame (WorkOffset: machine coordinates, the return value unused).
+  virtual Eigen::Matrix3d plane_on(std::string& out, const Eigen::Matrix3d& R_part_plane);
+  /// Cancels the work plane (before the rotaries turn again, a tool change, the end).
+  virtual void plane_off(std::string& out);
 
   /// Program start: '%', number and name, the header comments, the safe start block, the work offset.
   virtual void begin(std::string& out);

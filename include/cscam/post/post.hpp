@@ -21,6 +21,7 @@ struct Options {
   double axis_tolerance_deg = 0.0;  ///< 0: the machine's
   bool linearise = true;
   std::optional<bool> tcp;         ///< tool-tip control on/off; unset: the machine's post.tcp
+  std::string work_plane;          ///< "tilted" or "machine" for 3+2 stretches; empty: the machine's post.work_plane
   int max_subdivision_depth = 14;  ///< at most 2^depth pieces per CL segment
   std::string source_name;         ///< shown in the header comment
   std::string strategy = "conventional";
@@ -41,6 +42,7 @@ struct Summary {
   std::size_t retracts = 0;        ///< branch flips or unwinds done by retract, rotate and plunge
   std::size_t capped_blocks = 0;   ///< feed blocks slowed so that no axis exceeds its max_feed
   std::size_t arc_blocks = 0;      ///< CL arcs written as one G2/G3 block
+  std::size_t work_planes = 0;     ///< 3+2 stretches written in a tilted work plane (post.work_plane: tilted)
   std::vector<std::string> warnings;
   /// For every NC line (1-based index; index 0 unused) the CL line it came from (0: header, footer).
   std::vector<int> cl_line_of_nc_line;

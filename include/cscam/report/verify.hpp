@@ -51,7 +51,8 @@ VerifyOptions verify_options_for(const machine::Machine& machine, double toleran
 bool uses_tool_tip_control(const std::string& nc_text);
 
 /// Reads an NC program for machine `m`: machine letters, or X Y Z for the tip under tool-tip control. Rotaries
-/// written modulo 360 (post.rotary_output: shortest) are read the short way.
+/// written modulo 360 (post.rotary_output: shortest) are read the short way. Blocks in tilted work planes get
+/// their machine axis values (resolve_work_planes, with the header's tool length); InputError where they cannot.
 nc::Program read_for_machine(const std::string& nc_text, const std::string& name, const machine::Machine& m);
 nc::Program read_file_for_machine(const std::string& path, const machine::Machine& m);
 
@@ -64,6 +65,18 @@ std::unique_ptr<kin::Kinematics> tool_tip_kinematics(const kin::Kinematics& mach
 /// gnomonic coordinates (x/z, y/z), in which the control's great-circle interpolation is a straight line.
 /// Returns an empty string, or why a vector cannot be used (pointing down; `bad_line` set to its line).
 std::string resolve_tool_vectors(nc::Program& nc, const kin::Kinematics& machine_kinematics, int* bad_line = nullptr);
+
+/// Tilted work planes (nc::Block::plane: G68.2, CYCLE800, PLANE SPATIAL): replaces every plane block's
+/// words by the machine axis values the control moves to. The rotaries are those positioned before the plane
+/// (modal words); the tip is origin + R * words (a word not given keeps its plane coordinate, and at the plane's
+/// start is where the machine is); the linear axes come from the kinematics at those rotaries. After a plane a
+/// linear word not given keeps the machine position. Returns an empty string, or why a block cannot be resolved
+/// (file:line: ..., `bad_line` set): the plane's Z is not the tool axis of the positioned rotaries (G53.1 / TURN
+/// would turn them: not read), a rotary turns inside the plane, the position at the plane's start is unknown.
+std::string resolve_work_planes(nc::Program& nc, const kin::Kinematics& machine_kinematics, int* bad_line = nullptr);
+/// The same with machine `m`'s kinematics at the program's header tool length (else the machine default); throws
+/// InputError where a block cannot be resolved. Nothing to do without work planes.
+void resolve_work_planes(nc::Program& nc, const machine::Machine& m);
 
 /// Compares the NC program (machine axis values) with the CL program through `kinematics`.
 VerifyResult verify(const nc::Program& nc, const cl::Program& cl, const kin::Kinematics& kinematics,
