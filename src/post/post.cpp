@@ -25,6 +25,12 @@ namespace {
 
 using Vec3 = Eigen::Vector3d;
 
+// Feeds are printed rounded down. A feed that is a round number in exact arithmetic (the CL's F halved by the
+// linearizer) comes out of FK-based timing a few ulps either side, and the side depends on a PKM's FK warm
+// start, i.e. on which thread evaluated what: without this slack F1200.000 and F1199.999 alternated from run to
+// run. A relative 1e-9 is far below any feed's meaning.
+constexpr double kFeedFloorSlack = 1e-9;
+
 // --- Cartesian (TCP) output --------------------------------------------------------------------
 // Rotary words of the XMINI in Cartesian mode: the tool vector u (W) as the virtual wrist angles (C, A)
 // of an untilted platform, u = (-sin A sin C, -sin A cos C, cos A) (docs/xmini.md with R_BP = I and
@@ -494,7 +500,7 @@ class Sequencer {
       // Slow per-minute feeds (a capped block that mostly turns a rotary) keep four decimals.
       blk_.feed_decimals = mode93_ ? 3 : (*feed < 100.0 ? 4 : 1);
       const double p = std::pow(10.0, blk_.feed_decimals);
-      blk_.feed = std::max(std::floor(*feed * p * (1.0 + 1e-12)) / p, 1.0 / p);
+      blk_.feed = std::max(std::floor(*feed * p * (1.0 + kFeedFloorSlack)) / p, 1.0 / p);
     }
     fmt_->block(buf_, blk_);
     ++sum_.blocks;
