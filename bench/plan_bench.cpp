@@ -3,7 +3,6 @@
 // Also the two scaling curves: time vs number of points (expected linear) and time vs number of grid cells
 // (expected far below linear: cells are evaluated lazily).
 #include <benchmark/benchmark.h>
-
 #include <sys/resource.h>
 
 #include <cmath>
@@ -11,11 +10,13 @@
 
 #include "cscam/cl/program.hpp"
 #include "cscam/core/units.hpp"
+#include "cscam/cspace/cspace.hpp"
+#include "cscam/cspace/machine_scene.hpp"
 #include "cscam/geom/groove.hpp"
 #include "cscam/geom/scene.hpp"
 #include "cscam/machine/machine.hpp"
 #include "cscam/plan/plan.hpp"
-#include "cscam/cspace/cspace.hpp"
+#include "cscam/plan/stream.hpp"
 
 namespace {
 
@@ -175,14 +176,20 @@ void BM_PlanHard(benchmark::State& state) {
   state.counters["tier"] = tier;
   state.counters["cone_cells_colliding_pct"] = 100.0 * colliding / std::max(1.0, cells);
   state.counters["cells_enumerated"] = static_cast<double>(p.counters.cells_enumerated);
+  state.counters["cells_evaluated"] = static_cast<double>(p.counters.ik);
   state.counters["collision_queries"] = static_cast<double>(p.counters.collision);
+  state.counters["certified"] = static_cast<double>(p.counters.certified);
+  state.counters["swept_queries"] = static_cast<double>(p.counters.swept_queries);
   state.counters["swept_collisions"] = static_cast<double>(p.swept.collisions);
+  state.counters["planner_s"] = p.seconds;
   state.counters["peak_rss_mb"] = peak_rss_mb();
 }
 // 10,000 points is the target; 1,000 for a quick look.
 BENCHMARK(BM_PlanHard)->Arg(1000)->Arg(10000)->Unit(benchmark::kMillisecond)->Iterations(1);
 
-/// 1,000,000 points (the easy groove finishing pass, cone 5, collision on): time and peak memory.
+/// 1,000,000 points (the easy groove finishing pass, cone 5, collision on), planned in windows of range(0) moves
+/// (plan_windowed; 0: the automatic window): time and peak memory (of the whole process, the 200,000-triangle part
+/// and the 1M-move program and plan included).
 void BM_Plan1M(benchmark::State& state) {
   auto& f = fixture();
   const auto prog = path(1000000);
@@ -190,15 +197,68 @@ void BM_Plan1M(benchmark::State& state) {
   o.cspace.cone_rad = cscam::deg2rad(5.0);
   o.cspace.ball_radius_mm = 5;
   o.cspace.check_collision = true;
-  const cscam::plan::Planner planner(f.m, f.m.kinematics(), &f.scene, &f.tool, o);
+  cscam::plan::WindowOptions w;
+  w.window = static_cast<std::size_t>(state.range(0));
   cscam::plan::Plan p;
-  for (auto _ : state) p = planner.run(prog);
+  for (auto _ : state) p = cscam::plan::plan_windowed(f.m, f.m.kinematics(), &f.scene, &f.tool, o, prog, w);
+  int tier = 0;
+  for (const auto& g : p.segments) tier = std::max(tier, static_cast<int>(g.tier));
   state.counters["points"] = 1e6;
-  state.counters["tier"] = p.segments.empty() ? 0 : static_cast<int>(p.segments[0].tier);
+  state.counters["window"] = static_cast<double>(cscam::plan::effective_window(prog.moves.size(), w));
+  state.counters["tier"] = tier;
+  state.counters["cells_enumerated"] = static_cast<double>(p.counters.cells_enumerated);
+  state.counters["cells_evaluated"] = static_cast<double>(p.counters.ik);
   state.counters["collision_queries"] = static_cast<double>(p.counters.collision);
+  state.counters["certified"] = static_cast<double>(p.counters.certified);
+  state.counters["swept_queries"] = static_cast<double>(p.counters.swept_queries);
+  state.counters["swept_collisions"] = static_cast<double>(p.swept.collisions);
+  state.counters["planner_s"] = p.seconds;
   state.counters["peak_rss_mb"] = peak_rss_mb();
 }
-BENCHMARK(BM_Plan1M)->Unit(benchmark::kMillisecond)->Iterations(1);
+BENCHMARK(BM_Plan1M)->Arg(0)->Unit(benchmark::kMillisecond)->Iterations(1);
+
+/// NX's real path (348 points, Haas UMC-750 with its machine bodies) at cone 5, as `cscam plan --cone 5` runs it.
+void BM_PlanNxCone5(benchmark::State& state) {
+  const auto m = cscam::machine::load(std::string(CSCAM_SOURCE_DIR) + "/machines/haas-umc750.yaml");
+  const auto prog = cscam::cl::read_file(std::string(CSCAM_SOURCE_DIR) + "/examples/nx-haas-umc750/variable_axis.cls");
+  // As plan_cmd's setup: the CL's cutter with the machine's holder, the machine bodies in the scene.
+  const cscam::cl::Tool* t = nullptr;
+  for (const auto& tt : prog.tools)
+    if (tt.diameter_mm > 0 && !t) t = &tt;
+  if (!t) {
+    state.SkipWithError("no cutter in the NX file");
+    return;
+  }
+  cscam::geom::ToolDefaults d;
+  if (m.geometry.holder_diameter_mm > 0) d.holder_diameter_mm = m.geometry.holder_diameter_mm;
+  if (m.geometry.holder_length_mm > 0) d.holder_length_mm = m.geometry.holder_length_mm;
+  if (m.geometry.spindle_diameter_mm > 0) d.spindle = {m.geometry.spindle_diameter_mm, m.geometry.spindle_length_mm};
+  const auto tool = cscam::geom::ToolShape::from_cutter(t->diameter_mm, t->corner_radius_mm,
+                                                        t->length_mm > 0 ? t->length_mm : 3.0 * t->diameter_mm, d);
+  const auto kin = m.make_kinematics(m.default_tool_length_mm);
+  cscam::geom::Scene scene, head;
+  const auto bodies = cscam::cspace::add_machine_bodies(m, std::max(0.0, tool.gauge_length_mm()), scene, head);
+  if (bodies.head_bodies) head.build(false);
+  scene.build(false);
+  cscam::plan::Options o;
+  o.cspace.cone_rad = cscam::deg2rad(static_cast<double>(state.range(0)));
+  if (t->is_ball()) o.cspace.ball_radius_mm = 0.5 * t->diameter_mm;
+  o.cspace.check_collision = true;
+  cscam::plan::Plan p;
+  for (auto _ : state)
+    p = cscam::plan::plan_windowed(m, kin, &scene, &tool, o, prog, {}, bodies.head_bodies ? &head : nullptr);
+  int tier = 0;
+  for (const auto& g : p.segments) tier = std::max(tier, static_cast<int>(g.tier));
+  state.counters["points"] = static_cast<double>(prog.moves.size());
+  state.counters["tier"] = tier;
+  state.counters["cells_enumerated"] = static_cast<double>(p.counters.cells_enumerated);
+  state.counters["cells_evaluated"] = static_cast<double>(p.counters.ik);
+  state.counters["collision_queries"] = static_cast<double>(p.counters.collision);
+  state.counters["swept_queries"] = static_cast<double>(p.counters.swept_queries);
+  state.counters["planner_s"] = p.seconds;
+  state.counters["peak_rss_mb"] = peak_rss_mb();
+}
+BENCHMARK(BM_PlanNxCone5)->Arg(5)->Unit(benchmark::kMillisecond)->Iterations(1);
 
 }  // namespace
 

@@ -1,6 +1,11 @@
 #include "cscam/plan/plan.hpp"
 
 #include <fmt/format.h>
+#include <sys/resource.h>
+#include <tbb/blocked_range.h>
+#include <tbb/enumerable_thread_specific.h>
+#include <tbb/parallel_for.h>
+#include <tbb/task_arena.h>
 
 #include <algorithm>
 #include <chrono>
@@ -11,15 +16,10 @@
 #include <unordered_map>
 #include <utility>
 
-#include <sys/resource.h>
-#include <tbb/blocked_range.h>
-#include <tbb/enumerable_thread_specific.h>
-#include <tbb/parallel_for.h>
-#include <tbb/task_arena.h>
-
 #include "cscam/core/error.hpp"
 #include "cscam/core/threads.hpp"
 #include "cscam/core/units.hpp"
+#include "cscam/cspace/certificates.hpp"
 #include "cscam/kin/track.hpp"
 
 namespace cscam::plan {
@@ -89,6 +89,7 @@ struct Layer {
   std::unordered_map<std::uint64_t, int> index;   ///< (i1,i2) -> position in cells
   std::unordered_map<std::uint64_t, Cell> extra;  ///< evaluated cells outside the cap
   bool truncated = false;                         ///< `cells` stopped at the cap: the cone holds more
+  bool pinned = false;                            ///< Options::start_rotaries: `cells` is that one cell, no other
 };
 
 /// The search over one segment's layers. Owns the per-thread query workspace.
@@ -96,7 +97,7 @@ class Search {
  public:
   Search(const cspace::Space& sp, const Options& opt, std::vector<Layer>& layers, cspace::Counters& c,
          const cl::Program& prog)
-      : sp_(sp), opt_(opt), L_(layers), c_(c), prog_(prog), exact_(sp.options().cone_rad <= 0) {}
+      : sp_(sp), opt_(opt), L_(layers), c_(c), prog_(prog), exact_(sp.options().cone_rad <= 0), certs_(sp) {}
 
   /// The cell (i1, i2) at layer k, created (with its orientation test) if needed; null if outside the cone.
   Cell* cell(std::size_t k, int i1, int i2) {
@@ -105,7 +106,7 @@ class Search {
     if (auto it = l.index.find(kk); it != l.index.end()) return &l.cells[static_cast<size_t>(it->second)];
     if (auto it = l.extra.find(kk); it != l.extra.end())
       return it->second.status == Status::Orientation ? nullptr : &it->second;
-    if (exact_) return nullptr;  // exact cells are all enumerated
+    if (exact_ || l.pinned) return nullptr;  // exact cells are all enumerated; a pinned layer has its one cell
     Cell c;
     c.i1 = i1;
     c.i2 = i2;
@@ -743,8 +744,10 @@ class Search {
       // still lacks, so the cells evaluated (and the counters) are those of a serial scan, at any thread count.
       for (std::size_t next = 0; next < tent.size() && S[k].size() < beam;) {
         const std::size_t b = next, e = std::min(tent.size(), next + (beam - S[k].size()));
+        // The beam revisits the same cells point after point: their clearance certificates spare most queries.
+        certs_.reserve();
         parallel_items(e - b, c_, [&](std::size_t i, geom::QueryWorkspace& ws, cspace::Counters& cc) {
-          sp_.evaluate(L_[k].cl, *tent[b + i].second.first, ws, cc);
+          certs_.evaluate(L_[k].cl, *tent[b + i].second.first, ws, cc);
         });
         for (std::size_t i = b; i < e; ++i)
           if (tent[i].second.first->status == Status::Feasible) S[k].push_back({tent[i].second.first, tent[i].first, tent[i].second.second});
@@ -887,6 +890,7 @@ class Search {
   bool exact_;
   const kin::Axes* prefer_ = nullptr;
   geom::QueryWorkspace ws_;
+  cspace::CertificateStore certs_;  ///< per grid cell, across this segment's points (tier 4's beam)
 };
 
 }  // namespace
@@ -999,7 +1003,9 @@ Plan Planner::run(const cl::Program& program) const {
       layers[k].move = s + k;
       layers[k].cl = {moves[s + k].tip_in_part_mm, moves[s + k].axis_in_part.normalized()};
       // Tier 1 takes its candidates from the first point: give it a much larger share.
-      if (k == 0 || exact) enumerate_layer(k, k == 0 ? 64 * opt_.max_cells_per_point : opt_.max_cells_per_point, plan.counters);
+      const bool pin = k == 0 && s == 0 && opt_.start_rotaries.has_value();
+      if ((k == 0 && !pin) || exact)
+        enumerate_layer(k, k == 0 ? 64 * opt_.max_cells_per_point : opt_.max_cells_per_point, plan.counters);
     }
     if (exact) {
       // At a singular point the primary rotary is free: offer every primary that a neighbouring regular
@@ -1040,6 +1046,23 @@ Plan Planner::run(const cl::Program& program) const {
         for (std::size_t j = 0; j < cells.size(); ++j)
           layers[k].index.emplace(key(cells[j].i1, cells[j].i2), static_cast<int>(j));
       }
+    }
+    if (s == 0 && opt_.start_rotaries) {
+      // Windowed planning: the first point keeps the rotaries the previous window ended at, as its only cell.
+      Layer& l = layers[0];
+      const double kr = exact ? kExactKeyRad : space_.options().resolution_rad;
+      Cell c;
+      c.r1 = (*opt_.start_rotaries)[0];
+      c.r2 = (*opt_.start_rotaries)[1];
+      c.i1 = static_cast<int>(std::lround(c.r1 / kr));
+      c.i2 = static_cast<int>(std::lround(c.r2 / kr));
+      (void)space_.in_cone(l.cl, c.r1, c.r2, &c.orient_err);
+      l.cells.assign(1, c);
+      l.index.clear();
+      l.index.emplace(key(c.i1, c.i2), 0);
+      l.extra.clear();
+      l.truncated = false;
+      l.pinned = true;
     }
     // Replaces a truncated cell list with every cell of the cone, keeping what was evaluated already.
     auto extend_layer = [&](std::size_t k) {
@@ -1292,9 +1315,15 @@ Plan Planner::run(const cl::Program& program) const {
         std::string names;
         for (int ax : rev) names += (names.empty() ? "" : ", ") + kin_->axes()[static_cast<size_t>(ax)].name;
         const cl::Move& at = moves[layers[where].move];
-        if (!exact && search.legs_tilt(rev, kLegHyst,
-                                       opt_.tilt_step_rad > 0 ? opt_.tilt_step_rad : space_.options().resolution_rad,
-                                       path, mono, fl, why)) {
+        // A pinned first point (windowed planning) must keep its rotaries.
+        auto keeps_pin = [&] {
+          return !layers[0].pinned || (mono[0]->r1 == path[0]->r1 && mono[0]->r2 == path[0]->r2);
+        };
+        if (!exact &&
+            search.legs_tilt(rev, kLegHyst,
+                             opt_.tilt_step_rad > 0 ? opt_.tilt_step_rad : space_.options().resolution_rad, path, mono,
+                             fl, why) &&
+            keeps_pin()) {
           path = mono;
           double max_tilt = 0;
           for (const Cell* c : mono) max_tilt = std::max(max_tilt, static_cast<double>(c->orient_err));
@@ -1302,7 +1331,7 @@ Plan Planner::run(const cl::Program& program) const {
                                  names, at.line, rad2deg(max_tilt));
           rep.tier = Tier::Shortest;  // the rotaries now follow the tilt refinement
           rep.description = "re-planned inside the cone for monotonic legs (" + rep.description + " before)";
-        } else if (exact && search.legs_monotone(rev, kLegHyst, mono, fl, why)) {
+        } else if (exact && search.legs_monotone(rev, kLegHyst, mono, fl, why) && keeps_pin()) {
           path = mono;
           rep.legs = fmt::format("monotonic: the reversal of {} at CL line {} removed", names, at.line);
         } else {
@@ -1325,11 +1354,14 @@ Plan Planner::run(const cl::Program& program) const {
     // Approach and retract run along the tool axis: a CL approach (retract) along the CL axis of the point it
     // leads into (out of) follows the chosen axis instead, at the same distance, with that point's rotaries;
     // otherwise the new tilt would be dragged along the old approach line (through the material beside it).
-    if (e > s && moves[s].kind == cl::MotionKind::Rapid && along_chosen_axis(program, plan, s, s + 1)) {
+    const bool pinned0 = s == 0 && opt_.start_rotaries.has_value();  // windowed: move 0 is the previous window's
+    const bool open_end = opt_.continues && e + 1 == moves.size();   // windowed: the next window continues it
+    if (e > s && !pinned0 && moves[s].kind == cl::MotionKind::Rapid && along_chosen_axis(program, plan, s, s + 1)) {
       ++rep.approach_moves_replaced;
       swept_ok[s + 1] = 0;
     }
-    if (e > s + 1 && moves[e].kind != cl::MotionKind::Rapid && along_chosen_axis(program, plan, e, e - 1)) {
+    if (e > s + 1 && !open_end && moves[e].kind != cl::MotionKind::Rapid &&
+        along_chosen_axis(program, plan, e, e - 1)) {
       ++rep.approach_moves_replaced;
       swept_ok[e] = 0;
     }
