@@ -151,9 +151,11 @@ void BM_PlanHard(benchmark::State& state) {
   o.cspace.cone_rad = cscam::deg2rad(8.0);
   o.cspace.ball_radius_mm = 5;
   o.cspace.check_collision = true;
-  const cscam::plan::Planner planner(f.m, f.m.kinematics(), &f.scene, &f.tool, o);
+  // In windows of 1000 moves (the cone near the vertical holds thousands of cells per point: bounded memory).
+  cscam::plan::WindowOptions w;
+  w.window = 1000;
   cscam::plan::Plan p;
-  for (auto _ : state) p = planner.run(prog);
+  for (auto _ : state) p = cscam::plan::plan_windowed(f.m, f.m.kinematics(), &f.scene, &f.tool, o, prog, w);
   // The share of the cone's cells that collisions remove, over 50 points spread along the path (every cell).
   const cscam::cspace::Space sp(f.m.kinematics(), &f.scene, &f.tool, o.cspace);
   cscam::geom::QueryWorkspace ws;
@@ -174,6 +176,7 @@ void BM_PlanHard(benchmark::State& state) {
   state.counters["points"] = n;
   state.counters["triangles"] = static_cast<double>(f.triangles);
   state.counters["tier"] = tier;
+  state.counters["window"] = static_cast<double>(cscam::plan::effective_window(prog.moves.size(), w));
   state.counters["cone_cells_colliding_pct"] = 100.0 * colliding / std::max(1.0, cells);
   state.counters["cells_enumerated"] = static_cast<double>(p.counters.cells_enumerated);
   state.counters["cells_evaluated"] = static_cast<double>(p.counters.ik);

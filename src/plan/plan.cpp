@@ -21,6 +21,7 @@
 #include "cscam/core/units.hpp"
 #include "cscam/cspace/certificates.hpp"
 #include "cscam/kin/track.hpp"
+#include "parallel.hpp"
 
 namespace cscam::plan {
 
@@ -40,36 +41,9 @@ const char* to_string(Tier t) {
 
 namespace {
 
-/// Evaluates cells in parallel over the immutable space, one workspace per thread. `job(i, ws, counters)` must only
-/// touch item i, so the outcome (and the summed counters) does not depend on the thread count.
-template <typename Job>
-void parallel_items(std::size_t n, cspace::Counters& total, Job&& job) {
-  struct Local {
-    geom::QueryWorkspace ws;
-    cspace::Counters c;
-  };
-  tbb::enumerable_thread_specific<Local> locals;
-  tbb::task_arena arena(static_cast<int>(worker_threads()));
-  arena.execute([&] {
-    tbb::parallel_for(tbb::blocked_range<std::size_t>(0, n), [&](const tbb::blocked_range<std::size_t>& r) {
-      Local& l = locals.local();
-      for (std::size_t i = r.begin(); i != r.end(); ++i) job(i, l.ws, l.c);
-    });
-  });
-  for (const Local& l : locals) total += l.c;
-}
-
-/// Runs `job(i)` for i in [0, n) in parallel (pure computations that write slot i only).
-template <typename Job>
-void parallel_indices(std::size_t n, Job&& job) {
-  tbb::task_arena arena(static_cast<int>(worker_threads()));
-  arena.execute([&] {
-    tbb::parallel_for(tbb::blocked_range<std::size_t>(0, n), [&](const tbb::blocked_range<std::size_t>& r) {
-      for (std::size_t i = r.begin(); i != r.end(); ++i) job(i);
-    });
-  });
-}
-
+// The parallel loops (a kept arena, per-thread workspaces): src/plan/parallel.hpp.
+using detail::parallel_indices;
+using detail::parallel_items;
 
 using cspace::Cell;
 using cspace::Status;
