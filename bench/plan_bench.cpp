@@ -4,8 +4,10 @@
 // (expected far below linear: cells are evaluated lazily).
 #include <benchmark/benchmark.h>
 #include <sys/resource.h>
+#include <unistd.h>
 
 #include <cmath>
+#include <cstdio>
 #include <sstream>
 
 #include "cscam/cl/program.hpp"
@@ -143,6 +145,16 @@ double peak_rss_mb() {
   return static_cast<double>(ru.ru_maxrss) / 1024.0;
 }
 
+/// The resident memory now (not the peak), MB: before planning, to tell the planner's share of the peak.
+double rss_now_mb() {
+  long pages = 0, resident = 0;
+  if (FILE* f = std::fopen("/proc/self/statm", "r")) {
+    if (std::fscanf(f, "%ld %ld", &pages, &resident) != 2) resident = 0;
+    std::fclose(f);
+  }
+  return static_cast<double>(resident) * static_cast<double>(sysconf(_SC_PAGESIZE)) / (1024.0 * 1024.0);
+}
+
 void BM_PlanHard(benchmark::State& state) {
   auto& f = hard_fixture();
   const int n = static_cast<int>(state.range(0));
@@ -202,11 +214,13 @@ void BM_Plan1M(benchmark::State& state) {
   o.cspace.check_collision = true;
   cscam::plan::WindowOptions w;
   w.window = static_cast<std::size_t>(state.range(0));
+  const double rss_before = rss_now_mb();  // the part, its BVH and the 1M-move program
   cscam::plan::Plan p;
   for (auto _ : state) p = cscam::plan::plan_windowed(f.m, f.m.kinematics(), &f.scene, &f.tool, o, prog, w);
   int tier = 0;
   for (const auto& g : p.segments) tier = std::max(tier, static_cast<int>(g.tier));
   state.counters["points"] = 1e6;
+  state.counters["rss_before_plan_mb"] = rss_before;
   state.counters["window"] = static_cast<double>(cscam::plan::effective_window(prog.moves.size(), w));
   state.counters["tier"] = tier;
   state.counters["cells_enumerated"] = static_cast<double>(p.counters.cells_enumerated);

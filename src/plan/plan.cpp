@@ -1328,7 +1328,8 @@ Plan Planner::run(const cl::Program& program) const {
     // Approach and retract run along the tool axis: a CL approach (retract) along the CL axis of the point it
     // leads into (out of) follows the chosen axis instead, at the same distance, with that point's rotaries;
     // otherwise the new tilt would be dragged along the old approach line (through the material beside it).
-    const bool pinned0 = s == 0 && opt_.start_rotaries.has_value();  // windowed: move 0 is the previous window's
+    const bool pinned0 =
+        s == 0 && opt_.start_rotaries.has_value() && opt_.start_is_join;  // windowed: move 0 is the previous window's
     const bool open_end = opt_.continues && e + 1 == moves.size();   // windowed: the next window continues it
     if (e > s && !pinned0 && moves[s].kind == cl::MotionKind::Rapid && along_chosen_axis(program, plan, s, s + 1)) {
       ++rep.approach_moves_replaced;

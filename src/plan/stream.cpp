@@ -7,6 +7,7 @@
 #include <chrono>
 #include <cmath>
 #include <map>
+#include <optional>
 #include <utility>
 
 #include "cscam/core/error.hpp"
@@ -80,6 +81,52 @@ Tier tier_of_path(const std::vector<kin::Axes>& axes, std::size_t f, std::size_t
   return Tier::Shortest;
 }
 
+/// The last move of the segment that starts at move `s` (a rapid, or the program's first move, starts one).
+std::size_t segment_end(const cl::Program& program, std::size_t s) {
+  std::size_t e = s;
+  while (e + 1 < program.moves.size() && program.moves[e + 1].kind != cl::MotionKind::Rapid) ++e;
+  return e;
+}
+
+/// A grid cell feasible at every point of moves [s, e] (within the cone, inside the strokes, collision-free), tried
+/// as tier 1 tries them: closest to the CL axis at `s` first, orientation over the whole range before any query, the
+/// point that rejected the previous candidate first; feasibility with a clearance certificate (one query per margin
+/// of travel). At most `tries` candidates get feasibility queries. A window sees only its own points, so a segment
+/// longer than a window is given this orientation as its start.
+std::optional<std::array<double, 2>> fixed_orientation(const cspace::Space& sp, const cl::Program& program,
+                                                       std::size_t s, std::size_t e, std::size_t cap, int tries,
+                                                       cspace::Counters& c) {
+  if (sp.options().cone_rad <= 0) return std::nullopt;  // exact cells: tier 1 decides inside the windows
+  auto pose = [&](std::size_t m) {
+    return kin::Posed{program.moves[m].tip_in_part_mm, program.moves[m].axis_in_part.normalized()};
+  };
+  std::vector<cspace::Cell> cells;
+  sp.enumerate(pose(s), cells, cap, c);
+  std::size_t hard = s;  // the point that rejected the last candidate's orientation
+  geom::QueryWorkspace ws;
+  for (const cspace::Cell& cell : cells) {
+    double dot = 0;
+    if (!sp.in_cone_cos(pose(hard), cell.r1, cell.r2, dot)) continue;
+    bool ok = true;
+    for (std::size_t m = s; m <= e && ok; ++m)
+      if (!sp.in_cone_cos(pose(m), cell.r1, cell.r2, dot)) {
+        ok = false;
+        hard = m;
+      }
+    if (!ok) continue;
+    if (tries-- <= 0) break;
+    cspace::Certificate cert;
+    for (std::size_t m = s; m <= e && ok; ++m) {
+      cspace::Cell x = cell;
+      x.status = cspace::Status::Unknown;
+      sp.evaluate(pose(m), x, ws, c, &cert);
+      ok = x.status == cspace::Status::Feasible;
+    }
+    if (ok) return std::array<double, 2>{cell.r1, cell.r2};
+  }
+  return std::nullopt;
+}
+
 /// The parts of one segment that windows planned separately.
 struct Parts {
   std::vector<SegmentReport> reports;
@@ -109,6 +156,7 @@ Plan plan_windowed(const machine::Machine& machine, std::shared_ptr<const kin::K
   sub.msys = program.msys;
   sub.tools = program.tools;
   const auto wins = windows_of(program, window);
+  std::unique_ptr<cspace::Space> space;  // for the orientation pre-pass
   for (std::size_t wi = 0; wi < wins.size(); ++wi) {
     const auto [a, b] = wins[wi];
     sub.moves.assign(program.moves.begin() + static_cast<std::ptrdiff_t>(a),
@@ -121,6 +169,14 @@ Plan plan_windowed(const machine::Machine& machine, std::shared_ptr<const kin::K
       o.start_rotaries = std::array<double, 2>{out.axes[a][rp[0]], out.axes[a][rp[1]]};
     }
     o.continues = b + 1 < n && program.moves[b + 1].kind != cl::MotionKind::Rapid;
+    if (wi == 0 && o.continues) {
+      // The first segment runs past this window: if one orientation suits all of it, start there (as one run's
+      // tier 1 would find it), so that the windows can keep it.
+      if (!space) space = std::make_unique<cspace::Space>(kinematics, scene, tool, options.cspace, head);
+      o.start_rotaries =
+          fixed_orientation(*space, program, a, segment_end(program, a), options.max_cells_per_point, 16, out.counters);
+      o.start_is_join = false;
+    }
     Plan p = Planner(machine, kinematics, scene, tool, o, head).run(sub);
     const std::size_t from = wi == 0 ? 0 : 1;  // the pinned move stays as the previous window planned it
     for (std::size_t i = from; i < sub.moves.size(); ++i) {
