@@ -772,3 +772,29 @@ TEST(PlannerWindows, GrooveInSmallWindowsStaysCollisionFreeAtAndBetweenThePoints
   EXPECT_EQ(s.collisions, 0u);
   EXPECT_EQ(win.replaced_moves, whole.replaced_moves);
 }
+
+TEST(PlannerWindows, ALongThreePlusTwoSegmentStaysFixedAcrossWindows) {
+  // The axis wobbles 4 deg around 20 deg tilt: one orientation suits the whole segment at cone 5, but not the one
+  // closest to the first window's axes. Windows of 7 moves must keep one fixed orientation (the whole segment's).
+  const auto prog = sweep(
+      50, [](double s) { return 20.0 + 4.0 * std::sin(6.28 * s); }, [](double s) { return 30.0 + 8.0 * s; },
+      "CUTTER/10,5");
+  const auto whole = run(prog, 5.0, nullptr, nullptr, 5.0);
+  const auto win = run_windowed(prog, 5.0, 7, nullptr, nullptr, 5.0);
+  ASSERT_EQ(whole.segments[0].tier, plan::Tier::Fixed2);
+  ASSERT_EQ(win.segments.size(), 1u);
+  EXPECT_EQ(win.segments[0].tier, plan::Tier::Fixed2) << win.summary();
+  EXPECT_TRUE(win.segments[0].failures.empty()) << win.summary();
+  for (std::size_t i = 1; i < prog.moves.size(); ++i) {
+    EXPECT_EQ(win.axes[i][3], win.axes[0][3]);
+    EXPECT_EQ(win.axes[i][4], win.axes[0][4]);
+  }
+  // Within the cone at every point, the ball centre on the CL path.
+  const auto k = trunnion().kinematics();
+  for (std::size_t i = 0; i < prog.moves.size(); ++i) {
+    const kin::Posed fk = k->forward(win.axes[i]);
+    const Vec3 centre_cl = prog.moves[i].tip_in_part_mm + 5.0 * prog.moves[i].axis_in_part.normalized();
+    EXPECT_LT((fk.tip_mm + 5.0 * fk.axis - centre_cl).norm(), tol::kRoundTripMm);
+    EXPECT_LE(std::acos(std::min(1.0, fk.axis.dot(prog.moves[i].axis_in_part.normalized()))), deg2rad(5.0) + 1e-9);
+  }
+}
