@@ -1,11 +1,6 @@
 #include "cscam/plan/plan.hpp"
 
 #include <fmt/format.h>
-#include <sys/resource.h>
-#include <tbb/blocked_range.h>
-#include <tbb/enumerable_thread_specific.h>
-#include <tbb/parallel_for.h>
-#include <tbb/task_arena.h>
 
 #include <algorithm>
 #include <chrono>
@@ -15,6 +10,12 @@
 #include <numeric>
 #include <unordered_map>
 #include <utility>
+
+#include <sys/resource.h>
+#include <tbb/blocked_range.h>
+#include <tbb/enumerable_thread_specific.h>
+#include <tbb/parallel_for.h>
+#include <tbb/task_arena.h>
 
 #include "cscam/core/error.hpp"
 #include "cscam/core/threads.hpp"
