@@ -1,5 +1,7 @@
 #include "cscam/cspace/certificates.hpp"
 
+#include <algorithm>
+
 namespace cscam::cspace {
 
 void CertificateStore::reserve() {
@@ -31,6 +33,7 @@ void CertificateStore::evaluate(const kin::Posed& cl, Cell& cell, geom::QueryWor
     if (cell.status != Status::Feasible) e->room = Room::Unknown;
     return;
   }
+  if (e->room == Room::Unknown) e->cert.probe_mm = 1.0;
   if (e->room == Room::Unknown && !e->cert.valid) {
     sp_.evaluate(cl, cell, ws, c);
     if (cell.status == Status::Feasible) e->room = Room::Free;
@@ -41,9 +44,13 @@ void CertificateStore::evaluate(const kin::Posed& cl, Cell& cell, geom::QueryWor
   if (cell.status != Status::Feasible) {
     e->room = Room::Unknown;
   } else if (!e->cert.valid) {
-    e->room = Room::Tight;  // free, but not with the margin: no more probes while it stays free
+    // Free, but not with this margin: ask for half next time; below the smallest useful margin, no more probes
+    // while it stays free (a probe that fails costs a second query).
+    e->cert.probe_mm *= 0.5;
+    e->room = e->cert.probe_mm < kMinProbeMm ? Room::Tight : Room::Free;
   } else {
     e->room = Room::Free;
+    e->cert.probe_mm = std::min(1.0, 2.0 * e->cert.probe_mm);  // room again: certify further ahead next time
   }
 }
 

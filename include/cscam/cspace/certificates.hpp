@@ -28,6 +28,8 @@ class CertificateStore {
 
  private:
   enum class Room : std::uint8_t { Unknown, Free, Tight };
+  /// Smallest probe margin worth a query, mm: at 1/16 mm a certificate still covers a few points of a fine path.
+  static constexpr double kMinProbeMm = 1.0 / 16.0;
   struct Entry {
     Certificate cert;
     Room room = Room::Unknown;
