@@ -22,6 +22,7 @@ struct PlanArgs {
   bool no_collision = false, json = false;
   bool no_machine_geometry = false;  ///< leave the machine file's bodies out of the scene
   std::optional<bool> tcp;           ///< tool-tip control on/off; unset: the machine's post.tcp
+  std::size_t window = 0;            ///< plan in windows of this many moves; 0: automatic (above 50,000 moves)
 };
 
 /// What plan_and_write did.
