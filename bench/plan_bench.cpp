@@ -3,19 +3,22 @@
 // Also the two scaling curves: time vs number of points (expected linear) and time vs number of grid cells
 // (expected far below linear: cells are evaluated lazily).
 #include <benchmark/benchmark.h>
-
 #include <sys/resource.h>
+#include <unistd.h>
 
 #include <cmath>
+#include <cstdio>
 #include <sstream>
 
 #include "cscam/cl/program.hpp"
 #include "cscam/core/units.hpp"
+#include "cscam/cspace/cspace.hpp"
+#include "cscam/cspace/machine_scene.hpp"
 #include "cscam/geom/groove.hpp"
 #include "cscam/geom/scene.hpp"
 #include "cscam/machine/machine.hpp"
 #include "cscam/plan/plan.hpp"
-#include "cscam/cspace/cspace.hpp"
+#include "cscam/plan/stream.hpp"
 
 namespace {
 
@@ -142,6 +145,16 @@ double peak_rss_mb() {
   return static_cast<double>(ru.ru_maxrss) / 1024.0;
 }
 
+/// The resident memory now (not the peak), MB: before planning, to tell the planner's share of the peak.
+double rss_now_mb() {
+  long pages = 0, resident = 0;
+  if (FILE* f = std::fopen("/proc/self/statm", "r")) {
+    if (std::fscanf(f, "%ld %ld", &pages, &resident) != 2) resident = 0;
+    std::fclose(f);
+  }
+  return static_cast<double>(resident) * static_cast<double>(sysconf(_SC_PAGESIZE)) / (1024.0 * 1024.0);
+}
+
 void BM_PlanHard(benchmark::State& state) {
   auto& f = hard_fixture();
   const int n = static_cast<int>(state.range(0));
@@ -150,9 +163,11 @@ void BM_PlanHard(benchmark::State& state) {
   o.cspace.cone_rad = cscam::deg2rad(8.0);
   o.cspace.ball_radius_mm = 5;
   o.cspace.check_collision = true;
-  const cscam::plan::Planner planner(f.m, f.m.kinematics(), &f.scene, &f.tool, o);
+  // In windows of 1000 moves (the cone near the vertical holds thousands of cells per point: bounded memory).
+  cscam::plan::WindowOptions w;
+  w.window = 1000;
   cscam::plan::Plan p;
-  for (auto _ : state) p = planner.run(prog);
+  for (auto _ : state) p = cscam::plan::plan_windowed(f.m, f.m.kinematics(), &f.scene, &f.tool, o, prog, w);
   // The share of the cone's cells that collisions remove, over 50 points spread along the path (every cell).
   const cscam::cspace::Space sp(f.m.kinematics(), &f.scene, &f.tool, o.cspace);
   cscam::geom::QueryWorkspace ws;
@@ -173,16 +188,23 @@ void BM_PlanHard(benchmark::State& state) {
   state.counters["points"] = n;
   state.counters["triangles"] = static_cast<double>(f.triangles);
   state.counters["tier"] = tier;
+  state.counters["window"] = static_cast<double>(cscam::plan::effective_window(prog.moves.size(), w));
   state.counters["cone_cells_colliding_pct"] = 100.0 * colliding / std::max(1.0, cells);
   state.counters["cells_enumerated"] = static_cast<double>(p.counters.cells_enumerated);
+  state.counters["cells_evaluated"] = static_cast<double>(p.counters.ik);
   state.counters["collision_queries"] = static_cast<double>(p.counters.collision);
+  state.counters["certified"] = static_cast<double>(p.counters.certified);
+  state.counters["swept_queries"] = static_cast<double>(p.counters.swept_queries);
   state.counters["swept_collisions"] = static_cast<double>(p.swept.collisions);
+  state.counters["planner_s"] = p.seconds;
   state.counters["peak_rss_mb"] = peak_rss_mb();
 }
 // 10,000 points is the target; 1,000 for a quick look.
 BENCHMARK(BM_PlanHard)->Arg(1000)->Arg(10000)->Unit(benchmark::kMillisecond)->Iterations(1);
 
-/// 1,000,000 points (the easy groove finishing pass, cone 5, collision on): time and peak memory.
+/// 1,000,000 points (the easy groove finishing pass, cone 5, collision on), planned in windows of range(0) moves
+/// (plan_windowed; 0: the automatic window): time and peak memory (of the whole process, the 200,000-triangle part
+/// and the 1M-move program and plan included).
 void BM_Plan1M(benchmark::State& state) {
   auto& f = fixture();
   const auto prog = path(1000000);
@@ -190,15 +212,70 @@ void BM_Plan1M(benchmark::State& state) {
   o.cspace.cone_rad = cscam::deg2rad(5.0);
   o.cspace.ball_radius_mm = 5;
   o.cspace.check_collision = true;
-  const cscam::plan::Planner planner(f.m, f.m.kinematics(), &f.scene, &f.tool, o);
+  cscam::plan::WindowOptions w;
+  w.window = static_cast<std::size_t>(state.range(0));
+  const double rss_before = rss_now_mb();  // the part, its BVH and the 1M-move program
   cscam::plan::Plan p;
-  for (auto _ : state) p = planner.run(prog);
+  for (auto _ : state) p = cscam::plan::plan_windowed(f.m, f.m.kinematics(), &f.scene, &f.tool, o, prog, w);
+  int tier = 0;
+  for (const auto& g : p.segments) tier = std::max(tier, static_cast<int>(g.tier));
   state.counters["points"] = 1e6;
-  state.counters["tier"] = p.segments.empty() ? 0 : static_cast<int>(p.segments[0].tier);
+  state.counters["rss_before_plan_mb"] = rss_before;
+  state.counters["window"] = static_cast<double>(cscam::plan::effective_window(prog.moves.size(), w));
+  state.counters["tier"] = tier;
+  state.counters["cells_enumerated"] = static_cast<double>(p.counters.cells_enumerated);
+  state.counters["cells_evaluated"] = static_cast<double>(p.counters.ik);
   state.counters["collision_queries"] = static_cast<double>(p.counters.collision);
+  state.counters["certified"] = static_cast<double>(p.counters.certified);
+  state.counters["swept_queries"] = static_cast<double>(p.counters.swept_queries);
+  state.counters["swept_collisions"] = static_cast<double>(p.swept.collisions);
+  state.counters["planner_s"] = p.seconds;
   state.counters["peak_rss_mb"] = peak_rss_mb();
 }
-BENCHMARK(BM_Plan1M)->Unit(benchmark::kMillisecond)->Iterations(1);
+BENCHMARK(BM_Plan1M)->Arg(0)->Unit(benchmark::kMillisecond)->Iterations(1);
+
+/// NX's real path (348 points, Haas UMC-750 with its machine bodies) at cone 5, as `cscam plan --cone 5` runs it.
+void BM_PlanNxCone5(benchmark::State& state) {
+  const auto m = cscam::machine::load(std::string(CSCAM_SOURCE_DIR) + "/machines/haas-umc750.yaml");
+  const auto prog = cscam::cl::read_file(std::string(CSCAM_SOURCE_DIR) + "/examples/nx-haas-umc750/variable_axis.cls");
+  // As plan_cmd's setup: the CL's cutter with the machine's holder, the machine bodies in the scene.
+  const cscam::cl::Tool* t = nullptr;
+  for (const auto& tt : prog.tools)
+    if (tt.diameter_mm > 0 && !t) t = &tt;
+  if (!t) {
+    state.SkipWithError("no cutter in the NX file");
+    return;
+  }
+  cscam::geom::ToolDefaults d;
+  if (m.geometry.holder_diameter_mm > 0) d.holder_diameter_mm = m.geometry.holder_diameter_mm;
+  if (m.geometry.holder_length_mm > 0) d.holder_length_mm = m.geometry.holder_length_mm;
+  if (m.geometry.spindle_diameter_mm > 0) d.spindle = {m.geometry.spindle_diameter_mm, m.geometry.spindle_length_mm};
+  const auto tool = cscam::geom::ToolShape::from_cutter(t->diameter_mm, t->corner_radius_mm,
+                                                        t->length_mm > 0 ? t->length_mm : 3.0 * t->diameter_mm, d);
+  const auto kin = m.make_kinematics(m.default_tool_length_mm);
+  cscam::geom::Scene scene, head;
+  const auto bodies = cscam::cspace::add_machine_bodies(m, std::max(0.0, tool.gauge_length_mm()), scene, head);
+  if (bodies.head_bodies) head.build(false);
+  scene.build(false);
+  cscam::plan::Options o;
+  o.cspace.cone_rad = cscam::deg2rad(static_cast<double>(state.range(0)));
+  if (t->is_ball()) o.cspace.ball_radius_mm = 0.5 * t->diameter_mm;
+  o.cspace.check_collision = true;
+  cscam::plan::Plan p;
+  for (auto _ : state)
+    p = cscam::plan::plan_windowed(m, kin, &scene, &tool, o, prog, {}, bodies.head_bodies ? &head : nullptr);
+  int tier = 0;
+  for (const auto& g : p.segments) tier = std::max(tier, static_cast<int>(g.tier));
+  state.counters["points"] = static_cast<double>(prog.moves.size());
+  state.counters["tier"] = tier;
+  state.counters["cells_enumerated"] = static_cast<double>(p.counters.cells_enumerated);
+  state.counters["cells_evaluated"] = static_cast<double>(p.counters.ik);
+  state.counters["collision_queries"] = static_cast<double>(p.counters.collision);
+  state.counters["swept_queries"] = static_cast<double>(p.counters.swept_queries);
+  state.counters["planner_s"] = p.seconds;
+  state.counters["peak_rss_mb"] = peak_rss_mb();
+}
+BENCHMARK(BM_PlanNxCone5)->Arg(5)->Unit(benchmark::kMillisecond)->Iterations(1);
 
 }  // namespace
 

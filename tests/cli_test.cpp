@@ -1,6 +1,7 @@
 // The cscam program as a user runs it: exit codes, messages, and no partial output on error.
 #include <gtest/gtest.h>
 
+#include <cmath>
 #include <filesystem>
 #include <fstream>
 #include <map>
@@ -142,6 +143,24 @@ TEST(Cli, PlanAndCompareOnTheSeedGroove) {
   EXPECT_EQ(parsed["planner"]["tiers"], nlohmann::json::array({1})) << js;
   EXPECT_EQ(parsed["cl"], cl);
   r = run_command(kCli + " verify " + out + " --machine trunnion-ac --cl " + cl + " --cone 25");
+  EXPECT_EQ(r.status, 0) << r.output;
+}
+
+TEST(Cli, PlanInWindowsWritesAVerifiedProgram) {
+  // --window: a 200-point path planned in windows of 30 moves (one 3+2 segment at cone 5), through the gate, verified.
+  TempDir d;
+  std::ostringstream cl;
+  cl.precision(10);
+  cl << "UNITS/MM\nMULTAX\nCUTTER/10,5\nFEDRAT/MMPM,1000\n";
+  for (int i = 0; i < 200; ++i) {
+    const double s = i / 199.0, t = 0.35 + 0.06 * std::sin(6.28 * s);
+    cl << "GOTO/" << -20 + 40 * s << ",0,0," << std::sin(t) << ",0," << std::cos(t) << "\n";
+  }
+  const std::string in = d.file("w.cls", cl.str()), out = d.file("w.ngc");
+  auto r = run_command(kCli + " plan " + in + " --machine trunnion-ac --cone 5 --window 30 -o " + out);
+  ASSERT_EQ(r.status, 0) << r.output;
+  EXPECT_NE(r.output.find("fixed 2 axes + simultaneous 3 axes"), std::string::npos) << r.output;
+  r = run_command(kCli + " verify " + out + " --machine trunnion-ac --cl " + in + " --cone 5");
   EXPECT_EQ(r.status, 0) << r.output;
 }
 

@@ -2,34 +2,33 @@
 // (collision pruning decides the orientation), ball-centre preservation, errors, and laziness.
 #include "cscam/plan/plan.hpp"
 
+#include <fcl/fcl.h>
 #include <gtest/gtest.h>
 
 #include <array>
 #include <cmath>
 #include <cstdlib>
+#include <fstream>
 #include <map>
+#include <memory>
+#include <nlohmann/json.hpp>
 #include <regex>
 #include <sstream>
 
 #include "cscam/cl/program.hpp"
 #include "cscam/core/error.hpp"
 #include "cscam/core/units.hpp"
+#include "cscam/cspace/cspace.hpp"
 #include "cscam/cspace/machine_scene.hpp"
 #include "cscam/geom/mesh.hpp"
 #include "cscam/geom/scene.hpp"
 #include "cscam/machine/machine.hpp"
 #include "cscam/nc/reader.hpp"
+#include "cscam/plan/stream.hpp"
 #include "cscam/post/post.hpp"
 #include "cscam/report/svg.hpp"
 #include "cscam/report/verify.hpp"
 #include "test_support.hpp"
-
-#include <fcl/fcl.h>
-#include <fstream>
-#include <nlohmann/json.hpp>
-#include <memory>
-
-#include "cscam/cspace/cspace.hpp"
 
 using namespace cscam;
 using Vec3 = Eigen::Vector3d;
@@ -348,9 +347,8 @@ namespace {
 /// radius, wall up to the lip's underside, the lip (a ring) with a narrower opening up to the top z = top, the top
 /// out to the outer radius, down the outside, the bottom back to the axis.
 geom::Mesh lip_pocket(double pocket_r, double lip_r, double lip_z, double top, double outer_r, int sectors = 96) {
-  const std::vector<std::pair<double, double>> profile = {{0, 0},        {pocket_r, 0},   {pocket_r, lip_z},
-                                                          {lip_r, lip_z}, {lip_r, top},    {outer_r, top},
-                                                          {outer_r, -10}, {0, -10}};
+  const std::vector<std::pair<double, double>> profile = {
+      {0, 0}, {pocket_r, 0}, {pocket_r, lip_z}, {lip_r, lip_z}, {lip_r, top}, {outer_r, top}, {outer_r, -10}, {0, -10}};
   geom::Mesh m;
   m.source = "lip pocket";
   auto vertex = [&](std::size_t p, int j) {
@@ -562,9 +560,8 @@ TEST(PlannerIssue11, GrooveApproachFollowsTheChosenAxisAndNoMoveCollides) {
   geom::QueryWorkspace ws;
   cspace::Counters c;
   kin::Axes q0 = p.axes[1];
-  ASSERT_TRUE(k->solve_for_rotaries({prog.moves[0].tip_in_part_mm + 5.0 * prog.moves[0].axis_in_part - 5.0 * b.axis,
-                                     b.axis},
-                                    q0));
+  ASSERT_TRUE(k->solve_for_rotaries(
+      {prog.moves[0].tip_in_part_mm + 5.0 * prog.moves[0].axis_in_part - 5.0 * b.axis, b.axis}, q0));
   EXPECT_EQ(sp.swept(q0, p.axes[1], cspace::SweepMode::Cutting, ws, c).status, cspace::SweepStatus::Collides);
 }
 
@@ -624,10 +621,10 @@ TEST(PlannerIssue11, SameAnswerAtAnyThreadCount) {
 TEST(PlannerIssue11, CompareCountsSweptCollisionsAndReportsSegmentsInJson) {
   const std::string dir = ::testing::TempDir();
   const std::string json = dir + "/groove.compare.json", nc = dir + "/groove.planned.ngc";
-  const auto r = test::run_command(std::string(CSCAM_CLI) + " compare " +
-                                   test::source_path("examples/groove/groove.cls") + " --machine trunnion-ac --part " +
-                                   test::source_path("examples/groove/groove.stl") + " --cone 25 --json-out " + json +
-                                   " -o " + nc);
+  const auto r =
+      test::run_command(std::string(CSCAM_CLI) + " compare " + test::source_path("examples/groove/groove.cls") +
+                        " --machine trunnion-ac --part " + test::source_path("examples/groove/groove.stl") +
+                        " --cone 25 --json-out " + json + " -o " + nc);
   ASSERT_EQ(r.status, 0) << r.output;
   EXPECT_NE(r.output.find("colliding moves (swept)"), std::string::npos) << r.output;
   std::ifstream in(json);
@@ -803,4 +800,172 @@ TEST(PlannerReports, FailureCausesAndLegStatesBecomeTextOnlyInReports) {
   legs.max_tilt_rad = deg2rad(0.5);
   EXPECT_TRUE(legs.monotonic());
   EXPECT_EQ(legs.text(), "monotonic: the reversal of q2 at CL line 12 removed by tilting at most 0.500 deg");
+}
+
+namespace {
+
+/// Windowed planning with `window` moves per window on the trunnion (collision scene optional).
+plan::Plan run_windowed(const cl::Program& prog, double cone_deg, std::size_t window,
+                        const geom::Scene* scene = nullptr, const geom::ToolShape* tool = nullptr, double ball_r = 0) {
+  static const machine::Machine m = trunnion();
+  plan::Options o;
+  o.cspace.cone_rad = deg2rad(cone_deg);
+  o.cspace.ball_radius_mm = ball_r;
+  o.cspace.check_collision = scene != nullptr;
+  plan::WindowOptions w;
+  w.window = window;
+  return plan::plan_windowed(m, m.kinematics(), scene, tool, o, prog, w);
+}
+
+/// Largest rotary step (either rotary, rad) into move i.
+double rotary_step(const plan::Plan& p, std::size_t i) {
+  return std::max(std::abs(p.axes[i][3] - p.axes[i - 1][3]), std::abs(p.axes[i][4] - p.axes[i - 1][4]));
+}
+
+}  // namespace
+
+TEST(PlannerWindows, WindowsShareOneMoveAndCutAtSegmentEnds) {
+  // Three segments of 20 points (each starts with a rapid): windows of 25 cut at the segment ends when one lies in
+  // the second half of the window, else inside a segment at a feed move.
+  std::ostringstream o;
+  o << "UNITS/MM\nMULTAX\nCUTTER/10,0\nFEDRAT/MMPM,1000\n";
+  for (int g = 0; g < 3; ++g) {
+    o << "RAPID\n";
+    for (int i = 0; i < 20; ++i) o << "GOTO/" << i << "," << 10 * g << ",0,0,0,1\n";
+  }
+  const cl::Program prog = cl::read_text(o.str(), "segs.cls");
+  ASSERT_EQ(prog.moves.size(), 60u);
+  const auto w = plan::windows_of(prog, 25);
+  ASSERT_GE(w.size(), 3u);
+  EXPECT_EQ(w.front().first, 0u);
+  EXPECT_EQ(w.back().second, 59u);
+  for (std::size_t i = 1; i < w.size(); ++i) {
+    EXPECT_EQ(w[i].first, w[i - 1].second) << "consecutive windows share one move";
+    EXPECT_LE(w[i - 1].second - w[i - 1].first, 25u);
+  }
+  EXPECT_EQ(w[0].second, 19u) << "the first cut falls at the end of the first segment";
+  EXPECT_EQ(w[1].second, 39u);
+  // Without a segment end in reach: a cut at a feed move.
+  const auto w2 = plan::windows_of(prog, 7);
+  for (const auto& [a, b] : w2)
+    if (b + 1 < prog.moves.size())
+      EXPECT_TRUE(prog.moves[b + 1].kind == cl::MotionKind::Rapid || prog.moves[b].kind != cl::MotionKind::Rapid);
+  EXPECT_EQ(plan::effective_window(60, {}), 0u) << "automatic: no windows for a short program";
+  EXPECT_EQ(plan::effective_window(60000, {}), 1000u);
+}
+
+TEST(PlannerWindows, SmallWindowsKeepTheTiersAndJoinWithoutAJump) {
+  // Closed-form tiers (the tests above), planned in windows of 7 moves: the same tier per segment and the same
+  // axis values where the answer is unique; where it is not (shortest path) every join is continuous.
+  struct Case {
+    cl::Program prog;
+    plan::Tier tier;
+  };
+  const std::vector<Case> cases = {
+      {sweep(
+           30, [](double) { return 25.0; }, [](double) { return 40.0; }),
+       plan::Tier::Fixed2},
+      {sweep(
+           40, [](double) { return 30.0; }, [](double s) { return 90.0 * s; }),
+       plan::Tier::Fixed1},
+      {sweep(
+           40, [](double s) { return 10.0 + 30.0 * s; }, [](double s) { return 60.0 * s; }),
+       plan::Tier::Monotonic},
+      {sweep(
+           41, [](double s) { return 10.0 + 30.0 * s; }, [](double s) { return 60.0 * (1 - std::abs(2 * s - 1)); }),
+       plan::Tier::Shortest},
+  };
+  const auto k = trunnion().kinematics();
+  for (const Case& c : cases) {
+    const auto whole = run(c.prog, 0.0);
+    const auto win = run_windowed(c.prog, 0.0, 7);
+    ASSERT_EQ(whole.segments.size(), 1u);
+    ASSERT_EQ(win.segments.size(), 1u) << "a segment split by windows is reported once";
+    EXPECT_EQ(whole.segments[0].tier, c.tier);
+    EXPECT_EQ(win.segments[0].tier, c.tier) << win.summary();
+    EXPECT_EQ(win.segments[0].failures.size(), static_cast<std::size_t>(c.tier) - 1) << win.summary();
+    EXPECT_EQ(win.segments[0].first_move, 0u);
+    EXPECT_EQ(win.segments[0].last_move, c.prog.moves.size() - 1);
+    // Cone 0: every point on its CL axis (exact), within the limits.
+    for (std::size_t i = 0; i < c.prog.moves.size(); ++i) {
+      EXPECT_GT(k->forward(win.axes[i]).axis.dot(c.prog.moves[i].axis_in_part.normalized()), 1 - 1e-9);
+      EXPECT_TRUE(k->check_limits(win.axes[i]).empty());
+    }
+    // No jump at a join: the step into and out of every join is no larger than the unwindowed plan's largest step.
+    double largest = 0;
+    for (std::size_t i = 1; i < whole.axes.size(); ++i) largest = std::max(largest, rotary_step(whole, i));
+    for (const auto& [a, b] : plan::windows_of(c.prog, 7)) {
+      if (b + 1 >= c.prog.moves.size()) continue;
+      EXPECT_LE(rotary_step(win, b), largest + 1e-9) << "into the join at move " << b;
+      EXPECT_LE(rotary_step(win, b + 1), largest + 1e-9) << "out of the join at move " << b;
+    }
+    if (c.tier != plan::Tier::Shortest)
+      for (std::size_t i = 0; i < c.prog.moves.size(); ++i)
+        for (int j = 0; j < 5; ++j) EXPECT_NEAR(win.axes[i][j], whole.axes[i][j], 1e-9) << "move " << i;
+  }
+}
+
+TEST(PlannerWindows, GrooveInSmallWindowsStaysCollisionFreeAtAndBetweenThePoints) {
+  // The seed-002 groove at cone 25 (collision pruning decides the orientation) in windows of 20 moves: every point
+  // collision-free by an independent check, every move between points certified by the windows' swept checks, the
+  // cone and the limits kept, and one fixed orientation for the cut as without windows.
+  geom::Scene scene;
+  scene.add("groove", geom::ObstacleRole::Part, geom::load_mesh(test::source_path("examples/groove/groove.stl")));
+  scene.build(false);
+  const cl::Program prog = cl::read_file(test::source_path("examples/groove/groove.cls"));
+  const auto tool = geom::ToolShape::from_cutter(10, 5, 30);
+  const auto whole = run(prog, 25.0, &scene, &tool, 5.0);
+  const auto win = run_windowed(prog, 25.0, 20, &scene, &tool, 5.0);
+  ASSERT_EQ(win.segments.size(), whole.segments.size());
+  EXPECT_EQ(win.segments[0].tier, whole.segments[0].tier) << win.summary();
+  EXPECT_EQ(win.swept.collisions, 0u) << win.summary();
+  EXPECT_EQ(win.swept.uncertified, 0u) << win.summary();
+  EXPECT_EQ(win.swept.moves, whole.swept.moves) << "every move checked by exactly one window";
+  const auto m = trunnion();
+  const auto k = m.kinematics();
+  geom::QueryWorkspace ws;
+  geom::CheckOptions co;
+  for (std::size_t i = 0; i < prog.moves.size(); ++i) {
+    EXPECT_FALSE(geom::check(scene, tool, k->forward(win.axes[i]), co, ws).collides) << "move " << i;
+    EXPECT_TRUE(k->check_limits(win.axes[i]).empty());
+    if (std::find(win.replaced_moves.begin(), win.replaced_moves.end(), i) != win.replaced_moves.end()) continue;
+    EXPECT_LE(std::acos(std::min(1.0, k->forward(win.axes[i]).axis.dot(prog.moves[i].axis_in_part.normalized()))),
+              deg2rad(25.0) + 1e-9);
+  }
+  // The independent swept check of the stitched program agrees: nothing collides between the points.
+  cspace::Options o;
+  o.cone_rad = deg2rad(25.0);
+  o.check_collision = true;
+  o.ball_radius_mm = 5.0;
+  const cspace::Space sp(k, &scene, &tool, o);
+  cspace::Counters c;
+  const plan::SweptSummary s = plan::check_program(sp, m, win.program, win.axes, c);
+  EXPECT_EQ(s.collisions, 0u);
+  EXPECT_EQ(win.replaced_moves, whole.replaced_moves);
+}
+
+TEST(PlannerWindows, ALongThreePlusTwoSegmentStaysFixedAcrossWindows) {
+  // The axis wobbles 4 deg around 20 deg tilt: one orientation suits the whole segment at cone 5, but not the one
+  // closest to the first window's axes. Windows of 7 moves must keep one fixed orientation (the whole segment's).
+  const auto prog = sweep(
+      50, [](double s) { return 20.0 + 4.0 * std::sin(6.28 * s); }, [](double s) { return 30.0 + 8.0 * s; },
+      "CUTTER/10,5");
+  const auto whole = run(prog, 5.0, nullptr, nullptr, 5.0);
+  const auto win = run_windowed(prog, 5.0, 7, nullptr, nullptr, 5.0);
+  ASSERT_EQ(whole.segments[0].tier, plan::Tier::Fixed2);
+  ASSERT_EQ(win.segments.size(), 1u);
+  EXPECT_EQ(win.segments[0].tier, plan::Tier::Fixed2) << win.summary();
+  EXPECT_TRUE(win.segments[0].failures.empty()) << win.summary();
+  for (std::size_t i = 1; i < prog.moves.size(); ++i) {
+    EXPECT_EQ(win.axes[i][3], win.axes[0][3]);
+    EXPECT_EQ(win.axes[i][4], win.axes[0][4]);
+  }
+  // Within the cone at every point, the ball centre on the CL path.
+  const auto k = trunnion().kinematics();
+  for (std::size_t i = 0; i < prog.moves.size(); ++i) {
+    const kin::Posed fk = k->forward(win.axes[i]);
+    const Vec3 centre_cl = prog.moves[i].tip_in_part_mm + 5.0 * prog.moves[i].axis_in_part.normalized();
+    EXPECT_LT((fk.tip_mm + 5.0 * fk.axis - centre_cl).norm(), tol::kRoundTripMm);
+    EXPECT_LE(std::acos(std::min(1.0, fk.axis.dot(prog.moves[i].axis_in_part.normalized()))), deg2rad(5.0) + 1e-9);
+  }
 }

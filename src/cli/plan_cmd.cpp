@@ -23,6 +23,7 @@
 #include "cscam/machine/machine.hpp"
 #include "cscam/nc/reader.hpp"
 #include "cscam/plan/plan.hpp"
+#include "cscam/plan/stream.hpp"
 #include "cscam/post/post.hpp"
 #include "cscam/report/json.hpp"
 #include "cscam/report/letters.hpp"
@@ -277,10 +278,18 @@ void write_svgs(const Setup& s, const plan::Planner& planner, const plan::Plan& 
   }
 }
 
+/// The planner's answer, in windows of --window moves (automatic above 50,000 moves) so that memory stays bounded.
+plan::Plan planned(const Setup& s, const PlanArgs& a, const geom::Scene* head) {
+  plan::WindowOptions w;
+  w.window = a.window;
+  return plan::plan_windowed(s.m, s.kin, &s.scene, s.tool.get(), s.opt, s.prog, w, head);
+}
+plan::Plan planned(const Setup& s, const PlanArgs& a) { return planned(s, a, s.planner_head()); }
+
 int run_plan(const PlanArgs& a) {
   auto s = setup(a);
   const plan::Planner planner(s->m, s->kin, &s->scene, s->tool.get(), s->opt, s->planner_head());
-  const plan::Plan p = planner.run(s->prog);
+  const plan::Plan p = planned(*s, a);
   post::Summary sum;
   const std::string text = post_to_string(*s, p.program, p.axes, a, "cspace-planner", sum);
   const std::string out = a.out.empty() ? fs::path(a.cl).stem().string() + ".planned.ngc" : a.out;
@@ -383,7 +392,7 @@ int run_compare(const PlanArgs& a) {
   const std::string conv_text = post_to_string(*s, s->prog, conv, a, "conventional", sc);
   const double conv_s = std::chrono::duration<double>(std::chrono::steady_clock::now() - t0).count();
   const plan::Planner planner(s->m, s->kin, &s->scene, s->tool.get(), s->opt, s->planner_head());
-  const plan::Plan p = planner.run(s->prog);
+  const plan::Plan p = planned(*s, a);
   post::Summary sp;
   const std::string plan_text = post_to_string(*s, p.program, p.axes, a, "cspace-planner", sp);
   const auto vc = verify_text(*s, conv_text, 0.0);
@@ -546,6 +555,9 @@ void common_options(CLI::App* c, PlanArgs& a) {
                 "3+2 segments: tilted (G68.2, G254, CYCLE800, PLANE SPATIAL) or machine coordinates (default: the "
                 "machine's post.work_plane)")
       ->check(CLI::IsMember({"tilted", "machine"}));
+  c->add_option("--window", a.window,
+                "plan in windows of N moves, each continuing where the previous ended (bounded memory); "
+                "default: 1000 above 50,000 moves, else none");
   c->add_flag("--no-machine-geometry", a.no_machine_geometry,
               "leave the machine file's bodies (geometry.bodies) out of the collision scene");
 }
@@ -555,8 +567,7 @@ void common_options(CLI::App* c, PlanArgs& a) {
 PlanWritten plan_and_write(const PlanArgs& a, const std::string& out) {
   PlanWritten w;
   auto s = setup(a, &w.warnings);
-  const plan::Planner planner(s->m, s->kin, &s->scene, s->tool.get(), s->opt, s->has_head ? &s->head : nullptr);
-  const plan::Plan p = planner.run(s->prog);
+  const plan::Plan p = planned(*s, a, s->has_head ? &s->head : nullptr);
   const std::string text = post_to_string(*s, p.program, p.axes, a, "cspace-planner", w.post);
   w.gate = gate::write_checked(out, text, p.program, s->m, *s->kin, gate_options(*s, a, a.cone_deg),
                                &w.post.cl_line_of_nc_line);

@@ -23,6 +23,7 @@ struct PlanArgs {
   bool no_machine_geometry = false;  ///< leave the machine file's bodies out of the scene
   std::optional<bool> tcp;           ///< tool-tip control on/off; unset: the machine's post.tcp
   std::string work_plane;            ///< tilted | machine for 3+2 segments; empty: the machine's post.work_plane
+  std::size_t window = 0;            ///< plan in windows of this many moves; 0: automatic (above 50,000 moves)
 };
 
 /// What plan_and_write did.

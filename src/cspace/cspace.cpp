@@ -253,7 +253,7 @@ void Space::evaluate(const kin::Posed& cl, Cell& cell, geom::QueryWorkspace& ws,
       // toward the tip by the margin (less relief) so that a translation along the axis is covered too.
       const double r = tool_->cutter.corner_radius_mm;
       const double relief = opt_.collision.relief_mm >= 0 ? opt_.collision.relief_mm : (r > 0 ? 0.2 * r : 0.5);
-      const double m = std::min(1.0, relief);
+      const double m = std::min(cert->probe_mm, relief);
       geom::CheckOptions o = co;
       o.clearance_mm += m;
       o.cutter_clearance_mm += m;
@@ -262,7 +262,7 @@ void Space::evaluate(const kin::Posed& cl, Cell& cell, geom::QueryWorkspace& ws,
       Eigen::Isometry3d T_head_part;
       if (m > 0 && !geom::check(*scene_, *tool_, pose, o, ws).collides &&
           (!head_ || !kin_->head_in_part(q, T_head_part) || geom::meshes_apart(*head_, T_head_part, *scene_, co, m))) {
-        *cert = {true, pose.tip_mm, pose.axis, cell.r1, cell.r2, m};
+        *cert = {true, pose.tip_mm, pose.axis, cell.r1, cell.r2, m, cert->probe_mm};
         cell.status = Status::Feasible;
         return;
       }

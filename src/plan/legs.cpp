@@ -191,14 +191,16 @@ LegReport replan_legs(const SegmentView& v, SegmentCells& d, std::vector<const C
   std::vector<const Cell*> mono;
   std::size_t fl = 0;
   const double tilt_step = v.options.tilt_step_rad > 0 ? v.options.tilt_step_rad : v.space.options().resolution_rad;
-  if (!v.exact && legs_tilt(v, d, rev, kLegHyst, tilt_step, path, mono, fl, rep.why)) {
+  // A pinned first point (windowed planning) must keep its rotaries.
+  auto keeps_pin = [&] { return !d.layers[0].pinned || (mono[0]->r1 == path[0]->r1 && mono[0]->r2 == path[0]->r2); };
+  if (!v.exact && legs_tilt(v, d, rev, kLegHyst, tilt_step, path, mono, fl, rep.why) && keeps_pin()) {
     path = mono;
     for (const Cell* c : mono) rep.max_tilt_rad = std::max(rep.max_tilt_rad, static_cast<double>(c->orient_err));
     rep.state = Legs::TiltedMonotonic;
     rep.why.clear();
     tier = Tier::Shortest;  // the rotaries now follow the tilt refinement
     description = "re-planned inside the cone for monotonic legs (" + description + " before)";
-  } else if (v.exact && legs_monotone(v, d, rev, kLegHyst, mono, fl, rep.why)) {
+  } else if (v.exact && legs_monotone(v, d, rev, kLegHyst, mono, fl, rep.why) && keeps_pin()) {
     path = mono;
     rep.state = Legs::ReversalRemoved;
     rep.why.clear();

@@ -159,15 +159,21 @@ void write_back(const kin::Kinematics& kin, const detail::SegmentCells& d, const
 /// into (out of) follows the chosen axis instead, at the same distance, with that point's rotaries; otherwise the
 /// new tilt would be dragged along the old approach line (through the material beside it). Moves whose end moved
 /// lose their swept certificate.
-int replace_approach_retract(const kin::Kinematics& kin, const cl::Program& program, std::size_t s, std::size_t e,
-                             Plan& plan, std::vector<char>& swept_ok) {
+int replace_approach_retract(const kin::Kinematics& kin, const Options& opt, const cl::Program& program, std::size_t s,
+                             std::size_t e, Plan& plan, std::vector<char>& swept_ok) {
   const auto& moves = program.moves;
   int replaced = 0;
-  if (e > s && moves[s].kind == cl::MotionKind::Rapid && detail::along_chosen_axis(kin, program, plan, s, s + 1)) {
+  // Windowed planning: move 0 is the previous window's last move (kept), and a last move that the next window
+  // continues is no retract.
+  const bool pinned0 = s == 0 && opt.start_rotaries.has_value() && opt.start_is_join;
+  const bool open_end = opt.continues && e + 1 == moves.size();
+  if (e > s && !pinned0 && moves[s].kind == cl::MotionKind::Rapid &&
+      detail::along_chosen_axis(kin, program, plan, s, s + 1)) {
     ++replaced;
     swept_ok[s + 1] = 0;
   }
-  if (e > s + 1 && moves[e].kind != cl::MotionKind::Rapid && detail::along_chosen_axis(kin, program, plan, e, e - 1)) {
+  if (e > s + 1 && !open_end && moves[e].kind != cl::MotionKind::Rapid &&
+      detail::along_chosen_axis(kin, program, plan, e, e - 1)) {
     ++replaced;
     swept_ok[e] = 0;
   }
@@ -248,7 +254,7 @@ Plan Planner::run(const cl::Program& program) const {
     if (!opt_.monotone_axes.empty() && cells.layers.size() > 2)
       rep.legs = detail::replan_legs(view, cells, c.path, rep.tier, rep.description);
     write_back(*kin_, cells, c.path, plan);
-    rep.approach_moves_replaced = replace_approach_retract(*kin_, program, s, e, plan, swept_ok);
+    rep.approach_moves_replaced = replace_approach_retract(*kin_, opt_, program, s, e, plan, swept_ok);
     plan.segments.push_back(std::move(rep));
   }
   // Every move between points, checked swept: feed blocks, approach and retract, and the reorientation into each

@@ -88,7 +88,7 @@ void restore(Layer& l, std::unordered_map<std::uint64_t, Cell>& keep) {
 }  // namespace
 
 SegmentCells make_cells(const SegmentView& v, std::size_t first, std::size_t last, cspace::Counters& counters) {
-  SegmentCells d(counters);
+  SegmentCells d(counters, v.space);
   d.layers.resize(last - first + 1);
   const auto& moves = v.program.moves;
   // Only the first point's cells are needed by tier 1 (the others are tested cell by cell); the rest
@@ -98,10 +98,28 @@ SegmentCells make_cells(const SegmentView& v, std::size_t first, std::size_t las
     l.move = first + k;
     l.cl = {moves[first + k].tip_in_part_mm, moves[first + k].axis_in_part.normalized()};
     // Tier 1 takes its candidates from the first point: give it a much larger share.
-    if (k == 0 || v.exact)
+    const bool pin = k == 0 && first == 0 && v.options.start_rotaries.has_value();
+    if ((k == 0 && !pin) || v.exact)
       enumerate_layer(v, l, k == 0 ? 64 * v.options.max_cells_per_point : v.options.max_cells_per_point, counters);
   }
   if (v.exact) expand_singular(d.layers);
+  if (first == 0 && v.options.start_rotaries) {
+    // Windowed planning: the first point keeps the rotaries the previous window ended at, as its only cell.
+    Layer& l = d.layers[0];
+    const double kr = v.exact ? kExactKeyRad : v.space.options().resolution_rad;
+    Cell c;
+    c.r1 = (*v.options.start_rotaries)[0];
+    c.r2 = (*v.options.start_rotaries)[1];
+    c.i1 = static_cast<int>(std::lround(c.r1 / kr));
+    c.i2 = static_cast<int>(std::lround(c.r2 / kr));
+    (void)v.space.in_cone(l.cl, c.r1, c.r2, &c.orient_err);
+    l.cells.assign(1, c);
+    l.index.clear();
+    l.index.emplace(key(c.i1, c.i2), 0);
+    l.extra.clear();
+    l.truncated = false;
+    l.pinned = true;
+  }
   return d;
 }
 
@@ -133,7 +151,7 @@ Cell* cell_at(const SegmentView& v, SegmentCells& d, std::size_t k, int i1, int 
   if (auto it = l.index.find(kk); it != l.index.end()) return &l.cells[static_cast<size_t>(it->second)];
   if (auto it = l.extra.find(kk); it != l.extra.end())
     return it->second.status == Status::Orientation ? nullptr : &it->second;
-  if (v.exact) return nullptr;  // exact cells are all enumerated
+  if (v.exact || l.pinned) return nullptr;  // exact cells are all enumerated; a pinned layer has its one cell
   Cell c;
   c.i1 = i1;
   c.i2 = i2;

@@ -185,8 +185,10 @@ bool tier_shortest(const SegmentView& v, SegmentCells& d, TierOutcome& out) {
     // still lacks, so the cells evaluated (and the counters) are those of a serial scan, at any thread count.
     for (std::size_t next = 0; next < tent.size() && S.size() < beam;) {
       const std::size_t b = next, e = std::min(tent.size(), next + (beam - S.size()));
+      // The beam revisits the same cells point after point: their clearance certificates spare most queries.
+      d.certs.reserve();
       parallel_items(e - b, d.counters, [&](std::size_t i, geom::QueryWorkspace& ws, cspace::Counters& cc) {
-        v.space.evaluate(L[k].cl, *tent[b + i].second.first, ws, cc);
+        d.certs.evaluate(L[k].cl, *tent[b + i].second.first, ws, cc);
       });
       for (std::size_t i = b; i < e; ++i)
         if (tent[i].second.first->status == Status::Feasible)

@@ -68,6 +68,9 @@ struct Certificate {
   Eigen::Vector3d axis = Eigen::Vector3d::UnitZ();
   double r1 = 0.0, r2 = 0.0;  ///< rotary values of the certified pose, rad
   double margin_mm = 0.0;
+  /// The margin the next probe asks for (at most the relief above the cutting end): smaller margins certify fewer
+  /// neighbours but succeed in tighter places (CertificateStore adapts it per cell).
+  double probe_mm = 1.0;
 };
 
 /// How a motion between two poses is checked. Cutting: the cutting end (ball or corner radius plus relief) is in

@@ -3,8 +3,10 @@
 /// The C-space tool-orientation planner (seed 002). For every continuous cutting segment it searches,
 /// in this order: both rotaries fixed (3+2); one fixed and the other monotonic; both monotonic; and
 /// finally the shortest path (least weighted rotary travel, bounded step per point).
+#include <array>
 #include <cstdint>
 #include <memory>
+#include <optional>
 #include <string>
 #include <vector>
 
@@ -35,6 +37,16 @@ struct Options {
   std::vector<int> monotone_axes;
   double leg_step_cells = 4;   ///< largest per-point change of tilt (in tilt steps) of that re-plan
   double tilt_step_rad = 0.0;  ///< tilt grid of that re-plan (a disc of radius cone around the CL axis); 0: resolution
+  /// Windowed planning (plan_windowed): move 0 keeps exactly these rotary values (primary, secondary, rad), where
+  /// the previous window ended, so that the windows join without a rotary jump. Move 0 is then never re-placed as
+  /// an approach, and the re-plans that could move it (leg re-plan) keep it.
+  std::optional<std::array<double, 2>> start_rotaries;
+  /// With start_rotaries: move 0 is the previous window's last move, already planned and never re-placed. False for
+  /// the first window, where start_rotaries is an orientation chosen for the whole first segment (plan_windowed).
+  bool start_is_join = true;
+  /// Windowed planning: the program's last move is not the end of its segment (the next window continues it), so
+  /// it is not re-placed as a retract.
+  bool continues = false;
 };
 
 /// The reorientation into a segment.

@@ -6,10 +6,6 @@
 // points, backtrack from the cheapest end) is written once, in LayeredDp, and the exact-orientation search on it
 // (dp_exact) serves every tier at cone 0.
 #include <fmt/format.h>
-#include <tbb/blocked_range.h>
-#include <tbb/enumerable_thread_specific.h>
-#include <tbb/parallel_for.h>
-#include <tbb/task_arena.h>
 
 #include <cmath>
 #include <cstdint>
@@ -20,7 +16,8 @@
 #include <utility>
 #include <vector>
 
-#include "cscam/core/threads.hpp"
+#include "../parallel.hpp"  // parallel_items, parallel_indices: a kept arena, per-thread query workspaces
+#include "cscam/cspace/certificates.hpp"
 #include "cscam/kin/track.hpp"
 #include "cscam/plan/plan.hpp"
 
@@ -37,36 +34,6 @@ inline std::uint64_t key(int i1, int i2) {
   return (static_cast<std::uint64_t>(static_cast<std::uint32_t>(i1)) << 32) | static_cast<std::uint32_t>(i2);
 }
 
-/// Evaluates items in parallel over the immutable space, one workspace per thread. `job(i, ws, counters)` must only
-/// touch item i, so the outcome (and the summed counters) does not depend on the thread count.
-template <typename Job>
-void parallel_items(std::size_t n, cspace::Counters& total, Job&& job) {
-  struct Local {
-    geom::QueryWorkspace ws;
-    cspace::Counters c;
-  };
-  tbb::enumerable_thread_specific<Local> locals;
-  tbb::task_arena arena(static_cast<int>(worker_threads()));
-  arena.execute([&] {
-    tbb::parallel_for(tbb::blocked_range<std::size_t>(0, n), [&](const tbb::blocked_range<std::size_t>& r) {
-      Local& l = locals.local();
-      for (std::size_t i = r.begin(); i != r.end(); ++i) job(i, l.ws, l.c);
-    });
-  });
-  for (const Local& l : locals) total += l.c;
-}
-
-/// Runs `job(i)` for i in [0, n) in parallel (pure computations that write slot i only).
-template <typename Job>
-void parallel_indices(std::size_t n, Job&& job) {
-  tbb::task_arena arena(static_cast<int>(worker_threads()));
-  arena.execute([&] {
-    tbb::parallel_for(tbb::blocked_range<std::size_t>(0, n), [&](const tbb::blocked_range<std::size_t>& r) {
-      for (std::size_t i = r.begin(); i != r.end(); ++i) job(i);
-    });
-  });
-}
-
 /// One CL point of a segment and its orientation cells.
 struct Layer {
   std::size_t move = 0;
@@ -75,6 +42,7 @@ struct Layer {
   std::unordered_map<std::uint64_t, int> index;   ///< (i1,i2) -> position in cells
   std::unordered_map<std::uint64_t, Cell> extra;  ///< evaluated cells outside the cap
   bool truncated = false;                         ///< `cells` stopped at the cap: the cone holds more
+  bool pinned = false;                            ///< Options::start_rotaries: `cells` is that one cell, no other
 };
 
 /// What does not change while a segment is searched.
@@ -95,13 +63,16 @@ struct SegmentCells {
   std::vector<Layer> layers;
   cspace::Counters& counters;
   geom::QueryWorkspace ws;
+  /// Clearance certificates per grid cell, across this segment's points (tier 4's beam revisits the same cells).
+  cspace::CertificateStore certs;
   /// The full (capped) cell lists of the points after the first are in the layers (tier 1 needs only the first's).
   bool listed = false;
-  explicit SegmentCells(cspace::Counters& c) : counters(c) {}
+  SegmentCells(cspace::Counters& c, const cspace::Space& space) : counters(c), certs(space) {}
 };
 
 /// The layers of the moves [first, last]: every point's pose; the first point's cells (a large share: tier 1 takes its
 /// candidates there) and, at cone 0, every point's IK cells, singular points offered their neighbours' primaries.
+/// With Options::start_rotaries, the program's first point (first == 0) has that one cell only (pinned).
 SegmentCells make_cells(const SegmentView& v, std::size_t first, std::size_t last, cspace::Counters& counters);
 /// Lists point k's cells afresh, at most `cap` of them.
 void enumerate_layer(const SegmentView& v, Layer& l, std::size_t cap, cspace::Counters& counters);

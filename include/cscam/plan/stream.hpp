@@ -1,0 +1,43 @@
+#pragma once
+/// @file
+/// Windowed planning of long programs (issue 11, part 3): the program is planned in windows of N moves, each
+/// window starting at the rotaries the previous one ended at (Options::start_rotaries), so that the planner's
+/// per-point data (cell lists, caches) is bounded by the window and the result is continuous at the joins.
+#include <cstddef>
+#include <memory>
+
+#include "cscam/cl/program.hpp"
+#include "cscam/plan/plan.hpp"
+
+namespace cscam::plan {
+
+/// How plan_windowed cuts a program.
+struct WindowOptions {
+  /// Moves per window; 0: automatic (no windows up to `auto_above` moves, `auto_window` above).
+  std::size_t window = 0;
+  std::size_t auto_above = 50000;
+  std::size_t auto_window = 1000;
+};
+
+/// The window size plan_windowed uses for a program of `moves` moves (0: one window, the planner as is).
+[[nodiscard]] std::size_t effective_window(std::size_t moves, const WindowOptions& w);
+
+/// The windows [first, last] (inclusive move indices) plan_windowed plans: consecutive windows share one move (the
+/// last of one is the first of the next, pinned there). A cut falls, where one exists in the second half of a window,
+/// at the end of a segment (the move before a rapid), so that whole segments stay in one window; otherwise inside a
+/// segment at a feed move.
+[[nodiscard]] std::vector<std::pair<std::size_t, std::size_t>> windows_of(const cl::Program& program,
+                                                                          std::size_t window);
+
+/// Plans `program` as Planner::run does, in windows of `w.window` moves (see WindowOptions). Each window is a
+/// Planner::run on its moves; a window after the first starts with the previous window's last move pinned to the
+/// rotaries chosen there, so no rotary jumps at a join, and every move between points is checked (swept) by exactly
+/// one window. A segment split across windows is reported once, with the tier its stitched path actually satisfies
+/// (both rotaries fixed, one fixed and the other monotonic, both monotonic, or shortest path). Counters, swept
+/// results, warnings and replaced moves are merged; `seconds` and `peak_memory_mb` cover the whole run.
+/// Throws InputError as Planner::run does (the CL line of the point that failed).
+Plan plan_windowed(const machine::Machine& machine, std::shared_ptr<const kin::Kinematics> kinematics,
+                   const geom::Scene* scene, const geom::ToolShape* tool, const Options& options,
+                   const cl::Program& program, const WindowOptions& w = {}, const geom::Scene* head = nullptr);
+
+}  // namespace cscam::plan

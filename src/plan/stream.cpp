@@ -1,0 +1,264 @@
+#include "cscam/plan/stream.hpp"
+
+#include <fmt/format.h>
+#include <sys/resource.h>
+
+#include <algorithm>
+#include <chrono>
+#include <cmath>
+#include <map>
+#include <optional>
+#include <utility>
+
+#include "cscam/core/error.hpp"
+#include "cscam/core/tolerances.hpp"
+
+namespace cscam::plan {
+
+std::size_t effective_window(std::size_t moves, const WindowOptions& w) {
+  const std::size_t n = w.window > 0 ? w.window : (moves > w.auto_above ? w.auto_window : 0);
+  // A window covers at least two moves (its pinned first move and one more), and fewer moves need no windows.
+  if (n == 0 || moves <= n + 1) return 0;
+  return std::max<std::size_t>(n, 2);
+}
+
+std::vector<std::pair<std::size_t, std::size_t>> windows_of(const cl::Program& program, std::size_t window) {
+  const auto& mv = program.moves;
+  const std::size_t n = mv.size();
+  std::vector<std::pair<std::size_t, std::size_t>> out;
+  if (n == 0) return out;
+  if (window < 2 || n <= window + 1) {
+    out.emplace_back(0, n - 1);
+    return out;
+  }
+  for (std::size_t a = 0;;) {
+    if (n - 1 - a <= window) {
+      out.emplace_back(a, n - 1);
+      break;
+    }
+    // Prefer a segment end in the window's second half: the next window then starts a whole segment.
+    std::size_t b = 0;
+    for (std::size_t c = a + window; c > a + window / 2; --c)
+      if (mv[c + 1].kind == cl::MotionKind::Rapid) {
+        b = c;
+        break;
+      }
+    if (b == 0) {
+      // Inside a segment: at a feed move (a pinned rapid would be a segment start the later window cannot approach).
+      b = a + window;
+      while (b > a + 1 && mv[b].kind == cl::MotionKind::Rapid) --b;
+    }
+    out.emplace_back(a, b);
+    a = b;
+  }
+  return out;
+}
+
+namespace {
+
+/// The strongest tier a stitched path satisfies on moves [f, l]: both rotaries constant, one constant and the other
+/// monotonic, both monotonic, or none of these.
+Tier tier_of_path(const std::vector<kin::Axes>& axes, std::size_t f, std::size_t l, int r1, int r2) {
+  auto constant = [&](int ax) {
+    for (std::size_t m = f + 1; m <= l; ++m)
+      if (std::abs(axes[m][ax] - axes[f][ax]) > tol::kRoundTripRad) return false;
+    return true;
+  };
+  auto monotone = [&](int ax) {
+    bool up = true, down = true;
+    for (std::size_t m = f + 1; m <= l; ++m) {
+      const double d = axes[m][ax] - axes[m - 1][ax];
+      up = up && d >= -tol::kRoundTripRad;
+      down = down && d <= tol::kRoundTripRad;
+    }
+    return up || down;
+  };
+  const bool c1 = constant(r1), c2 = constant(r2);
+  if (c1 && c2) return Tier::Fixed2;
+  const bool m1 = monotone(r1), m2 = monotone(r2);
+  if ((c1 && m2) || (c2 && m1)) return Tier::Fixed1;
+  if (m1 && m2) return Tier::Monotonic;
+  return Tier::Shortest;
+}
+
+/// The last move of the segment that starts at move `s` (a rapid, or the program's first move, starts one).
+std::size_t segment_end(const cl::Program& program, std::size_t s) {
+  std::size_t e = s;
+  while (e + 1 < program.moves.size() && program.moves[e + 1].kind != cl::MotionKind::Rapid) ++e;
+  return e;
+}
+
+/// A grid cell feasible at every point of moves [s, e] (within the cone, inside the strokes, collision-free), tried
+/// as tier 1 tries them: closest to the CL axis at `s` first, orientation over the whole range before any query, the
+/// point that rejected the previous candidate first; feasibility with a clearance certificate (one query per margin
+/// of travel). At most `tries` candidates get feasibility queries. A window sees only its own points, so a segment
+/// longer than a window is given this orientation as its start.
+std::optional<std::array<double, 2>> fixed_orientation(const cspace::Space& sp, const cl::Program& program,
+                                                       std::size_t s, std::size_t e, std::size_t cap, int tries,
+                                                       cspace::Counters& c) {
+  if (sp.options().cone_rad <= 0) return std::nullopt;  // exact cells: tier 1 decides inside the windows
+  auto pose = [&](std::size_t m) {
+    return kin::Posed{program.moves[m].tip_in_part_mm, program.moves[m].axis_in_part.normalized()};
+  };
+  std::vector<cspace::Cell> cells;
+  sp.enumerate(pose(s), cells, cap, c);
+  std::size_t hard = s;  // the point that rejected the last candidate's orientation
+  geom::QueryWorkspace ws;
+  for (const cspace::Cell& cell : cells) {
+    double dot = 0;
+    if (!sp.in_cone_cos(pose(hard), cell.r1, cell.r2, dot)) continue;
+    bool ok = true;
+    for (std::size_t m = s; m <= e && ok; ++m)
+      if (!sp.in_cone_cos(pose(m), cell.r1, cell.r2, dot)) {
+        ok = false;
+        hard = m;
+      }
+    if (!ok) continue;
+    if (tries-- <= 0) break;
+    cspace::Certificate cert;
+    for (std::size_t m = s; m <= e && ok; ++m) {
+      cspace::Cell x = cell;
+      x.status = cspace::Status::Unknown;
+      sp.evaluate(pose(m), x, ws, c, &cert);
+      ok = x.status == cspace::Status::Feasible;
+    }
+    if (ok) return std::array<double, 2>{cell.r1, cell.r2};
+  }
+  return std::nullopt;
+}
+
+/// The parts of one segment that windows planned separately.
+struct Parts {
+  std::vector<SegmentReport> reports;
+  std::vector<std::size_t> joins;  ///< move index where each later part starts (pinned)
+};
+
+}  // namespace
+
+Plan plan_windowed(const machine::Machine& machine, std::shared_ptr<const kin::Kinematics> kinematics,
+                   const geom::Scene* scene, const geom::ToolShape* tool, const Options& options,
+                   const cl::Program& program, const WindowOptions& w, const geom::Scene* head) {
+  const auto t0 = std::chrono::steady_clock::now();
+  const std::size_t window = effective_window(program.moves.size(), w);
+  if (window == 0) return Planner(machine, kinematics, scene, tool, options, head).run(program);
+  CSCAM_CHECK(!options.start_rotaries, "plan_windowed pins the windows' first moves itself");
+  const auto rp = kinematics->rotary_pair();
+  const std::size_t n = program.moves.size();
+  Plan out;
+  out.program = program;
+  out.axes.assign(n, kin::Axes::Zero());
+  std::map<std::size_t, Parts> split;  // index into out.segments -> its parts, for segments that windows split
+  cl::Program sub;
+  sub.file = program.file;
+  sub.part_name = program.part_name;
+  sub.source_units = program.source_units;
+  sub.multax = program.multax;
+  sub.msys = program.msys;
+  sub.tools = program.tools;
+  const auto wins = windows_of(program, window);
+  std::unique_ptr<cspace::Space> space;  // for the orientation pre-pass
+  for (std::size_t wi = 0; wi < wins.size(); ++wi) {
+    const auto [a, b] = wins[wi];
+    sub.moves.assign(program.moves.begin() + static_cast<std::ptrdiff_t>(a),
+                     program.moves.begin() + static_cast<std::ptrdiff_t>(b) + 1);
+    Options o = options;
+    if (wi > 0) {
+      // The join: the previous window's last move as it was planned (its tool pose is the FK of its axes, so the
+      // pinned cell reproduces those axes), with its rotaries as the only cell.
+      sub.moves[0] = out.program.moves[a];
+      o.start_rotaries = std::array<double, 2>{out.axes[a][rp[0]], out.axes[a][rp[1]]};
+    }
+    o.continues = b + 1 < n && program.moves[b + 1].kind != cl::MotionKind::Rapid;
+    if (wi == 0 && o.continues) {
+      // The first segment runs past this window: if one orientation suits all of it, start there (as one run's
+      // tier 1 would find it), so that the windows can keep it.
+      if (!space) space = std::make_unique<cspace::Space>(kinematics, scene, tool, options.cspace, head);
+      o.start_rotaries =
+          fixed_orientation(*space, program, a, segment_end(program, a), options.max_cells_per_point, 16, out.counters);
+      o.start_is_join = false;
+    }
+    Plan p = Planner(machine, kinematics, scene, tool, o, head).run(sub);
+    const std::size_t from = wi == 0 ? 0 : 1;  // the pinned move stays as the previous window planned it
+    for (std::size_t i = from; i < sub.moves.size(); ++i) {
+      out.axes[a + i] = p.axes[i];
+      out.program.moves[a + i] = p.program.moves[i];
+    }
+    out.counters += p.counters;
+    out.points_beyond_cap += p.points_beyond_cap;
+    for (std::size_t m : p.replaced_moves)
+      if (m >= from) out.replaced_moves.push_back(a + m);
+    for (auto& x : p.warnings) out.warnings.push_back(std::move(x));
+    out.swept.moves += p.swept.moves;
+    out.swept.collisions += p.swept.collisions;
+    out.swept.uncertified += p.swept.uncertified;
+    for (SweptHit& h : p.swept.hits) {
+      h.move += a;
+      out.swept.hits.push_back(std::move(h));
+    }
+    for (std::size_t g = 0; g < p.segments.size(); ++g) {
+      SegmentReport rep = std::move(p.segments[g]);
+      rep.first_move += a;
+      rep.last_move += a;
+      for (TierFailure& f : rep.failures) f.move += a;
+      if (wi > 0 && g == 0) {
+        // The pinned move alone: it ended the previous window's last segment (the cut fell at a segment end).
+        if (rep.last_move == a) continue;
+        // Otherwise this continues the previous window's last segment.
+        const std::size_t at = out.segments.size() - 1;
+        Parts& parts = split[at];
+        if (parts.reports.empty()) parts.reports.push_back(out.segments[at]);
+        parts.reports.push_back(rep);
+        parts.joins.push_back(a);
+        out.segments[at].last_move = rep.last_move;
+        out.segments[at].last_line = rep.last_line;
+        continue;
+      }
+      out.segments.push_back(std::move(rep));
+    }
+  }
+  // Segments planned in several windows: the tier their stitched path satisfies, and why the stronger ones failed.
+  for (auto& [at, parts] : split) {
+    SegmentReport& seg = out.segments[at];
+    const Tier tier = tier_of_path(out.axes, seg.first_move, seg.last_move, rp[0], rp[1]);
+    std::vector<TierFailure> failures;
+    for (int t = static_cast<int>(Tier::Fixed2); t < static_cast<int>(tier); ++t) {
+      const TierFailure* first = nullptr;
+      for (const SegmentReport& r : parts.reports)
+        for (const TierFailure& f : r.failures)
+          if (static_cast<int>(f.tier) == t && !first) first = &f;
+      if (first) {
+        failures.push_back(*first);
+        continue;
+      }
+      // Every window reached this tier on its own, but their paths do not join into one of it.
+      const std::size_t j = parts.joins.front();
+      failures.push_back({static_cast<Tier>(t), j, program.moves[j].line, FailureCause::Transition,
+                          fmt::format("windowed: the windows' paths do not join into one (first join at CL line {})",
+                                      program.moves[j].line)});
+    }
+    seg.tier = tier;
+    seg.failures = std::move(failures);
+    bool same = true;
+    for (const SegmentReport& r : parts.reports) same = same && r.description == parts.reports.front().description;
+    seg.description = same ? parts.reports.front().description
+                           : fmt::format("planned in {} windows, continuous at the joins; first window: {}",
+                                         parts.reports.size(), parts.reports.front().description);
+    for (std::size_t i = 1; i < parts.reports.size(); ++i) {
+      const SegmentReport& r = parts.reports[i];
+      seg.approach_moves_replaced += r.approach_moves_replaced;
+      if (seg.swept_collisions + seg.swept_uncertified == 0 && r.swept_collisions + r.swept_uncertified > 0) {
+        seg.swept_first_line = r.swept_first_line;
+        seg.swept_first_detail = r.swept_first_detail;
+      }
+      seg.swept_collisions += r.swept_collisions;
+      seg.swept_uncertified += r.swept_uncertified;
+      if (seg.legs.state == Legs::NotCounted || seg.legs.state == Legs::Monotonic) seg.legs = r.legs;
+    }
+  }
+  out.seconds = std::chrono::duration<double>(std::chrono::steady_clock::now() - t0).count();
+  rusage ru{};
+  if (getrusage(RUSAGE_SELF, &ru) == 0) out.peak_memory_mb = static_cast<double>(ru.ru_maxrss) / 1024.0;
+  return out;
+}
+
+}  // namespace cscam::plan
