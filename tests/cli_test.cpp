@@ -146,6 +146,32 @@ TEST(Cli, PlanAndCompareOnTheSeedGroove) {
   EXPECT_EQ(r.status, 0) << r.output;
 }
 
+TEST(Cli, CompareJsonNamesTheCauseOfEveryEarlierTierFailure) {
+  // NX's variable-axis path at cone 5 on the Haas: segments whose 3+2 and one-fixed tiers fail. Each failure
+  // carries its cause as a key a script can switch on, and the printed reason starts with it (a transition's
+  // text is its detail alone).
+  TempDir d;
+  const std::string cl = cscam::test::source_path("examples/nx-haas-umc750/variable_axis.cls");
+  const std::string json = d.file("nx.json");
+  auto r = run_command(kCli + " compare " + cl + " --machine haas-umc750 --cone 5 --json-out " + json);
+  ASSERT_EQ(r.status, 0) << r.output;
+  std::ifstream j(json);
+  const auto parsed = nlohmann::json::parse(j);
+  std::size_t failures = 0;
+  for (const auto& seg : parsed["planner"]["segments"])
+    for (const auto& f : seg["earlier_tiers_failed"]) {
+      ++failures;
+      const std::string cause = f["cause"], reason = f["reason"];
+      EXPECT_TRUE(cause == "orientation" || cause == "stroke" || cause == "collision" || cause == "transition")
+          << cause;
+      if (cause != "transition") EXPECT_EQ(reason.rfind(cause, 0), 0u) << reason;
+      EXPECT_NE(r.output.find("failed at CL line " + std::to_string(f["cl_line"].get<int>()) + ": " + reason),
+                std::string::npos)
+          << reason;
+    }
+  EXPECT_GT(failures, 0u) << parsed.dump();
+}
+
 TEST(Cli, PlanInWindowsWritesAVerifiedProgram) {
   // --window: a 200-point path planned in windows of 30 moves (one 3+2 segment at cone 5), through the gate, verified.
   TempDir d;

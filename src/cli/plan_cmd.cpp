@@ -316,7 +316,10 @@ std::vector<std::string> segment_reports(const Setup& s, const plan::Plan& p, co
     const auto& seg = p.segments[g];
     nlohmann::json fails = nlohmann::json::array();
     for (const auto& f : seg.failures)
-      fails.push_back({{"tier", static_cast<int>(f.tier)}, {"cl_line", f.line}, {"reason", f.reason()}});
+      fails.push_back({{"tier", static_cast<int>(f.tier)},
+                       {"cl_line", f.line},
+                       {"cause", plan::to_string(f.cause)},
+                       {"reason", f.reason()}});
     nlohmann::json axes = nlohmann::json::object();
     for (int j = 0; j < 5; ++j) {
       const auto J = static_cast<std::size_t>(j);
