@@ -101,7 +101,7 @@ BENCHMARK(BM_PlanPoints)->Arg(1250)->Arg(2500)->Arg(5000)->Arg(10000)->Unit(benc
 // resolution 4, 2, 1, 0.5 deg: 16x more grid cells from first to last
 BENCHMARK(BM_PlanResolution)->Arg(1)->Arg(2)->Arg(4)->Arg(8)->Unit(benchmark::kMillisecond)->Iterations(1);
 
-/// Issue 11, part 3: the hard case. A narrower groove (mouth 16 mm: a D10 tool tilted across it by more than
+/// Issue 11, part 3: the hard case. A narrower groove (mouth 15 mm: a D10 tool tilted across it by more than
 /// ~11 deg hits the lip), 10,000 points whose CL axis swings +-12 deg across the groove (8 periods) and +-10 deg
 /// along it (5 periods), cone 8 deg: no fixed orientation, no fixed axis and no monotonic pair covers the swings
 /// (tiers 1-3 fail), and near each swing's extreme the lip removes most of the cone.
@@ -112,7 +112,7 @@ struct HardFixture {
   size_t triangles = 0;
   HardFixture() {
     cscam::geom::GrooveParams g;
-    g.mouth_width_mm = 16.0;
+    g.mouth_width_mm = 15.0;
     auto mesh = cscam::geom::make_benchmark_part(200000, g);
     triangles = mesh.triangle_count();
     scene.add("groove", cscam::geom::ObstacleRole::Part, std::move(mesh));

@@ -3,8 +3,6 @@
 #include <fmt/format.h>
 #include <tbb/blocked_range.h>
 #include <tbb/global_control.h>
-#include <tbb/parallel_for.h>
-#include <tbb/parallel_invoke.h>
 #include <tbb/task_arena.h>
 #include <unistd.h>
 #include <yaml-cpp/yaml.h>
@@ -23,6 +21,7 @@
 #include <sstream>
 
 #include "cscam/cl/program.hpp"
+#include "cscam/core/parallel.hpp"
 #include "cscam/core/threads.hpp"
 #include "cscam/gate/gate.hpp"
 #include "cscam/machine/machine.hpp"
@@ -38,18 +37,16 @@ namespace cscam::cli {
 
 namespace {
 
-/// Machines by resolved path, loaded once per process and shared read-only by every job that names them.
+/// Machines by resolved path, loaded once per process and shared read-only by every job that names them. Loaded
+/// under the lock: two jobs naming one machine load it once, and yaml-cpp 0.7 is never run on two threads at once
+/// (ThreadSanitizer reports a race inside its convert<bool>::decode when it is).
 std::shared_ptr<const machine::Machine> machine_for(const std::string& arg) {
   static std::mutex mu;
   static std::map<std::string, std::shared_ptr<const machine::Machine>> cache;
   const std::string path = resolve_machine(arg);
-  {
-    const std::lock_guard<std::mutex> lock(mu);
-    if (const auto it = cache.find(path); it != cache.end()) return it->second;
-  }
-  auto m = std::make_shared<const machine::Machine>(machine::load(path));
   const std::lock_guard<std::mutex> lock(mu);
-  return cache.emplace(path, std::move(m)).first->second;
+  if (const auto it = cache.find(path); it != cache.end()) return it->second;
+  return cache.emplace(path, std::make_shared<const machine::Machine>(machine::load(path))).first->second;
 }
 
 /// Travel and reversals of the written program, read back from its text as `cscam stats` reads it.
@@ -266,7 +263,7 @@ void run_job(const PostJob& job, JobResult& r) {
       gate_and_write();
       stats();
     } else {
-      tbb::parallel_invoke(gate_and_write, stats);
+      cscam::parallel_invoke(gate_and_write, stats);
     }
     r.machine_name = m.name;
     take_summaries(r, sum, gs);
@@ -295,7 +292,7 @@ int run_jobs(const std::vector<PostJob>& jobs, bool json) {
     tbb::task_arena arena(static_cast<int>(threads));
     arena.execute([&] {
       // One job per task: files differ widely in size, so let the scheduler balance them.
-      tbb::parallel_for(tbb::blocked_range<std::size_t>(0, jobs.size(), 1), [&](const auto& range) {
+      parallel_range(0, jobs.size(), 1, [&](const tbb::blocked_range<std::size_t>& range) {
         for (std::size_t i = range.begin(); i != range.end(); ++i) {
           JobResult& r = results[i];
           const auto tj = std::chrono::steady_clock::now();

@@ -1,7 +1,6 @@
 #include "cscam/gate/gate.hpp"
 
 #include <fmt/format.h>
-#include <tbb/task_group.h>
 
 #include <algorithm>
 #include <cmath>
@@ -9,6 +8,7 @@
 
 #include "cscam/core/atomic_file.hpp"
 #include "cscam/core/error.hpp"
+#include "cscam/core/parallel.hpp"
 #include "cscam/core/tolerances.hpp"
 #include "cscam/core/units.hpp"
 #include "cscam/kin/track.hpp"
@@ -89,7 +89,7 @@ Summary check(const std::string& nc_text, const std::string& nc_name, const cl::
     s.deviation =
         report::verify(ncp, cl, s.tool_tip_control ? static_cast<const kin::Kinematics&>(tip_kin) : kinematics, vo);
   };
-  tbb::task_group tg;
+  Background tg;
   if (!verify_here) tg.run(compare);
 
   // Machine (joint) values of every block: the words themselves, or for tool-tip control the IK solution

@@ -301,7 +301,9 @@ void load_bodies(const Reader& r, const YAML::Node& list, Machine& m) {
     }
     if (!m.serial) r.fail(n, key, "machine bodies are supported on serial kinematics only");
     const auto& g = *m.serial;
-    auto in = [&](const std::vector<int>& chain) { return std::find(chain.begin(), chain.end(), b.axis) != chain.end(); };
+    auto in = [&](const std::vector<int>& chain) {
+      return std::find(chain.begin(), chain.end(), b.axis) != chain.end();
+    };
     b.side = b.axis < 0 ? BodySide::Base : in(g.head_chain) ? BodySide::Head : BodySide::Table;
     if (b.axis >= 0 && !in(g.head_chain) && !in(g.table_chain))
       r.fail(n["attach"], key + ".attach", fmt::format("axis '{}' is in neither chain", attach));
@@ -614,6 +616,11 @@ int Machine::axis_index(const std::string& axis_name) const {
 }
 
 Machine load_text(const std::string& yaml, const std::string& name) {
+  // One machine file at a time in the process: ThreadSanitizer reports a race inside yaml-cpp 0.7's
+  // convert<bool>::decode when two threads convert at once (batch jobs loading their machines). Loading is rare and
+  // takes milliseconds, so a lock costs nothing.
+  static std::mutex yaml_mu;
+  const std::lock_guard<std::mutex> yaml_lock(yaml_mu);
   YAML::Node root;
   try {
     root = YAML::Load(yaml);

@@ -15,6 +15,7 @@
 #include <memory>
 #include <mutex>
 
+#include "cscam/core/parallel.hpp"
 #include "cscam/core/threads.hpp"
 #include "cscam/cspace/cspace.hpp"
 
@@ -47,7 +48,7 @@ void parallel_items(std::size_t n, cspace::Counters& total, Job&& job) {
   }
   tbb::enumerable_thread_specific<cspace::Counters> locals;
   planner_arena(threads).execute([&] {
-    tbb::parallel_for(tbb::blocked_range<std::size_t>(0, n), [&](const tbb::blocked_range<std::size_t>& r) {
+    parallel_range(0, n, 1, [&](const tbb::blocked_range<std::size_t>& r) {
       cspace::Counters& c = locals.local();
       geom::QueryWorkspace& ws = thread_workspace();
       for (std::size_t i = r.begin(); i != r.end(); ++i) job(i, ws, c);
@@ -65,7 +66,7 @@ void parallel_indices(std::size_t n, Job&& job) {
     return;
   }
   planner_arena(threads).execute([&] {
-    tbb::parallel_for(tbb::blocked_range<std::size_t>(0, n), [&](const tbb::blocked_range<std::size_t>& r) {
+    parallel_range(0, n, 1, [&](const tbb::blocked_range<std::size_t>& r) {
       for (std::size_t i = r.begin(); i != r.end(); ++i) job(i);
     });
   });

@@ -2,7 +2,6 @@
 
 #include <fmt/format.h>
 #include <tbb/blocked_range.h>
-#include <tbb/parallel_for.h>
 
 #include <algorithm>
 #include <cmath>
@@ -12,6 +11,7 @@
 #include <stdexcept>
 
 #include "cscam/core/error.hpp"
+#include "cscam/core/parallel.hpp"
 #include "cscam/core/rotations.hpp"
 #include "cscam/core/tolerances.hpp"
 #include "cscam/core/units.hpp"
@@ -400,7 +400,7 @@ VerifyResult verify(const nc::Program& nc, const cl::Program& cl, const kin::Kin
     if (fk_in_order)
       fk(tbb::blocked_range<std::size_t>(c0, c1));
     else
-      tbb::parallel_for(tbb::blocked_range<std::size_t>(c0, c1, 256), fk);
+      parallel_range(c0, c1, 256, fk);
     for (std::size_t bi = c0; bi < c1; ++bi) {
       const nc::Block& b = nc.blocks[bi];
       if (b.motion == nc::Motion::Rapid || prev == nullptr) {
@@ -452,14 +452,13 @@ VerifyResult verify(const nc::Program& nc, const cl::Program& cl, const kin::Kin
     // The tool axis against the CL orientation where the walk found each sample: independent per sample, so in
     // parallel; the maximum is then taken in sample order (the first of equal values, as a sequential scan).
     axis_angles.resize(axis_samples.size());
-    tbb::parallel_for(tbb::blocked_range<std::size_t>(0, axis_samples.size(), 1024),
-                      [&](const tbb::blocked_range<std::size_t>& rg) {
-                        for (std::size_t i = rg.begin(); i != rg.end(); ++i) {
-                          const AxisSample& a = axis_samples[i];
-                          const Vec3 u = slerp(segs[a.seg].u0, segs[a.seg].u1, a.t);
-                          axis_angles[i] = rad2deg(std::acos(std::clamp(u.dot(a.pose->axis), -1.0, 1.0)));
-                        }
-                      });
+    parallel_range(0, axis_samples.size(), 1024, [&](const tbb::blocked_range<std::size_t>& rg) {
+      for (std::size_t i = rg.begin(); i != rg.end(); ++i) {
+        const AxisSample& a = axis_samples[i];
+        const Vec3 u = slerp(segs[a.seg].u0, segs[a.seg].u1, a.t);
+        axis_angles[i] = rad2deg(std::acos(std::clamp(u.dot(a.pose->axis), -1.0, 1.0)));
+      }
+    });
     for (std::size_t i = 0; i < axis_samples.size(); ++i)
       if (axis_angles[i] > r.max_axis_deviation_deg) {
         r.max_axis_deviation_deg = axis_angles[i];
