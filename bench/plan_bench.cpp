@@ -266,12 +266,7 @@ void BM_PlanNxCone5(benchmark::State& state) {
   for (const auto& g : p.segments) tier = std::max(tier, static_cast<int>(g.tier));
   state.counters["points"] = static_cast<double>(prog.moves.size());
   state.counters["tier"] = tier;
-  state.counters["cells_enumerated"] = static_cast<double>(p.counters.cells_enumerated);
-  state.counters["cells_evaluated"] = static_cast<double>(p.counters.ik);
-  state.counters["collision_queries"] = static_cast<double>(p.counters.collision);
-  state.counters["swept_queries"] = static_cast<double>(p.counters.swept_queries);
-  state.counters["planner_s"] = p.seconds;
-  state.counters["peak_rss_mb"] = peak_rss_mb();
+  report_plan(state, p);
 }
 BENCHMARK(BM_PlanNxCone5)->Arg(5)->Unit(benchmark::kMillisecond)->Iterations(1);
 
