@@ -60,8 +60,9 @@ std::string Space::collision_inflated(const kin::Axes& q, const kin::Posed& pose
                                       geom::QueryWorkspace& ws, Counters& c) const {
   if (!checks_collision()) return {};
   auto name = [&](const geom::CollisionResult& r, const char* part) {
-    return fmt::format("{} hits {}", part ? part : geom::to_string(r.part),
-                       r.obstacle >= 0 ? scene_->obstacle_name(static_cast<std::size_t>(r.obstacle)) : std::string("?"));
+    return fmt::format(
+        "{} hits {}", part ? part : geom::to_string(r.part),
+        r.obstacle >= 0 ? scene_->obstacle_name(static_cast<std::size_t>(r.obstacle)) : std::string("?"));
   };
   // Machine bodies carried by the axes are placed for q. (They may move relative to the part within a move, so for
   // them the inflation certifies only the sampled poses, as for head meshes.)
@@ -90,7 +91,8 @@ std::string Space::collision_inflated(const kin::Axes& q, const kin::Posed& pose
 }
 
 SweptResult Space::swept(const kin::Axes& qa, const kin::Axes& qb, SweepMode mode, geom::QueryWorkspace& ws,
-                         Counters& c) const {
+                         Counters& c, std::uint64_t max_queries) const {
+  const std::uint64_t budget = max_queries > 0 ? max_queries : kMaxQueriesPerMove;
   SweptResult res;
   ++c.swept;
   Counters q_count;  // its queries count as swept queries, apart from the cell queries
@@ -166,7 +168,7 @@ SweptResult Space::swept(const kin::Axes& qa, const kin::Axes& qb, SweepMode mod
       res.detail = hit;
       break;
     }
-    if (iv.depth >= kMaxDepth || res.queries >= kMaxQueriesPerMove) {
+    if (iv.depth >= kMaxDepth || res.queries >= budget) {
       res.status = SweepStatus::Uncertified;
       res.t = t;
       res.detail = fmt::format("clearance too small to certify within {} queries", res.queries);

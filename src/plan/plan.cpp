@@ -251,8 +251,13 @@ Plan Planner::run(const cl::Program& program) const {
     rep.tier = c.tier;
     rep.failures = std::move(c.failures);
     rep.description = std::move(c.description);
-    if (!opt_.monotone_axes.empty() && cells.layers.size() > 2)
+    if (!opt_.monotone_axes.empty() && cells.layers.size() > 2) {
+      const std::vector<const cspace::Cell*> swept_path = c.path;
       rep.legs = detail::replan_legs(view, cells, c.path, rep.tier, rep.description);
+      // A re-planned path has moves the swept check above never saw: the final check takes them all.
+      if (c.path != swept_path)
+        for (std::size_t m = s; m <= e; ++m) swept_ok[m] = 0;
+    }
     write_back(*kin_, cells, c.path, plan);
     rep.approach_moves_replaced = replace_approach_retract(*kin_, opt_, program, s, e, plan, swept_ok);
     plan.segments.push_back(std::move(rep));

@@ -124,6 +124,78 @@ void distance_transform(const Options& opt, const std::vector<State>& prev, Laye
   }
 }
 
+/// A layer whose incoming move collided between the points in an earlier answer: its states in order of cost,
+/// each with the cheapest predecessor whose swept move into it is certified free. Sweeps cost far more than a
+/// cell, so this layer keeps a smaller beam and tries a few predecessors per cell; the answer through it can then
+/// not repeat a colliding move.
+bool swept_layer(const SegmentView& v, SegmentCells& d, const std::vector<State>& prev, std::size_t k, double max_step,
+                 std::vector<State>& S) {
+  constexpr std::size_t kSweptBeam = 32;        // states kept at such a layer
+  constexpr std::size_t kSweptTries = 16;       // predecessors swept per cell, cheapest first
+  constexpr std::size_t kSweepsPerLayer = 512;  // sweeps at most per layer
+  // A move that needs more queries than this skims the part: passed over here (the final check's budget is larger).
+  constexpr std::uint64_t kSweptBudget = 200;
+  const Options& opt = v.options;
+  auto& cells = d.layers[k].cells;
+  struct Candidate {
+    double cost;  // of the cheapest predecessor, orientation error included
+    std::size_t cell;
+    std::vector<std::pair<double, int>> preds;  // (cost through it, index in prev), cheapest first
+  };
+  std::vector<Candidate> cand;
+  for (std::size_t j = 0; j < cells.size(); ++j) {
+    const Cell& c = cells[j];
+    if (c.status != Status::Unknown && c.status != Status::Feasible) continue;
+    Candidate cd{kInf, j, {}};
+    for (std::size_t p = 0; p < prev.size(); ++p) {
+      const Cell* pc = prev[p].cell;
+      const double d1 = std::abs(c.r1 - pc->r1), d2 = std::abs(c.r2 - pc->r2);
+      if (d1 > max_step + 1e-12 || d2 > max_step + 1e-12) continue;
+      cd.preds.push_back({prev[p].cost + opt.weight_primary * d1 + opt.weight_secondary * d2, static_cast<int>(p)});
+    }
+    if (cd.preds.empty()) continue;
+    std::stable_sort(cd.preds.begin(), cd.preds.end(), [](const auto& a, const auto& b) { return a.first < b.first; });
+    cd.cost = cd.preds.front().first + opt.orientation_weight * c.orient_err;
+    cand.push_back(std::move(cd));
+  }
+  std::stable_sort(cand.begin(), cand.end(), [](const Candidate& a, const Candidate& b) { return a.cost < b.cost; });
+  // Moves that skim the part (not certified within the budget, no hit found) are kept aside: taken only if no
+  // certified move reaches this point, so that a path still exists (the final check then warns about them).
+  std::vector<State> skimming;
+  std::size_t sweeps = 0;
+  for (const Candidate& cd : cand) {
+    if (S.size() >= kSweptBeam || sweeps >= kSweepsPerLayer) break;
+    Cell& c = cells[cd.cell];
+    d.certs.reserve();
+    d.certs.evaluate(d.layers[k].cl, c, d.ws, d.counters);
+    if (c.status != Status::Feasible) continue;
+    const double orient = opt.orientation_weight * c.orient_err;
+    for (std::size_t t = 0; t < cd.preds.size() && t < kSweptTries && sweeps < kSweepsPerLayer; ++t) {
+      const State& from = prev[static_cast<std::size_t>(cd.preds[t].second)];
+      const auto id = std::make_tuple(k, key(from.cell->i1, from.cell->i2), key(c.i1, c.i2));
+      auto it = d.sweeps.find(id);
+      if (it == d.sweeps.end()) {
+        ++sweeps;
+        it = d.sweeps
+                 .emplace(
+                     id,
+                     v.space.swept(from.cell->axes, c.axes, cspace::SweepMode::Cutting, d.ws, d.counters, kSweptBudget)
+                         .status)
+                 .first;
+      }
+      const cspace::SweepStatus st = it->second;
+      if (st == cspace::SweepStatus::Free) {
+        S.push_back({&c, cd.preds[t].first + orient, cd.preds[t].second});
+        break;
+      }
+      if (st == cspace::SweepStatus::Uncertified && skimming.size() < kSweptBeam)
+        skimming.push_back({&c, cd.preds[t].first + orient, cd.preds[t].second});
+    }
+  }
+  if (S.empty()) S = std::move(skimming);
+  return !S.empty();
+}
+
 double rotary_travel(const std::vector<const Cell*>& path) {
   double travel = 0;
   for (std::size_t k = 1; k < path.size(); ++k)
@@ -156,6 +228,9 @@ bool tier_shortest(const SegmentView& v, SegmentCells& d, TierOutcome& out) {
   }
   LayeredDp<State> dp;
   const std::size_t built = dp.forward(n, [&](std::size_t k, const std::vector<State>& prev, std::vector<State>& S) {
+    // No swept-free (or skimming) move into a flagged point: it is searched as any other (its collision stays
+    // reported) rather than failing the whole path.
+    if (k > 0 && k < d.swept_layers.size() && d.swept_layers[k] && swept_layer(v, d, prev, k, max_step, S)) return true;
     Tentative tent;
     tent.reserve(L[k].cells.size());
     if (k == 0) {

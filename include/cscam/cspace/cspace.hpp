@@ -18,7 +18,6 @@
 
 namespace cscam::cspace {
 
-
 /// Per-operation settings of the C-space.
 struct Options {
   double cone_rad = 0.0;      ///< allowed angle between the cell's tool axis and the CL axis; 0: exact IK
@@ -52,8 +51,8 @@ struct Counters {
   std::uint64_t stroke = 0;     ///< limit checks
   std::uint64_t collision = 0;  ///< collision queries
   std::uint64_t cache_hits = 0;
-  std::uint64_t certified = 0;  ///< collision queries skipped by a clearance certificate
-  std::uint64_t swept = 0;      ///< swept (between-point) moves checked
+  std::uint64_t certified = 0;      ///< collision queries skipped by a clearance certificate
+  std::uint64_t swept = 0;          ///< swept (between-point) moves checked
   std::uint64_t swept_queries = 0;  ///< collision queries those swept checks made (not in `collision`)
   Counters& operator+=(const Counters& o);
 };
@@ -144,14 +143,14 @@ class Space {
   /// clearance certificate: the interval around a pose is free when the tool there, inflated by the largest
   /// distance any tool point can travel over the interval (a bound from the axis travel, the tip's lever arms
   /// about the rotaries and the tool length), is free. Intervals that cannot be certified are bisected.
-  /// Machine head meshes are checked at the certified poses only (sampled, not certified).
+  /// Machine head meshes are checked at the certified poses only (sampled, not certified). A move not certified
+  /// within `max_queries` collision queries (0: the default budget, 2000) is Uncertified.
   [[nodiscard]] SweptResult swept(const kin::Axes& qa, const kin::Axes& qb, SweepMode mode, geom::QueryWorkspace& ws,
-                                  Counters& c) const;
+                                  Counters& c, std::uint64_t max_queries = 0) const;
   /// Whether the tool at `pose` (the FK of axes `q`, which place any machine bodies), inflated by `margin_mm` in
   /// every direction (superset of the Minkowski sum), is free. Empty string if free.
   [[nodiscard]] std::string collision_inflated(const kin::Axes& q, const kin::Posed& pose, double margin_mm,
-                                               SweepMode mode,
-                                               geom::QueryWorkspace& ws, Counters& c) const;
+                                               SweepMode mode, geom::QueryWorkspace& ws, Counters& c) const;
   /// Largest motion margin a Cutting-mode inflated check accepts (the relief above the cutting end), mm.
   [[nodiscard]] double cutting_margin_cap_mm() const;
   [[nodiscard]] bool checks_collision() const { return opt_.check_collision && scene_ && tool_; }
@@ -166,10 +165,10 @@ class Space {
   const geom::Scene* head_ = nullptr;
   static constexpr int kMaxLinks = 6;  // the base and one link per axis
   using LinkPoses = std::array<Eigen::Isometry3d, kMaxLinks>;
-  int links_ = 0;               // machine links used by the obstacles (0: none)
-  bool certify_links_ = true;   // certificates stay sound with the linked obstacles
-  bool certify_head_ = true;    // head bodies all move rigidly with the spindle (none has a link)
-  unsigned used_links_ = 0;     // bit l: an obstacle uses link l
+  int links_ = 0;              // machine links used by the obstacles (0: none)
+  bool certify_links_ = true;  // certificates stay sound with the linked obstacles
+  bool certify_head_ = true;   // head bodies all move rigidly with the spindle (none has a link)
+  unsigned used_links_ = 0;    // bit l: an obstacle uses link l
   static bool place_links(const kin::Kinematics& k, const kin::Axes& q, int n, LinkPoses& T, unsigned used);
   /// opt_.collision, or a copy in `scratch` with the link poses for q when obstacles have links.
   const geom::CheckOptions& with_links(const kin::Axes& q, LinkPoses& links, geom::CheckOptions& scratch) const;

@@ -10,8 +10,10 @@
 #include <cmath>
 #include <cstdint>
 #include <limits>
+#include <map>
 #include <memory>
 #include <string>
+#include <tuple>
 #include <unordered_map>
 #include <utility>
 #include <vector>
@@ -67,6 +69,11 @@ struct SegmentCells {
   cspace::CertificateStore certs;
   /// The full (capped) cell lists of the points after the first are in the layers (tier 1 needs only the first's).
   bool listed = false;
+  /// Per layer: an earlier answer's move into this point collided between the points, so tier 4 takes every
+  /// transition into it only after a swept check (avoid_swept_collisions sets these).
+  std::vector<char> swept_layers;
+  /// Swept checks of moves into those layers, across the re-searches: (layer, from cell, into cell) -> status.
+  std::map<std::tuple<std::size_t, std::uint64_t, std::uint64_t>, cspace::SweepStatus> sweeps;
   SegmentCells(cspace::Counters& c, const cspace::Space& space) : counters(c), certs(space) {}
 };
 
@@ -240,8 +247,10 @@ struct Cascade {
 /// is checked for a feasible cell. Before tier 4 gives up, truncated cell lists are extended to the whole cone.
 /// Throws InputError when no tier finds a path.
 Cascade run_cascade(const SegmentView& v, SegmentCells& d, std::size_t& points_beyond_cap);
-/// Between the points: a move whose sweep collides rules out the cell it leads into (conservative: that cell might
-/// be fine from another predecessor), and the tiers run again on what is left, a few rounds at most. `kept` holds
+/// Between the points: a move whose sweep collides is ruled out and the search runs again, until no chosen move
+/// collides (a few rounds at most). A tier 4 answer is re-searched with every transition into those points swept
+/// first (SegmentCells::swept_layers); an answer of tiers 1-3 loses the cell the move led into (conservative:
+/// that cell might be fine from another predecessor) and the cascade runs again. `kept` holds
 /// the cells of an answer that stands when nothing is left without them (c.path may then point into it). Moves
 /// certified free are flagged in `swept_ok`.
 void avoid_swept_collisions(const SegmentView& v, SegmentCells& d, Cascade& c, std::vector<Cell>& kept,
@@ -252,6 +261,8 @@ void avoid_swept_collisions(const SegmentView& v, SegmentCells& d, Cascade& c, s
 LegReport replan_legs(const SegmentView& v, SegmentCells& d, std::vector<const Cell*>& path, Tier& tier,
                       std::string& description);
 
+/// Whether CL move m lies on CL move ref's axis, with ref's axis (an approach into or retract out of ref).
+bool is_axial_approach(const cl::Program& cl, std::size_t m, std::size_t ref);
 /// Re-places move m (an approach into, or retract out of, move ref along ref's CL axis; approach.cpp) along ref's
 /// chosen axis at the same distance, with ref's rotaries. False (nothing changed) when m is not such a move or the
 /// re-placed point breaks a limit.
