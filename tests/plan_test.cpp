@@ -163,6 +163,11 @@ TEST(Planner, SeedGrooveCollisionPruningDecidesTheOrientation) {
   EXPECT_EQ(without.segments[0].tier, plan::Tier::Fixed2);
   const auto m = trunnion();
   const auto k = m.kinematics();
+  // The fixed C is the winding nearest home: the approach move, re-placed along the chosen axis afterwards, used to
+  // be judged on the CL's approach line and rule out one winding after another (C fixed at 360 deg, 720 deg of
+  // unwinding into and out of the cut).
+  const int c_axis = k->rotary_pair()[0];
+  EXPECT_LE(std::abs(with.axes[1][c_axis]), kPi + 1e-9) << with.summary();
   geom::QueryWorkspace ws;
   geom::CheckOptions co;
   int hits_with = 0, hits_without = 0, hits_conv = 0;
