@@ -163,7 +163,14 @@ Cell* cell_at(const SegmentView& v, SegmentCells& d, std::size_t k, int i1, int 
 }
 
 bool feasible(const SegmentView& v, SegmentCells& d, std::size_t k, Cell& c, cspace::Certificate* cert) {
-  v.space.evaluate(d.layers[k].cl, c, d.ws, d.counters, cert);
+  if (cert || v.exact) {
+    v.space.evaluate(d.layers[k].cl, c, d.ws, d.counters, cert);
+  } else {
+    // Tiers 2 and 3 walk the same grid cells point after point, as tier 4's beam does: the segment's clearance
+    // certificates spare the queries (same answers: a certified pose is free).
+    d.certs.reserve();
+    d.certs.evaluate(d.layers[k].cl, c, d.ws, d.counters);
+  }
   return c.status == Status::Feasible;
 }
 
@@ -184,14 +191,41 @@ void check_points(const SegmentView& v, SegmentCells& d, std::size_t& points_bey
   // Every point needs at least one feasible cell; otherwise say which constraint emptied it. A point is
   // called infeasible only once every cell of its cone has been shown infeasible: a truncated list whose
   // cells all fail is first extended to the whole cone.
-  // In parallel first: each point's cells in order up to its first feasible one (what the loop below needs).
-  parallel_items(layers.size(), d.counters, [&](std::size_t k, geom::QueryWorkspace& ws, cspace::Counters& c) {
-    for (Cell& cell : layers[k].cells) {
-      space.evaluate(layers[k].cl, cell, ws, c);
-      if (cell.status == Status::Feasible) break;
+  // In parallel first, in fixed runs of points (the same cells evaluated at any thread count): a point tries the
+  // cell found feasible at the point before it (neighbouring points mostly share one), and only otherwise its
+  // cells nearest first up to the first feasible one. Where the cells nearest the CL axis collide (a wall or lip
+  // beside the path) this saves a scan through all of them at every point.
+  constexpr std::size_t kRun = 32;
+  const std::size_t runs = (layers.size() + kRun - 1) / kRun;
+  parallel_items(runs, d.counters, [&](std::size_t r, geom::QueryWorkspace& ws, cspace::Counters& c) {
+    const Cell* hint = nullptr;
+    for (std::size_t k = r * kRun; k < std::min(layers.size(), (r + 1) * kRun); ++k) {
+      Layer& l = layers[k];
+      if (hint) {
+        const auto it = l.index.find(key(hint->i1, hint->i2));
+        if (it != l.index.end()) {
+          Cell& cell = l.cells[static_cast<std::size_t>(it->second)];
+          if (cell.status == Status::Unknown) space.evaluate(l.cl, cell, ws, c);
+          if (cell.status == Status::Feasible) {
+            hint = &cell;
+            continue;
+          }
+        }
+      }
+      hint = nullptr;
+      for (Cell& cell : l.cells) {
+        if (cell.status == Status::Unknown) space.evaluate(l.cl, cell, ws, c);
+        if (cell.status == Status::Feasible) {
+          hint = &cell;
+          break;
+        }
+      }
     }
   });
   for (std::size_t k = 0; k < layers.size(); ++k) {
+    if (std::any_of(layers[k].cells.begin(), layers[k].cells.end(),
+                    [](const Cell& c) { return c.status == Status::Feasible; }))
+      continue;
     bool any = false;
     int n_stroke = 0, n_coll = 0;
     std::string example;
