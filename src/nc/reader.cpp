@@ -27,20 +27,38 @@ std::string_view trim(std::string_view s) {
   return s;
 }
 
+/// The G-code number `num` (an optional sign, then digits and points: "-1.5", "+.5", "3.", "-.5"), which
+/// from_chars alone does not take (a '+', no digit before or after the point). False if it is not a number.
+/// In a buffer on the stack: this runs for every word of a million-block program.
+bool gcode_number(std::string_view num, double& v) {
+  if (!num.empty() && num[0] == '+') num.remove_prefix(1);
+  if (num.empty()) return false;
+  char small[64];
+  std::string big;  // only for absurdly long words
+  char* fixed = small;
+  if (num.size() + 3 > sizeof small) {
+    big.resize(num.size() + 3);
+    fixed = big.data();
+  }
+  size_t n = 0;
+  if (num[0] == '.') fixed[n++] = '0';  // ".5"
+  for (size_t i = 0; i < num.size(); ++i) {
+    fixed[n++] = num[i];
+    if (i == 0 && num[0] == '-' && num.size() > 1 && num[1] == '.') fixed[n++] = '0';  // "-.5"
+  }
+  if (num.back() == '.') fixed[n++] = '0';  // "3."
+  const auto r = std::from_chars(fixed, fixed + n, v);
+  return r.ec == std::errc() && r.ptr == fixed + n;
+}
+
 /// A number at s[k] ("-1.5", "+.5", "3."); advances k past it.
 std::optional<double> parse_number(std::string_view s, size_t& k) {
   while (k < s.size() && s[k] == ' ') ++k;
   const size_t j = k;
   if (k < s.size() && (s[k] == '-' || s[k] == '+')) ++k;
   while (k < s.size() && (std::isdigit(static_cast<unsigned char>(s[k])) || s[k] == '.')) ++k;
-  std::string fixed(s.substr(j, k - j));
-  if (!fixed.empty() && fixed[0] == '+') fixed.erase(0, 1);
-  if (!fixed.empty() && fixed.back() == '.') fixed.push_back('0');
-  if (fixed.rfind("-.", 0) == 0) fixed.insert(1, "0");
-  if (!fixed.empty() && fixed[0] == '.') fixed.insert(0, "0");
   double v = 0;
-  const auto r = std::from_chars(fixed.data(), fixed.data() + fixed.size(), v);
-  if (fixed.empty() || r.ec != std::errc() || r.ptr != fixed.data() + fixed.size()) return std::nullopt;
+  if (!gcode_number(s.substr(j, k - j), v)) return std::nullopt;
   return v;
 }
 
@@ -322,6 +340,7 @@ Program read_text(const std::string& text, const std::string& name, const AxisLe
       break;
     }
 
+  prog.blocks.reserve(lines.size() - first);  // at most one block a line: no regrowth of a large program
   Block state;
   Motion motion = Motion::Rapid;
   bool inch = false, absolute = true, g93 = false, g435 = false;
@@ -481,16 +500,9 @@ Program read_text(const std::string& text, const std::string& name, const AxisLe
       size_t k = j;
       if (k < s.size() && (s[k] == '-' || s[k] == '+')) ++k;
       while (k < s.size() && (std::isdigit(static_cast<unsigned char>(s[k])) || s[k] == '.')) ++k;
-      std::string num(s.substr(j, k - j));
-      if (!num.empty() && num[0] == '+') num.erase(0, 1);
       double v = 0;
       // "X-.5" and "X3." are valid G-code numbers; from_chars wants a digit before/after the point.
-      std::string fixed = num;
-      if (!fixed.empty() && fixed.back() == '.') fixed.push_back('0');
-      if (fixed.rfind("-.", 0) == 0) fixed.insert(1, "0");
-      if (!fixed.empty() && fixed[0] == '.') fixed.insert(0, "0");
-      auto r = std::from_chars(fixed.data(), fixed.data() + fixed.size(), v);
-      if (num.empty() || r.ec != std::errc() || r.ptr != fixed.data() + fixed.size())
+      if (!gcode_number(s.substr(j, k - j), v))
         fail(j, fmt::format("malformed number after '{}': '{}'", L, std::string(s.substr(j, k - j))));
       i = k;
       if (L == 'G') {
