@@ -19,11 +19,18 @@ namespace cscam::nc {
 
 namespace {
 
+// Character classes of the "C" locale (cscam never sets another), inline: the reader asks them for every
+// character of a program that may have millions of lines.
+constexpr bool is_space(char c) { return c == ' ' || (c >= '\t' && c <= '\r'); }
+constexpr bool is_digit(char c) { return c >= '0' && c <= '9'; }
+constexpr bool is_alpha(char c) { return (c >= 'a' && c <= 'z') || (c >= 'A' && c <= 'Z'); }
+constexpr bool is_alnum(char c) { return is_digit(c) || is_alpha(c); }
+constexpr char to_upper(char c) { return c >= 'a' && c <= 'z' ? static_cast<char>(c - 'a' + 'A') : c; }
+
 std::string_view trim(std::string_view s) {
-  while (!s.empty() && (std::isspace(static_cast<unsigned char>(s.front())) || s.front() == '\xEF' ||
-                        s.front() == '\xBB' || s.front() == '\xBF'))
+  while (!s.empty() && (is_space(s.front()) || s.front() == '\xEF' || s.front() == '\xBB' || s.front() == '\xBF'))
     s.remove_prefix(1);
-  while (!s.empty() && std::isspace(static_cast<unsigned char>(s.back()))) s.remove_suffix(1);
+  while (!s.empty() && is_space(s.back())) s.remove_suffix(1);
   return s;
 }
 
@@ -56,7 +63,7 @@ std::optional<double> parse_number(std::string_view s, size_t& k) {
   while (k < s.size() && s[k] == ' ') ++k;
   const size_t j = k;
   if (k < s.size() && (s[k] == '-' || s[k] == '+')) ++k;
-  while (k < s.size() && (std::isdigit(static_cast<unsigned char>(s[k])) || s[k] == '.')) ++k;
+  while (k < s.size() && (is_digit(s[k]) || s[k] == '.')) ++k;
   double v = 0;
   if (!gcode_number(s.substr(j, k - j), v)) return std::nullopt;
   return v;
@@ -143,7 +150,7 @@ bool is_heidenhain(const std::string& text) {
     std::string_view l = trim(all.substr(pos, nl - pos));
     pos = nl + 1;
     if (l.empty()) continue;
-    while (!l.empty() && std::isdigit(static_cast<unsigned char>(l.front()))) l.remove_prefix(1);
+    while (!l.empty() && is_digit(l.front())) l.remove_prefix(1);
     return trim(l).rfind("BEGIN PGM", 0) == 0;
   }
   return false;
@@ -175,7 +182,7 @@ Program read_heidenhain(const std::string& text, const std::string& name, const 
     const auto fail = [&](std::string_view at, const std::string& what) {
       throw InputError(SourceLoc{name, lineno, static_cast<int>(at.data() - raw.data()) + 1}, what);
     };
-    while (!s.empty() && std::isdigit(static_cast<unsigned char>(s.front()))) s.remove_prefix(1);  // block number
+    while (!s.empty() && is_digit(s.front())) s.remove_prefix(1);  // block number
     s = trim(s);
     if (s.empty()) continue;
     // Comments ("; ..." and "* - ..."), with our header's tool length and machine in them.
@@ -414,7 +421,7 @@ Program read_text(const std::string& text, const std::string& name, const AxisLe
     };
     while (i < s.size()) {
       const char c = s[i];
-      if (std::isspace(static_cast<unsigned char>(c)) || c == '%') {
+      if (is_space(c) || c == '%') {
         ++i;
         continue;
       }
@@ -428,16 +435,16 @@ Program read_text(const std::string& text, const std::string& name, const AxisLe
         ++i;
         continue;
       }
-      if (!std::isalpha(static_cast<unsigned char>(c))) fail(i, fmt::format("unexpected character '{}'", c));
-      const char L = static_cast<char>(std::toupper(static_cast<unsigned char>(c)));
+      if (!is_alpha(c)) fail(i, fmt::format("unexpected character '{}'", c));
+      const char L = to_upper(c);
       const int word_column = static_cast<int>(i) + 1;
       if (L == 'O') break;  // program number/name ("O2021-11-28_part"): not a block
       // Sinumerik identifiers (TRAORI, TRAFOOF, ORIWKS, CYCLE800(...), MCALL ...): skipped, TRAORI noted.
-      if (i + 1 < s.size() && (std::isalpha(static_cast<unsigned char>(s[i + 1])) || s[i + 1] == '_')) {
+      if (i + 1 < s.size() && (is_alpha(s[i + 1]) || s[i + 1] == '_')) {
         size_t e = i;
-        while (e < s.size() && (std::isalnum(static_cast<unsigned char>(s[e])) || s[e] == '_')) ++e;
+        while (e < s.size() && (is_alnum(s[e]) || s[e] == '_')) ++e;
         std::string id(s.substr(i, e - i));
-        for (char& ch : id) ch = static_cast<char>(std::toupper(static_cast<unsigned char>(ch)));
+        for (char& ch : id) ch = to_upper(ch);
         if (id == "TRAORI") tcp_word = true;
         if (id == "SUPA") non_modal_skip = true;  // machine coordinates: every frame suppressed for this block
         if (id == "CYCLE800") {
@@ -453,7 +460,7 @@ Program read_text(const std::string& text, const std::string& name, const AxisLe
       // Sinumerik "A3=0.5" (tool vector) or "R1=..." (parameter): a letter, digits, '='.
       {
         size_t e = i + 1;
-        while (e < s.size() && std::isdigit(static_cast<unsigned char>(s[e]))) ++e;
+        while (e < s.size() && is_digit(s[e])) ++e;
         if (e > i + 1 && e < s.size() && s[e] == '=') {
           const std::string_view ext = s.substr(i + 1, e - i - 1);
           size_t k = e + 1;
@@ -480,11 +487,11 @@ Program read_text(const std::string& text, const std::string& name, const AxisLe
           i = q == std::string_view::npos ? s.size() : q + 1;
           continue;
         }
-        if (j < s.size() && std::isalpha(static_cast<unsigned char>(s[j]))) {
+        if (j < s.size() && is_alpha(s[j])) {
           size_t e = j;
-          while (e < s.size() && std::isalpha(static_cast<unsigned char>(s[e]))) ++e;
+          while (e < s.size() && is_alpha(s[e])) ++e;
           std::string fn(s.substr(j, e - j));
-          for (char& ch : fn) ch = static_cast<char>(std::toupper(static_cast<unsigned char>(ch)));
+          for (char& ch : fn) ch = to_upper(ch);
           if (e >= s.size() || s[e] != '(') fail(j, fmt::format("expected a number or a function after '{}='", L));
           short_way = fn == "DC";
           if (fn != "DC" && fn != "AC" && fn != "ACP" && fn != "ACN")
@@ -499,7 +506,7 @@ Program read_text(const std::string& text, const std::string& name, const AxisLe
       }
       size_t k = j;
       if (k < s.size() && (s[k] == '-' || s[k] == '+')) ++k;
-      while (k < s.size() && (std::isdigit(static_cast<unsigned char>(s[k])) || s[k] == '.')) ++k;
+      while (k < s.size() && (is_digit(s[k]) || s[k] == '.')) ++k;
       double v = 0;
       // "X-.5" and "X3." are valid G-code numbers; from_chars wants a digit before/after the point.
       if (!gcode_number(s.substr(j, k - j), v))
