@@ -6,12 +6,14 @@
 #include <cctype>
 #include <charconv>
 #include <cmath>
+#include <cstdint>
 #include <fstream>
 #include <functional>
 #include <optional>
 #include <sstream>
 
 #include "cscam/core/error.hpp"
+#include "cscam/core/parallel.hpp"
 #include "cscam/core/rotations.hpp"
 #include "cscam/core/units.hpp"
 
@@ -56,6 +58,53 @@ bool gcode_number(std::string_view num, double& v) {
   if (num.back() == '.') fixed[n++] = '0';  // "3."
   const auto r = std::from_chars(fixed, fixed + n, v);
   return r.ec == std::errc() && r.ptr == fixed + n;
+}
+
+/// One letter-number word of a block: its letter (upper case), its 1-based column and value.
+struct Word {
+  char letter = 0;
+  int column = 0;
+  double value = 0.0;
+};
+
+/// The words of a line made only of letter-number words ("G1 X1.5 Y-2 F100", with blanks, '%', comments in
+/// parentheses, a leading '/' and a ';' tail around them), appended to `out` exactly as read_text's character
+/// loop reads them. False for any other line (an 'O' word, an identifier, '=', a letter without a number, a
+/// malformed number, ...): read_text's loop reads, or refuses, that one itself.
+bool simple_words(std::string_view s, std::vector<Word>& out) {
+  size_t i = 0;
+  while (i < s.size()) {
+    const char c = s[i];
+    if (is_space(c) || c == '%') {
+      ++i;
+      continue;
+    }
+    if (c == '(') {
+      const size_t e = s.find(')', i);
+      i = e == std::string_view::npos ? s.size() : e + 1;
+      continue;
+    }
+    if (c == ';') break;
+    if (c == '/' && i == 0) {
+      ++i;
+      continue;
+    }
+    if (!is_alpha(c) || i + 1 >= s.size()) return false;
+    const char L = to_upper(c);
+    const char n = s[i + 1];
+    if (L == 'O' || !(is_digit(n) || n == '-' || n == '+' || n == '.')) return false;
+    size_t e = i + 1;  // Sinumerik "R1=...", "A3=...": not a word
+    while (e < s.size() && is_digit(s[e])) ++e;
+    if (e > i + 1 && e < s.size() && s[e] == '=') return false;
+    size_t k = i + 1;
+    if (s[k] == '-' || s[k] == '+') ++k;
+    while (k < s.size() && (is_digit(s[k]) || s[k] == '.')) ++k;
+    double v = 0;
+    if (!gcode_number(s.substr(i + 1, k - i - 1), v)) return false;
+    out.push_back({L, static_cast<int>(i) + 1, v});
+    i = k;
+  }
+  return true;
 }
 
 /// A number at s[k] ("-1.5", "+.5", "3."); advances k past it.
@@ -361,6 +410,43 @@ Program read_text(const std::string& text, const std::string& name, const AxisLe
   prog.xyz_slots = xyz;
   std::optional<WorkPlane> work_plane;  // the tilted work plane in force
   double feed = 0.0;
+  // Tokenising is most of the reading and needs no modal state: the lines ahead are tokenised in parallel, a
+  // window at a time (fixed chunks), and read in order below.
+  constexpr std::size_t kWindow = 1 << 15, kChunk = 1 << 10;
+  std::size_t window_begin = 0, window_end = 0;
+  std::vector<std::vector<Word>> chunk_words;
+  struct LineWords {
+    std::uint32_t first = 0, count = 0;
+    bool simple = false;
+  };
+  std::vector<LineWords> line_words;
+  std::size_t tn = 0;
+  auto tokens_for = [&](std::size_t li, std::size_t& count) -> const Word* {
+    if (li >= window_end) {
+      window_begin = li;
+      window_end = std::min(lines.size(), li + kWindow);
+      const std::size_t chunks = (window_end - window_begin + kChunk - 1) / kChunk;
+      chunk_words.resize(chunks);
+      line_words.assign(window_end - window_begin, LineWords{});
+      parallel_range(0, chunks, 1, [&](const tbb::blocked_range<std::size_t>& r) {
+        for (std::size_t c = r.begin(); c != r.end(); ++c) {
+          auto& words = chunk_words[c];
+          words.clear();
+          const std::size_t l0 = window_begin + c * kChunk, l1 = std::min(window_end, l0 + kChunk);
+          for (std::size_t l = l0; l < l1; ++l) {
+            LineWords& lw = line_words[l - window_begin];
+            lw.first = static_cast<std::uint32_t>(words.size());
+            lw.simple = simple_words(lines[l], words);
+            if (!lw.simple) words.resize(lw.first);
+            lw.count = static_cast<std::uint32_t>(words.size() - lw.first);
+          }
+        }
+      });
+    }
+    const LineWords& lw = line_words[li - window_begin];
+    count = lw.count;
+    return lw.simple ? chunk_words[(li - window_begin) / kChunk].data() + lw.first : nullptr;
+  };
   for (size_t li = first; li < lines.size(); ++li) {
     const std::string_view raw = lines[li];
     const int lineno = static_cast<int>(li) + 1;
@@ -419,6 +505,113 @@ Program read_text(const std::string& text, const std::string& name, const AxisLe
         prog.foreign_axis_words.push_back({L, lineno, word_column});
       return axis_word;
     };
+    // One word (letter, value, 1-based column) of the block: its meaning for the modal state and the block.
+    auto on_word = [&](const char L, const double v, const int word_column) {
+      if (L == 'G') {
+        const int g10 = static_cast<int>(std::lround(v * 10));
+        switch (g10) {
+          case 0:
+            motion = Motion::Rapid;
+            break;
+          case 10:
+            motion = Motion::Linear;
+            break;
+          case 20:
+            motion = Motion::ArcCW;
+            break;
+          case 30:
+            motion = Motion::ArcCCW;
+            break;
+          case 170:
+          case 180:
+          case 190:
+            plane = g10 / 10;
+            break;
+          case 200:
+            inch = true;
+            break;
+          case 210:
+            inch = false;
+            break;
+          case 900:
+            absolute = true;
+            break;
+          case 910:
+            absolute = false;
+            break;
+          case 930:
+            g93 = true;
+            break;
+          case 940:
+            g93 = false;
+            break;
+          case 682:  // G68.2 X Y Z I J K: a tilted work plane (ZXZ Euler angles) about the origin X Y Z
+            plane_def = true;
+            break;
+          case 531:  // G53.1: tool axis to the plane (the rotaries positioned before it; see resolve_work_planes)
+            break;
+          case 690:
+            plane_cancel = true;
+            break;
+          case 2540:  // Haas G254 / G255 dynamic work offset on / off: the control carries the work offset with the
+          case 2550:  // rotaries; the words stay the post's machine coordinates (Haas mill manual, G254)
+            break;
+          case 280:
+          case 300:
+          case 530:
+          case 100:
+          case 920:
+            non_modal_skip = true;
+            break;
+          case 434:
+          case 2340:
+            tcp_word = true;
+            break;
+          case 435:  // Fanuc tool-tip control with the tool vector I J K
+            tcp_word = true;
+            g435 = true;
+            break;
+          case 490:
+            g435 = false;
+            break;
+          default:
+            break;
+        }
+        return;
+      }
+      if (L == 'F') {
+        feed = v;
+        return;
+      }
+      if (L == 'M') {
+        // LinuxCNC's switchable trunnion kinematics: M428 world (TCP) coordinates, M429 identity (joints).
+        if (std::lround(v) == 428) tcp_word = true;
+        return;
+      }
+      if (!plane_def && g435 && (L == 'I' || L == 'J' || L == 'K')) {
+        b.tool_vector[static_cast<size_t>(L - 'I')] = v;
+        vector_words = true;
+        return;
+      }
+      if (L == 'I' || L == 'J' || L == 'K') {  // arc centre, incremental from the start (G91.1, the default)
+        ijk[static_cast<size_t>(L - 'I')] = v;
+        ijk_given[static_cast<size_t>(L - 'I')] = true;
+        ijk_column = word_column;
+        return;
+      }
+      if (L == 'R') {
+        r_word = v;
+        ijk_column = word_column;
+        return;
+      }
+      axis_word_value(L, v, false, word_column);
+    };
+    // Lines of letter-number words only (nearly all of a posted program) come tokenised from the parallel
+    // pass (tokens_for); any other line is read here character by character.
+    if (const Word* tw = tokens_for(li, tn)) {
+      for (std::size_t t = 0; t < tn; ++t) on_word(tw[t].letter, tw[t].value, tw[t].column);
+      i = s.size();
+    }
     while (i < s.size()) {
       const char c = s[i];
       if (is_space(c) || c == '%') {
@@ -512,104 +705,7 @@ Program read_text(const std::string& text, const std::string& name, const AxisLe
       if (!gcode_number(s.substr(j, k - j), v))
         fail(j, fmt::format("malformed number after '{}': '{}'", L, std::string(s.substr(j, k - j))));
       i = k;
-      if (L == 'G') {
-        const int g10 = static_cast<int>(std::lround(v * 10));
-        switch (g10) {
-          case 0:
-            motion = Motion::Rapid;
-            break;
-          case 10:
-            motion = Motion::Linear;
-            break;
-          case 20:
-            motion = Motion::ArcCW;
-            break;
-          case 30:
-            motion = Motion::ArcCCW;
-            break;
-          case 170:
-          case 180:
-          case 190:
-            plane = g10 / 10;
-            break;
-          case 200:
-            inch = true;
-            break;
-          case 210:
-            inch = false;
-            break;
-          case 900:
-            absolute = true;
-            break;
-          case 910:
-            absolute = false;
-            break;
-          case 930:
-            g93 = true;
-            break;
-          case 940:
-            g93 = false;
-            break;
-          case 682:  // G68.2 X Y Z I J K: a tilted work plane (ZXZ Euler angles) about the origin X Y Z
-            plane_def = true;
-            break;
-          case 531:  // G53.1: tool axis to the plane (the rotaries positioned before it; see resolve_work_planes)
-            break;
-          case 690:
-            plane_cancel = true;
-            break;
-          case 2540:  // Haas G254 / G255 dynamic work offset on / off: the control carries the work offset with the
-          case 2550:  // rotaries; the words stay the post's machine coordinates (Haas mill manual, G254)
-            break;
-          case 280:
-          case 300:
-          case 530:
-          case 100:
-          case 920:
-            non_modal_skip = true;
-            break;
-          case 434:
-          case 2340:
-            tcp_word = true;
-            break;
-          case 435:  // Fanuc tool-tip control with the tool vector I J K
-            tcp_word = true;
-            g435 = true;
-            break;
-          case 490:
-            g435 = false;
-            break;
-          default:
-            break;
-        }
-        continue;
-      }
-      if (L == 'F') {
-        feed = v;
-        continue;
-      }
-      if (L == 'M') {
-        // LinuxCNC's switchable trunnion kinematics: M428 world (TCP) coordinates, M429 identity (joints).
-        if (std::lround(v) == 428) tcp_word = true;
-        continue;
-      }
-      if (!plane_def && g435 && (L == 'I' || L == 'J' || L == 'K')) {
-        b.tool_vector[static_cast<size_t>(L - 'I')] = v;
-        vector_words = true;
-        continue;
-      }
-      if (L == 'I' || L == 'J' || L == 'K') {  // arc centre, incremental from the start (G91.1, the default)
-        ijk[static_cast<size_t>(L - 'I')] = v;
-        ijk_given[static_cast<size_t>(L - 'I')] = true;
-        ijk_column = word_column;
-        continue;
-      }
-      if (L == 'R') {
-        r_word = v;
-        ijk_column = word_column;
-        continue;
-      }
-      axis_word_value(L, v, false, word_column);
+      on_word(L, v, word_column);
     }
     if (tcp_word) prog.tcp = true;
     bool any_axis = false;
