@@ -59,7 +59,7 @@ Summary check(const std::string& nc_text, const std::string& nc_name, const cl::
     s.message = s.violations.front().message;
     return s;
   }
-  s.tool_tip_control = report::uses_tool_tip_control(nc_text) || ncp.tcp;
+  s.tool_tip_control = ncp.tcp;  // read_for_machine has scanned the text for the TCP words (uses_tool_tip_control)
   {
     int bad_line = 0;
     if (const std::string why = report::resolve_tool_vectors(ncp, kinematics, &bad_line); !why.empty()) {
