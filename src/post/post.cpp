@@ -4,6 +4,7 @@
 
 #include <algorithm>
 #include <cmath>
+#include <cstring>
 #include <limits>
 #include <ostream>
 
@@ -232,8 +233,11 @@ class Sequencer {
 
   /// Attributes the NC lines written since the last call to `cl_line` (for the gate's messages).
   void map_lines(int cl_line) {
-    for (; scanned_ < buf_.size(); ++scanned_)
-      if (buf_[scanned_] == '\n') sum_.cl_line_of_nc_line.push_back(cl_line);
+    const char* const end = buf_.data() + buf_.size();
+    for (const char* p = buf_.data() + scanned_;
+         (p = static_cast<const char*>(std::memchr(p, '\n', static_cast<std::size_t>(end - p)))) != nullptr; ++p)
+      sum_.cl_line_of_nc_line.push_back(cl_line);
+    scanned_ = buf_.size();
   }
 
   /// The NC line the next line of text will be.
