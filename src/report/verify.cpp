@@ -57,9 +57,13 @@ bool departure(const kin::Posed* poses, int n, double tip_tol, double axis_tol_r
   if ((pb.tip_mm - pa.tip_mm).norm() <= tip_tol) return false;
   const double room_mm = tip_tol - slack_mm;
   const double cos_axis_tol = std::cos(std::max(0.0, axis_tol_rad - slack_rad));
+  // The geometric tests of every sample first: a cutting block fails them at once, before any CL lookup.
   for (int i = 0; i <= n; ++i) {
     const kin::Posed& p = i == n ? pb : poses[i];
     if ((p.tip_mm - pa.tip_mm).cross(pa.axis).norm() > room_mm || p.axis.dot(pa.axis) < cos_axis_tol) return false;
+  }
+  for (int i = 0; i <= n; ++i) {
+    const kin::Posed& p = i == n ? pb : poses[i];
     const Vec3 ctrl = p.tip_mm + ball_r * p.axis;  // the compared point: tip, or ball centre
     const auto [c, u] = cl_point_near(ctrl);
     if ((ctrl - c).dot(u) < -room_mm) return false;
