@@ -28,10 +28,14 @@ struct ClSeg {
   Vec3 p0, p1, u0, u1;
   int line;
   bool arc_interior = false;  ///< p1 is a point generated inside a CIRCLE/ (an NC arc passes it between its ends)
+  double th = 0.0;            ///< slerp_angle(u0, u1)
 };
 
-Vec3 slerp(const Vec3& a, const Vec3& b, double s) {
-  const double th = std::acos(std::clamp(a.dot(b), -1.0, 1.0));
+/// The angle slerp() turns through from a to b.
+double slerp_angle(const Vec3& a, const Vec3& b) { return std::acos(std::clamp(a.dot(b), -1.0, 1.0)); }
+
+/// slerp with its angle th = slerp_angle(a, b) computed once (per CL segment).
+Vec3 slerp(const Vec3& a, const Vec3& b, double th, double s) {
   if (th < 1e-9) return ((1 - s) * a + s * b).normalized();
   return (std::sin((1 - s) * th) / std::sin(th) * a + std::sin(s * th) / std::sin(th) * b).normalized();
 }
@@ -309,7 +313,8 @@ VerifyResult verify(const nc::Program& nc, const cl::Program& cl, const kin::Kin
     const auto& b = cl.moves[i];
     if (b.kind != cl::MotionKind::Feed) continue;
     const Vec3 ua = a.axis_in_part.normalized(), ub = b.axis_in_part.normalized();
-    segs.push_back({point(a.tip_in_part_mm, ua), point(b.tip_in_part_mm, ub), ua, ub, b.line, b.from_arc});
+    segs.push_back(
+        {point(a.tip_in_part_mm, ua), point(b.tip_in_part_mm, ub), ua, ub, b.line, b.from_arc, slerp_angle(ua, ub)});
   }
   if (segs.empty()) {
     r.ok = true;
@@ -527,7 +532,7 @@ VerifyResult verify(const nc::Program& nc, const cl::Program& cl, const kin::Kin
                       double t;
                       nearest(p, c, false, t);
                       const ClSeg& sg = segs[c];
-                      return std::pair<Vec3, Vec3>(sg.p0 + t * (sg.p1 - sg.p0), slerp(sg.u0, sg.u1, t));
+                      return std::pair<Vec3, Vec3>(sg.p0 + t * (sg.p1 - sg.p0), slerp(sg.u0, sg.u1, sg.th, t));
                     })) {
         // A retract or plunge along the fixed tool axis (a post's flip or unwind): off the path by design,
         // like a rapid; the CL points around it must still be reached.
@@ -588,7 +593,8 @@ VerifyResult verify(const nc::Program& nc, const cl::Program& cl, const kin::Kin
     parallel_range(0, axis_samples.size(), 1024, [&](const tbb::blocked_range<std::size_t>& rg) {
       for (std::size_t i = rg.begin(); i != rg.end(); ++i) {
         const AxisSample& a = axis_samples[i];
-        const Vec3 u = slerp(segs[a.seg].u0, segs[a.seg].u1, a.t);
+        const ClSeg& sg = segs[a.seg];
+        const Vec3 u = slerp(sg.u0, sg.u1, sg.th, a.t);
         axis_angles[i] = rad2deg(std::acos(std::clamp(u.dot(a.pose->axis), -1.0, 1.0))) + a.slack_deg;
       }
     });
