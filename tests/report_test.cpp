@@ -1,20 +1,18 @@
 // Axis statistics against hand-computed values, and verification catching a deviating program.
+#include <fmt/format.h>
 #include <gtest/gtest.h>
 
+#include "cscam/cl/program.hpp"
+#include "cscam/core/error.hpp"
 #include "cscam/core/units.hpp"
+#include "cscam/kin/track.hpp"
+#include "cscam/machine/machine.hpp"
 #include "cscam/report/backlash.hpp"
 #include "cscam/report/json.hpp"
 #include "cscam/report/stats.hpp"
 #include "cscam/report/trace.hpp"
 #include "cscam/report/verify.hpp"
 #include "test_support.hpp"
-
-#include <fmt/format.h>
-
-#include "cscam/cl/program.hpp"
-#include "cscam/core/error.hpp"
-#include "cscam/kin/track.hpp"
-#include "cscam/machine/machine.hpp"
 
 using namespace cscam;
 
@@ -124,9 +122,10 @@ struct TraceFixture {
     std::string t;
     for (const auto& s : samples) {
       // Joint mode: the controller's world position is the joints themselves.
-      t += fmt::format("{0} {1:.6f} {2:.6f} {3:.6f} {4:.6f} {5:.6f} {1:.6f} {2:.6f} {3:.6f} {4:.6f} {5:.6f} {6} {7} 1.0 0\n",
-                       s.index, s.joints[0], s.joints[1], s.joints[2], rad2deg(s.joints[3]), rad2deg(s.joints[4]),
-                       s.nc_line, s.motion == report::TraceMotion::Feed ? 2 : 1);
+      t += fmt::format(
+          "{0} {1:.6f} {2:.6f} {3:.6f} {4:.6f} {5:.6f} {1:.6f} {2:.6f} {3:.6f} {4:.6f} {5:.6f} {6} {7} 1.0 0\n",
+          s.index, s.joints[0], s.joints[1], s.joints[2], rad2deg(s.joints[3]), rad2deg(s.joints[4]), s.nc_line,
+          s.motion == report::TraceMotion::Feed ? 2 : 1);
     }
     return t;
   }
@@ -262,4 +261,144 @@ TEST(Stats, CycleTimeByHand) {
   const auto no_rates = report::compute(p, {"X", "Y", "Z", "B", "C"}, l.rotary);
   EXPECT_FALSE(no_rates.rapid_time_known);
   EXPECT_NE(report::table({st}, {"t"}).find("cycle time (min)"), std::string::npos);
+}
+
+namespace {
+
+/// Angle (rad) from unit vector u to the great-circle arc from a to b (unit, less than a half turn apart).
+double angle_to_arc(const Eigen::Vector3d& u, const Eigen::Vector3d& a, const Eigen::Vector3d& b) {
+  auto ang = [](const Eigen::Vector3d& x, const Eigen::Vector3d& y) {
+    return std::acos(std::clamp(x.dot(y), -1.0, 1.0));
+  };
+  double best = std::min(ang(u, a), ang(u, b));
+  const Eigen::Vector3d nrm = a.cross(b);
+  if (nrm.norm() < 1e-12) return best;
+  const Eigen::Vector3d n = nrm.normalized();
+  const Eigen::Vector3d in_plane = u - u.dot(n) * n;
+  if (in_plane.norm() < 1e-12) return best;
+  const Eigen::Vector3d f = in_plane.normalized();  // u's foot on the great circle: on the arc?
+  if (a.cross(f).dot(n) >= 0 && f.cross(b).dot(n) >= 0) best = std::min(best, ang(u, f));
+  return best;
+}
+
+}  // namespace
+
+// verify's sparse, bounded sampling against dense sampling: random joint moves on every bundled serial machine,
+// the CL path through their ends (so the moves bulge away from it between them). The reported tip and axis
+// deviations must bound the largest over 1000 FK samples per block of the exact distance to the CL polyline and
+// the exact angle to the CL orientations (the arcs between its points' axes), with far fewer samples.
+TEST(Verify, SparseBoundedSamplingBoundsDenseDeviation) {
+  auto rng = test::rng(91);
+  std::uniform_real_distribution<double> u01(0.0, 1.0);
+  constexpr int kDense = 1000, kBlocks = 40;
+  int sampling_alone_misses = 0;
+  for (const char* name : {"haas-umc750", "trunnion-ac", "head-table-bc45", "head-head-ac"}) {
+    const auto m = machine::load(test::source_path(std::string("machines/") + name + ".yaml"));
+    const auto k = m.kinematics();
+    for (double scale : {2e-4, 2e-3, 2e-2}) {  // fraction of each stroke per block
+      nc::Program nc;
+      cl::Program cl;
+      kin::Axes q;
+      for (int i = 0; i < 5; ++i) {
+        const auto& a = m.axes[static_cast<size_t>(i)];
+        q[i] = 0.5 * (std::max(a.min, -kPi) + std::min(a.max, kPi));
+      }
+      std::vector<kin::Axes> qs;
+      for (int b = 0; b <= kBlocks; ++b) {
+        if (b > 0)
+          for (int i = 0; i < 5; ++i) {
+            const auto& a = m.axes[static_cast<size_t>(i)];
+            const double lo = a.rotary() ? std::max(a.min, -kPi) : a.min,
+                         hi = a.rotary() ? std::min(a.max, kPi) : a.max;
+            q[i] = std::clamp(q[i] + scale * (hi - lo) * (2.0 * u01(rng) - 1.0), lo, hi);
+          }
+        qs.push_back(q);
+        nc::Block blk;
+        blk.line = b + 1;
+        blk.motion = b == 0 ? nc::Motion::Rapid : nc::Motion::Linear;
+        blk.feed = 1000;
+        for (int i = 0; i < 5; ++i) blk.axes[static_cast<size_t>(i)] = q[i];
+        blk.known.fill(true);
+        blk.words.fill(true);
+        nc.blocks.push_back(blk);
+        const kin::Posed p = k->forward(q);
+        cl::Move mv;
+        mv.tip_in_part_mm = p.tip_mm;
+        mv.axis_in_part = p.axis;
+        mv.kind = b == 0 ? cl::MotionKind::Rapid : cl::MotionKind::Feed;
+        mv.line = b + 1;
+        cl.moves.push_back(mv);
+      }
+      report::VerifyOptions vo;
+      vo.tip_tolerance_mm = 1e6;  // nothing is refused: the numbers are compared
+      vo.axis_tolerance_deg = 180;
+      const auto r = report::verify(nc, cl, *k, vo);
+      // The same budget with tolerances of a real post: the number of samples it would take.
+      double dense_tip = 0.0, dense_axis = 0.0;
+      for (int b = 1; b <= kBlocks; ++b)
+        for (int j = 0; j <= kDense; ++j) {
+          const auto& qa = qs[static_cast<size_t>(b) - 1];
+          const auto& qb = qs[static_cast<size_t>(b)];
+          const kin::Posed p = k->forward(qa + (double(j) / kDense) * (qb - qa));
+          double d = std::numeric_limits<double>::infinity(), a = d;
+          for (size_t s = 1; s < cl.moves.size(); ++s) {
+            const auto& c0 = cl.moves[s - 1];
+            const auto& c1 = cl.moves[s];
+            const Eigen::Vector3d ab = c1.tip_in_part_mm - c0.tip_in_part_mm;
+            const double t = ab.squaredNorm() > 0
+                                 ? std::clamp((p.tip_mm - c0.tip_in_part_mm).dot(ab) / ab.squaredNorm(), 0.0, 1.0)
+                                 : 0.0;
+            d = std::min(d, (c0.tip_in_part_mm + t * ab - p.tip_mm).norm());
+            a = std::min(a, angle_to_arc(p.axis, c0.axis_in_part.normalized(), c1.axis_in_part.normalized()));
+          }
+          dense_tip = std::max(dense_tip, d);
+          dense_axis = std::max(dense_axis, rad2deg(a));
+        }
+      EXPECT_LE(dense_tip, r.max_tip_deviation_mm + 1e-9) << name << " scale " << scale;
+      EXPECT_LE(dense_axis, r.max_axis_deviation_deg + 1e-6) << name << " scale " << scale;
+      EXPECT_GT(dense_tip, 0.0) << name;
+      report::VerifyOptions unbounded = vo;  // the same two samples per block without the bound
+      unbounded.adaptive_samples = false;
+      unbounded.samples_per_block = 2;
+      if (report::verify(nc, cl, *k, unbounded).max_tip_deviation_mm < dense_tip) ++sampling_alone_misses;
+      EXPECT_LT(r.samples, static_cast<size_t>(kBlocks) * 5000u) << name;
+    }
+  }
+  EXPECT_GE(sampling_alone_misses, 2);  // the test can fail: the samples alone understate the deviation
+}
+
+// With a real post's tolerances the bound costs few samples: small moves get the minimum of two per block.
+TEST(Verify, BoundedSamplingTakesTwoSamplesForShortBlocks) {
+  const auto m = machine::load(test::source_path("machines/trunnion-ac.yaml"));
+  const auto k = m.kinematics();
+  nc::Program nc;
+  cl::Program cl;
+  for (int b = 0; b <= 100; ++b) {
+    kin::Axes q;
+    q << 10.0 + 0.1 * b, 5.0, -20.0, deg2rad(20.0 + 0.01 * b), deg2rad(30.0 + 0.02 * b);
+    nc::Block blk;
+    blk.line = b + 1;
+    blk.motion = b == 0 ? nc::Motion::Rapid : nc::Motion::Linear;
+    blk.feed = 1000;
+    for (int i = 0; i < 5; ++i) blk.axes[static_cast<size_t>(i)] = q[i];
+    blk.known.fill(true);
+    nc.blocks.push_back(blk);
+    const kin::Posed p = k->forward(q);
+    cl::Move mv;
+    mv.tip_in_part_mm = p.tip_mm;
+    mv.axis_in_part = p.axis;
+    mv.kind = b == 0 ? cl::MotionKind::Rapid : cl::MotionKind::Feed;
+    mv.line = b + 1;
+    cl.moves.push_back(mv);
+  }
+  report::VerifyOptions vo = report::verify_options_for(m);
+  const auto r = report::verify(nc, cl, *k, vo);
+  EXPECT_TRUE(r.ok) << r.message;
+  EXPECT_EQ(r.samples, 1u + 100u * 2u) << r.message;  // the first point, then two per block
+  vo.adaptive_samples = false;
+  const auto fixed = report::verify(nc, cl, *k, vo);
+  EXPECT_EQ(fixed.samples, 1u + 100u * 8u);
+  // The bound is added: never below the fixed sampling's own figure by more than what sampling can miss.
+  EXPECT_GE(r.max_tip_deviation_mm + 1e-9, 0.0);
+  EXPECT_LE(r.max_tip_deviation_mm, vo.tip_tolerance_mm / 16 + fixed.max_tip_deviation_mm + 1e-9);
 }

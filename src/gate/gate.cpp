@@ -59,7 +59,7 @@ Summary check(const std::string& nc_text, const std::string& nc_name, const cl::
     s.message = s.violations.front().message;
     return s;
   }
-  s.tool_tip_control = report::uses_tool_tip_control(nc_text) || ncp.tcp;
+  s.tool_tip_control = ncp.tcp;  // read_for_machine has scanned the text for the TCP words (uses_tool_tip_control)
   {
     int bad_line = 0;
     if (const std::string why = report::resolve_tool_vectors(ncp, kinematics, &bad_line); !why.empty()) {
@@ -96,6 +96,25 @@ Summary check(const std::string& nc_text, const std::string& nc_name, const cl::
   // nearest the previous block's (what the control computes), inside every limit.
   std::vector<kin::Axes> joints(ncp.blocks.size(), kin::Axes::Zero());
   std::vector<char> joints_ok(ncp.blocks.size(), 0);
+  // With machine words every block's limits are independent of the others: checked in parallel (fixed slots),
+  // then reported in block order below, as the sequential loop did. Tool-tip control needs the previous
+  // block's solution, so it stays in order.
+  std::vector<std::string> limit_violation;
+  const bool limits_ahead = !s.tool_tip_control && !kinematics.traits().forward_depends_on_call_order;
+  if (limits_ahead) {
+    limit_violation.resize(ncp.blocks.size());
+    parallel_range(0, ncp.blocks.size(), 4096, [&](const tbb::blocked_range<std::size_t>& r) {
+      for (std::size_t bi = r.begin(); bi != r.end(); ++bi) {
+        const nc::Block& b = ncp.blocks[bi];
+        if (!std::all_of(b.known.begin(), b.known.end(), [](bool k) { return k; })) continue;
+        kin::Axes q;
+        for (int i = 0; i < 5; ++i) q[i] = b.axes[static_cast<size_t>(i)];
+        std::string v = kinematics.check_limits(q);
+        if (v.empty()) v = kinematics.passive_violation(q);
+        limit_violation[bi] = std::move(v);
+      }
+    });
+  }
   kin::Axes prev = kin::Axes::Zero();
   for (size_t bi = 0; bi < ncp.blocks.size(); ++bi) {
     const nc::Block& b = ncp.blocks[bi];
@@ -127,8 +146,13 @@ Summary check(const std::string& nc_text, const std::string& nc_name, const cl::
       }
       q = sol;
     } else {
-      std::string v = kinematics.check_limits(q);
-      if (v.empty()) v = kinematics.passive_violation(q);
+      std::string v;
+      if (limits_ahead) {
+        v = std::move(limit_violation[bi]);
+      } else {
+        v = kinematics.check_limits(q);
+        if (v.empty()) v = kinematics.passive_violation(q);
+      }
       if (!v.empty()) {
         add(Violation::Kind::Limit, b.line, 0, v);
         continue;

@@ -293,4 +293,37 @@ bool SerialKinematics::link_in_part(int axis, const Axes& q, Eigen::Isometry3d& 
   return true;
 }
 
+bool SerialKinematics::motion_bound(const Axes& qa, const Axes& qb, MotionBound& out) const {
+  const auto& g = geometry_;
+  // The tip is carried through the same operations as in serial_forward, each a shift along a fixed direction
+  // or a turn about a fixed axis, with joint values linear in t. For the point x before an operation keep bounds
+  // over t in [0, 1]: S >= |x| (from the base origin), V >= |x'|, A >= |x''|. A turn x -> R(th)(x - c) + c with
+  // rate w = |dth/dt| gives x' = w [n]x R (x - c) + R x' and x'' = w^2 [n]x^2 R (x - c) + 2 w [n]x R x' + R x'',
+  // so with rho = S + |c| >= |x - c|: V += w rho, A += w^2 rho + 2 w V, and S <= rho + |c| afterwards. A shift
+  // by d v(t) (|d| = 1) adds |v_b - v_a| to V and max(|v_a|, |v_b|) to S. Table joints enter inverted (R^T, -d):
+  // the same bounds.
+  double S = (g.gauge_home_mm - g.tool_length_mm * g.tool_direction_home).norm(), V = 0.0, A = 0.0, W = 0.0;
+  auto step = [&](int idx) {
+    const auto& j = g.joints[static_cast<size_t>(idx)];
+    const double va = qa[idx] + j.offset, vb = qb[idx] + j.offset;
+    if (j.type == AxisType::Linear) {
+      S += std::max(std::abs(va), std::abs(vb));
+      V += std::abs(vb - va);
+    } else {
+      const double w = std::abs(vb - va), c = j.pivot_mm.norm(), rho = S + c;
+      A += w * w * rho + 2.0 * w * V;
+      V += w * rho;
+      S = rho + c;
+      W += w;
+    }
+  };
+  for (auto it = g.head_chain.rbegin(); it != g.head_chain.rend(); ++it) step(*it);
+  for (int idx : g.table_chain) step(idx);
+  out.tip_accel_mm = A;
+  // The unit tool axis only turns: the same recursion with rho = 1 and no shifts gives W and W^2.
+  out.axis_rate_rad = W;
+  out.axis_accel = W * W;
+  return std::isfinite(A);
+}
+
 }  // namespace cscam::kin

@@ -13,9 +13,13 @@ double rotary_distance(const Kinematics& k, const Axes& a, const Axes& b) {
   return std::abs(a[rp[0]] - b[rp[0]]) + std::abs(a[rp[1]] - b[rp[1]]);
 }
 
+/// `p1_branches`: the IK branches of p1, if computed beforehand (see track.hpp), else nullptr.
 bool track_rec(const Kinematics& k, const Axes& prev, const Posed& p0, const Posed& p1, int depth, Axes& out,
-               std::string* violation, bool* singular, double max_step, bool* jumped = nullptr) {
-  if (!nearest_solution(k, p1, prev, out, violation, singular)) return false;
+               std::string* violation, bool* singular, double max_step, bool* jumped = nullptr,
+               const std::vector<Solution>* p1_branches = nullptr) {
+  if (!(p1_branches ? nearest_solution(k, *p1_branches, prev, out, violation, singular)
+                    : nearest_solution(k, p1, prev, out, violation, singular)))
+    return false;
   if (rotary_distance(k, out, prev) <= max_step) return true;
   if (depth >= 20) {
     if (jumped) *jumped = true;
@@ -27,14 +31,12 @@ bool track_rec(const Kinematics& k, const Axes& prev, const Posed& p0, const Pos
   const Posed mid{0.5 * (p0.tip_mm + p1.tip_mm), mid_axis};
   Axes qm;
   if (!track_rec(k, prev, p0, mid, depth + 1, qm, violation, nullptr, max_step, jumped)) return false;
-  return track_rec(k, qm, mid, p1, depth + 1, out, violation, singular, max_step, jumped);
+  return track_rec(k, qm, mid, p1, depth + 1, out, violation, singular, max_step, jumped, p1_branches);
 }
-}  // namespace
 
-bool nearest_solution(const Kinematics& k, const Posed& pose, const Axes& near, Axes& out, std::string* violation,
-                      bool* singular, const std::function<double(const Axes&)>& extra_cost) {
-  thread_local std::vector<Solution> sols;
-  k.inverse_branches(pose, &near, sols);
+/// The choice of nearest_solution among `sols` (modified: windings adjusted to `near`).
+bool choose_nearest(const Kinematics& k, std::vector<Solution>& sols, const Axes& near, Axes& out,
+                    std::string* violation, bool* singular, const std::function<double(const Axes&)>& extra_cost) {
   double best = std::numeric_limits<double>::infinity();
   for (Solution& s : sols) {
     k.nearest_winding(s.axes, near);
@@ -53,6 +55,27 @@ bool nearest_solution(const Kinematics& k, const Posed& pose, const Axes& near, 
     }
   }
   return std::isfinite(best);
+}
+}  // namespace
+
+bool nearest_solution(const Kinematics& k, const Posed& pose, const Axes& near, Axes& out, std::string* violation,
+                      bool* singular, const std::function<double(const Axes&)>& extra_cost) {
+  thread_local std::vector<Solution> sols;
+  k.inverse_branches(pose, &near, sols);
+  return choose_nearest(k, sols, near, out, violation, singular, extra_cost);
+}
+
+bool nearest_solution(const Kinematics& k, const std::vector<Solution>& branches, const Axes& near, Axes& out,
+                      std::string* violation, bool* singular, const std::function<double(const Axes&)>& extra_cost) {
+  thread_local std::vector<Solution> sols;
+  sols = branches;
+  return choose_nearest(k, sols, near, out, violation, singular, extra_cost);
+}
+
+bool track(const Kinematics& k, const Axes& from, const Posed& p0, const Posed& p1,
+           const std::vector<Solution>& p1_branches, Axes& out, std::string* violation, bool* singular,
+           double max_step_rad) {
+  return track_rec(k, from, p0, p1, 0, out, violation, singular, max_step_rad, nullptr, &p1_branches);
 }
 
 bool track(const Kinematics& k, const Axes& from, const Posed& p0, const Posed& p1, Axes& out, std::string* violation,

@@ -6,12 +6,14 @@
 #include <cctype>
 #include <charconv>
 #include <cmath>
+#include <cstdint>
 #include <fstream>
 #include <functional>
 #include <optional>
 #include <sstream>
 
 #include "cscam/core/error.hpp"
+#include "cscam/core/parallel.hpp"
 #include "cscam/core/rotations.hpp"
 #include "cscam/core/units.hpp"
 
@@ -19,12 +21,90 @@ namespace cscam::nc {
 
 namespace {
 
+// Character classes of the "C" locale (cscam never sets another), inline: the reader asks them for every
+// character of a program that may have millions of lines.
+constexpr bool is_space(char c) { return c == ' ' || (c >= '\t' && c <= '\r'); }
+constexpr bool is_digit(char c) { return c >= '0' && c <= '9'; }
+constexpr bool is_alpha(char c) { return (c >= 'a' && c <= 'z') || (c >= 'A' && c <= 'Z'); }
+constexpr bool is_alnum(char c) { return is_digit(c) || is_alpha(c); }
+constexpr char to_upper(char c) { return c >= 'a' && c <= 'z' ? static_cast<char>(c - 'a' + 'A') : c; }
+
 std::string_view trim(std::string_view s) {
-  while (!s.empty() && (std::isspace(static_cast<unsigned char>(s.front())) || s.front() == '\xEF' ||
-                        s.front() == '\xBB' || s.front() == '\xBF'))
+  while (!s.empty() && (is_space(s.front()) || s.front() == '\xEF' || s.front() == '\xBB' || s.front() == '\xBF'))
     s.remove_prefix(1);
-  while (!s.empty() && std::isspace(static_cast<unsigned char>(s.back()))) s.remove_suffix(1);
+  while (!s.empty() && is_space(s.back())) s.remove_suffix(1);
   return s;
+}
+
+/// The G-code number `num` (an optional sign, then digits and points: "-1.5", "+.5", "3.", "-.5"), which
+/// from_chars alone does not take (a '+', no digit before or after the point). False if it is not a number.
+/// In a buffer on the stack: this runs for every word of a million-block program.
+bool gcode_number(std::string_view num, double& v) {
+  if (!num.empty() && num[0] == '+') num.remove_prefix(1);
+  if (num.empty()) return false;
+  char small[64];
+  std::string big;  // only for absurdly long words
+  char* fixed = small;
+  if (num.size() + 3 > sizeof small) {
+    big.resize(num.size() + 3);
+    fixed = big.data();
+  }
+  size_t n = 0;
+  if (num[0] == '.') fixed[n++] = '0';  // ".5"
+  for (size_t i = 0; i < num.size(); ++i) {
+    fixed[n++] = num[i];
+    if (i == 0 && num[0] == '-' && num.size() > 1 && num[1] == '.') fixed[n++] = '0';  // "-.5"
+  }
+  if (num.back() == '.') fixed[n++] = '0';  // "3."
+  const auto r = std::from_chars(fixed, fixed + n, v);
+  return r.ec == std::errc() && r.ptr == fixed + n;
+}
+
+/// One letter-number word of a block: its letter (upper case), its 1-based column and value.
+struct Word {
+  char letter = 0;
+  int column = 0;
+  double value = 0.0;
+};
+
+/// The words of a line made only of letter-number words ("G1 X1.5 Y-2 F100", with blanks, '%', comments in
+/// parentheses, a leading '/' and a ';' tail around them), appended to `out` exactly as read_text's character
+/// loop reads them. False for any other line (an 'O' word, an identifier, '=', a letter without a number, a
+/// malformed number, ...): read_text's loop reads, or refuses, that one itself.
+bool simple_words(std::string_view s, std::vector<Word>& out) {
+  size_t i = 0;
+  while (i < s.size()) {
+    const char c = s[i];
+    if (is_space(c) || c == '%') {
+      ++i;
+      continue;
+    }
+    if (c == '(') {
+      const size_t e = s.find(')', i);
+      i = e == std::string_view::npos ? s.size() : e + 1;
+      continue;
+    }
+    if (c == ';') break;
+    if (c == '/' && i == 0) {
+      ++i;
+      continue;
+    }
+    if (!is_alpha(c) || i + 1 >= s.size()) return false;
+    const char L = to_upper(c);
+    const char n = s[i + 1];
+    if (L == 'O' || !(is_digit(n) || n == '-' || n == '+' || n == '.')) return false;
+    size_t e = i + 1;  // Sinumerik "R1=...", "A3=...": not a word
+    while (e < s.size() && is_digit(s[e])) ++e;
+    if (e > i + 1 && e < s.size() && s[e] == '=') return false;
+    size_t k = i + 1;
+    if (s[k] == '-' || s[k] == '+') ++k;
+    while (k < s.size() && (is_digit(s[k]) || s[k] == '.')) ++k;
+    double v = 0;
+    if (!gcode_number(s.substr(i + 1, k - i - 1), v)) return false;
+    out.push_back({L, static_cast<int>(i) + 1, v});
+    i = k;
+  }
+  return true;
 }
 
 /// A number at s[k] ("-1.5", "+.5", "3."); advances k past it.
@@ -32,15 +112,9 @@ std::optional<double> parse_number(std::string_view s, size_t& k) {
   while (k < s.size() && s[k] == ' ') ++k;
   const size_t j = k;
   if (k < s.size() && (s[k] == '-' || s[k] == '+')) ++k;
-  while (k < s.size() && (std::isdigit(static_cast<unsigned char>(s[k])) || s[k] == '.')) ++k;
-  std::string fixed(s.substr(j, k - j));
-  if (!fixed.empty() && fixed[0] == '+') fixed.erase(0, 1);
-  if (!fixed.empty() && fixed.back() == '.') fixed.push_back('0');
-  if (fixed.rfind("-.", 0) == 0) fixed.insert(1, "0");
-  if (!fixed.empty() && fixed[0] == '.') fixed.insert(0, "0");
+  while (k < s.size() && (is_digit(s[k]) || s[k] == '.')) ++k;
   double v = 0;
-  const auto r = std::from_chars(fixed.data(), fixed.data() + fixed.size(), v);
-  if (fixed.empty() || r.ec != std::errc() || r.ptr != fixed.data() + fixed.size()) return std::nullopt;
+  if (!gcode_number(s.substr(j, k - j), v)) return std::nullopt;
   return v;
 }
 
@@ -125,7 +199,7 @@ bool is_heidenhain(const std::string& text) {
     std::string_view l = trim(all.substr(pos, nl - pos));
     pos = nl + 1;
     if (l.empty()) continue;
-    while (!l.empty() && std::isdigit(static_cast<unsigned char>(l.front()))) l.remove_prefix(1);
+    while (!l.empty() && is_digit(l.front())) l.remove_prefix(1);
     return trim(l).rfind("BEGIN PGM", 0) == 0;
   }
   return false;
@@ -157,7 +231,7 @@ Program read_heidenhain(const std::string& text, const std::string& name, const 
     const auto fail = [&](std::string_view at, const std::string& what) {
       throw InputError(SourceLoc{name, lineno, static_cast<int>(at.data() - raw.data()) + 1}, what);
     };
-    while (!s.empty() && std::isdigit(static_cast<unsigned char>(s.front()))) s.remove_prefix(1);  // block number
+    while (!s.empty() && is_digit(s.front())) s.remove_prefix(1);  // block number
     s = trim(s);
     if (s.empty()) continue;
     // Comments ("; ..." and "* - ..."), with our header's tool length and machine in them.
@@ -322,6 +396,7 @@ Program read_text(const std::string& text, const std::string& name, const AxisLe
       break;
     }
 
+  prog.blocks.reserve(lines.size() - first);  // at most one block a line: no regrowth of a large program
   Block state;
   Motion motion = Motion::Rapid;
   bool inch = false, absolute = true, g93 = false, g435 = false;
@@ -335,6 +410,43 @@ Program read_text(const std::string& text, const std::string& name, const AxisLe
   prog.xyz_slots = xyz;
   std::optional<WorkPlane> work_plane;  // the tilted work plane in force
   double feed = 0.0;
+  // Tokenising is most of the reading and needs no modal state: the lines ahead are tokenised in parallel, a
+  // window at a time (fixed chunks), and read in order below.
+  constexpr std::size_t kWindow = 1 << 15, kChunk = 1 << 10;
+  std::size_t window_begin = 0, window_end = 0;
+  std::vector<std::vector<Word>> chunk_words;
+  struct LineWords {
+    std::uint32_t first = 0, count = 0;
+    bool simple = false;
+  };
+  std::vector<LineWords> line_words;
+  std::size_t tn = 0;
+  auto tokens_for = [&](std::size_t li, std::size_t& count) -> const Word* {
+    if (li >= window_end) {
+      window_begin = li;
+      window_end = std::min(lines.size(), li + kWindow);
+      const std::size_t chunks = (window_end - window_begin + kChunk - 1) / kChunk;
+      chunk_words.resize(chunks);
+      line_words.assign(window_end - window_begin, LineWords{});
+      parallel_range(0, chunks, 1, [&](const tbb::blocked_range<std::size_t>& r) {
+        for (std::size_t c = r.begin(); c != r.end(); ++c) {
+          auto& words = chunk_words[c];
+          words.clear();
+          const std::size_t l0 = window_begin + c * kChunk, l1 = std::min(window_end, l0 + kChunk);
+          for (std::size_t l = l0; l < l1; ++l) {
+            LineWords& lw = line_words[l - window_begin];
+            lw.first = static_cast<std::uint32_t>(words.size());
+            lw.simple = simple_words(lines[l], words);
+            if (!lw.simple) words.resize(lw.first);
+            lw.count = static_cast<std::uint32_t>(words.size() - lw.first);
+          }
+        }
+      });
+    }
+    const LineWords& lw = line_words[li - window_begin];
+    count = lw.count;
+    return lw.simple ? chunk_words[(li - window_begin) / kChunk].data() + lw.first : nullptr;
+  };
   for (size_t li = first; li < lines.size(); ++li) {
     const std::string_view raw = lines[li];
     const int lineno = static_cast<int>(li) + 1;
@@ -393,106 +505,8 @@ Program read_text(const std::string& text, const std::string& name, const AxisLe
         prog.foreign_axis_words.push_back({L, lineno, word_column});
       return axis_word;
     };
-    while (i < s.size()) {
-      const char c = s[i];
-      if (std::isspace(static_cast<unsigned char>(c)) || c == '%') {
-        ++i;
-        continue;
-      }
-      if (c == '(') {
-        const size_t e = s.find(')', i);
-        i = e == std::string_view::npos ? s.size() : e + 1;
-        continue;
-      }
-      if (c == ';') break;
-      if (c == '/' && i == 0) {  // block delete: still a valid block for reading
-        ++i;
-        continue;
-      }
-      if (!std::isalpha(static_cast<unsigned char>(c))) fail(i, fmt::format("unexpected character '{}'", c));
-      const char L = static_cast<char>(std::toupper(static_cast<unsigned char>(c)));
-      const int word_column = static_cast<int>(i) + 1;
-      if (L == 'O') break;  // program number/name ("O2021-11-28_part"): not a block
-      // Sinumerik identifiers (TRAORI, TRAFOOF, ORIWKS, CYCLE800(...), MCALL ...): skipped, TRAORI noted.
-      if (i + 1 < s.size() && (std::isalpha(static_cast<unsigned char>(s[i + 1])) || s[i + 1] == '_')) {
-        size_t e = i;
-        while (e < s.size() && (std::isalnum(static_cast<unsigned char>(s[e])) || s[e] == '_')) ++e;
-        std::string id(s.substr(i, e - i));
-        for (char& ch : id) ch = static_cast<char>(std::toupper(static_cast<unsigned char>(ch)));
-        if (id == "TRAORI") tcp_word = true;
-        if (id == "SUPA") non_modal_skip = true;  // machine coordinates: every frame suppressed for this block
-        if (id == "CYCLE800") {
-          size_t open = e;
-          while (open < s.size() && s[open] == ' ') ++open;
-          if (open >= s.size() || s[open] != '(') fail(e, "CYCLE800 without its argument list");
-          cycle_seen = true;
-          cycle_plane = cycle800(s, open, inch ? kMmPerInch : 1.0, fail);
-        }
-        i = skip_argument(s, e);
-        continue;
-      }
-      // Sinumerik "A3=0.5" (tool vector) or "R1=..." (parameter): a letter, digits, '='.
-      {
-        size_t e = i + 1;
-        while (e < s.size() && std::isdigit(static_cast<unsigned char>(s[e]))) ++e;
-        if (e > i + 1 && e < s.size() && s[e] == '=') {
-          const std::string_view ext = s.substr(i + 1, e - i - 1);
-          size_t k = e + 1;
-          if (ext == "3" && (L == 'A' || L == 'B' || L == 'C')) {
-            const auto val = parse_number(s, k);
-            if (!val) fail(k, fmt::format("malformed number after '{}3='", L));
-            b.tool_vector[static_cast<size_t>(L - 'A')] = *val;
-            vector_words = true;
-            i = k;
-          } else {
-            i = skip_argument(s, e);
-          }
-          continue;
-        }
-      }
-      // Sinumerik "X=10", "C=DC(45)", "C=ACP(45)", "T=\"name\"": the value after '=', maybe in a function.
-      bool short_way = false;
-      size_t j = i + 1;
-      while (j < s.size() && s[j] == ' ') ++j;
-      if (j < s.size() && s[j] == '=') {
-        ++j;
-        if (j < s.size() && s[j] == '"') {  // T="name"
-          const size_t q = s.find('"', j + 1);
-          i = q == std::string_view::npos ? s.size() : q + 1;
-          continue;
-        }
-        if (j < s.size() && std::isalpha(static_cast<unsigned char>(s[j]))) {
-          size_t e = j;
-          while (e < s.size() && std::isalpha(static_cast<unsigned char>(s[e]))) ++e;
-          std::string fn(s.substr(j, e - j));
-          for (char& ch : fn) ch = static_cast<char>(std::toupper(static_cast<unsigned char>(ch)));
-          if (e >= s.size() || s[e] != '(') fail(j, fmt::format("expected a number or a function after '{}='", L));
-          short_way = fn == "DC";
-          if (fn != "DC" && fn != "AC" && fn != "ACP" && fn != "ACN")
-            fail(j, fmt::format("'{}={}()' is not an absolute position this reader knows (DC, AC, ACP, ACN)", L, fn));
-          size_t k = e + 1;
-          const auto val = parse_number(s, k);
-          if (!val || k >= s.size() || s[k] != ')') fail(e + 1, fmt::format("malformed number in '{}={}()'", L, fn));
-          i = k + 1;
-          if (!axis_word_value(L, *val, short_way, word_column)) continue;
-          continue;
-        }
-      }
-      size_t k = j;
-      if (k < s.size() && (s[k] == '-' || s[k] == '+')) ++k;
-      while (k < s.size() && (std::isdigit(static_cast<unsigned char>(s[k])) || s[k] == '.')) ++k;
-      std::string num(s.substr(j, k - j));
-      if (!num.empty() && num[0] == '+') num.erase(0, 1);
-      double v = 0;
-      // "X-.5" and "X3." are valid G-code numbers; from_chars wants a digit before/after the point.
-      std::string fixed = num;
-      if (!fixed.empty() && fixed.back() == '.') fixed.push_back('0');
-      if (fixed.rfind("-.", 0) == 0) fixed.insert(1, "0");
-      if (!fixed.empty() && fixed[0] == '.') fixed.insert(0, "0");
-      auto r = std::from_chars(fixed.data(), fixed.data() + fixed.size(), v);
-      if (num.empty() || r.ec != std::errc() || r.ptr != fixed.data() + fixed.size())
-        fail(j, fmt::format("malformed number after '{}': '{}'", L, std::string(s.substr(j, k - j))));
-      i = k;
+    // One word (letter, value, 1-based column) of the block: its meaning for the modal state and the block.
+    auto on_word = [&](const char L, const double v, const int word_column) {
       if (L == 'G') {
         const int g10 = static_cast<int>(std::lround(v * 10));
         switch (g10) {
@@ -563,34 +577,135 @@ Program read_text(const std::string& text, const std::string& name, const AxisLe
           default:
             break;
         }
-        continue;
+        return;
       }
       if (L == 'F') {
         feed = v;
-        continue;
+        return;
       }
       if (L == 'M') {
         // LinuxCNC's switchable trunnion kinematics: M428 world (TCP) coordinates, M429 identity (joints).
         if (std::lround(v) == 428) tcp_word = true;
-        continue;
+        return;
       }
       if (!plane_def && g435 && (L == 'I' || L == 'J' || L == 'K')) {
         b.tool_vector[static_cast<size_t>(L - 'I')] = v;
         vector_words = true;
-        continue;
+        return;
       }
       if (L == 'I' || L == 'J' || L == 'K') {  // arc centre, incremental from the start (G91.1, the default)
         ijk[static_cast<size_t>(L - 'I')] = v;
         ijk_given[static_cast<size_t>(L - 'I')] = true;
         ijk_column = word_column;
-        continue;
+        return;
       }
       if (L == 'R') {
         r_word = v;
         ijk_column = word_column;
-        continue;
+        return;
       }
       axis_word_value(L, v, false, word_column);
+    };
+    // Lines of letter-number words only (nearly all of a posted program) come tokenised from the parallel
+    // pass (tokens_for); any other line is read here character by character.
+    if (const Word* tw = tokens_for(li, tn)) {
+      for (std::size_t t = 0; t < tn; ++t) on_word(tw[t].letter, tw[t].value, tw[t].column);
+      i = s.size();
+    }
+    while (i < s.size()) {
+      const char c = s[i];
+      if (is_space(c) || c == '%') {
+        ++i;
+        continue;
+      }
+      if (c == '(') {
+        const size_t e = s.find(')', i);
+        i = e == std::string_view::npos ? s.size() : e + 1;
+        continue;
+      }
+      if (c == ';') break;
+      if (c == '/' && i == 0) {  // block delete: still a valid block for reading
+        ++i;
+        continue;
+      }
+      if (!is_alpha(c)) fail(i, fmt::format("unexpected character '{}'", c));
+      const char L = to_upper(c);
+      const int word_column = static_cast<int>(i) + 1;
+      if (L == 'O') break;  // program number/name ("O2021-11-28_part"): not a block
+      // Sinumerik identifiers (TRAORI, TRAFOOF, ORIWKS, CYCLE800(...), MCALL ...): skipped, TRAORI noted.
+      if (i + 1 < s.size() && (is_alpha(s[i + 1]) || s[i + 1] == '_')) {
+        size_t e = i;
+        while (e < s.size() && (is_alnum(s[e]) || s[e] == '_')) ++e;
+        std::string id(s.substr(i, e - i));
+        for (char& ch : id) ch = to_upper(ch);
+        if (id == "TRAORI") tcp_word = true;
+        if (id == "SUPA") non_modal_skip = true;  // machine coordinates: every frame suppressed for this block
+        if (id == "CYCLE800") {
+          size_t open = e;
+          while (open < s.size() && s[open] == ' ') ++open;
+          if (open >= s.size() || s[open] != '(') fail(e, "CYCLE800 without its argument list");
+          cycle_seen = true;
+          cycle_plane = cycle800(s, open, inch ? kMmPerInch : 1.0, fail);
+        }
+        i = skip_argument(s, e);
+        continue;
+      }
+      // Sinumerik "A3=0.5" (tool vector) or "R1=..." (parameter): a letter, digits, '='.
+      {
+        size_t e = i + 1;
+        while (e < s.size() && is_digit(s[e])) ++e;
+        if (e > i + 1 && e < s.size() && s[e] == '=') {
+          const std::string_view ext = s.substr(i + 1, e - i - 1);
+          size_t k = e + 1;
+          if (ext == "3" && (L == 'A' || L == 'B' || L == 'C')) {
+            const auto val = parse_number(s, k);
+            if (!val) fail(k, fmt::format("malformed number after '{}3='", L));
+            b.tool_vector[static_cast<size_t>(L - 'A')] = *val;
+            vector_words = true;
+            i = k;
+          } else {
+            i = skip_argument(s, e);
+          }
+          continue;
+        }
+      }
+      // Sinumerik "X=10", "C=DC(45)", "C=ACP(45)", "T=\"name\"": the value after '=', maybe in a function.
+      bool short_way = false;
+      size_t j = i + 1;
+      while (j < s.size() && s[j] == ' ') ++j;
+      if (j < s.size() && s[j] == '=') {
+        ++j;
+        if (j < s.size() && s[j] == '"') {  // T="name"
+          const size_t q = s.find('"', j + 1);
+          i = q == std::string_view::npos ? s.size() : q + 1;
+          continue;
+        }
+        if (j < s.size() && is_alpha(s[j])) {
+          size_t e = j;
+          while (e < s.size() && is_alpha(s[e])) ++e;
+          std::string fn(s.substr(j, e - j));
+          for (char& ch : fn) ch = to_upper(ch);
+          if (e >= s.size() || s[e] != '(') fail(j, fmt::format("expected a number or a function after '{}='", L));
+          short_way = fn == "DC";
+          if (fn != "DC" && fn != "AC" && fn != "ACP" && fn != "ACN")
+            fail(j, fmt::format("'{}={}()' is not an absolute position this reader knows (DC, AC, ACP, ACN)", L, fn));
+          size_t k = e + 1;
+          const auto val = parse_number(s, k);
+          if (!val || k >= s.size() || s[k] != ')') fail(e + 1, fmt::format("malformed number in '{}={}()'", L, fn));
+          i = k + 1;
+          if (!axis_word_value(L, *val, short_way, word_column)) continue;
+          continue;
+        }
+      }
+      size_t k = j;
+      if (k < s.size() && (s[k] == '-' || s[k] == '+')) ++k;
+      while (k < s.size() && (is_digit(s[k]) || s[k] == '.')) ++k;
+      double v = 0;
+      // "X-.5" and "X3." are valid G-code numbers; from_chars wants a digit before/after the point.
+      if (!gcode_number(s.substr(j, k - j), v))
+        fail(j, fmt::format("malformed number after '{}': '{}'", L, std::string(s.substr(j, k - j))));
+      i = k;
+      on_word(L, v, word_column);
     }
     if (tcp_word) prog.tcp = true;
     bool any_axis = false;

@@ -4,6 +4,7 @@
 #include <limits>
 
 #include "cscam/core/error.hpp"
+#include "cscam/core/parallel.hpp"
 #include "cscam/core/units.hpp"
 #include "cscam/kin/track.hpp"
 #include "cscam/post/post.hpp"
@@ -66,16 +67,43 @@ std::vector<kin::Axes> conventional_axes(const cl::Program& program, const machi
   auto side_penalty = [&](const kin::Axes& q) {
     return always_axis >= 0 && always_sign * q[always_axis] < -1e-12 ? 1e6 : 0.0;
   };
+  // The IK branches of every point do not depend on the previous point (only a singular branch's free angle
+  // does): computed ahead in parallel, a window at a time, and used where no branch is singular. Not on models
+  // whose numbers depend on call order (the XMINI's warm-started solves).
+  const bool ahead = !kinematics.traits().forward_depends_on_call_order;
+  constexpr std::size_t kWindow = 4096;
+  std::vector<std::vector<kin::Solution>> branches;
+  std::vector<char> branches_ok;
+  std::size_t window_begin = 0;
   for (const cl::Move& mv : program.moves) {
     const kin::Posed pose{mv.tip_in_part_mm, mv.axis_in_part.normalized()};
+    const std::size_t i = static_cast<std::size_t>(&mv - program.moves.data());
+    if (ahead && (branches.empty() || i >= window_begin + branches.size())) {
+      window_begin = i;
+      const std::size_t end = std::min(program.moves.size(), i + kWindow);
+      branches.resize(end - i);
+      branches_ok.assign(end - i, 0);
+      parallel_range(i, end, 256, [&](const tbb::blocked_range<std::size_t>& r) {
+        for (std::size_t k = r.begin(); k != r.end(); ++k) {
+          const cl::Move& m = program.moves[k];
+          auto& b = branches[k - i];
+          kinematics.inverse_branches(kin::Posed{m.tip_in_part_mm, m.axis_in_part.normalized()}, nullptr, b);
+          branches_ok[k - i] = std::none_of(b.begin(), b.end(), [](const kin::Solution& s) { return s.singular; });
+        }
+      });
+    }
+    const std::vector<kin::Solution>* given =
+        ahead && branches_ok[i - window_begin] ? &branches[i - window_begin] : nullptr;
     kin::Axes chosen = kin::Axes::Zero();
     std::string first_violation;
     bool ok = false, singular = false;
     if (have_prev && always_sign != 0) {
       // A simple post: the preferred sign of one rotary at every point, else the nearest solution.
-      ok = kin::nearest_solution(kinematics, pose, prev, chosen, &first_violation, &singular, side_penalty);
+      ok = given ? kin::nearest_solution(kinematics, *given, prev, chosen, &first_violation, &singular, side_penalty)
+                 : kin::nearest_solution(kinematics, pose, prev, chosen, &first_violation, &singular, side_penalty);
     } else if (have_prev) {
-      ok = kin::track(kinematics, prev, prev_pose, pose, chosen, &first_violation, &singular);
+      ok = given ? kin::track(kinematics, prev, prev_pose, pose, *given, chosen, &first_violation, &singular)
+                 : kin::track(kinematics, prev, prev_pose, pose, chosen, &first_violation, &singular);
     } else {
       // The first point: nearest to home, on the start branch's side when there is one.
       ok = kin::nearest_solution(kinematics, pose, kin::Axes::Zero(), chosen, &first_violation, &singular,

@@ -23,6 +23,33 @@ std::string angle_word(double deg, bool plus_sign) {
   return plus_sign && s[0] != '-' ? "+" + s : s;
 }
 
+/// " F<feed>" with `decimals` decimals: the bytes fmt's "{:.Nf}" writes. The post rounds feeds to whole units of
+/// the last decimal (k / 10^N, every block under inverse time): those are written from the integer k, for which
+/// both roundings agree; any other value goes through fmt.
+void append_feed(std::string& out, double feed, int decimals) {
+  double p = 1.0;
+  for (int k = 0; k < decimals; ++k) p *= 10.0;
+  const double scaled = feed * p;
+  if (decimals >= 0 && decimals <= 9 && scaled >= 0.0 && scaled < 1e15) {
+    const auto k = std::llround(scaled);
+    if (static_cast<double>(k) / p == feed) {
+      const auto unit = static_cast<long long>(p);
+      char tmp[32];
+      out += " F";
+      auto r = std::to_chars(tmp, tmp + sizeof tmp, k / unit);
+      out.append(tmp, r.ptr);
+      if (decimals > 0) {
+        out.push_back('.');
+        r = std::to_chars(tmp, tmp + sizeof tmp, k % unit);
+        out.append(static_cast<size_t>(decimals - (r.ptr - tmp)), '0');
+        out.append(tmp, r.ptr);
+      }
+      return;
+    }
+  }
+  fmt::format_to(std::back_inserter(out), " F{:.{}f}", feed, decimals);
+}
+
 std::string sanitize_comment(std::string s) {
   for (char& c : s)
     if (c == '(' || c == ')') c = '_';
@@ -193,7 +220,7 @@ void Formatter::block(std::string& out, const BlockSpec& b) {
     const auto& v = *b.tool_vector;
     fmt::format_to(std::back_inserter(out), " I{:.6f} J{:.6f} K{:.6f}", v[0], v[1], v[2]);
   }
-  if (b.feed) fmt::format_to(std::back_inserter(out), " F{:.{}f}", *b.feed, b.feed_decimals);
+  if (b.feed) append_feed(out, *b.feed, b.feed_decimals);
   out.push_back('\n');
 }
 
@@ -430,7 +457,7 @@ class Siemens : public Formatter {
       const auto& v = *b.tool_vector;
       fmt::format_to(std::back_inserter(out), " A3={:.6f} B3={:.6f} C3={:.6f}", v[0], v[1], v[2]);
     }
-    if (b.feed) fmt::format_to(std::back_inserter(out), " F{:.{}f}", *b.feed, b.feed_decimals);
+    if (b.feed) append_feed(out, *b.feed, b.feed_decimals);
     out.push_back('\n');
   }
 };
@@ -549,7 +576,7 @@ class Heidenhain : public Formatter {
       return;
     }
     out += " R0";
-    if (b.feed) fmt::format_to(std::back_inserter(out), " F{:.{}f}", *b.feed, b.feed_decimals);
+    if (b.feed) append_feed(out, *b.feed, b.feed_decimals);
     out.push_back('\n');
   }
 

@@ -4,10 +4,12 @@
 
 #include <algorithm>
 #include <cmath>
+#include <cstring>
 #include <limits>
 #include <ostream>
 
 #include "cscam/core/error.hpp"
+#include "cscam/core/parallel.hpp"
 #include "cscam/core/rotations.hpp"
 #include "cscam/core/tolerances.hpp"
 #include "cscam/core/units.hpp"
@@ -163,6 +165,7 @@ class Sequencer {
   }
 
   void run(const std::vector<kin::Axes>& axes) {
+    axes_ = &axes;
     sum_.cl_line_of_nc_line.assign(1, 0);
     fmt_->begin(buf_);
     map_lines(0);
@@ -230,8 +233,11 @@ class Sequencer {
 
   /// Attributes the NC lines written since the last call to `cl_line` (for the gate's messages).
   void map_lines(int cl_line) {
-    for (; scanned_ < buf_.size(); ++scanned_)
-      if (buf_[scanned_] == '\n') sum_.cl_line_of_nc_line.push_back(cl_line);
+    const char* const end = buf_.data() + buf_.size();
+    for (const char* p = buf_.data() + scanned_;
+         (p = static_cast<const char*>(std::memchr(p, '\n', static_cast<std::size_t>(end - p)))) != nullptr; ++p)
+      sum_.cl_line_of_nc_line.push_back(cl_line);
+    scanned_ = buf_.size();
   }
 
   /// The NC line the next line of text will be.
@@ -909,7 +915,7 @@ class Sequencer {
       return;
     }
     Linearizer::Stats st;
-    lin_.split(m0, q0, m1, q1, prog_.file, pieces_, st);
+    if (!split_ahead(m0, q0, m1, q1, st)) lin_.split(m0, q0, m1, q1, prog_.file, pieces_, st);
     sum_.inserted_points += st.inserted_points;
     sum_.ik_calls += st.ik_calls;
     sum_.max_checked_tip_deviation_mm = std::max(sum_.max_checked_tip_deviation_mm, st.max_checked_tip_deviation_mm);
@@ -920,6 +926,47 @@ class Sequencer {
       qa = pc.q_end;
     }
     cur_ = q1;
+  }
+
+  /// The linearisation of a CL segment is a pure function of its ends and their axis values, and most of the
+  /// post's time: the segments ahead (moves[i - 1] -> moves[i] at axes[i - 1], axes[i]) are split in parallel, a
+  /// window at a time, and taken from there when the sequencer asks for exactly that segment. A segment whose
+  /// split throws, or one the sequencer asks for with other axis values (after a retract or flip), is split here
+  /// as before, so the output and the errors are those of the sequential post. Not on models whose FK/IK depend
+  /// on call order (the XMINI): there the numbers must come in order.
+  bool split_ahead(const cl::Move& m0, const kin::Axes& q0, const cl::Move& m1, const kin::Axes& q1,
+                   Linearizer::Stats& st) {
+    if (!axes_ || traits_.forward_depends_on_call_order) return false;
+    const auto& moves = prog_.moves;
+    if (&m1 <= moves.data() || &m1 >= moves.data() + moves.size()) return false;
+    const std::size_t i = static_cast<std::size_t>(&m1 - moves.data());
+    const auto& axes = *axes_;
+    if (&m0 != &moves[i - 1] || i >= axes.size() || q0 != axes[i - 1] || q1 != axes[i]) return false;
+    constexpr std::size_t kWindow = 4096;
+    if (i < ahead_begin_ || i >= ahead_begin_ + ahead_.size()) {
+      ahead_begin_ = i;
+      const std::size_t end = std::min(moves.size(), i + kWindow);
+      ahead_.assign(end - i, Ahead{});
+      parallel_range(i, end, 64, [&](const tbb::blocked_range<std::size_t>& r) {
+        Linearizer lin = lin_;  // its scratch stack is per task
+        for (std::size_t k = r.begin(); k != r.end(); ++k) {
+          if (moves[k].kind == cl::MotionKind::Rapid || moves[k - 1].kind == cl::MotionKind::Rapid) continue;
+          Ahead& a = ahead_[k - i];
+          try {
+            lin.split(moves[k - 1], axes[k - 1], moves[k], axes[k], prog_.file, a.pieces, a.stats);
+            a.ready = true;
+          } catch (...) {  // split again in order, where it throws for the sequential post too
+            a = Ahead{};
+          }
+        }
+      });
+    }
+    Ahead& a = ahead_[i - ahead_begin_];
+    if (!a.ready) return false;
+    a.ready = false;
+    pieces_.swap(a.pieces);
+    st = std::move(a.stats);
+    return true;
   }
 
   /// A feed block qa -> qb that covers tip_len_mm of the CL path: inverse time (G93) where the dialect has it,
@@ -1226,6 +1273,14 @@ class Sequencer {
   Summary& sum_;
   Linearizer lin_;
   std::vector<Linearizer::Piece> pieces_;
+  const std::vector<kin::Axes>* axes_ = nullptr;  ///< the axis values run() was given
+  struct Ahead {
+    bool ready = false;
+    std::vector<Linearizer::Piece> pieces;
+    Linearizer::Stats stats;
+  };
+  std::vector<Ahead> ahead_;  ///< split_ahead's window: segments ahead_begin_ ...
+  std::size_t ahead_begin_ = 0;
   ProgramInfo info_;
   std::unique_ptr<Formatter> fmt_;
   BlockSpec blk_;

@@ -28,10 +28,14 @@ struct ClSeg {
   Vec3 p0, p1, u0, u1;
   int line;
   bool arc_interior = false;  ///< p1 is a point generated inside a CIRCLE/ (an NC arc passes it between its ends)
+  double th = 0.0;            ///< slerp_angle(u0, u1)
 };
 
-Vec3 slerp(const Vec3& a, const Vec3& b, double s) {
-  const double th = std::acos(std::clamp(a.dot(b), -1.0, 1.0));
+/// The angle slerp() turns through from a to b.
+double slerp_angle(const Vec3& a, const Vec3& b) { return std::acos(std::clamp(a.dot(b), -1.0, 1.0)); }
+
+/// slerp with its angle th = slerp_angle(a, b) computed once (per CL segment).
+Vec3 slerp(const Vec3& a, const Vec3& b, double th, double s) {
   if (th < 1e-9) return ((1 - s) * a + s * b).normalized();
   return (std::sin((1 - s) * th) / std::sin(th) * a + std::sin(s * th) / std::sin(th) * b).normalized();
 }
@@ -49,17 +53,24 @@ double seg_distance(const ClSeg& s, const Vec3& p, double& t) {
 /// along its axis, the axis stays within tolerance, and no sample is below the CL path (no gouge).
 /// `poses` are the FK samples of the block (0..n at qa + i/n (qb - qa)) and FK(qb) at index n + 1;
 /// `cl_point_near(p)` gives the nearest CL path point and its axis.
+/// `slack_mm` / `slack_rad`: how far the move may leave its samples between them (0 for fixed sampling).
 template <typename Near>
-bool departure(const kin::Posed* poses, int n, double tip_tol, double cos_axis_tol, double ball_r,
-               Near&& cl_point_near) {
+bool departure(const kin::Posed* poses, int n, double tip_tol, double axis_tol_rad, double slack_mm, double slack_rad,
+               double ball_r, Near&& cl_point_near) {
   const kin::Posed &pa = poses[0], &pb = poses[n + 1];
   if ((pb.tip_mm - pa.tip_mm).norm() <= tip_tol) return false;
+  const double room_mm = tip_tol - slack_mm;
+  const double cos_axis_tol = std::cos(std::max(0.0, axis_tol_rad - slack_rad));
+  // The geometric tests of every sample first: a cutting block fails them at once, before any CL lookup.
   for (int i = 0; i <= n; ++i) {
     const kin::Posed& p = i == n ? pb : poses[i];
-    if ((p.tip_mm - pa.tip_mm).cross(pa.axis).norm() > tip_tol || p.axis.dot(pa.axis) < cos_axis_tol) return false;
+    if ((p.tip_mm - pa.tip_mm).cross(pa.axis).norm() > room_mm || p.axis.dot(pa.axis) < cos_axis_tol) return false;
+  }
+  for (int i = 0; i <= n; ++i) {
+    const kin::Posed& p = i == n ? pb : poses[i];
     const Vec3 ctrl = p.tip_mm + ball_r * p.axis;  // the compared point: tip, or ball centre
     const auto [c, u] = cl_point_near(ctrl);
-    if ((ctrl - c).dot(u) < -tip_tol) return false;
+    if ((ctrl - c).dot(u) < -room_mm) return false;
   }
   return true;
 }
@@ -93,6 +104,21 @@ class TipWordsKinematics final : public kin::Kinematics {
       p.axis = Vec3::Constant(std::numeric_limits<double>::quiet_NaN());
     }
     return p;
+  }
+  /// The tip is linear in the words (no acceleration); the axis turns with the rotary words: through the machine's
+  /// rotaries (its own bound), or through the virtual wrist's two turns (their spans summed). The vector form's
+  /// gnomonic interpolation has no bound here (fixed sampling).
+  bool motion_bound(const kin::Axes& qa, const kin::Axes& qb, kin::MotionBound& out) const override {
+    if (gnomonic_) return false;
+    const auto rp = k_.rotary_pair();
+    if (virtual_wrist_) {
+      out.axis_rate_rad = std::abs(qb[rp[0]] - qa[rp[0]]) + std::abs(qb[rp[1]] - qa[rp[1]]);
+      out.axis_accel = out.axis_rate_rad * out.axis_rate_rad;
+    } else if (!k_.motion_bound(qa, qb, out)) {  // its axis bound depends on the rotaries only
+      return false;
+    }
+    out.tip_accel_mm = 0.0;
+    return std::isfinite(out.axis_rate_rad);
   }
   void inverse_all(const kin::Posed&, const kin::Axes*, std::vector<kin::Solution>&) const override {
     throw std::logic_error("TipWordsKinematics has no inverse");
@@ -287,7 +313,8 @@ VerifyResult verify(const nc::Program& nc, const cl::Program& cl, const kin::Kin
     const auto& b = cl.moves[i];
     if (b.kind != cl::MotionKind::Feed) continue;
     const Vec3 ua = a.axis_in_part.normalized(), ub = b.axis_in_part.normalized();
-    segs.push_back({point(a.tip_in_part_mm, ua), point(b.tip_in_part_mm, ub), ua, ub, b.line, b.from_arc});
+    segs.push_back(
+        {point(a.tip_in_part_mm, ua), point(b.tip_in_part_mm, ub), ua, ub, b.line, b.from_arc, slerp_angle(ua, ub)});
   }
   if (segs.empty()) {
     r.ok = true;
@@ -297,15 +324,24 @@ VerifyResult verify(const nc::Program& nc, const cl::Program& cl, const kin::Kin
   auto nearest = [&](const Vec3& p, size_t& cursor, bool global, double& t) {
     if (!global) {
       // The path mostly advances segment by segment: within tolerance of the current or the next segment is
-      // enough to pass (the reported deviation is then an upper bound); only otherwise search the window.
+      // enough to pass (the reported deviation is then an upper bound); only otherwise search the window. The
+      // nearer of the two is taken: a sample just past a CL point is near the next segment, and the current one
+      // would overstate its deviation by up to the tolerance.
+      double best_near = std::numeric_limits<double>::infinity(), t_near = 0.0;
+      size_t arg_near = cursor;
       for (size_t k = cursor; k < std::min(segs.size(), cursor + 2); ++k) {
         double tk;
         const double d = seg_distance(segs[k], p, tk);
-        if (d <= options.tip_tolerance_mm) {
-          cursor = k;
-          t = tk;
-          return d;
+        if (d < best_near) {
+          best_near = d;
+          arg_near = k;
+          t_near = tk;
         }
+      }
+      if (best_near <= options.tip_tolerance_mm) {
+        cursor = arg_near;
+        t = t_near;
+        return best_near;
       }
     }
     if (global) {
@@ -358,10 +394,23 @@ VerifyResult verify(const nc::Program& nc, const cl::Program& cl, const kin::Kin
   // Forward kinematics of every sample is independent of the search along the CL path: computed in parallel
   // for a chunk of blocks (fixed chunks, fixed slots), then walked in order as before. Same numbers at any
   // thread count.
-  const int n = std::max(1, options.samples_per_block);
-  const std::size_t stride = static_cast<std::size_t>(n) + 2;  // samples 0..n, then FK(qb) exactly
+  const int n_fixed = std::max(1, options.samples_per_block);
+  const double tip_budget_mm = options.bound_fraction * options.tip_tolerance_mm;
+  const double axis_budget_rad = options.bound_fraction * deg2rad(options.axis_tolerance_deg);
+  const double axis_tol_rad = deg2rad(options.axis_tolerance_deg);
   constexpr std::size_t kChunk = 4096;
-  std::vector<kin::Posed> poses;
+  // How a feed block is sampled: n intervals; `bounded` blocks take FK(qa) and FK(qb) exactly at their ends and
+  // carry the bound between samples (docs/safety.md), the others sample qa + k/n (qb - qa) (or the arc) as always.
+  struct BlockSampling {
+    std::size_t offset = 0;  ///< first slot in `poses` (samples 0..n, then FK(qb) at n + 1)
+    int n = 0;               ///< 0: no samples (a rapid, the first block)
+    bool bounded = false;
+    double tip_slack_mm = 0.0;    ///< how far the compared point may leave the polyline through the samples
+    double axis_slack_rad = 0.0;  ///< how far the axis may turn away from the nearest sample
+    kin::MotionBound bound;
+  };
+  std::vector<BlockSampling> sampling;
+  std::vector<kin::Posed> poses, nodes;
   // The XMINI's FK is a Newton solve warm-started from the thread's previous one: its last digits depend on
   // which block a thread solved before, so there the samples are computed in order (numbers independent of the
   // thread count, as everywhere else).
@@ -371,18 +420,87 @@ VerifyResult verify(const nc::Program& nc, const cl::Program& cl, const kin::Kin
     double t;
     const kin::Posed* pose;
     int nc_line;
+    double slack_deg;
   };
   std::vector<AxisSample> axis_samples;
   std::vector<double> axis_angles;
+  // The last sample walked: its compared point, the CL segment it was matched to and its distance to it.
+  constexpr size_t kNoSeg = std::numeric_limits<size_t>::max();
+  Vec3 walk_pt = Vec3::Zero();
+  size_t walk_seg = kNoSeg;
+  double walk_d = 0.0;
+  auto run = [&](std::size_t b0, std::size_t b1, std::size_t grain, const auto& body) {
+    if (fk_in_order)
+      body(tbb::blocked_range<std::size_t>(b0, b1));
+    else
+      parallel_range(b0, b1, grain, body);
+  };
   for (std::size_t c0 = 0; c0 < nc.blocks.size(); c0 += kChunk) {
     const std::size_t c1 = std::min(nc.blocks.size(), c0 + kChunk);
-    poses.resize((c1 - c0) * stride);
-    auto fk = [&](const tbb::blocked_range<std::size_t>& r) {
+    sampling.assign(c1 - c0, BlockSampling{});
+    // 1. Which blocks have a motion bound (from the joint spans, no FK).
+    run(c0, c1, 1024, [&](const tbb::blocked_range<std::size_t>& r) {
       for (std::size_t bi = r.begin(); bi != r.end(); ++bi) {
         if (bi == 0 || nc.blocks[bi].motion == nc::Motion::Rapid) continue;
+        BlockSampling& bs = sampling[bi - c0];
+        bs.n = n_fixed;
+        bs.bounded = options.adaptive_samples && !nc.blocks[bi].arc &&
+                     kinematics.motion_bound(to_axes(nc.blocks[bi - 1]), to_axes(nc.blocks[bi]), bs.bound);
+      }
+    });
+    // 2. FK at the block ends the bounded blocks share (block i ends where block i + 1 starts).
+    const std::size_t n0 = c0 > 0 ? c0 - 1 : 0;
+    nodes.resize(c1 - n0);
+    run(n0, c1, 1024, [&](const tbb::blocked_range<std::size_t>& r) {
+      for (std::size_t i = r.begin(); i != r.end(); ++i) {
+        const bool used = (i >= c0 && sampling[i - c0].bounded) || (i + 1 < c1 && sampling[i + 1 - c0].bounded);
+        if (used) nodes[i - n0] = kinematics.forward(to_axes(nc.blocks[i]));
+      }
+    });
+    // 3. The number of samples of the bounded blocks: between samples h = 1/n apart the compared point leaves
+    // their polyline by at most M h^2 / 8 and the axis turns at most (speed bound) h / 2 away from the nearest.
+    // The axis speed is at most the model's rate bound, and at most |u_b - u_a| + A / 2 (its mean velocity over
+    // the block plus what its acceleration A can change it by): far smaller where a rotary swings about an axis
+    // the tool nearly points along.
+    run(c0, c1, 1024, [&](const tbb::blocked_range<std::size_t>& r) {
+      for (std::size_t bi = r.begin(); bi != r.end(); ++bi) {
+        BlockSampling& bs = sampling[bi - c0];
+        if (!bs.bounded) continue;
+        const kin::MotionBound& mb = bs.bound;
+        const double accel = mb.tip_accel_mm + ball_r * mb.axis_accel;
+        const double rate =
+            std::min(mb.axis_rate_rad, (nodes[bi - n0].axis - nodes[bi - 1 - n0].axis).norm() + 0.5 * mb.axis_accel);
+        const double need = std::max(
+            {2.0, std::ceil(std::sqrt(accel / (8.0 * tip_budget_mm))), std::ceil(rate / (2.0 * axis_budget_rad))});
+        const int cap = std::max(2, options.max_adaptive_samples);
+        bs.n = need < cap ? static_cast<int>(need) : cap;  // NaN: the cap
+        bs.tip_slack_mm = accel / (8.0 * bs.n * bs.n);
+        bs.axis_slack_rad = rate / (2.0 * bs.n);
+        if (!(bs.tip_slack_mm >= 0.0) || !(bs.axis_slack_rad >= 0.0))  // not finite: never passes
+          bs.tip_slack_mm = bs.axis_slack_rad = std::numeric_limits<double>::infinity();
+      }
+    });
+    std::size_t total = 0;
+    for (BlockSampling& bs : sampling) {
+      bs.offset = total;
+      if (bs.n > 0) total += static_cast<std::size_t>(bs.n) + 2;
+    }
+    poses.resize(total);
+    // 3. The samples.
+    run(c0, c1, 256, [&](const tbb::blocked_range<std::size_t>& r) {
+      for (std::size_t bi = r.begin(); bi != r.end(); ++bi) {
+        const BlockSampling& bs = sampling[bi - c0];
+        if (bs.n == 0) continue;
+        const int n = bs.n;
         const kin::Axes qa = to_axes(nc.blocks[bi - 1]), qb = to_axes(nc.blocks[bi]);
-        kin::Posed* out = &poses[(bi - c0) * stride];
+        kin::Posed* out = &poses[bs.offset];
         const nc::Block& nb = nc.blocks[bi];
+        if (bs.bounded) {
+          out[0] = nodes[bi - 1 - n0];
+          for (int k = 1; k < n; ++k) out[k] = kinematics.forward(qa + (static_cast<double>(k) / n) * (qb - qa));
+          out[n] = out[n + 1] = nodes[bi - n0];
+          continue;
+        }
         for (int k = 0; k <= n; ++k) {
           const double t = static_cast<double>(k) / n;
           if (nb.arc) {  // along the arc the control moves on, not its chord
@@ -396,11 +514,8 @@ VerifyResult verify(const nc::Program& nc, const cl::Program& cl, const kin::Kin
         }
         out[n + 1] = kinematics.forward(qb);
       }
-    };
-    if (fk_in_order)
-      fk(tbb::blocked_range<std::size_t>(c0, c1));
-    else
-      parallel_range(c0, c1, 256, fk);
+    });
+    // 4. The walk along the CL path, in order.
     for (std::size_t bi = c0; bi < c1; ++bi) {
       const nc::Block& b = nc.blocks[bi];
       if (b.motion == nc::Motion::Rapid || prev == nullptr) {
@@ -408,14 +523,16 @@ VerifyResult verify(const nc::Program& nc, const cl::Program& cl, const kin::Kin
         prev = &b;
         continue;
       }
-      const kin::Posed* bp = &poses[(bi - c0) * stride];
-      if (departure(bp, n, options.tip_tolerance_mm, std::cos(deg2rad(options.axis_tolerance_deg)), ball_r,
+      const BlockSampling& bs = sampling[bi - c0];
+      const int n = bs.n;
+      const kin::Posed* bp = &poses[bs.offset];
+      if (departure(bp, n, options.tip_tolerance_mm, axis_tol_rad, bs.tip_slack_mm, bs.axis_slack_rad, ball_r,
                     [&](const Vec3& p) {
                       size_t c = cursor;
                       double t;
                       nearest(p, c, false, t);
                       const ClSeg& sg = segs[c];
-                      return std::pair<Vec3, Vec3>(sg.p0 + t * (sg.p1 - sg.p0), slerp(sg.u0, sg.u1, t));
+                      return std::pair<Vec3, Vec3>(sg.p0 + t * (sg.p1 - sg.p0), slerp(sg.u0, sg.u1, sg.th, t));
                     })) {
         // A retract or plunge along the fixed tool axis (a post's flip or unwind): off the path by design,
         // like a rapid; the CL points around it must still be reached.
@@ -429,11 +546,32 @@ VerifyResult verify(const nc::Program& nc, const cl::Program& cl, const kin::Kin
         continue;
       }
       ++r.feed_blocks;
+      // Bounded blocks: the straight line between consecutive samples stays within the larger of its ends'
+      // distances to either end's segment (the distance to a convex set is convex along a line), and the move
+      // stays within tip_slack_mm of that line.
+      const Vec3 start_pt = point(bp[0].tip_mm, bp[0].axis);
+      if (after_rapid || start_pt != walk_pt) walk_seg = kNoSeg;  // the block starts where the walk stood
+      walk_pt = start_pt;
+      const double axis_slack_deg = rad2deg(bs.axis_slack_rad);
       for (int k = after_rapid ? 0 : 1; k <= n; ++k) {
         const kin::Posed& p = bp[k];
         const Vec3 pt = point(p.tip_mm, p.axis);
         double t;
-        const double d = nearest(pt, cursor, after_rapid && k == 0, t);
+        const double d_point = nearest(pt, cursor, after_rapid && k == 0, t);
+        double d = d_point;
+        if (bs.bounded && k > 0) {
+          double unused;
+          if (walk_seg == cursor) {
+            d = std::max(d_point, walk_d);
+          } else {
+            d = std::max(d_point, seg_distance(segs[cursor], walk_pt, unused));
+            if (walk_seg != kNoSeg) d = std::min(d, std::max(walk_d, seg_distance(segs[walk_seg], pt, unused)));
+          }
+          d += bs.tip_slack_mm;
+        }
+        walk_pt = pt;
+        walk_seg = cursor;
+        walk_d = d_point;
         after_rapid = false;
         ++r.samples;
         if (d > r.max_tip_deviation_mm) {
@@ -441,7 +579,7 @@ VerifyResult verify(const nc::Program& nc, const cl::Program& cl, const kin::Kin
           r.max_tip_nc_line = b.line;
           r.max_tip_cl_line = segs[cursor].line;
         }
-        axis_samples.push_back({cursor, t, &p, b.line});
+        axis_samples.push_back({cursor, t, &p, b.line, axis_slack_deg});
         if (k == n || k == 0) {
           nc_feed_points.push_back(pt);
           nc_feed_lines.push_back(b.line);
@@ -455,8 +593,9 @@ VerifyResult verify(const nc::Program& nc, const cl::Program& cl, const kin::Kin
     parallel_range(0, axis_samples.size(), 1024, [&](const tbb::blocked_range<std::size_t>& rg) {
       for (std::size_t i = rg.begin(); i != rg.end(); ++i) {
         const AxisSample& a = axis_samples[i];
-        const Vec3 u = slerp(segs[a.seg].u0, segs[a.seg].u1, a.t);
-        axis_angles[i] = rad2deg(std::acos(std::clamp(u.dot(a.pose->axis), -1.0, 1.0)));
+        const ClSeg& sg = segs[a.seg];
+        const Vec3 u = slerp(sg.u0, sg.u1, sg.th, a.t);
+        axis_angles[i] = rad2deg(std::acos(std::clamp(u.dot(a.pose->axis), -1.0, 1.0))) + a.slack_deg;
       }
     });
     for (std::size_t i = 0; i < axis_samples.size(); ++i)
@@ -474,25 +613,27 @@ VerifyResult verify(const nc::Program& nc, const cl::Program& cl, const kin::Kin
     for (const ClSeg& s : segs) {
       // Inside a CL arc written as G2/G3 the NC has no block end: the samples along the arc (above) stand for it.
       if (nc_arcs && s.arc_interior) continue;
-      double best = std::numeric_limits<double>::infinity();
+      // Squared distances; the next few points first: a point posted at the CL point is almost always among
+      // them, and one within the sampling budget of it ends the search (the distance found is an upper bound of
+      // the nearest, as every distance reported here).
+      double best2 = std::numeric_limits<double>::infinity();
       const size_t lo = c > 4 ? c - 4 : 0, hi = std::min(nc_feed_points.size(), c + 256);
+      const size_t near_hi = std::min(hi, c + 8);
       size_t arg = c;
-      for (size_t k = lo; k < hi; ++k) {
-        const double d = (nc_feed_points[k] - s.p1).norm();
-        if (d < best) {
-          best = d;
-          arg = k;
-        }
-      }
-      if (best > options.tip_tolerance_mm) {  // lost the thread (e.g. after a long rapid): search globally
-        for (size_t k = 0; k < nc_feed_points.size(); ++k) {
-          const double d = (nc_feed_points[k] - s.p1).norm();
-          if (d < best) {
-            best = d;
+      auto scan = [&](size_t k0, size_t k1) {
+        for (size_t k = k0; k < k1; ++k) {
+          const double d2 = (nc_feed_points[k] - s.p1).squaredNorm();
+          if (d2 < best2) {
+            best2 = d2;
             arg = k;
           }
         }
-      }
+      };
+      scan(lo, near_hi);
+      if (!(best2 <= tip_budget_mm * tip_budget_mm)) scan(near_hi, hi);
+      if (best2 > options.tip_tolerance_mm * options.tip_tolerance_mm)  // lost the thread (e.g. after a long
+        scan(0, nc_feed_points.size());                                 // rapid): search globally
+      const double best = std::sqrt(best2);
       c = arg;
       if (best > r.max_uncovered_cl_mm) {
         r.max_uncovered_cl_mm = best;

@@ -30,6 +30,16 @@ struct Traits {
   bool forward_depends_on_call_order = false;
 };
 
+/// Bounds on how the tool moves along the straight joint-space move qa -> qb, q(t) = qa + t (qb - qa), t in
+/// [0, 1] (derivatives with respect to t). They let a check sample a move sparsely and still bound it between
+/// its samples: the tip path leaves the polyline through samples h apart (in t) by at most
+/// tip_accel_mm h^2 / 8, and the tool axis turns by at most axis_rate_rad h / 2 away from the nearest sample.
+struct MotionBound {
+  double tip_accel_mm = 0.0;   ///< sup |d^2 tip / dt^2| (mm)
+  double axis_rate_rad = 0.0;  ///< sup of the tool axis's angular speed (rad per unit t)
+  double axis_accel = 0.0;     ///< sup |d^2 axis / dt^2| of the unit axis vector (per unit t^2)
+};
+
 /// Immutable kinematic model of a 5-axis machine. Implementations are thread-safe for const use.
 class Kinematics {
  public:
@@ -60,6 +70,9 @@ class Kinematics {
   /// chain) for axis values q: it maps a point given in the machine frame at home to the part frame.
   /// `axis` = -1 is the machine base. False if the model cannot say (then machine bodies cannot be placed).
   virtual bool link_in_part(int /*axis*/, const Axes& /*q*/, Eigen::Isometry3d& /*T*/) const { return false; }
+  /// Bounds on the tool's motion along the straight move qa -> qb (see MotionBound). False if the model has no
+  /// such bound (an iterative FK, a PKM): callers then sample at a fixed density.
+  virtual bool motion_bound(const Axes& /*qa*/, const Axes& /*qb*/, MotionBound& /*out*/) const { return false; }
   /// Limits that the axis values alone do not show, e.g. a PKM's passive joint angles; empty if none broken.
   [[nodiscard]] virtual std::string passive_violation(const Axes& /*q*/) const { return {}; }
   /// The model's traits; the default: a linear axis named "z" to retract along, machine angles under TCP.

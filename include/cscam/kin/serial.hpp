@@ -129,6 +129,10 @@ class SerialKinematics final : public Kinematics {
   }
 
   bool head_in_part(const Axes& q, Eigen::Isometry3d& T) const override;
+  /// From the joint spans and the distances of the moved point from the pivots, without trigonometry: each
+  /// rotary joint (rate w, the point at most rho from its pivot, moving at most V) adds w rho to the speed and
+  /// w^2 rho + 2 w V to the acceleration; each linear joint adds its span to the speed (docs/safety.md).
+  bool motion_bound(const Axes& qa, const Axes& qb, MotionBound& out) const override;
   bool link_in_part(int axis, const Axes& q, Eigen::Isometry3d& T) const override;
   [[nodiscard]] const SerialGeometry<double>& geometry() const { return geometry_; }
   /// The tool axis in the part frame that the two rotary values give (independent of the linear axes).

@@ -30,4 +30,14 @@ bool nearest_solution(const Kinematics& k, const Posed& pose, const Axes& near, 
                       std::string* violation = nullptr, bool* singular = nullptr,
                       const std::function<double(const Axes&)>& extra_cost = {});
 
+/// nearest_solution and track with the IK branches of the target pose computed beforehand (e.g. in parallel):
+/// `branches` = inverse_branches(pose, hint) for a hint that does not matter, i.e. no branch is singular (the
+/// hint only fills a singular branch's free angle). The same choice as without them.
+bool nearest_solution(const Kinematics& k, const std::vector<Solution>& branches, const Axes& near, Axes& out,
+                      std::string* violation = nullptr, bool* singular = nullptr,
+                      const std::function<double(const Axes&)>& extra_cost = {});
+bool track(const Kinematics& k, const Axes& from, const Posed& p0, const Posed& p1,
+           const std::vector<Solution>& p1_branches, Axes& out, std::string* violation = nullptr,
+           bool* singular = nullptr, double max_step_rad = 0.0872664626);
+
 }  // namespace cscam::kin

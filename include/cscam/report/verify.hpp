@@ -16,7 +16,16 @@ namespace cscam::report {
 struct VerifyOptions {
   double tip_tolerance_mm = 0.012;
   double axis_tolerance_deg = 0.35;
-  int samples_per_block = 8;  ///< FK evaluations inside every feed block (besides its ends)
+  /// Sample intervals per feed block (FK at k / n, k = 0..n) where the sampling is fixed: blocks on an arc, and
+  /// kinematics without a motion bound (the XMINI's iterative FK, a PKM), or everywhere if !adaptive_samples.
+  int samples_per_block = 8;
+  /// Where the kinematics bounds a straight block's motion (kin::Kinematics::motion_bound), take as few sample
+  /// intervals as keep that bound between samples within `bound_fraction` of each tolerance (at least 2, at most
+  /// max_adaptive_samples), and add the bound to the reported deviations, so that they bound the whole
+  /// interpolated move, not only its samples (docs/safety.md, "Sampling inside a block").
+  bool adaptive_samples = true;
+  double bound_fraction = 1.0 / 16;
+  int max_adaptive_samples = 4096;
   /// Compare ball centres (tip + r axis) instead of tips when the CL tool is a ball mill: a planner that
   /// tilts a ball mill keeps the centre on the CL path and moves the tip.
   bool ball_centre = false;
