@@ -55,6 +55,28 @@ TEST(Cli, PostVerifyStatsOnRealNxFile) {
   EXPECT_NE(r.output.find("C reversals"), std::string::npos) << r.output;
 }
 
+TEST(Cli, VerifySamplesFixedWhenAskedAndBoundedByDefault) {
+  TempDir d;
+  const std::string cl = cscam::test::source_path("examples/nx-haas-umc750/variable_axis.cls");
+  const std::string out = d.file("va.ngc");
+  ASSERT_EQ(run_command(kCli + " post " + cl + " --machine haas-umc750 -o " + out).status, 0);
+  auto r = run_command(kCli + " verify " + out + " --machine haas-umc750 --cl " + cl + " --json --samples 5");
+  ASSERT_EQ(r.status, 0) << r.output;
+  const auto fixed = nlohmann::json::parse(r.output.substr(r.output.find('{')));
+  // Fixed: the first feed block after a rapid adds its start, every block its 5 samples.
+  const auto blocks = fixed["feed_blocks"].get<long>(), samples = fixed["samples"].get<long>();
+  EXPECT_GE(samples, 5 * blocks);
+  EXPECT_LE(samples, 6 * blocks);
+  r = run_command(kCli + " verify " + out + " --machine haas-umc750 --cl " + cl + " --json");
+  ASSERT_EQ(r.status, 0) << r.output;
+  const auto bounded = nlohmann::json::parse(r.output.substr(r.output.find('{')));
+  EXPECT_EQ(bounded["feed_blocks"].get<long>(), blocks);
+  EXPECT_NE(bounded["samples"].get<long>(), samples) << "the default takes as many samples as the bound needs";
+  // The bounded figure bounds the whole path; fixed samples see part of it: never more than the bound.
+  EXPECT_GE(bounded["max_tip_deviation_mm"].get<double>() + 1e-6, fixed["max_tip_deviation_mm"].get<double>());
+  EXPECT_GE(bounded["max_axis_deviation_deg"].get<double>() + 1e-6, fixed["max_axis_deviation_deg"].get<double>());
+}
+
 TEST(Cli, VerifyFailsWhenTheProgramLeavesTheTolerance) {
   TempDir d;
   const std::string cl = d.file("swing.cls",
@@ -827,7 +849,7 @@ TEST(Cli, VersionAndDefaultsInHelp) {
   EXPECT_TRUE(std::regex_search(r.output, std::regex(R"(^cscam \d+\.\d+\.\d+)"))) << r.output;
   r = run_command(kCli + " verify --help");
   EXPECT_EQ(r.status, 0) << r.output;
-  EXPECT_TRUE(std::regex_search(r.output, std::regex(R"(--samples\s+INT[^\n]*=8\s)"))) << r.output;
+  EXPECT_TRUE(std::regex_search(r.output, std::regex(R"(--samples\s+INT[^\n]*\n[^\n]*fixed)"))) << r.output;
   r = run_command(kCli + " plan --help");
   EXPECT_TRUE(std::regex_search(r.output, std::regex(R"(--resolution\s+FLOAT[^\n]*=1\s)"))) << r.output;
 }

@@ -10,6 +10,7 @@
 #include <fstream>
 #include <iostream>
 #include <nlohmann/json.hpp>
+#include <optional>
 #include <sstream>
 
 #include "batch_cmd.hpp"
@@ -29,7 +30,6 @@
 #include "plan_cmd.hpp"
 #include "sim_cmd.hpp"
 #include "trace_cmd.hpp"
-#include "calib_cmd.hpp"
 
 namespace fs = std::filesystem;
 using namespace cscam;
@@ -149,7 +149,7 @@ int cmd_post(const PostArgs& a) {
 struct VerifyArgs {
   std::string nc, machine, cl, units;
   double tolerance = 0, axis_tolerance = 0, tool_length = -1, cone = 0;
-  int samples = 8;
+  std::optional<int> samples;  // none: adaptive (a proven bound between samples); N: N fixed samples per block
   bool json = false;
 };
 
@@ -170,7 +170,10 @@ int cmd_verify(const VerifyArgs& a) {
   report::VerifyOptions vo = report::verify_options_for(m, 0.0, 0.0, a.cone);
   if (a.tolerance > 0) vo.tip_tolerance_mm = a.tolerance;
   if (a.axis_tolerance > 0) vo.axis_tolerance_deg = a.axis_tolerance + a.cone;
-  vo.samples_per_block = a.samples;
+  if (a.samples) {  // asked for: exactly that many samples in every block, nothing added
+    vo.samples_per_block = *a.samples;
+    vo.adaptive_samples = false;
+  }
   if (const std::string why = report::resolve_tool_vectors(ncp, *kin); !why.empty()) throw InputError(why);
   const auto tip_view = report::tool_tip_kinematics(*kin, ncp.tcp_vectors);
   const auto r = report::verify(ncp, prog, ncp.tcp ? *tip_view : *kin, vo);
@@ -333,7 +336,11 @@ int main(int argc, char** argv) {
   verify_cmd->add_option("--tool-length", va.tool_length, "tool length, mm (default: from the NC header)");
   verify_cmd->add_option("--cone", va.cone,
                          "the program was planned with this cone, deg: compare ball centres, allow the cone");
-  verify_cmd->add_option("--samples", va.samples, "FK samples inside every block")->check(CLI::Range(1, 10000));
+  verify_cmd
+      ->add_option("--samples", va.samples,
+                   "FK samples inside every block, fixed (default: as few as a proven bound on the path between "
+                   "samples allows, the bound added to the deviation; 8 where the kinematics has no such bound)")
+      ->check(CLI::Range(1, 10000));
   verify_cmd->add_flag("--json", va.json, "print the result as JSON");
 
   std::vector<std::string> stat_files;
