@@ -124,6 +124,11 @@ TEST(Machine, BadInputNamesLineAndKey) {
   expect_error("name: [unclosed\n", {"bad.yaml:", "YAML syntax error"});
   expect_error(std::string(kGood) + "post: {letters: {q: Q}}\n", {"bad.yaml:9", "post.letters.q", "no such axis"});
   expect_error(std::string(kGood) + "post: {start_branch: positive:x}\n", {"post.start_branch", "not a rotary"});
+  // CYCLE800 quotes the swivel record: a quote (or anything not a name) would end the string early.
+  expect_error(std::string(kGood) + "post: {swivel_record: 'T\"C'}\n", {"bad.yaml:9", "post.swivel_record", "T\"C"});
+  expect_error(std::string(kGood) + "post: {swivel_record: ''}\n", {"post.swivel_record", "1-32 letters"});
+  EXPECT_EQ(machine::load_text(std::string(kGood) + "post: {swivel_record: TABLE_1}\n", "ok.yaml").post.swivel_record,
+            "TABLE_1");
   expect_error(std::string(kGood) + "kinematics: delta\n", {"unknown kinematics 'delta'"});
 }
 

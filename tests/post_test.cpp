@@ -819,6 +819,17 @@ TEST(PostWorkPlane, EachDialectWritesItsPlaneBetweenSimultaneousStretchesAndRead
   }
 }
 
+TEST(PostWorkPlane, SiemensNamesTheMachinesSwivelDataRecord) {
+  const cl::Program prog = cl::read_text(faces_between_simultaneous_cl(), "faces.cls");
+  const auto m = machine_with_post("trunnion-ac", "  swivel_record: TABLE_1\n");
+  const auto k = m.kinematics();
+  const Posted p = post_with_plane(prog, m, *k, "siemens", "tilted");
+  EXPECT_EQ(count_of(p.text, "CYCLE800(0,\"TABLE_1\",0,57,"), 3u) << p.text;
+  EXPECT_EQ(count_of(p.text, "\"TC1\""), 0u);
+  const auto gs = gate::check(p.text, "faces", prog, m, *k, gate::options_for(m, 0, 0, 0));
+  EXPECT_TRUE(gs.ok) << gs.message;
+}
+
 TEST(PostWorkPlane, NxZigzagTurnedIntoA3Plus2FaceRoundTripsInEveryDialect) {
   // NX's 3-axis zigzag, its part turned 25 deg about X and 10 deg about Z: one fixed orientation, a real 3+2 job.
   const cl::Program flat = cl::read_file(test::source_path("examples/nx-haas-umc750/zigzag_smoothed.cls"));

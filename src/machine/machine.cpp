@@ -133,7 +133,8 @@ void load_post(const Reader& r, const YAML::Node& n, Machine& m) {
                "rotary_output",
                "home_rotaries",
                "arcs",
-               "work_plane"});
+               "work_plane",
+               "swivel_record"});
   PostSettings& p = m.post;
   if (n["dialect"]) p.dialect = r.string(n["dialect"], "post.dialect");
   if (n["tcp"]) p.tcp = r.boolean(n["tcp"], "post.tcp");
@@ -192,6 +193,18 @@ void load_post(const Reader& r, const YAML::Node& n, Machine& m) {
     p.work_plane = r.string(n["work_plane"], "post.work_plane");
     if (p.work_plane != "tilted" && p.work_plane != "machine")
       r.fail(n["work_plane"], "post.work_plane", fmt::format("expected tilted or machine, got '{}'", p.work_plane));
+  }
+  if (n["swivel_record"]) {
+    p.swivel_record = r.string(n["swivel_record"], "post.swivel_record");
+    // Written inside a quoted string in CYCLE800: a name, no quote or control character, as the control allows.
+    const bool ok =
+        !p.swivel_record.empty() && p.swivel_record.size() <= 32 &&
+        std::all_of(p.swivel_record.begin(), p.swivel_record.end(), [](char ch) {
+          return (ch >= 'A' && ch <= 'Z') || (ch >= 'a' && ch <= 'z') || (ch >= '0' && ch <= '9') || ch == '_';
+        });
+    if (!ok)
+      r.fail(n["swivel_record"], "post.swivel_record",
+             fmt::format("expected a name of 1-32 letters, digits or '_', got '{}'", p.swivel_record));
   }
   if (n["rotary_output"]) {
     p.rotary_output = r.string(n["rotary_output"], "post.rotary_output");

@@ -421,15 +421,16 @@ class Siemens : public Formatter {
     fmt::format_to(std::back_inserter(out), "G4 F{:.3f}\n", seconds);
   }
   // CYCLE800(_FR, _TC, _ST, _MODE, _X0, _Y0, _Z0, _A, _B, _C, _X1, _Y1, _Z1, _DIR, _FR_I): no retraction (the
-  // sequencer retracted and positioned the rotaries), swivel data record "TC1", a new frame, mode 57 = axis by
-  // axis X, Y, Z (bits 1-0, 3-2, 5-4 = 01, 10, 11; bits 7-6 = 00), no offsets, direction +. CYCLE800() resets.
+  // sequencer retracted and positioned the rotaries), swivel data record (post.swivel_record, "TC1" by default), a new
+  // frame, mode 57 = axis by axis X, Y, Z (bits 1-0, 3-2, 5-4 = 01, 10, 11; bits 7-6 = 00), no offsets, direction +.
+  // CYCLE800() resets.
   [[nodiscard]] PlaneForm plane_form() const override { return PlaneForm::Rotated; }
   Eigen::Matrix3d plane_on(std::string& out, const Eigen::Matrix3d& R_part_plane) override {
     const auto e = rot::axis_by_axis_xyz(R_part_plane);
     const double a = printed_deg(e[0]), b = printed_deg(e[1]), c = printed_deg(e[2]);
     line_start(out);
-    fmt::format_to(std::back_inserter(out), "CYCLE800(0,\"TC1\",0,57,0,0,0,{},{},{},0,0,0,1,0)\n", angle_word(a, false),
-                   angle_word(b, false), angle_word(c, false));
+    fmt::format_to(std::back_inserter(out), "CYCLE800(0,\"{}\",0,57,0,0,0,{},{},{},0,0,0,1,0)\n", info_.swivel_record,
+                   angle_word(a, false), angle_word(b, false), angle_word(c, false));
     return rot::from_axis_by_axis_xyz(deg2rad(a), deg2rad(b), deg2rad(c));
   }
   void plane_off(std::string& out) override {

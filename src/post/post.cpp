@@ -121,6 +121,7 @@ class Sequencer {
     info_.tcp_vectors = vectors_;
     info_.inch = m_.post.inch;
     info_.work_offset = m_.post.work_offset;
+    info_.swivel_record = m_.post.swivel_record;
     for (size_t i = 0; i < 5; ++i) info_.rotary[i] = m_.axes[i].rotary();
     try {
       fmt_ = make_formatter(dialect, info_);

@@ -63,6 +63,9 @@ struct PostSettings {
   /// rotaries fixed (and not all at 0) is written in a tilted work plane (G68.2 / G254 / CYCLE800 / PLANE
   /// SPATIAL) whose Z is the tool axis; linuxcnc has none and keeps machine coordinates (docs/posts.md).
   std::string work_plane = "machine";
+  /// Siemens CYCLE800's swivel data record (_TC): the name the control's kinematics for tilted planes is set up
+  /// under (machine-specific; "TC1" is Siemens' usual first record).
+  std::string swivel_record = "TC1";
 };
 
 /// Where a machine body sits in the kinematic structure.
@@ -85,16 +88,16 @@ struct MachineBody {
   Eigen::Vector3d min_mm = Eigen::Vector3d::Zero(), max_mm = Eigen::Vector3d::Zero();  ///< Box
   Eigen::Vector3d from_mm = Eigen::Vector3d::Zero(), to_mm = Eigen::Vector3d::Zero();  ///< Cylinder end centres
   double diameter_mm = 0.0;                                                            ///< Cylinder
-  std::string mesh;          ///< Mesh: absolute path (resolved against the machine file)
-  double mesh_scale = 1.0;   ///< Mesh: multiply the file's coordinates by this to get mm
-  std::string source;        ///< where the dimensions come from (data sheet, drawing, "estimated: why")
-  SourceLoc where;           ///< the body's entry in the machine file, for messages
+  std::string mesh;         ///< Mesh: absolute path (resolved against the machine file)
+  double mesh_scale = 1.0;  ///< Mesh: multiply the file's coordinates by this to get mm
+  std::string source;       ///< where the dimensions come from (data sheet, drawing, "estimated: why")
+  SourceLoc where;          ///< the body's entry in the machine file, for messages
 };
 
 /// Optional meshes and tool-holder shapes used by collision checking.
 struct GeometrySettings {
   std::vector<MachineBody> bodies;  ///< geometry.bodies
-  std::string head_mesh;  ///< absolute path (resolved against the machine file)
+  std::string head_mesh;            ///< absolute path (resolved against the machine file)
   std::string table_mesh;
   double holder_diameter_mm = 0.0;
   double holder_length_mm = 0.0;

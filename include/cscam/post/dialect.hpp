@@ -28,6 +28,7 @@ struct ProgramInfo {
   bool tcp_vectors = false;            ///< the tool orientation as a vector (G43.5 I J K, Siemens A3 B3 C3), not angles
   bool inch = false;                   ///< G20 / MM->INCH output
   std::string work_offset;             ///< "G54", ...; empty: none
+  std::string swivel_record = "TC1";   ///< Siemens CYCLE800 _TC (machine file post.swivel_record)
   std::array<std::string, 5> letters;  ///< word letter per axis slot
   std::array<bool, 5> rotary{};
   std::array<double, 5> home{};  ///< values the end block returns the rotaries to (rad)
