@@ -3,7 +3,6 @@
 
 #include <algorithm>
 #include <cmath>
-#include <deque>
 
 #include "cscam/core/units.hpp"
 #include "detail/search.hpp"
@@ -38,8 +37,15 @@ void distance_transform(const Options& opt, const std::vector<State>& prev, Laye
   lo2 -= W;
   hi2 += W;
   const int n1 = hi1 - lo1 + 1, n2 = hi2 - lo2 + 1;
-  std::vector<double> f(static_cast<size_t>(n1) * n2, kInf);
-  std::vector<int> src(static_cast<size_t>(n1) * n2, -1);
+  // Scratch grids reused layer after layer (fresh ones cost page faults on every layer).
+  // (References: the row and column passes run on other threads, which must see this thread's grids.)
+  thread_local std::vector<double> tl_f, tl_g, tl_d;
+  thread_local std::vector<int> tl_src, tl_gsrc, tl_dsrc;
+  std::vector<double>&f = tl_f, &g = tl_g, &D = tl_d;
+  std::vector<int>&src = tl_src, &gsrc = tl_gsrc, &dsrc = tl_dsrc;
+  const std::size_t cells = static_cast<size_t>(n1) * n2;
+  f.assign(cells, kInf);
+  src.assign(cells, -1);
   auto at = [&](int a, int b) { return static_cast<size_t>(b) * n1 + a; };
   for (std::size_t p = 0; p < prev.size(); ++p) {
     const Cell* c = prev[p].cell;
@@ -50,7 +56,7 @@ void distance_transform(const Options& opt, const std::vector<State>& prev, Laye
       src[at(a, b)] = static_cast<int>(p);
     }
   }
-  // 1-D windowed min of g(j) + w |i - j| along a line, via two monotone deques.
+  // 1-D windowed min of g(j) + w |i - j| along a line, via two monotone queues.
   // Only the span within W of the line's finite entries can change: the rest stays infinite (no source), as the
   // outputs start, so a line without a finite entry is skipped.
   auto pass = [&](int len, auto&& get, auto&& get_src, auto&& put, double w) {
@@ -62,38 +68,42 @@ void distance_transform(const Options& opt, const std::vector<State>& prev, Laye
       }
     if (first < 0) return;
     const int lo = std::max(0, first - W), hi = std::min(len - 1, last + W);
-    std::vector<double> out(static_cast<size_t>(len), kInf);
-    std::vector<int> arg(static_cast<size_t>(len), -1);
-    std::deque<int> dq;
+    // Per-thread scratch (the rows run in parallel): the monotone queue is a plain array with two ends.
+    thread_local std::vector<double> out;
+    thread_local std::vector<int> arg, dq;
+    out.assign(static_cast<size_t>(len), kInf);
+    arg.assign(static_cast<size_t>(len), -1);
+    dq.resize(static_cast<size_t>(len));
+    int head = 0, tail = 0;           // dq[head, tail)
     for (int i = lo; i <= hi; ++i) {  // from the left: min_{i-W<=j<=i} g(j) - w j, + w i
       const double gi = get(i) - w * i;
-      while (!dq.empty() && get(dq.back()) - w * dq.back() >= gi) dq.pop_back();
-      dq.push_back(i);
-      while (dq.front() < i - W) dq.pop_front();
-      const double val = get(dq.front()) - w * dq.front() + w * i;
+      while (tail > head && get(dq[tail - 1]) - w * dq[tail - 1] >= gi) --tail;
+      dq[tail++] = i;
+      while (dq[head] < i - W) ++head;
+      const double val = get(dq[head]) - w * dq[head] + w * i;
       if (val < out[static_cast<size_t>(i)]) {
         out[static_cast<size_t>(i)] = val;
-        arg[static_cast<size_t>(i)] = dq.front();
+        arg[static_cast<size_t>(i)] = dq[head];
       }
     }
-    dq.clear();
+    head = tail = 0;
     for (int i = hi; i >= lo; --i) {  // from the right: min_{i<=j<=i+W} g(j) + w j, - w i
       const double gi = get(i) + w * i;
-      while (!dq.empty() && get(dq.back()) + w * dq.back() >= gi) dq.pop_back();
-      dq.push_back(i);
-      while (dq.front() > i + W) dq.pop_front();
-      const double val = get(dq.front()) + w * dq.front() - w * i;
+      while (tail > head && get(dq[tail - 1]) + w * dq[tail - 1] >= gi) --tail;
+      dq[tail++] = i;
+      while (dq[head] > i + W) ++head;
+      const double val = get(dq[head]) + w * dq[head] - w * i;
       if (val < out[static_cast<size_t>(i)]) {
         out[static_cast<size_t>(i)] = val;
-        arg[static_cast<size_t>(i)] = dq.front();
+        arg[static_cast<size_t>(i)] = dq[head];
       }
     }
     for (int i = lo; i <= hi; ++i)
       put(i, out[static_cast<size_t>(i)], arg[static_cast<size_t>(i)] >= 0 ? get_src(arg[static_cast<size_t>(i)]) : -1);
   };
   const double w1 = opt.weight_primary * res, w2 = opt.weight_secondary * res;
-  std::vector<double> g(f.size(), kInf);
-  std::vector<int> gsrc(f.size(), -1);
+  g.assign(cells, kInf);
+  gsrc.assign(cells, -1);
   // Rows, then columns: each line is independent (in parallel).
   parallel_indices(static_cast<std::size_t>(n2), [&](std::size_t bi) {
     const int b = static_cast<int>(bi);
@@ -105,8 +115,8 @@ void distance_transform(const Options& opt, const std::vector<State>& prev, Laye
         },
         w1);
   });
-  std::vector<double> D(f.size(), kInf);
-  std::vector<int> dsrc(f.size(), -1);
+  D.assign(cells, kInf);
+  dsrc.assign(cells, -1);
   parallel_indices(static_cast<std::size_t>(n1), [&](std::size_t ai) {
     const int a = static_cast<int>(ai);
     pass(
