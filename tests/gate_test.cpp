@@ -116,6 +116,24 @@ TEST(Gate, RefusesAnAxisBeyondItsLimit) {
   EXPECT_NE(s.message.find("limits"), std::string::npos) << s.message;
 }
 
+TEST(Gate, LimitViolationsOfALongProgramAreReportedInBlockOrder) {
+  // Several of the gate's chunks of 4096 blocks, whose limits are checked ahead in parallel: every block beyond
+  // a limit is reported, in block order, at any chunk boundary.
+  Fixture f;
+  std::vector<std::string> lines = {"G21 G90 G94", "G0 X0 Y0 Z50 A0 C0"};
+  std::vector<int> beyond;
+  for (int i = 0; i < 10000; ++i) {
+    const bool out = i == 0 || i == 5 || i == 4094 || i == 4095 || i == 8190 || i == 8191 || i == 9999;
+    lines.push_back(fmt::format("G1 X{:.2f} Y0 Z50 A{} C0 F1000", 0.01 * (i % 100), out ? "100.0" : "0"));
+    if (out) beyond.push_back(static_cast<int>(lines.size()));
+  }
+  const auto s = f.run(join(lines));
+  std::vector<int> reported;
+  for (const auto& v : s.violations)
+    if (v.kind == gate::Violation::Kind::Limit) reported.push_back(v.nc_line);
+  EXPECT_EQ(reported, beyond);
+}
+
 TEST(Gate, RefusesAFeedAboveMaxFeed) {
   Fixture f;
   auto lines = lines_of(f.posted.text);

@@ -183,8 +183,8 @@ TEST(NcReader, FanucG682FrameWordsAndG69) {
       "f.ngc", xyzbc());
   EXPECT_TRUE(p.work_planes);
   ASSERT_EQ(p.blocks.size(), 5u);  // G68.2's X Y Z are its origin, not a move
-  EXPECT_FALSE(p.blocks[1].plane.has_value());
-  ASSERT_TRUE(p.blocks[2].plane.has_value());
+  EXPECT_EQ(p.blocks[1].plane, nullptr);
+  ASSERT_NE(p.blocks[2].plane, nullptr);
   const nc::WorkPlane& w = *p.blocks[2].plane;
   EXPECT_LT((w.R_part_plane - hand_rz(45) * hand_rx(30)).norm(), 1e-12);
   EXPECT_LT((w.origin_in_part_mm - Eigen::Vector3d(10, 0, -5)).norm(), 1e-12);
@@ -193,8 +193,8 @@ TEST(NcReader, FanucG682FrameWordsAndG69) {
   EXPECT_DOUBLE_EQ(p.blocks[2].axes[0], 1.0);  // plane coordinates until resolve_work_planes
   EXPECT_TRUE(p.blocks[3].words[0]);
   EXPECT_FALSE(p.blocks[3].words[1]);
-  ASSERT_TRUE(p.blocks[3].plane.has_value());
-  EXPECT_FALSE(p.blocks[4].plane.has_value());  // after G69
+  ASSERT_NE(p.blocks[3].plane, nullptr);
+  EXPECT_EQ(p.blocks[4].plane, nullptr);  // after G69
   EXPECT_EQ(p.xyz_slots, (std::array<int, 3>{0, 1, 2}));
 }
 
@@ -204,13 +204,13 @@ TEST(NcReader, SiemensCycle800Mode57AndHeidenhainPlaneSpatial) {
       "CYCLE800()\nG0 Z100\nM30\n",
       "s.mpf", xyzbc());
   ASSERT_EQ(s.blocks.size(), 4u);
-  ASSERT_TRUE(s.blocks[2].plane.has_value());
+  ASSERT_NE(s.blocks[2].plane, nullptr);
   const Eigen::Matrix3d Rs = hand_rx(10) * hand_ry(20) * hand_rz(30);  // axis by axis X, Y', Z''
   EXPECT_LT((s.blocks[2].plane->R_part_plane - Rs).norm(), 1e-12);
   // origin: the reference point X0 Y0 Z0 plus the zero point X1 Y1 Z1 of the rotated frame
   EXPECT_LT((s.blocks[2].plane->origin_in_part_mm - (Eigen::Vector3d(1, 2, 3) + Rs * Eigen::Vector3d(0, 0, 5))).norm(),
             1e-12);
-  EXPECT_FALSE(s.blocks[3].plane.has_value());
+  EXPECT_EQ(s.blocks[3].plane, nullptr);
 
   const auto h = nc::read_text(
       "0 BEGIN PGM P MM\n1 L X+0 Y+0 Z+100 B+0 C+0 R0 FMAX\n2 L B+20 C+10 R0 FMAX\n"
@@ -218,10 +218,10 @@ TEST(NcReader, SiemensCycle800Mode57AndHeidenhainPlaneSpatial) {
       "7 L Z+100 R0 FMAX\n8 L Z+500 R0 FMAX M91\n9 END PGM P MM\n",
       "h.h", xyzbc());
   ASSERT_EQ(h.blocks.size(), 5u);  // the M91 block is a machine position: noted, not taken
-  ASSERT_TRUE(h.blocks[2].plane.has_value());
+  ASSERT_NE(h.blocks[2].plane, nullptr);
   EXPECT_LT((h.blocks[2].plane->R_part_plane - hand_rz(30) * hand_ry(-20) * hand_rx(10)).norm(), 1e-12);
-  EXPECT_TRUE(h.blocks[3].plane.has_value());
-  EXPECT_FALSE(h.blocks[4].plane.has_value());
+  EXPECT_NE(h.blocks[3].plane, nullptr);
+  EXPECT_EQ(h.blocks[4].plane, nullptr);
   ASSERT_EQ(h.notes.size(), 1u);
   EXPECT_NE(h.notes[0].find("h.h:9: M91"), std::string::npos) << h.notes[0];
 }

@@ -99,22 +99,27 @@ Summary check(const std::string& nc_text, const std::string& nc_name, const cl::
   // With machine words every block's limits are independent of the others: checked in parallel (fixed slots),
   // then reported in block order below, as the sequential loop did. Tool-tip control needs the previous
   // block's solution, so it stays in order.
-  std::vector<std::string> limit_violation;
+  // Only the blocks that fail are kept (block, message), per fixed chunk of blocks: a program inside its limits
+  // costs no string per block.
+  constexpr std::size_t kLimitChunk = 4096;
+  std::vector<std::vector<std::pair<std::size_t, std::string>>> limit_violation;
   const bool limits_ahead = !s.tool_tip_control && !kinematics.traits().forward_depends_on_call_order;
   if (limits_ahead) {
-    limit_violation.resize(ncp.blocks.size());
-    parallel_range(0, ncp.blocks.size(), 4096, [&](const tbb::blocked_range<std::size_t>& r) {
-      for (std::size_t bi = r.begin(); bi != r.end(); ++bi) {
-        const nc::Block& b = ncp.blocks[bi];
-        if (!std::all_of(b.known.begin(), b.known.end(), [](bool k) { return k; })) continue;
-        kin::Axes q;
-        for (int i = 0; i < 5; ++i) q[i] = b.axes[static_cast<size_t>(i)];
-        std::string v = kinematics.check_limits(q);
-        if (v.empty()) v = kinematics.passive_violation(q);
-        limit_violation[bi] = std::move(v);
-      }
+    limit_violation.resize((ncp.blocks.size() + kLimitChunk - 1) / kLimitChunk);
+    parallel_range(0, limit_violation.size(), 1, [&](const tbb::blocked_range<std::size_t>& r) {
+      for (std::size_t c = r.begin(); c != r.end(); ++c)
+        for (std::size_t bi = c * kLimitChunk; bi < std::min(ncp.blocks.size(), (c + 1) * kLimitChunk); ++bi) {
+          const nc::Block& b = ncp.blocks[bi];
+          if (!std::all_of(b.known.begin(), b.known.end(), [](bool k) { return k; })) continue;
+          kin::Axes q;
+          for (int i = 0; i < 5; ++i) q[i] = b.axes[static_cast<size_t>(i)];
+          std::string v = kinematics.check_limits(q);
+          if (v.empty()) v = kinematics.passive_violation(q);
+          if (!v.empty()) limit_violation[c].emplace_back(bi, std::move(v));
+        }
     });
   }
+  std::size_t violation_chunk = 0, next_violation = 0;  // the first entry of that chunk not yet taken
   kin::Axes prev = kin::Axes::Zero();
   for (size_t bi = 0; bi < ncp.blocks.size(); ++bi) {
     const nc::Block& b = ncp.blocks[bi];
@@ -148,7 +153,14 @@ Summary check(const std::string& nc_text, const std::string& nc_name, const cl::
     } else {
       std::string v;
       if (limits_ahead) {
-        v = std::move(limit_violation[bi]);
+        auto& found = limit_violation[bi / kLimitChunk];
+        if (bi / kLimitChunk != violation_chunk) {
+          violation_chunk = bi / kLimitChunk;
+          next_violation = 0;
+        }
+        while (next_violation < found.size() && found[next_violation].first < bi) ++next_violation;
+        if (next_violation < found.size() && found[next_violation].first == bi)
+          v = std::move(found[next_violation++].second);
       } else {
         v = kinematics.check_limits(q);
         if (v.empty()) v = kinematics.passive_violation(q);

@@ -19,6 +19,9 @@
 
 namespace cscam::nc {
 
+// A million-block program is a million of these: the pages the reader fills are most of its cost.
+static_assert(sizeof(Block) <= 128, "nc::Block grew: keep rare members out of line");
+
 namespace {
 
 // Character classes of the "C" locale (cscam never sets another), inline: the reader asks them for every
@@ -214,7 +217,7 @@ Program read_heidenhain(const std::string& text, const std::string& name, const 
     for (int k = 0; k < 3; ++k)
       if (!letters.rotary[static_cast<size_t>(a)] && letters.letter[static_cast<size_t>(a)] == "XYZ"[k])
         prog.xyz_slots[static_cast<size_t>(k)] = a;
-  std::optional<WorkPlane> plane;  // the tilted work plane in force
+  std::shared_ptr<const WorkPlane> plane;  // the tilted work plane in force (shared by its blocks)
   Block state;
   bool inch = false;
   double feed = 0.0;
@@ -291,7 +294,7 @@ Program read_heidenhain(const std::string& text, const std::string& name, const 
       if (w.R_part_plane.isIdentity(1e-15)) {
         plane.reset();  // the identity frame changes nothing
       } else {
-        plane = w;
+        plane = std::make_shared<const WorkPlane>(std::move(w));
         prog.work_planes = true;
       }
       continue;
@@ -408,7 +411,7 @@ Program read_text(const std::string& text, const std::string& name, const AxisLe
       if (!letters.rotary[static_cast<size_t>(a)] && letters.letter[static_cast<size_t>(a)] == "XYZ"[k])
         xyz[static_cast<size_t>(k)] = a;
   prog.xyz_slots = xyz;
-  std::optional<WorkPlane> work_plane;  // the tilted work plane in force
+  std::shared_ptr<const WorkPlane> work_plane;  // the tilted work plane in force (shared by its blocks)
   double feed = 0.0;
   // Tokenising is most of the reading and needs no modal state: the lines ahead are tokenised in parallel, a
   // window at a time (fixed chunks), and read in order below.
@@ -732,7 +735,7 @@ Program read_text(const std::string& text, const std::string& name, const AxisLe
         if (w.R_part_plane.isIdentity(1e-15) && w.origin_in_part_mm.isZero(0.0)) {
           work_plane.reset();
         } else {
-          work_plane = w;
+          work_plane = std::make_shared<const WorkPlane>(std::move(w));
           prog.work_planes = true;
         }
       }
@@ -823,7 +826,7 @@ Program read_text(const std::string& text, const std::string& name, const AxisLe
       if (ccw < 1e-12) ccw = 2.0 * kPi;  // end = start: a full circle
       if (cwa < 1e-12) cwa = 2.0 * kPi;
       g.sweep_rad = cw ? -cwa : ccw;
-      b.arc = g;
+      b.arc = std::make_shared<const ArcGeometry>(g);
     }
     b.line = lineno;
     b.motion = motion;

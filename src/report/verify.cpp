@@ -4,6 +4,7 @@
 #include <tbb/blocked_range.h>
 
 #include <algorithm>
+#include <array>
 #include <cmath>
 #include <fstream>
 #include <limits>
@@ -409,8 +410,12 @@ VerifyResult verify(const nc::Program& nc, const cl::Program& cl, const kin::Kin
     double axis_slack_rad = 0.0;  ///< how far the axis may turn away from the nearest sample
     kin::MotionBound bound;
   };
-  std::vector<BlockSampling> sampling;
-  std::vector<kin::Posed> poses, nodes;
+  // The samples of one chunk: which blocks are bounded, the FK at their shared ends (`nodes`, from block n0 on)
+  // and every sample's pose.
+  struct ChunkSamples {
+    std::vector<BlockSampling> sampling;
+    std::vector<kin::Posed> poses, nodes;
+  };
   // The XMINI's FK is a Newton solve warm-started from the thread's previous one: its last digits depend on
   // which block a thread solved before, so there the samples are computed in order (numbers independent of the
   // thread count, as everywhere else).
@@ -435,7 +440,12 @@ VerifyResult verify(const nc::Program& nc, const cl::Program& cl, const kin::Kin
     else
       parallel_range(b0, b1, grain, body);
   };
-  for (std::size_t c0 = 0; c0 < nc.blocks.size(); c0 += kChunk) {
+  // Steps 1-3 for the chunk [c0, c0 + kChunk): pure functions of the program, so the next chunk's are computed
+  // while this one is walked (below); the walk and its results are the same as computing them first.
+  auto prepare = [&](std::size_t c0, ChunkSamples& cs) {
+    auto& sampling = cs.sampling;
+    auto& poses = cs.poses;
+    auto& nodes = cs.nodes;
     const std::size_t c1 = std::min(nc.blocks.size(), c0 + kChunk);
     sampling.assign(c1 - c0, BlockSampling{});
     // 1. Which blocks have a motion bound (from the joint spans, no FK).
@@ -515,6 +525,18 @@ VerifyResult verify(const nc::Program& nc, const cl::Program& cl, const kin::Kin
         out[n + 1] = kinematics.forward(qb);
       }
     });
+  };
+  std::array<ChunkSamples, 2> chunk_samples;
+  if (!nc.blocks.empty()) prepare(0, chunk_samples[0]);
+  for (std::size_t c0 = 0, cur = 0; c0 < nc.blocks.size(); c0 += kChunk, cur ^= 1) {
+    const std::size_t c1 = std::min(nc.blocks.size(), c0 + kChunk);
+    const std::size_t next = c0 + kChunk;
+    // The next chunk's samples beside this chunk's walk; on models whose FK depends on call order after it, so
+    // that the FK calls come in the sequential order (the walk makes none).
+    Background ahead;
+    if (next < nc.blocks.size() && !fk_in_order) ahead.run([&, next] { prepare(next, chunk_samples[cur ^ 1]); });
+    const std::vector<BlockSampling>& sampling = chunk_samples[cur].sampling;
+    const std::vector<kin::Posed>& poses = chunk_samples[cur].poses;
     // 4. The walk along the CL path, in order.
     for (std::size_t bi = c0; bi < c1; ++bi) {
       const nc::Block& b = nc.blocks[bi];
@@ -604,6 +626,8 @@ VerifyResult verify(const nc::Program& nc, const cl::Program& cl, const kin::Kin
         r.max_axis_nc_line = axis_samples[i].nc_line;
       }
     axis_samples.clear();
+    ahead.wait();
+    if (next < nc.blocks.size() && fk_in_order) prepare(next, chunk_samples[cur ^ 1]);
   }
   // Coverage: every CL feed point must be reached by the NC path (nothing skipped).
   if (!nc_feed_points.empty()) {

@@ -7,6 +7,7 @@
 /// kinematics (report::resolve_work_planes). Haas G254 / G255 (dynamic work offset) keep the words as they are.
 #include <Eigen/Core>
 #include <array>
+#include <memory>
 #include <optional>
 #include <string>
 #include <vector>
@@ -46,21 +47,23 @@ struct WorkPlane {
 };
 
 /// One motion block with the full modal axis state after it. Linear axes in mm, rotary in radians.
+/// Kept small (128 bytes): a million-block program is a million of these, so the rare parts (an arc, a tilted
+/// work plane) are shared, immutable and out of line, and the members are ordered to pack.
 struct Block {
   int line = 0;
   Motion motion = Motion::Linear;
-  bool inverse_time = false;  ///< G93 active
-  double feed = 0.0;          ///< F word in force (mm/min, or 1/min in G93)
+  double feed = 0.0;  ///< F word in force (mm/min, or 1/min in G93)
   std::array<double, 5> axes{};
-  std::array<bool, 5> known{};  ///< the axis has been programmed at least once so far
-  std::array<bool, 5> words{};  ///< the axis word appears in this block
   /// Tool vector (part frame) of tool-tip control in vector form (G43.5 I J K, Siemens A3 B3 C3), modal.
   std::array<double, 3> tool_vector{0.0, 0.0, 1.0};
-  bool has_vector = false;         ///< a tool vector has been programmed so far
-  std::optional<ArcGeometry> arc;  ///< G2/G3: the circle from the previous block's position to this one's
-  /// The work plane in force: the linear slots whose `words` are set hold the plane coordinates (mm) until
-  /// report::resolve_work_planes replaces them by machine values and clears this.
-  std::optional<WorkPlane> plane;
+  std::shared_ptr<const ArcGeometry> arc;  ///< G2/G3: the circle from the previous block's position to this one's
+  /// The work plane in force (one object for every block in it): the linear slots whose `words` are set hold the
+  /// plane coordinates (mm) until report::resolve_work_planes replaces them by machine values and clears this.
+  std::shared_ptr<const WorkPlane> plane;
+  std::array<bool, 5> known{};  ///< the axis has been programmed at least once so far
+  std::array<bool, 5> words{};  ///< the axis word appears in this block
+  bool inverse_time = false;    ///< G93 active
+  bool has_vector = false;      ///< a tool vector has been programmed so far
 };
 
 /// The axis values at parameter t in [0, 1] of block `b` travelled from `start` (the previous block's axes):
