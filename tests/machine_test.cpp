@@ -283,6 +283,23 @@ TEST(MachineBodies, LinkPosesAgreeWithForwardKinematics) {
         }
         Tprev = Tj;
       }
+      // All links at once (one pass over the joints) are the links one by one; the head link is head_in_part.
+      std::array<Eigen::Isometry3d, 6> all;
+      ASSERT_TRUE(kk->links_in_part(q, 6, 0x3fu, all.data()));
+      for (int l = 0; l < 6; ++l) {
+        Eigen::Isometry3d one;
+        ASSERT_TRUE(kk->link_in_part(l - 1, q, one));
+        EXPECT_LT((all[static_cast<std::size_t>(l)].matrix() - one.matrix()).norm(), 1e-12) << "link " << l;
+      }
+      Eigen::Isometry3d Thead;
+      ASSERT_TRUE(kk->head_in_part(q, Thead));
+      EXPECT_LT((Thead.matrix() - Th.matrix()).norm(), 1e-12);
+      // The tool axis as a primary rotation of a secondary vector (tabulated by the C-space) is FK's axis.
+      Eigen::Matrix3d R1;
+      Vec3 v2;
+      const auto rp = kk->rotary_pair();
+      ASSERT_TRUE(kk->axis_factors(q[rp[0]], q[rp[1]], &R1, &v2));
+      EXPECT_LT((R1 * v2 - fk.axis).norm(), 1e-12);
     }
     Eigen::Isometry3d T;
     EXPECT_FALSE(kk->link_in_part(7, kin::Axes::Zero(), T));  // no such joint

@@ -30,6 +30,8 @@
 #include "cscam/report/svg.hpp"
 #include "cscam/report/verify.hpp"
 #include "test_support.hpp"
+// The planner's private helpers (src/plan/detail), tested directly where no public result shows them alone.
+#include "../src/plan/detail/search.hpp"
 
 using namespace cscam;
 using Vec3 = Eigen::Vector3d;
@@ -1021,4 +1023,76 @@ TEST(PlannerIssue11, NoChosenMoveCollidesBetweenPointsWhereTheLipCrowdsTheCone) 
   const plan::SweptSummary s = plan::check_program(sp, m, p.program, p.axes, c);
   EXPECT_EQ(s.collisions, 0u);
   EXPECT_EQ(s.uncertified, 0u);
+}
+
+// The flood fill against a scan of the whole grid: near the singular axis (A ~ 0 on the A/C trunnion) the cone holds
+// every C of the low A rows; the cells listed must be exactly those in the cone, sorted by angle then by index, and
+// the tabulated axes must be the kinematics' own.
+TEST(CSpace, EnumerateListsEveryConeCellInOrderNearTheSingularAxis) {
+  const machine::Machine m = trunnion();
+  cspace::Options co;
+  co.cone_rad = deg2rad(5.0);
+  const cspace::Space sp(m.kinematics(), nullptr, nullptr, co);
+  auto rng = test::rng(31);
+  std::uniform_real_distribution<double> U(-1.0, 1.0);
+  for (const double tilt_deg : {0.0, 3.0, 12.0}) {
+    SCOPED_TRACE(tilt_deg);
+    const double t = deg2rad(tilt_deg), az = 0.7;
+    const kin::Posed cl{Vec3(1, 2, 3), Vec3(std::sin(t) * std::cos(az), std::sin(t) * std::sin(az), std::cos(t))};
+    std::vector<cspace::Cell> cells;
+    cspace::Counters c;
+    sp.enumerate(cl, cells, std::numeric_limits<std::size_t>::max(), c);
+    struct Key {
+      float err;
+      int i1, i2;
+    };
+    std::vector<Key> scan;
+    for (int i1 = sp.i1_min(); i1 <= sp.i1_max(); ++i1)
+      for (int i2 = sp.i2_min(); i2 <= sp.i2_max(); ++i2) {
+        // enumerate's test: the cosine to the CL axis against the cone's, with a 1e-15 slack
+        const double dot = sp.axis_of(sp.r1_of(i1), sp.r2_of(i2)).dot(cl.axis);
+        if (dot >= std::cos(co.cone_rad) - 1e-15)
+          scan.push_back({static_cast<float>(std::acos(std::clamp(dot, -1.0, 1.0))), i1, i2});
+      }
+    std::sort(scan.begin(), scan.end(), [](const Key& x, const Key& y) {
+      return x.err != y.err ? x.err < y.err : std::tie(x.i2, x.i1) < std::tie(y.i2, y.i1);
+    });
+    ASSERT_EQ(cells.size(), scan.size());
+    EXPECT_GT(scan.size(), tilt_deg < 5 ? 1000u : 20u);
+    for (std::size_t j = 0; j < scan.size(); ++j) {
+      ASSERT_EQ(cells[j].i1, scan[j].i1) << j;
+      ASSERT_EQ(cells[j].i2, scan[j].i2) << j;
+      ASSERT_EQ(cells[j].orient_err, scan[j].err) << j;
+    }
+  }
+  for (int k = 0; k < 200; ++k) {
+    const int i1 = sp.i1_min() + static_cast<int>((sp.i1_max() - sp.i1_min()) * (0.5 + 0.5 * U(rng)));
+    const int i2 = sp.i2_min() + static_cast<int>((sp.i2_max() - sp.i2_min()) * (0.5 + 0.5 * U(rng)));
+    Vec3 a;
+    ASSERT_TRUE(m.kinematics()->tool_axis_at(sp.r1_of(i1), sp.r2_of(i2), Vec3::Zero(), a));
+    EXPECT_LT((sp.axis_of(sp.r1_of(i1), sp.r2_of(i2)) - a).norm(), 1e-14);
+  }
+}
+
+// The layers' cell index (open addressing) against std::unordered_map: the same answers over inserts, repeats and
+// misses, through several growths.
+TEST(PlannerDetail, CellIndexAnswersAsAnUnorderedMap) {
+  auto rng = test::rng(32);
+  std::uniform_int_distribution<int> I(-800, 800);
+  plan::detail::CellIndex index;
+  std::unordered_map<std::uint64_t, int> oracle;
+  EXPECT_EQ(index.find(plan::detail::key(0, 0)), -1);
+  for (int n = 0; n < 20000; ++n) {
+    const std::uint64_t k = plan::detail::key(I(rng) / 8, I(rng));
+    index.emplace(k, n);
+    oracle.emplace(k, n);  // a key already present keeps its first value in both
+    const std::uint64_t probe = plan::detail::key(I(rng) / 8, I(rng));
+    const auto it = oracle.find(probe);
+    ASSERT_EQ(index.find(probe), it == oracle.end() ? -1 : it->second);
+  }
+  EXPECT_EQ(index.size(), oracle.size());
+  for (const auto& [k, v] : oracle) ASSERT_EQ(index.find(k), v);
+  index.clear();
+  EXPECT_EQ(index.size(), 0u);
+  EXPECT_FALSE(index.contains(oracle.begin()->first));
 }

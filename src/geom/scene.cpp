@@ -489,6 +489,19 @@ CollisionResult check_meshes(const Scene& moving, const Eigen::Isometry3d& movin
   CollisionResult out;
   fcl::CollisionRequestd req(1, false);
   fcl::CollisionResultd res;
+  // The fixed obstacles' poses and boxes once, not once per moving obstacle (per-thread scratch).
+  struct Placed {
+    bool used;
+    Eigen::Isometry3d T;
+    Eigen::AlignedBox3d box;
+  };
+  thread_local std::vector<Placed> placed;
+  placed.resize(fx.obstacles.size());
+  for (std::size_t j = 0; j < fx.obstacles.size(); ++j) {
+    Placed& p = placed[j];
+    p.used = selected(fx.obstacles[j], o.roles) && obstacle_pose(fx.obstacles[j], o, p.T);
+    if (p.used) p.box = transformed_box(fx.obstacles[j].box, p.T);
+  }
   for (std::size_t i = 0; i < mv.obstacles.size(); ++i) {
     const Obstacle& m = mv.obstacles[i];
     Eigen::Isometry3d Tm = moving_in_part;
@@ -499,9 +512,9 @@ CollisionResult check_meshes(const Scene& moving, const Eigen::Isometry3d& movin
     const Eigen::AlignedBox3d mbox = transformed_box(m.box, Tm);
     for (std::size_t j = 0; j < fx.obstacles.size(); ++j) {
       const Obstacle& f = fx.obstacles[j];
-      Eigen::Isometry3d Tf;
-      if (!selected(f, o.roles) || !obstacle_pose(f, o, Tf)) continue;
-      if (!mbox.intersects(transformed_box(f.box, Tf))) {
+      if (!placed[j].used) continue;
+      const Eigen::Isometry3d& Tf = placed[j].T;
+      if (!mbox.intersects(placed[j].box)) {
         ++ws.stats.aabb_rejects;
         continue;
       }

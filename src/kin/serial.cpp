@@ -124,10 +124,21 @@ SerialKinematics::SerialKinematics(SerialGeometry<double> geometry, std::vector<
 }
 
 Eigen::Vector3d SerialKinematics::axis_for_rotaries(double primary, double secondary) const {
+  Eigen::Matrix3d R;
+  Eigen::Vector3d v;
+  axis_factors(primary, secondary, &R, &v);
+  return R * v;
+}
+
+bool SerialKinematics::axis_factors(double primary, double secondary, Eigen::Matrix3d* R_primary,
+                                    Eigen::Vector3d* v_secondary) const {
   const auto& j1 = geometry_.joints[static_cast<size_t>(rot_[0])];
   const auto& j2 = geometry_.joints[static_cast<size_t>(rot_[1])];
-  return detail::axis_angle<double>(j1.direction, sign_[0] * (primary + j1.offset)) *
-         (detail::axis_angle<double>(j2.direction, sign_[1] * (secondary + j2.offset)) * geometry_.tool_direction_home);
+  if (R_primary) *R_primary = detail::axis_angle<double>(j1.direction, sign_[0] * (primary + j1.offset));
+  if (v_secondary)
+    *v_secondary =
+        detail::axis_angle<double>(j2.direction, sign_[1] * (secondary + j2.offset)) * geometry_.tool_direction_home;
+  return true;
 }
 
 void SerialKinematics::inverse_branches(const Posed& pose, const Axes* hint, std::vector<Solution>& out) const {
@@ -227,41 +238,44 @@ bool SerialKinematics::solve_for_rotaries(const Posed& pose, Axes& q) const {
   return true;
 }
 
-bool SerialKinematics::head_in_part(const Axes& q, Eigen::Isometry3d& T) const {
-  const auto& g = geometry_;
-  // The same chains as serial_forward, applied to a point carried by the outermost head link.
-  auto map = [&](Vec3 p) {
-    for (auto it = g.head_chain.rbegin(); it != g.head_chain.rend(); ++it) {
-      const auto& j = g.joints[static_cast<size_t>(*it)];
-      const double v = q[*it] + j.offset;
-      if (j.type == AxisType::Linear)
-        p += j.direction * v;
-      else
-        p = detail::axis_angle<double>(j.direction, v) * (p - j.pivot_mm) + j.pivot_mm;
+std::array<SerialKinematics::Rigid, 5> SerialKinematics::joint_motions(const Axes& q) const {
+  // The same joint motions as serial_forward, as rigid motions (x -> R (x - pivot) + pivot, or a shift), each
+  // computed once for all the links that need it.
+  std::array<Rigid, 5> J;
+  for (std::size_t idx = 0; idx < J.size(); ++idx) {
+    J[idx] = {Eigen::Matrix3d::Identity(), Eigen::Vector3d::Zero()};
+    if (idx >= geometry_.joints.size()) continue;
+    const auto& j = geometry_.joints[idx];
+    const double v = q[static_cast<int>(idx)] + j.offset;
+    if (j.type == AxisType::Linear) {
+      J[idx].t = v * j.direction;
+    } else {
+      J[idx].R = detail::axis_angle<double>(j.direction, v);
+      J[idx].t = j.pivot_mm - J[idx].R * j.pivot_mm;
     }
-    for (int idx : g.table_chain) {
-      const auto& j = g.joints[static_cast<size_t>(idx)];
-      const double v = q[idx] + j.offset;
-      if (j.type == AxisType::Linear)
-        p -= j.direction * v;
-      else
-        p = detail::axis_angle<double>(j.direction, v).transpose() * (p - j.pivot_mm) + j.pivot_mm;
-    }
-    return Vec3(p - g.part_origin_home_mm);
-  };
-  const Vec3 o = map(Vec3::Zero());
-  T.setIdentity();
-  for (int c = 0; c < 3; ++c) T.linear().col(c) = map(Vec3::Unit(c)) - o;
-  T.translation() = o;
-  return true;
+  }
+  return J;
 }
 
-bool SerialKinematics::link_in_part(int axis, const Axes& q, Eigen::Isometry3d& T) const {
+SerialKinematics::Rigid SerialKinematics::part_from_base(const std::array<Rigid, 5>& J) const {
+  Rigid T{Eigen::Matrix3d::Identity(), Eigen::Vector3d::Zero()};  // undo the table chain from the base outward
+  for (int idx : geometry_.table_chain) {
+    const Rigid& j = J[static_cast<std::size_t>(idx)];
+    // T <- j^-1 T, with j^-1 x = R^T (x - t)
+    T = {j.R.transpose() * T.R, j.R.transpose() * (T.t - j.t)};
+  }
+  T.t -= geometry_.part_origin_home_mm;
+  return T;
+}
+
+bool SerialKinematics::chain_link(int axis, const std::array<Rigid, 5>& J, const Rigid& part_from_base,
+                                  Eigen::Isometry3d& T) const {
   const auto& g = geometry_;
   // The joints from the base up to and including `axis` on its chain move the link (none for the base).
-  const std::vector<int>* chain = nullptr;
-  std::size_t upto = 0;
+  Rigid M = part_from_base;  // part <- base <- ... <- link
   if (axis >= 0) {
+    const std::vector<int>* chain = nullptr;
+    std::size_t upto = 0;
     for (const std::vector<int>* c : {&g.head_chain, &g.table_chain}) {
       const auto it = std::find(c->begin(), c->end(), axis);
       if (it != c->end()) {
@@ -270,26 +284,33 @@ bool SerialKinematics::link_in_part(int axis, const Axes& q, Eigen::Isometry3d& 
       }
     }
     if (!chain) return false;
-  }
-  // The same joint motions as serial_forward, as rigid transforms (x -> R (x - pivot) + pivot, or a shift).
-  auto joint = [&](int idx) {
-    const auto& j = g.joints[static_cast<size_t>(idx)];
-    const double v = q[idx] + j.offset;
-    Eigen::Isometry3d J = Eigen::Isometry3d::Identity();
-    if (j.type == AxisType::Linear) {
-      J.translation() = v * j.direction;
-    } else {
-      J.linear() = detail::axis_angle<double>(j.direction, v);
-      J.translation() = j.pivot_mm - J.linear() * j.pivot_mm;
+    for (std::size_t k = 0; k < upto; ++k) {
+      const Rigid& j = J[static_cast<std::size_t>((*chain)[k])];
+      M = {M.R * j.R, M.R * j.t + M.t};
     }
-    return J;
-  };
-  Eigen::Isometry3d part_from_base = Eigen::Isometry3d::Identity();  // undo the table chain from the base outward
-  for (int idx : g.table_chain) part_from_base = joint(idx).inverse() * part_from_base;
-  part_from_base.pretranslate(-g.part_origin_home_mm);
-  Eigen::Isometry3d base_from_link = Eigen::Isometry3d::Identity();  // home -> base frame
-  for (std::size_t k = 0; k < upto; ++k) base_from_link = base_from_link * joint((*chain)[k]);
-  T = part_from_base * base_from_link;
+  }
+  T.setIdentity();
+  T.linear() = M.R;
+  T.translation() = M.t;
+  return true;
+}
+
+bool SerialKinematics::head_in_part(const Axes& q, Eigen::Isometry3d& T) const {
+  // The outermost head link; with no head joint, the base.
+  const auto J = joint_motions(q);
+  return chain_link(geometry_.head_chain.empty() ? -1 : geometry_.head_chain.back(), J, part_from_base(J), T);
+}
+
+bool SerialKinematics::link_in_part(int axis, const Axes& q, Eigen::Isometry3d& T) const {
+  const auto J = joint_motions(q);
+  return chain_link(axis, J, part_from_base(J), T);
+}
+
+bool SerialKinematics::links_in_part(const Axes& q, int n, unsigned used, Eigen::Isometry3d* T) const {
+  const auto J = joint_motions(q);
+  const Rigid pfb = part_from_base(J);
+  for (int l = 0; l < n; ++l)
+    if (((used >> l) & 1u) && !chain_link(l - 1, J, pfb, T[l])) return false;
   return true;
 }
 

@@ -22,6 +22,7 @@ void enumerate_layer(const SegmentView& v, Layer& l, std::size_t cap, cspace::Co
   v.space.enumerate(l.cl, l.cells, cap, counters);
   l.truncated = l.cells.size() >= cap;
   l.index.clear();
+  l.index.reserve(l.cells.size());
   if (v.exact)
     for (Cell& c : l.cells) {
       c.i1 = static_cast<int>(std::lround(c.r1 / kExactKeyRad));
@@ -77,8 +78,8 @@ void expand_singular(std::vector<Layer>& layers) {
 /// Puts cells evaluated before a re-listing back: into the list where they are in it, else among the extras.
 void restore(Layer& l, std::unordered_map<std::uint64_t, Cell>& keep) {
   for (auto& [kk, c] : keep) {
-    if (auto it = l.index.find(kk); it != l.index.end()) {
-      if (c.status != Status::Orientation) l.cells[static_cast<size_t>(it->second)] = c;
+    if (const int at = l.index.find(kk); at >= 0) {
+      if (c.status != Status::Orientation) l.cells[static_cast<size_t>(at)] = c;
     } else {
       l.extra.emplace(kk, std::move(c));
     }
@@ -148,7 +149,7 @@ void list_layers(const SegmentView& v, SegmentCells& d) {
 Cell* cell_at(const SegmentView& v, SegmentCells& d, std::size_t k, int i1, int i2) {
   Layer& l = d.layers[k];
   const auto kk = key(i1, i2);
-  if (auto it = l.index.find(kk); it != l.index.end()) return &l.cells[static_cast<size_t>(it->second)];
+  if (const int at = l.index.find(kk); at >= 0) return &l.cells[static_cast<size_t>(at)];
   if (auto it = l.extra.find(kk); it != l.extra.end())
     return it->second.status == Status::Orientation ? nullptr : &it->second;
   if (v.exact || l.pinned) return nullptr;  // exact cells are all enumerated; a pinned layer has its one cell
@@ -202,9 +203,8 @@ void check_points(const SegmentView& v, SegmentCells& d, std::size_t& points_bey
     for (std::size_t k = r * kRun; k < std::min(layers.size(), (r + 1) * kRun); ++k) {
       Layer& l = layers[k];
       if (hint) {
-        const auto it = l.index.find(key(hint->i1, hint->i2));
-        if (it != l.index.end()) {
-          Cell& cell = l.cells[static_cast<std::size_t>(it->second)];
+        if (const int at = l.index.find(key(hint->i1, hint->i2)); at >= 0) {
+          Cell& cell = l.cells[static_cast<std::size_t>(at)];
           if (cell.status == Status::Unknown) space.evaluate(l.cl, cell, ws, c);
           if (cell.status == Status::Feasible) {
             hint = &cell;

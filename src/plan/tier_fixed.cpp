@@ -36,7 +36,7 @@ std::vector<Candidate> candidates(const SegmentView& v, SegmentCells& d, std::si
       const std::size_t k = oorder[oi];
       double dot = 1.0;
       const bool in =
-          v.exact ? L[k].index.count(key(c0.i1, c0.i2)) > 0 : v.space.in_cone_cos(L[k].cl, c0.r1, c0.r2, dot);
+          v.exact ? L[k].index.contains(key(c0.i1, c0.i2)) : v.space.in_cone_cos(L[k].cl, c0.r1, c0.r2, dot);
       if (!in) {
         furthest = std::max(furthest, k);
         ok = false;

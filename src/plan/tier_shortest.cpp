@@ -32,10 +32,24 @@ void distance_transform(const Options& opt, const std::vector<State>& prev, Laye
     hi2 = std::max(hi2, c.i2);
   }
   const int W = static_cast<int>(std::floor(max_step / res + 1e-9));
-  lo1 -= W;
-  hi1 += W;
-  lo2 -= W;
-  hi2 += W;
+  // The grid need only hold the cells a previous state reaches (within W of one) and the states within W of those:
+  // near a singular axis the layer spans every primary angle, while the beam before it sits in a small patch.
+  int plo1 = std::numeric_limits<int>::max(), phi1 = std::numeric_limits<int>::min();
+  int plo2 = plo1, phi2 = phi1;
+  for (const State& st : prev) {
+    plo1 = std::min(plo1, st.cell->i1);
+    phi1 = std::max(phi1, st.cell->i1);
+    plo2 = std::min(plo2, st.cell->i2);
+    phi2 = std::max(phi2, st.cell->i2);
+  }
+  auto crop = [&](int& lo, int& hi, int plo, int phi) {
+    const int tlo = std::max(lo, plo - W), thi = std::min(hi, phi + W);  // reachable cells
+    if (tlo > thi) return false;
+    lo = std::min(tlo, std::max(plo, tlo - W));  // and the states that reach them
+    hi = std::max(thi, std::min(phi, thi + W));
+    return true;
+  };
+  if (prev.empty() || !crop(lo1, hi1, plo1, phi1) || !crop(lo2, hi2, plo2, phi2)) return;
   const int n1 = hi1 - lo1 + 1, n2 = hi2 - lo2 + 1;
   // Scratch grids reused layer after layer (fresh ones cost page faults on every layer).
   // (References: the row and column passes run on other threads, which must see this thread's grids.)
@@ -74,25 +88,27 @@ void distance_transform(const Options& opt, const std::vector<State>& prev, Laye
     out.assign(static_cast<size_t>(len), kInf);
     arg.assign(static_cast<size_t>(len), -1);
     dq.resize(static_cast<size_t>(len));
-    int head = 0, tail = 0;           // dq[head, tail)
-    for (int i = lo; i <= hi; ++i) {  // from the left: min_{i-W<=j<=i} g(j) - w j, + w i
-      const double gi = get(i) - w * i;
-      while (tail > head && get(dq[tail - 1]) - w * dq[tail - 1] >= gi) --tail;
+    int head = 0, tail = 0;  // dq[head, tail)
+    // Costs are compared and summed through index differences (exact integers), so that the answers do not depend
+    // on where the grid starts.
+    for (int i = lo; i <= hi; ++i) {  // from the left: min_{i-W<=j<=i} g(j) + w (i - j)
+      const double gi = get(i);
+      while (tail > head && get(dq[tail - 1]) + w * (i - dq[tail - 1]) >= gi) --tail;
       dq[tail++] = i;
       while (dq[head] < i - W) ++head;
-      const double val = get(dq[head]) - w * dq[head] + w * i;
+      const double val = get(dq[head]) + w * (i - dq[head]);
       if (val < out[static_cast<size_t>(i)]) {
         out[static_cast<size_t>(i)] = val;
         arg[static_cast<size_t>(i)] = dq[head];
       }
     }
     head = tail = 0;
-    for (int i = hi; i >= lo; --i) {  // from the right: min_{i<=j<=i+W} g(j) + w j, - w i
-      const double gi = get(i) + w * i;
-      while (tail > head && get(dq[tail - 1]) + w * dq[tail - 1] >= gi) --tail;
+    for (int i = hi; i >= lo; --i) {  // from the right: min_{i<=j<=i+W} g(j) + w (j - i)
+      const double gi = get(i);
+      while (tail > head && get(dq[tail - 1]) + w * (dq[tail - 1] - i) >= gi) --tail;
       dq[tail++] = i;
       while (dq[head] > i + W) ++head;
-      const double val = get(dq[head]) + w * dq[head] - w * i;
+      const double val = get(dq[head]) + w * (dq[head] - i);
       if (val < out[static_cast<size_t>(i)]) {
         out[static_cast<size_t>(i)] = val;
         arg[static_cast<size_t>(i)] = dq[head];
@@ -128,6 +144,7 @@ void distance_transform(const Options& opt, const std::vector<State>& prev, Laye
         w2);
   });
   for (Cell& c : cur.cells) {
+    if (c.i1 < lo1 || c.i1 > hi1 || c.i2 < lo2 || c.i2 > hi2) continue;  // beyond reach of every state
     const size_t i = at(c.i1 - lo1, c.i2 - lo2);
     if (std::isfinite(D[i]) && dsrc[i] >= 0)
       tent.push_back({D[i] + opt.orientation_weight * c.orient_err, {&c, dsrc[i]}});

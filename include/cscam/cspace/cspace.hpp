@@ -172,8 +172,15 @@ class Space {
   static bool place_links(const kin::Kinematics& k, const kin::Axes& q, int n, LinkPoses& T, unsigned used);
   /// opt_.collision, or a copy in `scratch` with the link poses for q when obstacles have links.
   const geom::CheckOptions& with_links(const kin::Axes& q, LinkPoses& links, geom::CheckOptions& scratch) const;
-  geom::ToolShape tip_tool_;  ///< the lowest part of the cutter as a flat cylinder (Rapid-mode sweeps)
-  double reach_mm_ = 0.0;     ///< tool length plus largest checked radius: lever arm of a tool-axis rotation
+  /// The tool axis for rotary values, through the grid tables for grid values (the same numbers everywhere).
+  bool axis_at(double r1, double r2, const Eigen::Vector3d& tip_mm, Eigen::Vector3d& axis) const;
+  [[nodiscard]] Eigen::Vector3d grid_axis(int i1, int i2) const {
+    return R1_grid_[static_cast<std::size_t>(i1 - i1_min_)] * v2_grid_[static_cast<std::size_t>(i2 - i2_min_)];
+  }
+  std::vector<Eigen::Matrix3d> R1_grid_;  ///< Kinematics::axis_factors per grid row (empty: no such factors)
+  std::vector<Eigen::Vector3d> v2_grid_;  ///< ... per grid column
+  geom::ToolShape tip_tool_;              ///< the lowest part of the cutter as a flat cylinder (Rapid-mode sweeps)
+  double reach_mm_ = 0.0;  ///< tool length plus largest checked radius: lever arm of a tool-axis rotation
   int rot1_ = 0, rot2_ = 0;
   int i1_min_ = 0, i1_max_ = 0, i2_min_ = 0, i2_max_ = 0;
 };

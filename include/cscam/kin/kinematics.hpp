@@ -63,6 +63,13 @@ class Kinematics {
   /// depend on the position. Returns false if no axis values put the tip there.
   virtual bool tool_axis_at(double primary, double secondary, const Eigen::Vector3d& tip_mm,
                             Eigen::Vector3d& axis) const = 0;
+  /// For models whose tool axis is a rotation of the primary applied to a vector of the secondary alone, independent
+  /// of the tip (a serial machine: axis = R_primary(primary) * v_secondary(secondary)): the two factors, so that a
+  /// caller can tabulate axes over a grid of rotary values. False (the default) for other models.
+  virtual bool axis_factors(double /*primary*/, double /*secondary*/, Eigen::Matrix3d* /*R_primary*/,
+                            Eigen::Vector3d* /*v_secondary*/) const {
+    return false;
+  }
   /// The rigid motion of the tool-side end link (spindle housing) for axis values q: it maps a point given
   /// in the machine frame at home to its position in the part frame. False if the model cannot say.
   virtual bool head_in_part(const Axes& /*q*/, Eigen::Isometry3d& /*T*/) const { return false; }
@@ -70,6 +77,13 @@ class Kinematics {
   /// chain) for axis values q: it maps a point given in the machine frame at home to the part frame.
   /// `axis` = -1 is the machine base. False if the model cannot say (then machine bodies cannot be placed).
   virtual bool link_in_part(int /*axis*/, const Axes& /*q*/, Eigen::Isometry3d& /*T*/) const { return false; }
+  /// link_in_part for the links l < n whose bit l is set in `used` (link 0: the base, 1 + i: axis i), into T[l]:
+  /// models override it to share the joint motions between the links.
+  virtual bool links_in_part(const Axes& q, int n, unsigned used, Eigen::Isometry3d* T) const {
+    for (int l = 0; l < n; ++l)
+      if (((used >> l) & 1u) && !link_in_part(l - 1, q, T[l])) return false;
+    return true;
+  }
   /// Bounds on the tool's motion along the straight move qa -> qb (see MotionBound). False if the model has no
   /// such bound (an iterative FK, a PKM): callers then sample at a fixed density.
   virtual bool motion_bound(const Axes& /*qa*/, const Axes& /*qb*/, MotionBound& /*out*/) const { return false; }

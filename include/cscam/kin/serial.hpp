@@ -127,6 +127,8 @@ class SerialKinematics final : public Kinematics {
     axis = axis_for_rotaries(primary, secondary);
     return true;
   }
+  bool axis_factors(double primary, double secondary, Eigen::Matrix3d* R_primary,
+                    Eigen::Vector3d* v_secondary) const override;
 
   bool head_in_part(const Axes& q, Eigen::Isometry3d& T) const override;
   /// From the joint spans and the distances of the moved point from the pivots, without trigonometry: each
@@ -134,11 +136,19 @@ class SerialKinematics final : public Kinematics {
   /// w^2 rho + 2 w V to the acceleration; each linear joint adds its span to the speed (docs/safety.md).
   bool motion_bound(const Axes& qa, const Axes& qb, MotionBound& out) const override;
   bool link_in_part(int axis, const Axes& q, Eigen::Isometry3d& T) const override;
+  bool links_in_part(const Axes& q, int n, unsigned used, Eigen::Isometry3d* T) const override;
   [[nodiscard]] const SerialGeometry<double>& geometry() const { return geometry_; }
   /// The tool axis in the part frame that the two rotary values give (independent of the linear axes).
   [[nodiscard]] Eigen::Vector3d axis_for_rotaries(double primary, double secondary) const;
 
  private:
+  struct Rigid {  // x -> R x + t
+    Eigen::Matrix3d R;
+    Eigen::Vector3d t;
+  };
+  [[nodiscard]] std::array<Rigid, 5> joint_motions(const Axes& q) const;
+  [[nodiscard]] Rigid part_from_base(const std::array<Rigid, 5>& J) const;
+  bool chain_link(int axis, const std::array<Rigid, 5>& J, const Rigid& part_from_base, Eigen::Isometry3d& T) const;
   SerialGeometry<double> geometry_;
   std::vector<AxisInfo> axes_;
   std::array<int, 2> rot_{};      ///< rotary joints in Paden-Kahan order: u = Rot(w1, s1 q1) Rot(w2, s2 q2) d0

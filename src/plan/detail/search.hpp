@@ -36,12 +36,70 @@ inline std::uint64_t key(int i1, int i2) {
   return (static_cast<std::uint64_t>(static_cast<std::uint32_t>(i1)) << 32) | static_cast<std::uint32_t>(i2);
 }
 
+/// (i1, i2) key -> position in a layer's cell list, by open addressing in one array: a layer lists thousands of cells
+/// near a singular axis, and a node-based map made one allocation per cell (which dominated listing the layers).
+class CellIndex {
+ public:
+  void clear() {
+    slots_.clear();
+    size_ = 0;
+  }
+  void reserve(std::size_t n) {
+    if (2 * n > slots_.size()) rehash(2 * n);
+  }
+  /// Adds k -> v unless k is present (as std::unordered_map::emplace).
+  void emplace(std::uint64_t k, int v) {
+    if (2 * (size_ + 1) > slots_.size()) rehash(2 * (size_ + 1));
+    for (std::size_t i = hash(k) & (slots_.size() - 1);; i = (i + 1) & (slots_.size() - 1)) {
+      if (slots_[i].value < 0) {
+        slots_[i] = {k, v};
+        ++size_;
+        return;
+      }
+      if (slots_[i].key == k) return;
+    }
+  }
+  /// The position of k, or -1.
+  [[nodiscard]] int find(std::uint64_t k) const {
+    if (slots_.empty()) return -1;
+    for (std::size_t i = hash(k) & (slots_.size() - 1);; i = (i + 1) & (slots_.size() - 1)) {
+      if (slots_[i].value < 0) return -1;
+      if (slots_[i].key == k) return slots_[i].value;
+    }
+  }
+  [[nodiscard]] bool contains(std::uint64_t k) const { return find(k) >= 0; }
+  [[nodiscard]] std::size_t size() const { return size_; }
+
+ private:
+  struct Slot {
+    std::uint64_t key = 0;
+    int value = -1;  // -1: empty
+  };
+  static std::size_t hash(std::uint64_t k) {  // a 64-bit finaliser (MurmurHash3's): neighbouring cells spread out
+    k ^= k >> 33;
+    k *= 0xff51afd7ed558ccdULL;
+    k ^= k >> 33;
+    return static_cast<std::size_t>(k);
+  }
+  void rehash(std::size_t want) {
+    std::size_t cap = 16;
+    while (cap < want) cap *= 2;
+    std::vector<Slot> old(cap);
+    old.swap(slots_);
+    size_ = 0;
+    for (const Slot& sl : old)
+      if (sl.value >= 0) emplace(sl.key, sl.value);
+  }
+  std::vector<Slot> slots_;
+  std::size_t size_ = 0;
+};
+
 /// One CL point of a segment and its orientation cells.
 struct Layer {
   std::size_t move = 0;
   kin::Posed cl;
   std::vector<Cell> cells;                        ///< orientation cells, closest first (capped)
-  std::unordered_map<std::uint64_t, int> index;   ///< (i1,i2) -> position in cells
+  CellIndex index;                                ///< (i1,i2) -> position in cells
   std::unordered_map<std::uint64_t, Cell> extra;  ///< evaluated cells outside the cap
   bool truncated = false;                         ///< `cells` stopped at the cap: the cone holds more
   bool pinned = false;                            ///< Options::start_rotaries: `cells` is that one cell, no other
