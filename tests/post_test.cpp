@@ -1190,3 +1190,33 @@ TEST(PostWorkPlane, APlaneWhileTcpIsOnIsNotRead) {
   EXPECT_FALSE(gs.ok);
   EXPECT_NE(gs.message.find("under tool-tip control is not read"), std::string::npos) << gs.message;
 }
+
+TEST(PostWorkPlane, LinuxcncUnderTcpKeepsItsTcpFormWithAWarning) {
+  // linuxcnc has no tilted plane: under TCP every stretch stays under M428, the same bytes as without planes.
+  const cl::Program prog = cl::read_text(faces_between_simultaneous_cl(), "faces.cls");
+  const auto m = load_machine("trunnion-ac");
+  const auto k = m.kinematics();
+  std::string text[2];
+  post::Summary sum[2];
+  for (int i = 0; i < 2; ++i) {
+    post::Options o;
+    o.dialect = "linuxcnc";
+    o.work_plane = i == 0 ? "tilted" : "machine";
+    o.tcp = true;
+    std::ostringstream os;
+    post::write_nc(os, prog, m, *k, post::conventional_axes(prog, m, *k), o, sum[i]);
+    text[i] = os.str();
+  }
+  EXPECT_EQ(text[0], text[1]);
+  EXPECT_EQ(sum[0].work_planes, 0u);
+  EXPECT_EQ(count_of(text[0], "M428"), 1u);
+  EXPECT_EQ(std::count_if(sum[0].warnings.begin(), sum[0].warnings.end(),
+                          [](const std::string& w) {
+                            return w.find(
+                                       "has no tilted work plane: 3+2 stretches are written under tool-tip "
+                                       "control") != std::string::npos;
+                          }),
+            1);
+  const auto gs = gate::check(text[0], "linuxcnc-tcp", prog, m, *k, gate::options_for(m, 0, 0, 0));
+  EXPECT_TRUE(gs.ok) << gs.message;
+}

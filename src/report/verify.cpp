@@ -206,14 +206,15 @@ std::string resolve_work_planes(nc::Program& nc, const kin::Kinematics& k, int* 
       if (!nc.blocks[bi].tcp) last_machine = bi + 1;
     }
   const bool mixed = any_tcp && last_machine > 0;
-  if (!nc.work_planes && !mixed) return {};
-  const auto rp = k.rotary_pair();
   const auto& xyz = nc.xyz_slots;
+  const bool have_xyz = xyz[0] >= 0 && xyz[1] >= 0 && xyz[2] >= 0;
+  if (!nc.work_planes && !(mixed && have_xyz)) return {};
+  const auto rp = k.rotary_pair();
   auto fail = [&](const nc::Block& b, const std::string& what) {
     if (bad_line) *bad_line = b.line;
     return what;
   };
-  if (xyz[0] < 0 || xyz[1] < 0 || xyz[2] < 0)
+  if (!have_xyz)
     return fail(nc.blocks.empty() ? nc::Block{} : nc.blocks.front(),
                 "a tilted work plane on a machine without linear axes lettered X, Y, Z is not read");
   kin::Axes prev = kin::Axes::Zero();  // the machine axes where the machine is
