@@ -262,7 +262,7 @@ Program read_heidenhain(const std::string& text, const std::string& name, const 
     }
     if (s.rfind("END PGM", 0) == 0) break;
     if (s.rfind("FUNCTION TCPM", 0) == 0) {
-      prog.tcp = tcp_on = true;
+      prog.tcp = prog.tcp_words = tcp_on = true;
       continue;
     }
     if (s.rfind("FUNCTION RESET TCPM", 0) == 0) {
@@ -308,7 +308,8 @@ Program read_heidenhain(const std::string& text, const std::string& name, const 
     // A comment after the block.
     if (const auto sc = s.find(';'); sc != std::string_view::npos) s = trim(s.substr(0, sc));
     if (!is_l) {  // M128 / M129 on its own line or with other M functions
-      for (size_t p = s.find("M128"); p != std::string_view::npos; p = s.find("M128", p + 1)) prog.tcp = tcp_on = true;
+      for (size_t p = s.find("M128"); p != std::string_view::npos; p = s.find("M128", p + 1))
+        prog.tcp = prog.tcp_words = tcp_on = true;
       if (s.find("M129") != std::string_view::npos) tcp_on = false;
       continue;
     }
@@ -331,7 +332,7 @@ Program read_heidenhain(const std::string& text, const std::string& name, const 
       if (tok == "R0" || tok == "RL" || tok == "RR" || tok == "R+" || tok == "R-") continue;
       const char L = tok[0];
       if (L == 'M') {
-        if (tok == "M128") prog.tcp = tcp_on = true;
+        if (tok == "M128") prog.tcp = prog.tcp_words = tcp_on = true;
         if (tok == "M129") tcp_on = false;
         if (tok == "M91" || tok == "M92") machine_coords = true;  // machine datum: not a work position
         continue;
@@ -725,7 +726,7 @@ Program read_text(const std::string& text, const std::string& name, const AxisLe
       i = k;
       on_word(L, v, word_column);
     }
-    if (tcp_word) prog.tcp = true;
+    if (tcp_word) prog.tcp = prog.tcp_words = true;
     bool any_axis = false;
     for (bool w : b.words) any_axis |= w;
     if (plane_def || cycle_seen) {

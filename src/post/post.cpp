@@ -179,11 +179,13 @@ class Sequencer {
       const cl::Move& mv = moves[i];
       ++sum_.cl_points;
       check_limits(axes[i], mv);
-      if (tcp_program_ && (!have_state_ || mv.kind == cl::MotionKind::Rapid)) {
-        // Under tool-tip control a 3+2 stretch that gets a plane runs with TCP cancelled, everything else under TCP.
-        const bool plane = planes_ && fixed_from(axes, i) && !at_rotary_zero(axes[i]);
-        if (plane && cart_) switch_to_machine(mv.line);
-        if (!plane && !cart_) switch_to_tcp(mv.line);
+      if (tcp_program_ && planes_ && (!have_state_ || mv.kind == cl::MotionKind::Rapid)) {
+        // Under tool-tip control a 3+2 stretch that gets a plane, and the rapids to it, run with TCP cancelled,
+        // everything else under TCP.
+        if (const auto plane = plane_ahead(axes, i)) {
+          if (*plane && cart_) switch_to_machine(mv.line);
+          if (!*plane && !cart_) switch_to_tcp(mv.line);
+        }
       }
       if (cart_) {
         if (!tcp_on_) tool_tip_control_on(mv.line);
@@ -388,6 +390,17 @@ class Sequencer {
   // A control refuses a tilted plane under TCP (G68.2 in G43.4 mode, CYCLE800 under TRAORI): a TCP program
   // cancels TCP for each 3+2 stretch that gets a plane and writes that stretch exactly as the non-TCP program
   // does (safe Z, turn, clamp, plane, cut in plane words, plane off), then switches TCP on again.
+
+  /// Whether the cut after the rapids from move i on (or after move i itself, the first) is a 3+2 stretch that gets
+  /// a plane; nothing when no cut follows (the last rapids keep the mode they find).
+  std::optional<bool> plane_ahead(const std::vector<kin::Axes>& axes, size_t i) const {
+    const auto& moves = prog_.moves;
+    size_t j = i;
+    while (moves[j].kind == cl::MotionKind::Rapid && j + 1 < moves.size() && moves[j + 1].kind == cl::MotionKind::Rapid)
+      ++j;
+    if (j + 1 >= moves.size()) return std::nullopt;
+    return fixed_from(axes, j) && !at_rotary_zero(axes[j]);
+  }
 
   /// Into a 3+2 stretch: out along the tool axis under TCP (as before any rotary change of the TCP program), TCP
   /// off, the plain length offset, and machine words from here on.

@@ -197,15 +197,13 @@ std::string resolve_tool_vectors(nc::Program& nc, const kin::Kinematics& k, int*
 }
 
 std::string resolve_work_planes(nc::Program& nc, const kin::Kinematics& k, int* bad_line) {
-  // A TCP program that cancels tool-tip control for its planes has machine-word blocks between tip-word ones.
+  // A TCP program that cancels tool-tip control for its planes has machine-word blocks (all of them, when every
+  // stretch is a plane) besides tip-word ones. Not a program whose header alone says TCP (no word switches it).
   std::size_t last_machine = 0;  // one past the last machine-word block of such a program
-  bool any_tcp = false;
-  if (nc.tcp)
-    for (std::size_t bi = 0; bi < nc.blocks.size(); ++bi) {
-      any_tcp = any_tcp || nc.blocks[bi].tcp;
+  if (nc.tcp_words)
+    for (std::size_t bi = 0; bi < nc.blocks.size(); ++bi)
       if (!nc.blocks[bi].tcp) last_machine = bi + 1;
-    }
-  const bool mixed = any_tcp && last_machine > 0;
+  const bool mixed = last_machine > 0;
   const auto& xyz = nc.xyz_slots;
   const bool have_xyz = xyz[0] >= 0 && xyz[1] >= 0 && xyz[2] >= 0;
   if (!nc.work_planes && !(mixed && have_xyz)) return {};
@@ -337,7 +335,7 @@ std::string resolve_work_planes(nc::Program& nc, const kin::Kinematics& k, int* 
 }
 
 void resolve_work_planes(nc::Program& nc, const machine::Machine& m) {
-  if (!nc.work_planes && !nc.tcp) return;
+  if (!nc.work_planes && !nc.tcp_words) return;
   const auto k = m.make_kinematics(nc.tool_length_mm.value_or(m.default_tool_length_mm));
   if (const std::string why = resolve_work_planes(nc, *k); !why.empty()) throw InputError(why);  // names file:line
 }

@@ -82,6 +82,7 @@ struct Program {
   std::vector<Block> blocks;
   std::optional<double> tool_length_mm;  ///< from a "(cscam tool_length_mm=...)" header comment
   bool tcp = false;  ///< G43.4/G43.5/G234/M428/TRAORI/TCPM/M128 seen: axis values are part coordinates (Block::tcp)
+  bool tcp_words = false;          ///< a word switched tool-tip control on (Block::tcp follows it; not a header alone)
   bool tcp_vectors = false;        ///< the tool orientation is given as vectors (Block::tool_vector)
   std::vector<std::string> notes;  ///< things skipped on purpose (G28/G53, SUPA, M91/M92 blocks)
   bool work_planes = false;        ///< some block is in a tilted work plane (Block::plane)
