@@ -248,9 +248,14 @@ std::string resolve_work_planes(nc::Program& nc, const kin::Kinematics& k, int* 
   for (std::size_t bi = 0; bi < nc.blocks.size(); ++bi) {
     nc::Block& b = nc.blocks[bi];
     if (mixed && b.tcp) {
-      // Tip words: the control moves the machine to the IK solution nearest to where it is (as the gate reads it).
-      // Followed only as far as a machine-word block comes later, whose words not given are those axes.
+      // Tip words: where the control moves the machine, followed only as far as a machine-word block comes later
+      // (its words not given are those axes).
       plane_line = -1;
+      // A word not given stays where the block before left it, in tip words (the reader's modal value is a machine
+      // word after a switch).
+      if (bi > 0)
+        for (std::size_t i = 0; i < 5; ++i)
+          if (!b.words[i] && nc.blocks[bi - 1].known[i]) b.axes[i] = nc.blocks[bi - 1].axes[i];
       if (bi >= last_machine || !all_known(b)) continue;
       const Vec3 tip(b.axes[static_cast<size_t>(xyz[0])], b.axes[static_cast<size_t>(xyz[1])],
                      b.axes[static_cast<size_t>(xyz[2])]);
@@ -258,8 +263,12 @@ std::string resolve_work_planes(nc::Program& nc, const kin::Kinematics& k, int* 
       bool ok = nc.tcp_vectors
                     ? b.has_vector && axis.norm() > 0
                     : k.tool_axis_at(b.axes[static_cast<size_t>(rp[0])], b.axes[static_cast<size_t>(rp[1])], tip, axis);
-      kin::Axes sol;
-      ok = ok && kin::nearest_solution(k, kin::Posed{tip, axis.normalized()}, prev, sol);
+      // Angle words name the rotaries (the linear axes follow from the tip); a vector leaves the choice to the control.
+      kin::Axes sol = prev;
+      sol[rp[0]] = b.axes[static_cast<size_t>(rp[0])];
+      sol[rp[1]] = b.axes[static_cast<size_t>(rp[1])];
+      const kin::Posed pose{tip, axis.normalized()};
+      ok = ok && (nc.tcp_vectors ? kin::nearest_solution(k, pose, prev, sol) : k.solve_for_rotaries(pose, sol));
       if (ok) prev = sol;
       have_prev = ok;
       continue;
