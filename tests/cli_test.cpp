@@ -963,18 +963,22 @@ TEST(Cli, PlannerFixedTierIsWrittenInATiltedWorkPlane) {
   TempDir d;
   const std::string cl = cscam::test::source_path("examples/groove/groove.cls");
   const std::string stl = cscam::test::source_path("examples/groove/groove.stl");
-  for (const auto& [dialect, code] : std::map<std::string, std::string>{
-           {"fanuc", "G68.2 "}, {"siemens", "CYCLE800(0,"}, {"heidenhain", "PLANE SPATIAL "}}) {
-    const std::string out = d.file(dialect + ".nc");
-    auto r = run_command(kCli + " plan " + cl + " --machine trunnion-ac --part " + stl +
-                         " --cone 10 --work-plane tilted --dialect " + dialect + " -o " + out);
-    ASSERT_EQ(r.status, 0) << r.output;
-    EXPECT_NE(r.output.find("fixed 2 axes"), std::string::npos) << r.output;
-    const std::string text = slurp(out);
-    size_t n = 0;
-    for (size_t p = text.find(code); p != std::string::npos; p = text.find(code, p + 1)) ++n;
-    EXPECT_EQ(n, 1u) << dialect << "\n" << text.substr(0, 1500);
-    r = run_command(kCli + " verify " + out + " --machine trunnion-ac --cl " + cl + " --cone 10");
-    EXPECT_EQ(r.status, 0) << r.output;
-  }
+  // With --tcp the plane is written with tool-tip control cancelled (TCP words around it): the same checks.
+  for (const std::string tcp : {"", " --tcp"})
+    for (const auto& [dialect, code] : std::map<std::string, std::string>{
+             {"fanuc", "G68.2 "}, {"siemens", "CYCLE800(0,"}, {"heidenhain", "PLANE SPATIAL "}}) {
+      SCOPED_TRACE(dialect + tcp);
+      const std::string out = d.file(dialect + (tcp.empty() ? "" : "-tcp") + ".nc");
+      auto r = run_command(kCli + " plan " + cl + " --machine trunnion-ac --part " + stl +
+                           " --cone 10 --work-plane tilted --dialect " + dialect + tcp + " -o " + out);
+      ASSERT_EQ(r.status, 0) << r.output;
+      EXPECT_NE(r.output.find("fixed 2 axes"), std::string::npos) << r.output;
+      const std::string text = slurp(out);
+      size_t n = 0;
+      for (size_t p = text.find(code); p != std::string::npos; p = text.find(code, p + 1)) ++n;
+      EXPECT_EQ(n, 1u) << dialect << "\n" << text.substr(0, 1500);
+      EXPECT_EQ(text.find("(cartesian:") != std::string::npos, !tcp.empty());
+      r = run_command(kCli + " verify " + out + " --machine trunnion-ac --cl " + cl + " --cone 10");
+      EXPECT_EQ(r.status, 0) << r.output;
+    }
 }

@@ -252,3 +252,38 @@ TEST(NcReader, WorkPlaneFormsItCannotFollowAreRefusedWithTheirLine) {
   EXPECT_DOUBLE_EQ(p.blocks[1].axes[2], 3.0);
   EXPECT_EQ(p.notes.size(), 2u);
 }
+
+TEST(NcReader, ToolTipControlIsFollowedBlockByBlock) {
+  // Each block notes whether TCP was in force when it was written: the words that switch it on and off per dialect.
+  auto tcp_of = [](const std::string& text) {
+    const auto p = nc::read_text(text, "t.nc", xyzbc());
+    EXPECT_TRUE(p.tcp_words);
+    std::string flags;
+    for (const auto& b : p.blocks) flags += b.tcp ? 'T' : 'm';
+    return flags;
+  };
+  EXPECT_EQ(tcp_of("G43.4 H1\nG0 X1 Y0 Z0 B0 C0\nG49\nG43 H1\nG0 Z10\nG43.5 H1\nG1 X2 I0 J0 K1 F100\nG43 H1\nG0 Z20\n"),
+            "TmTm");
+  EXPECT_EQ(tcp_of("G234 H1\nG0 X1 Y0 Z0 B0 C0\nG49\nG0 Z10\nG254\nG1 X2 F100\nG255\nG234 H1\nG0 Z20\n"), "TmmT");
+  EXPECT_EQ(tcp_of("TRAORI\nG0 X1 Y0 Z0 B0 C0\nTRAFOOF\nG0 Z10\nTRAORI\nG0 Z20\n"), "TmT");
+  EXPECT_EQ(tcp_of("M428\nG0 X1 Y0 Z0 B0 C0\nM429\nG0 Z10\n"), "Tm");
+  EXPECT_EQ(tcp_of("0 BEGIN PGM P MM\n1 FUNCTION TCPM F TCP AXIS POS PATHCTRL AXIS\n2 L X+1 Y+0 Z+0 B+0 C+0 R0 FMAX\n"
+                   "3 FUNCTION RESET TCPM\n4 L Z+10 R0 FMAX\n5 M128\n6 L Z+20 R0 FMAX\n7 M129\n8 L Z+30 R0 FMAX\n"),
+            "TmTm");
+  // a plane while TCP is on is refused (the control would too); after the cancel it is read
+  auto error_of = [](const std::string& text) {
+    try {
+      nc::read_text(text, "e.ngc", xyzbc());
+    } catch (const InputError& e) {
+      return std::string(e.what());
+    }
+    return std::string("no error");
+  };
+  EXPECT_NE(error_of("G43.4 H1\nG0 X0 Y0 Z0 B10 C0\nG68.2 X0 Y0 Z0 I0 J10 K0\nG53.1\nG0 X1 Y1 Z1\n")
+                .find("e.ngc:5:1: a tilted work plane (G68.2) under tool-tip control is not read"),
+            std::string::npos);
+  EXPECT_EQ(error_of("G43.4 H1\nG0 X0 Y0 Z0 B10 C0\nG49\nG43 H1\nG68.2 X0 Y0 Z0 I0 J10 K0\nG53.1\nG0 X1 Y1 Z1\n"),
+            "no error");
+  // a header alone (no TCP word) notes none
+  EXPECT_FALSE(nc::read_text("(cartesian: X Y Z = tool tip)\nG0 X1 Y2 Z3 B0 C0\n", "h.nc", xyzbc()).tcp_words);
+}

@@ -11,6 +11,8 @@
 #include <cstdlib>
 #include <filesystem>
 #include <fstream>
+#include <iostream>
+#include <limits>
 #include <map>
 #include <optional>
 #include <random>
@@ -19,8 +21,10 @@
 
 #include "cscam/cl/program.hpp"
 #include "cscam/core/error.hpp"
+#include "cscam/core/tolerances.hpp"
 #include "cscam/core/units.hpp"
 #include "cscam/gate/gate.hpp"
+#include "cscam/kin/track.hpp"
 #include "cscam/machine/machine.hpp"
 #include "cscam/nc/reader.hpp"
 #include "cscam/report/verify.hpp"
@@ -879,22 +883,10 @@ TEST(PostWorkPlane, SimultaneousExamplesAndLinuxcncKeepMachineCoordinates) {
   expect_rs274_agrees(p.text, m, "linuxcnc-tilted");
 }
 
-TEST(PostWorkPlane, PlaneUnderTcpIsRefusedAndAWrongPlaneIsCaughtByTheGate) {
+TEST(PostWorkPlane, AWrongPlaneIsCaughtByTheGate) {
   const cl::Program prog = cl::read_text(faces_between_simultaneous_cl(), "faces.cls");
   const auto m = load_machine("haas-umc750");
   const auto k = m.kinematics();
-  post::Options o;
-  o.dialect = "fanuc";
-  o.work_plane = "tilted";
-  o.tcp = true;
-  post::Summary sum;
-  std::ostringstream os;
-  try {
-    post::write_nc(os, prog, m, *k, post::conventional_axes(prog, m, *k), o, sum);
-    ADD_FAILURE() << "a plane under tool-tip control was written";
-  } catch (const InputError& e) {
-    EXPECT_NE(std::string(e.what()).find("under tool-tip control is not written"), std::string::npos) << e.what();
-  }
   // One Euler angle changed by 0.1 deg: the plane no longer matches the rotaries positioned for it.
   std::string text = post_with_plane(prog, m, *k, "fanuc", "tilted").text;
   const std::regex j_word("J([0-9]+\\.[0-9]+)");
@@ -916,4 +908,353 @@ TEST(PostWorkPlane, PlaneUnderTcpIsRefusedAndAWrongPlaneIsCaughtByTheGate) {
   }();
   EXPECT_NE(bad.find("post.work_plane"), std::string::npos) << bad;
   EXPECT_EQ(machine_with_post("haas-umc750", "  work_plane: tilted\n").post.work_plane, "tilted");
+}
+
+// --- Tilted work planes under tool-tip control ------------------------------------------------------------
+
+namespace {
+
+/// The words each dialect with planes writes to switch tool-tip control on and off (dialects.cpp).
+struct TcpWords {
+  std::vector<std::string> on;
+  std::string off;
+};
+const std::map<std::string, TcpWords>& tcp_words() {
+  static const std::map<std::string, TcpWords> words{{"fanuc", {{"G43.4 H", "G43.5 H"}, "G49"}},
+                                                     {"haas", {{"G234 H"}, "G49"}},
+                                                     {"siemens", {{"TRAORI"}, "TRAFOOF"}},
+                                                     {"heidenhain", {{"FUNCTION TCPM"}, "FUNCTION RESET TCPM"}}};
+  return words;
+}
+
+/// One block of a program read back: the machine axes the control moves to and the pose there (part frame).
+struct MachineBlock {
+  kin::Axes q;
+  kin::Posed pose;
+  bool feed = false, tcp = false;
+  int line = 0;
+};
+
+/// Oracle: the program read back (planes and TCP switching resolved by the reader), then per block the machine axes
+/// the control moves to, found here without the post's code: machine words (kept by the reader) are the axes; tip
+/// words in the angle form name the rotaries, the linear axes follow from the tip; in the vector form the control
+/// takes the IK solution nearest to where it is.
+std::vector<MachineBlock> machine_blocks(const std::string& text, const machine::Machine& m, const kin::Kinematics& k,
+                                         const std::string& tag) {
+  nc::Program ncp = report::read_for_machine(text, tag, m);
+  EXPECT_EQ(report::resolve_tool_vectors(ncp, k), "") << tag;
+  const auto view = report::tool_tip_kinematics(k, ncp.tcp_vectors);
+  std::vector<MachineBlock> out;
+  kin::Axes prev = kin::Axes::Zero();
+  std::map<std::size_t, std::array<double, 5>> machine_words(ncp.machine_axes.begin(), ncp.machine_axes.end());
+  for (std::size_t bi = 0; bi < ncp.blocks.size(); ++bi) {
+    const nc::Block& b = ncp.blocks[bi];
+    if (!std::all_of(b.known.begin(), b.known.end(), [](bool x) { return x; })) continue;
+    MachineBlock mb;
+    for (int i = 0; i < 5; ++i) mb.q[i] = b.axes[static_cast<size_t>(i)];
+    mb.feed = b.motion != nc::Motion::Rapid;
+    mb.tcp = ncp.tcp && !machine_words.count(bi);
+    mb.line = b.line;
+    if (machine_words.count(bi)) {
+      for (int i = 0; i < 5; ++i) mb.q[i] = machine_words[bi][static_cast<size_t>(i)];
+    } else if (ncp.tcp) {
+      const kin::Posed words = view->forward(mb.q);
+      kin::Axes q = mb.q;
+      const bool ok = ncp.tcp_vectors ? kin::nearest_solution(k, words, prev, q) : k.solve_for_rotaries(words, q);
+      EXPECT_TRUE(ok) << tag << " line " << b.line;
+      mb.q = q;
+    }
+    mb.pose = k.forward(mb.q);
+    prev = mb.q;
+    out.push_back(mb);
+  }
+  return out;
+}
+
+/// Distance from p to the segment ab.
+double segment_distance(const Vec3& p, const Vec3& a, const Vec3& b) {
+  const Vec3 ab = b - a;
+  const double t = ab.squaredNorm() > 0 ? std::clamp((p - a).dot(ab) / ab.squaredNorm(), 0.0, 1.0) : 0.0;
+  return (a + t * ab - p).norm();
+}
+
+/// The tips a feed block passes through as the control interpolates it: the tip words straight under TCP, the
+/// machine axes straight otherwise (FK of the joints).
+std::vector<Vec3> feed_samples(const std::vector<MachineBlock>& blocks, const kin::Kinematics& k, int n) {
+  std::vector<Vec3> out;
+  for (size_t i = 1; i < blocks.size(); ++i) {
+    if (!blocks[i].feed) continue;
+    for (int s = 0; s <= n; ++s) {
+      const double t = static_cast<double>(s) / n;
+      out.push_back(blocks[i].tcp
+                        ? Vec3(blocks[i - 1].pose.tip_mm + t * (blocks[i].pose.tip_mm - blocks[i - 1].pose.tip_mm))
+                        : k.forward(blocks[i - 1].q + t * (blocks[i].q - blocks[i - 1].q)).tip_mm);
+    }
+  }
+  return out;
+}
+
+/// The block whose tip is nearest to the CL point.
+const MachineBlock& nearest_block(const std::vector<MachineBlock>& blocks, const Vec3& tip) {
+  return *std::min_element(blocks.begin(), blocks.end(), [&](const MachineBlock& a, const MachineBlock& b) {
+    return (a.pose.tip_mm - tip).norm() < (b.pose.tip_mm - tip).norm();
+  });
+}
+
+/// (c) on the text alone: inside every plane no TCP word is in force (and Fanuc / Haas restore the plain length
+/// offset G43 H before it), every feed block outside the planes runs under TCP. Returns the plane stretches seen.
+int expect_tcp_off_exactly_in_planes(const std::string& text, const std::string& dialect, const std::string& tag) {
+  const auto& words = tcp_words().at(dialect);
+  const auto& plane = plane_codes().at(dialect);
+  std::istringstream in(text);
+  std::string line;
+  bool tcp = false, in_plane = false, length = true;
+  int planes = 0, tcp_feeds = 0, plane_feeds = 0;
+  const std::regex feed_re(dialect == "heidenhain" ? "^[0-9]+ L .* F[0-9]|^[0-9]+ L [^F]*$" : "(^| )G1 ");
+  while (std::getline(in, line)) {
+    const std::string l = line + "\n";
+    for (const auto& w : words.on)
+      if (l.find(w) != std::string::npos) tcp = true;
+    if (l.find(words.off) != std::string::npos && (dialect != "heidenhain" || l.find("RESET") != std::string::npos)) {
+      tcp = false;
+      length = dialect != "fanuc" && dialect != "haas";  // G49 cancels the length too
+    }
+    if (l.find("G43 H") != std::string::npos) length = true;
+    if (l.find(plane.first) != std::string::npos) {
+      EXPECT_FALSE(tcp) << tag << ": plane switched on under TCP: " << line;
+      EXPECT_TRUE(length) << tag << ": plane without the length offset: " << line;
+      in_plane = true;
+      ++planes;
+    }
+    if (l.find(plane.second) != std::string::npos) in_plane = false;
+    const bool feed = std::regex_search(line, feed_re) && line.find("FMAX") == std::string::npos;
+    if (in_plane) EXPECT_FALSE(tcp) << tag << ": TCP in force inside a plane: " << line;
+    if (feed && !in_plane) {
+      EXPECT_TRUE(tcp) << tag << ": a feed block outside the planes without TCP: " << line;
+      ++tcp_feeds;
+    }
+    if (feed && in_plane) ++plane_feeds;
+  }
+  EXPECT_GT(tcp_feeds, 0) << tag;
+  EXPECT_GT(plane_feeds, 0) << tag;
+  return planes;
+}
+
+/// (d): the first plane's angle word that tilts its Z changed by 0.1 deg (Fanuc J, Siemens CYCLE800 A, Heidenhain
+/// SPA). Haas G254 has no angle word (the control carries the work offset with the rotaries): nothing to bend.
+std::optional<std::string> bent_plane(std::string text, const std::string& dialect) {
+  const std::map<std::string, std::string> patterns{{"fanuc", "G68\\.2 [^\\n]* J(-?[0-9]+\\.[0-9]+)"},
+                                                    {"siemens", "CYCLE800\\(0,\"TC1\",0,57,0,0,0,(-?[0-9]+\\.[0-9]+)"},
+                                                    {"heidenhain", "PLANE SPATIAL SPA([-+][0-9]+\\.[0-9]+)"}};
+  const auto it = patterns.find(dialect);
+  if (it == patterns.end()) return std::nullopt;
+  std::smatch mt;
+  if (!std::regex_search(text, mt, std::regex(it->second))) return std::nullopt;
+  const double bent = std::stod(mt.str(1)) + 0.1;
+  text.replace(static_cast<size_t>(mt.position(1)), static_cast<size_t>(mt.length(1)),
+               dialect == "heidenhain" ? fmt::format("{:+.4f}", bent) : fmt::format("{:.4f}", bent));
+  return text;
+}
+
+}  // namespace
+
+TEST(PostWorkPlane, UnderTcpEachPlaneRunsWithTcpCancelledAndReadsBackToTheMachineProgram) {
+  // The faces between simultaneous stretches posted under TCP with tilted planes: the simultaneous stretches under
+  // TCP, each fixed face in the dialect's plane with TCP cancelled. Oracles: the safety gate; the tips of the
+  // read-back axes (FK) against the machine-coordinate program of the same CL; the TCP words on the text; `cscam
+  // verify` refuses a plane bent by 0.1 deg.
+  const cl::Program prog = cl::read_text(faces_between_simultaneous_cl(), "faces.cls");
+  const fs::path dir = fs::temp_directory_path() / ("cscam_tcp_plane_" + std::to_string(::getpid()));
+  fs::create_directories(dir);
+  const std::string cl_path = (dir / "faces.cls").string();
+  std::ofstream(cl_path) << faces_between_simultaneous_cl();
+  double worst_tip_mm = 0.0, worst_rot_rad = 0.0, worst_cl_mm = 0.0, worst_vector_rad = 0.0;
+  for (const char* name : {"haas-umc750", "trunnion-ac"}) {
+    for (const auto& [dialect, codes] : plane_codes()) {
+      for (const std::string form : {"angles", "vectors"}) {
+        if (form == "vectors" && dialect != "fanuc" && dialect != "siemens") continue;  // the others write angles
+        const std::string tag = std::string(name) + "-" + dialect + "-" + form;
+        SCOPED_TRACE(tag);
+        const std::string extra = "  tcp_form: " + form + "\n";
+        const auto m = machine_with_post(name, extra);
+        const auto k = m.kinematics();
+        post::Options o;
+        o.dialect = dialect;
+        o.work_plane = "tilted";
+        o.tcp = true;
+        Posted p;
+        std::ostringstream os;
+        post::write_nc(os, prog, m, *k, post::conventional_axes(prog, m, *k), o, p.summary);
+        p.text = os.str();
+        const Posted q = post_with_plane(prog, m, *k, dialect, "machine");  // machine coordinates, no TCP
+        EXPECT_EQ(p.summary.work_planes, 3u);
+        EXPECT_EQ(count_of(p.text, codes.first), 3u) << p.text;
+        EXPECT_EQ(count_of(p.text, codes.second), 3u) << p.text;
+        if (form == "vectors") EXPECT_NE(p.text.find(dialect == "fanuc" ? "G43.5 H" : "ORIVECT"), std::string::npos);
+        // (a) the safety gate passes the program
+        const auto gs = gate::check(p.text, tag, prog, m, *k, gate::options_for(m, 0, 0, 0));
+        EXPECT_TRUE(gs.ok) << gs.message << "\n" << p.text;
+        EXPECT_TRUE(gs.tool_tip_control);
+        expect_every_cl_point_reached(p.text, prog, m, *k, tag);
+        // (b) the tip path, read back, against the machine-coordinate program's: every feed sample within the post
+        // tolerance of its feed path; at every CL point the same tip and the same rotaries
+        const auto mixed = machine_blocks(p.text, m, *k, tag), machine = machine_blocks(q.text, m, *k, tag + "-m");
+        const auto ours = feed_samples(mixed, *k, 16), theirs = feed_samples(machine, *k, 32);
+        ASSERT_FALSE(ours.empty());
+        ASSERT_GT(theirs.size(), 1u);
+        double tip_mm = 0.0;
+        for (const Vec3& s : ours) {
+          double d = std::numeric_limits<double>::infinity();
+          for (size_t j = 1; j < theirs.size(); ++j) d = std::min(d, segment_distance(s, theirs[j - 1], theirs[j]));
+          tip_mm = std::max(tip_mm, d);
+        }
+        EXPECT_LE(tip_mm, m.post.tolerance_mm + tol::kVerifySlackMm) << tag;
+        double rot_rad = 0.0, cl_mm = 0.0, vector_rad = 0.0;
+        for (const auto& mv : prog.moves) {
+          const MachineBlock &a = nearest_block(mixed, mv.tip_in_part_mm),
+                             &b = nearest_block(machine, mv.tip_in_part_mm);
+          cl_mm =
+              std::max({cl_mm, (a.pose.tip_mm - mv.tip_in_part_mm).norm(), (b.pose.tip_mm - mv.tip_in_part_mm).norm()});
+          if (form == "vectors" && a.tcp) {  // the control picks the rotaries of a vector (here a winding apart)
+            vector_rad = std::max(vector_rad, std::acos(std::clamp(a.pose.axis.dot(b.pose.axis), -1.0, 1.0)));
+            continue;
+          }
+          for (int r : k->rotary_pair()) rot_rad = std::max(rot_rad, std::abs(a.q[r] - b.q[r]));
+        }
+        EXPECT_LE(cl_mm, m.post.tolerance_mm) << tag;
+        EXPECT_LE(rot_rad, 1e-9) << tag;  // the same rotary words (angles form; machine words in the planes)
+        EXPECT_LE(vector_rad, deg2rad(1e-3)) << tag;  // 6-decimal vectors
+        worst_tip_mm = std::max(worst_tip_mm, tip_mm);
+        worst_rot_rad = std::max(worst_rot_rad, rot_rad);
+        worst_cl_mm = std::max(worst_cl_mm, cl_mm);
+        worst_vector_rad = std::max(worst_vector_rad, vector_rad);
+        // (c) TCP cancelled exactly around the planes
+        EXPECT_EQ(expect_tcp_off_exactly_in_planes(p.text, dialect, tag), 3);
+        // (d) cscam verify reads the program, and refuses it with one plane angle bent by 0.1 deg
+        const std::string machine_path = (dir / (tag + ".yaml")).string();
+        {
+          std::ifstream in(test::source_path(std::string("machines/") + name + ".yaml"));
+          std::stringstream ss;
+          ss << in.rdbuf();
+          std::string y = ss.str();
+          y.insert(y.find("\npost:\n") + 7, extra);
+          std::ofstream(machine_path) << y;
+        }
+        const std::string good = (dir / (tag + ".nc")).string();
+        std::ofstream(good) << p.text;
+        auto r =
+            test::run_command(fmt::format("{} verify {} --machine {} --cl {}", CSCAM_CLI, good, machine_path, cl_path));
+        EXPECT_EQ(r.status, 0) << r.output;
+        EXPECT_EQ(r.output.rfind("OK:", 0), 0u) << r.output;
+        if (const auto bent = bent_plane(p.text, dialect)) {
+          const std::string bad = (dir / (tag + "-bent.nc")).string();
+          std::ofstream(bad) << *bent;
+          r = test::run_command(
+              fmt::format("{} verify {} --machine {} --cl {}", CSCAM_CLI, bad, machine_path, cl_path));
+          EXPECT_NE(r.status, 0) << r.output;
+          EXPECT_NE(r.output.find("the Z axis of"), std::string::npos) << r.output;
+          EXPECT_FALSE(gate::check(*bent, tag + "-bent", prog, m, *k, gate::options_for(m, 0, 0, 0)).ok);
+        } else {
+          EXPECT_EQ(dialect, "haas");
+        }
+      }
+    }
+  }
+  // The figures for the record: tip of the read-back TCP + plane program against the machine-coordinate program.
+  std::cout << fmt::format(
+      "[ figures  ] tcp+plane vs machine program: max tip deviation {:.5f} mm, max rotary "
+      "difference {:.6f} deg (vector form under TCP: tool axis {:.6f} deg), max tip distance to "
+      "a CL point {:.5f} mm\n",
+      worst_tip_mm, rad2deg(worst_rot_rad), rad2deg(worst_vector_rad), worst_cl_mm);
+  fs::remove_all(dir);
+}
+
+TEST(PostWorkPlane, APlaneWhileTcpIsOnIsNotRead) {
+  // A control refuses a tilted plane under TCP: so does the reader (the post cancels TCP first).
+  const cl::Program prog = cl::read_text(faces_between_simultaneous_cl(), "faces.cls");
+  const auto m = load_machine("trunnion-ac");
+  const auto k = m.kinematics();
+  post::Options o;
+  o.dialect = "fanuc";
+  o.work_plane = "tilted";
+  o.tcp = true;
+  post::Summary sum;
+  std::ostringstream os;
+  post::write_nc(os, prog, m, *k, post::conventional_axes(prog, m, *k), o, sum);
+  std::string text = os.str();
+  // the TCP cancel (and the plain length after it) before the plane after the first simultaneous stretch
+  const size_t g49 = text.find("G49\nG43 H");
+  ASSERT_NE(g49, std::string::npos) << text;
+  text.erase(g49, text.find('\n', g49 + 4) + 1 - g49);
+  const auto gs = gate::check(text, "under-tcp.nc", prog, m, *k, gate::options_for(m, 0, 0, 0));
+  EXPECT_FALSE(gs.ok);
+  EXPECT_NE(gs.message.find("under tool-tip control is not read"), std::string::npos) << gs.message;
+}
+
+TEST(PostWorkPlane, LinuxcncUnderTcpKeepsItsTcpFormWithAWarning) {
+  // linuxcnc has no tilted plane: under TCP every stretch stays under M428, the same bytes as without planes.
+  const cl::Program prog = cl::read_text(faces_between_simultaneous_cl(), "faces.cls");
+  const auto m = load_machine("trunnion-ac");
+  const auto k = m.kinematics();
+  std::string text[2];
+  post::Summary sum[2];
+  for (int i = 0; i < 2; ++i) {
+    post::Options o;
+    o.dialect = "linuxcnc";
+    o.work_plane = i == 0 ? "tilted" : "machine";
+    o.tcp = true;
+    std::ostringstream os;
+    post::write_nc(os, prog, m, *k, post::conventional_axes(prog, m, *k), o, sum[i]);
+    text[i] = os.str();
+  }
+  EXPECT_EQ(text[0], text[1]);
+  EXPECT_EQ(sum[0].work_planes, 0u);
+  EXPECT_EQ(count_of(text[0], "M428"), 1u);
+  EXPECT_EQ(std::count_if(sum[0].warnings.begin(), sum[0].warnings.end(),
+                          [](const std::string& w) {
+                            return w.find(
+                                       "has no tilted work plane: 3+2 stretches are written under tool-tip "
+                                       "control") != std::string::npos;
+                          }),
+            1);
+  const auto gs = gate::check(text[0], "linuxcnc-tcp", prog, m, *k, gate::options_for(m, 0, 0, 0));
+  EXPECT_TRUE(gs.ok) << gs.message;
+}
+
+TEST(PostWorkPlane, UnderTcpAJobOfPlanesOnlyIsThePlaneProgramWithTcpSwitchedOff) {
+  // NX's zigzag turned into one 3+2 face: under TCP with planes no block is written under TCP (the tool-change's TCP
+  // is cancelled before the plane); apart from the TCP and length words it is the non-TCP plane program.
+  const cl::Program flat = cl::read_file(test::source_path("examples/nx-haas-umc750/zigzag_smoothed.cls"));
+  const Eigen::Matrix3d R =
+      (Eigen::AngleAxisd(deg2rad(10.0), Vec3::UnitZ()) * Eigen::AngleAxisd(deg2rad(25.0), Vec3::UnitX()))
+          .toRotationMatrix();
+  const cl::Program prog = turned(flat, R, Vec3(0, -40, -30));
+  const auto m = machine_with_post("haas-umc750", "  arcs: false\n");
+  const auto k = m.kinematics();
+  const auto without_tcp_words = [](const std::string& text) {
+    std::istringstream in(text);
+    std::string line, out;
+    const std::regex tcp_or_length("cartesian:|G43|G49|G234|TRAORI|ORIWKS|TRAFOOF|TCPM");
+    while (std::getline(in, line))
+      if (!std::regex_search(line, tcp_or_length)) out += std::regex_replace(line, std::regex("^[0-9]+ "), "") + "\n";
+    return out;
+  };
+  for (const auto& [dialect, codes] : plane_codes()) {
+    SCOPED_TRACE(dialect);
+    post::Options o;
+    o.dialect = dialect;
+    o.work_plane = "tilted";
+    o.tcp = true;
+    post::Summary sum;
+    std::ostringstream os;
+    post::write_nc(os, prog, m, *k, post::conventional_axes(prog, m, *k), o, sum);
+    const std::string text = os.str();
+    const Posted q = post_with_plane(prog, m, *k, dialect, "tilted");
+    EXPECT_GE(sum.work_planes, 1u);
+    EXPECT_EQ(without_tcp_words(text), without_tcp_words(q.text));
+    const auto gs = gate::check(text, "nx-tcp-" + dialect, prog, m, *k, gate::options_for(m, 0, 0, 0));
+    EXPECT_TRUE(gs.ok) << gs.message;
+    EXPECT_TRUE(gs.tool_tip_control);
+    expect_every_cl_point_reached(text, prog, m, *k, "nx-tcp-" + dialect);
+  }
 }

@@ -402,3 +402,36 @@ TEST(Verify, BoundedSamplingTakesTwoSamplesForShortBlocks) {
   EXPECT_GE(r.max_tip_deviation_mm + 1e-9, 0.0);
   EXPECT_LE(r.max_tip_deviation_mm, vo.tip_tolerance_mm / 16 + fixed.max_tip_deviation_mm + 1e-9);
 }
+
+TEST(Verify, ATcpProgramThatSwitchesTcpOffIsReadAsTipWordsWithTheMachineAxesKept) {
+  // G43.4 ... G49 G43 ... G43.4: the machine-word block in between becomes the tip words of its axes (FK), a word it
+  // does not give is where the TCP block left the machine (IK), and the TCP block after it continues from its tip.
+  const machine::Machine m = machine::load(test::source_path("machines/trunnion-ac.yaml"));
+  const auto k = m.kinematics();
+  const nc::Program p = report::read_for_machine(
+      "%\n(cscam tool_length_mm=0.0000 tolerance_mm=0.0100)\nG43.4 H1\nG0 X10 Y5 Z50 A20 C30\nG49\nG43 H1\nG0 Z100\n"
+      "G43.4 H1\nG0 X20\nM30\n%\n",
+      "mixed.nc", m);
+  ASSERT_EQ(p.blocks.size(), 3u);
+  EXPECT_TRUE(p.blocks[0].tcp);
+  EXPECT_FALSE(p.blocks[1].tcp);
+  ASSERT_EQ(p.machine_axes.size(), 1u);
+  EXPECT_EQ(p.machine_axes[0].first, 1u);
+  // the machine where the TCP block put the tip (10, 5, 50) at A20 C30, then its Z at 100
+  kin::Axes at_tip = kin::Axes::Zero();
+  at_tip[3] = deg2rad(20.0);
+  at_tip[4] = deg2rad(30.0);
+  Eigen::Vector3d axis;
+  ASSERT_TRUE(k->tool_axis_at(at_tip[3], at_tip[4], Eigen::Vector3d(10, 5, 50), axis));
+  ASSERT_TRUE(k->solve_for_rotaries(kin::Posed{Eigen::Vector3d(10, 5, 50), axis}, at_tip));
+  kin::Axes up = at_tip;
+  up[2] = 100.0;
+  for (int i = 0; i < 5; ++i) EXPECT_NEAR(p.machine_axes[0].second[static_cast<size_t>(i)], up[i], 1e-9) << i;
+  const Eigen::Vector3d tip_up = k->forward(up).tip_mm;
+  for (int c = 0; c < 3; ++c) EXPECT_NEAR(p.blocks[1].axes[static_cast<size_t>(c)], tip_up[c], 1e-9) << c;
+  EXPECT_DOUBLE_EQ(p.blocks[1].axes[3], deg2rad(20.0));  // the rotary words stay
+  // the TCP block after it: X given, Y and Z from the machine block's tip
+  EXPECT_DOUBLE_EQ(p.blocks[2].axes[0], 20.0);
+  EXPECT_NEAR(p.blocks[2].axes[1], tip_up.y(), 1e-9);
+  EXPECT_NEAR(p.blocks[2].axes[2], tip_up.z(), 1e-9);
+}

@@ -121,6 +121,9 @@ Summary check(const std::string& nc_text, const std::string& nc_name, const cl::
   }
   std::size_t violation_chunk = 0, next_violation = 0;  // the first entry of that chunk not yet taken
   kin::Axes prev = kin::Axes::Zero();
+  // A TCP program that cancels TCP for its tilted planes: its machine-word blocks (read as tip words) go exactly to
+  // their machine axes (kept by the reader), no IK choice.
+  std::size_t next_machine = 0;
   for (size_t bi = 0; bi < ncp.blocks.size(); ++bi) {
     const nc::Block& b = ncp.blocks[bi];
     if (!std::all_of(b.known.begin(), b.known.end(), [](bool k) { return k; })) {
@@ -141,8 +144,16 @@ Summary check(const std::string& nc_text, const std::string& nc_name, const cl::
     if (s.tool_tip_control) {
       const kin::Posed pose = tip_kin.forward(q);
       std::string why;
-      kin::Axes sol;
-      if (!pose.axis.allFinite() || !kin::nearest_solution(kinematics, pose, prev, sol, &why)) {
+      kin::Axes sol = q;
+      while (next_machine < ncp.machine_axes.size() && ncp.machine_axes[next_machine].first < bi) ++next_machine;
+      const bool machine_words = next_machine < ncp.machine_axes.size() && ncp.machine_axes[next_machine].first == bi;
+      if (machine_words) {
+        for (int i = 0; i < 5; ++i) sol[i] = ncp.machine_axes[next_machine].second[static_cast<size_t>(i)];
+        if (std::string v = kinematics.check_limits(sol); !v.empty()) {
+          add(Violation::Kind::Limit, b.line, 0, v);
+          continue;
+        }
+      } else if (!pose.axis.allFinite() || !kin::nearest_solution(kinematics, pose, prev, sol, &why)) {
         add(Violation::Kind::Limit, b.line, 0,
             fmt::format("no machine axis values inside the limits reach tip ({:.4f}, {:.4f}, {:.4f}) with this tool "
                         "vector{}",

@@ -220,6 +220,7 @@ Program read_heidenhain(const std::string& text, const std::string& name, const 
   std::shared_ptr<const WorkPlane> plane;  // the tilted work plane in force (shared by its blocks)
   Block state;
   bool inch = false;
+  bool tcp_on = false;  // tool-tip control in force (FUNCTION TCPM / M128 ... FUNCTION RESET TCPM / M129)
   double feed = 0.0;
   std::string_view all(text);
   size_t pos = 0;
@@ -261,7 +262,11 @@ Program read_heidenhain(const std::string& text, const std::string& name, const 
     }
     if (s.rfind("END PGM", 0) == 0) break;
     if (s.rfind("FUNCTION TCPM", 0) == 0) {
-      prog.tcp = true;
+      prog.tcp = prog.tcp_words = tcp_on = true;
+      continue;
+    }
+    if (s.rfind("FUNCTION RESET TCPM", 0) == 0) {
+      tcp_on = false;
       continue;
     }
     // PLANE SPATIAL SPA SPB SPC (spatial angles about the fixed X, Y, Z) ... STAY|TURN|MOVE; PLANE RESET.
@@ -302,8 +307,10 @@ Program read_heidenhain(const std::string& text, const std::string& name, const 
     const bool is_l = s.size() >= 2 && s[0] == 'L' && s[1] == ' ';
     // A comment after the block.
     if (const auto sc = s.find(';'); sc != std::string_view::npos) s = trim(s.substr(0, sc));
-    if (!is_l) {  // M128 on its own line or with other M functions
-      for (size_t p = s.find("M128"); p != std::string_view::npos; p = s.find("M128", p + 1)) prog.tcp = true;
+    if (!is_l) {  // M128 / M129 on its own line or with other M functions
+      for (size_t p = s.find("M128"); p != std::string_view::npos; p = s.find("M128", p + 1))
+        prog.tcp = prog.tcp_words = tcp_on = true;
+      if (s.find("M129") != std::string_view::npos) tcp_on = false;
       continue;
     }
     Block b = state;
@@ -325,7 +332,8 @@ Program read_heidenhain(const std::string& text, const std::string& name, const 
       if (tok == "R0" || tok == "RL" || tok == "RR" || tok == "R+" || tok == "R-") continue;
       const char L = tok[0];
       if (L == 'M') {
-        if (tok == "M128") prog.tcp = true;
+        if (tok == "M128") prog.tcp = prog.tcp_words = tcp_on = true;
+        if (tok == "M129") tcp_on = false;
         if (tok == "M91" || tok == "M92") machine_coords = true;  // machine datum: not a work position
         continue;
       }
@@ -363,7 +371,9 @@ Program read_heidenhain(const std::string& text, const std::string& name, const 
       continue;
     }
     b.plane = plane;
-    if (plane && prog.tcp) fail(s, "a tilted work plane (PLANE SPATIAL) under tool-tip control is not read");
+    b.tcp = tcp_on;
+    if (plane && tcp_on)  // a TNC cancels TCPM before it tilts (our post does: FUNCTION RESET TCPM, PLANE SPATIAL)
+      fail(s, "a tilted work plane (PLANE SPATIAL) under tool-tip control is not read");
     b.line = lineno;
     b.motion = rapid ? Motion::Rapid : Motion::Linear;
     b.inverse_time = false;
@@ -403,6 +413,8 @@ Program read_text(const std::string& text, const std::string& name, const AxisLe
   Block state;
   Motion motion = Motion::Rapid;
   bool inch = false, absolute = true, g93 = false, g435 = false;
+  bool tcp_on =
+      false;  // tool-tip control in force: G43.4/G43.5/G234 ... G49 (or G43), M428 ... M429, TRAORI ... TRAFOOF
   int plane = 17;
   // The machine's X, Y and Z slots (arcs are in their planes).
   std::array<int, 3> xyz{-1, -1, -1};
@@ -568,14 +580,16 @@ Program read_text(const std::string& text, const std::string& name, const AxisLe
             break;
           case 434:
           case 2340:
-            tcp_word = true;
+            tcp_word = tcp_on = true;
             break;
           case 435:  // Fanuc tool-tip control with the tool vector I J K
-            tcp_word = true;
+            tcp_word = tcp_on = true;
             g435 = true;
             break;
+          case 430:  // plain length offset: the same modal group, so tool-tip control ends
           case 490:
             g435 = false;
+            tcp_on = false;
             break;
           default:
             break;
@@ -588,7 +602,8 @@ Program read_text(const std::string& text, const std::string& name, const AxisLe
       }
       if (L == 'M') {
         // LinuxCNC's switchable trunnion kinematics: M428 world (TCP) coordinates, M429 identity (joints).
-        if (std::lround(v) == 428) tcp_word = true;
+        if (std::lround(v) == 428) tcp_word = tcp_on = true;
+        if (std::lround(v) == 429) tcp_on = false;
         return;
       }
       if (!plane_def && g435 && (L == 'I' || L == 'J' || L == 'K')) {
@@ -641,7 +656,8 @@ Program read_text(const std::string& text, const std::string& name, const AxisLe
         while (e < s.size() && (is_alnum(s[e]) || s[e] == '_')) ++e;
         std::string id(s.substr(i, e - i));
         for (char& ch : id) ch = to_upper(ch);
-        if (id == "TRAORI") tcp_word = true;
+        if (id == "TRAORI") tcp_word = tcp_on = true;
+        if (id == "TRAFOOF") tcp_on = false;
         if (id == "SUPA") non_modal_skip = true;  // machine coordinates: every frame suppressed for this block
         if (id == "CYCLE800") {
           size_t open = e;
@@ -710,7 +726,7 @@ Program read_text(const std::string& text, const std::string& name, const AxisLe
       i = k;
       on_word(L, v, word_column);
     }
-    if (tcp_word) prog.tcp = true;
+    if (tcp_word) prog.tcp = prog.tcp_words = true;
     bool any_axis = false;
     for (bool w : b.words) any_axis |= w;
     if (plane_def || cycle_seen) {
@@ -747,10 +763,11 @@ Program read_text(const std::string& text, const std::string& name, const AxisLe
         fail(0, fmt::format("incremental (G91) words in a tilted work plane ({}) are not read", work_plane->form));
       if (motion == Motion::ArcCW || motion == Motion::ArcCCW)
         fail(0, fmt::format("arcs in a tilted work plane ({}) are not read", work_plane->form));
-      if (vector_words || g435 || prog.tcp)
+      if (vector_words || g435 || tcp_on)  // a control refuses it too: TCP is cancelled before the plane
         fail(0, fmt::format("a tilted work plane ({}) under tool-tip control is not read", work_plane->form));
     }
     b.plane = work_plane;
+    b.tcp = tcp_on;
     if (vector_words) {
       prog.tcp_vectors = true;
       b.has_vector = true;

@@ -142,6 +142,7 @@ void Formatter::tool_change(std::string& out, int tool, int h, const std::string
 
 void Formatter::tcp_on(std::string& /*out*/, int /*h*/) { tcp_active_ = true; }
 void Formatter::tcp_off(std::string& /*out*/) { tcp_active_ = false; }
+void Formatter::length_on(std::string& /*out*/, int /*h*/) {}
 
 Eigen::Matrix3d Formatter::plane_on(std::string& /*out*/, const Eigen::Matrix3d& /*R_part_plane*/) {
   throw std::logic_error("plane_on on a dialect without work planes");
@@ -298,6 +299,12 @@ class Fanuc : public Formatter {
       out += "G49\n";
     }
     Formatter::tcp_off(out);
+  }
+  // G49 cancelled the length with TCP: G43 H as after a tool change without TCP (the machine words before and in
+  // the plane are then the tip's, as in the non-TCP program).
+  void length_on(std::string& out, int h) override {
+    line_start(out);
+    fmt::format_to(std::back_inserter(out), "G43 H{}\n", h);
   }
   // G68.2: the feature coordinate system by its origin and ZXZ Euler angles I J K; G53.1 turns the tool
   // perpendicular to it (the rotaries are there already: the sequencer positioned them); G69 cancels.

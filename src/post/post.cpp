@@ -149,20 +149,19 @@ class Sequencer {
     // Tilted work planes for 3+2 stretches: machine coordinates with a Z, linear axes X Y Z, a dialect that has them.
     const std::string work_plane = opt.work_plane.empty() ? m_.post.work_plane : opt.work_plane;
     if (work_plane == "tilted") {
-      if (cart_)
-        throw InputError(
-            fmt::format("{}: a tilted work plane (post.work_plane: tilted) under tool-tip control is not "
-                        "written: post with --no-tcp, or with --work-plane machine",
-                        prog_.file));
       const bool xyz = std::all_of(xyz_.begin(), xyz_.end(), [](int s) { return s >= 0; });
+      // Under tool-tip control the plane is written with TCP cancelled around it (switch_to_machine).
       if (fmt_->plane_form() == Formatter::PlaneForm::None || z_ < 0 || !xyz)
-        sum_.warnings.push_back(
-            fmt::format("{}: dialect {} on machine {} has no tilted work plane: 3+2 stretches are "
-                        "written in machine coordinates",
-                        prog_.file, fmt_->name(), m_.name));
+        sum_.warnings.push_back(fmt::format(
+            "{}: dialect {} on machine {} has no tilted work plane: 3+2 stretches are "
+            "written {}",
+            prog_.file, fmt_->name(), m_.name, cart_ ? "under tool-tip control" : "in machine coordinates"));
       else
         planes_ = true;
     }
+    tcp_program_ = cart_;
+    tcp_vectors_ = vectors_;
+    tcp_axis_retract_ = axis_retract_;
   }
 
   void run(const std::vector<kin::Axes>& axes) {
@@ -180,6 +179,14 @@ class Sequencer {
       const cl::Move& mv = moves[i];
       ++sum_.cl_points;
       check_limits(axes[i], mv);
+      if (tcp_program_ && planes_ && (!have_state_ || mv.kind == cl::MotionKind::Rapid)) {
+        // Under tool-tip control a 3+2 stretch that gets a plane, and the rapids to it, run with TCP cancelled,
+        // everything else under TCP.
+        if (const auto plane = plane_ahead(axes, i)) {
+          if (*plane && cart_) switch_to_machine(mv.line);
+          if (!*plane && !cart_) switch_to_tcp(mv.line);
+        }
+      }
       if (cart_) {
         if (!tcp_on_) tool_tip_control_on(mv.line);
         cartesian(mv, axes[i]);
@@ -303,6 +310,7 @@ class Sequencer {
           fmt_->tcp_off(buf_);
           tcp_on_ = false;
         }
+        if (tcp_program_ && !cart_) restore_tcp_state();  // left a plane stretch: the new tool starts under TCP
         // The length offset register: LOAD/TOOL,n,ADJUST,h, else the tool's own number.
         tool_h_ = known && prog_.tools[static_cast<size_t>(e.tool_index)].length_register >= 0
                       ? prog_.tools[static_cast<size_t>(e.tool_index)].length_register
@@ -376,6 +384,71 @@ class Sequencer {
     for (int r : kin_.rotary_pair())
       if (rounded(r, q[r]) != 0) return false;
     return true;
+  }
+
+  // --- Tool-tip control around tilted work planes --------------------------------------------------------
+  // A control refuses a tilted plane under TCP (G68.2 in G43.4 mode, CYCLE800 under TRAORI): a TCP program
+  // cancels TCP for each 3+2 stretch that gets a plane and writes that stretch exactly as the non-TCP program
+  // does (safe Z, turn, clamp, plane, cut in plane words, plane off), then switches TCP on again.
+
+  /// Whether the cut after the rapids from move i on (or after move i itself, the first) is a 3+2 stretch that gets
+  /// a plane; nothing when no cut follows (the last rapids keep the mode they find).
+  std::optional<bool> plane_ahead(const std::vector<kin::Axes>& axes, size_t i) const {
+    const auto& moves = prog_.moves;
+    size_t j = i;
+    while (moves[j].kind == cl::MotionKind::Rapid && j + 1 < moves.size() && moves[j + 1].kind == cl::MotionKind::Rapid)
+      ++j;
+    if (j + 1 >= moves.size()) return std::nullopt;
+    return fixed_from(axes, j) && !at_rotary_zero(axes[j]);
+  }
+
+  /// Into a 3+2 stretch: out along the tool axis under TCP (as before any rotary change of the TCP program), TCP
+  /// off, the plain length offset, and machine words from here on.
+  void switch_to_machine(int cl_line) {
+    if (have_state_) axis_retract(SourceLoc{prog_.file, cl_line, 0});
+    if (tcp_on_) {
+      fmt_->tcp_off(buf_);
+      tcp_on_ = false;
+    }
+    fmt_->length_on(buf_, tool_h_);
+    cart_ = false;
+    vectors_ = false;
+    axis_retract_ = false;            // planes need a Z axis: machine Z retracts
+    if (have_state_) cur_ = cart_q_;  // the machine axes where TCP left the tool
+    forget_words();
+    at_cut_ = false;
+  }
+
+  /// Out of a 3+2 stretch into a simultaneous one: out along the axis, the plane off, up to the safe Z, the clamps
+  /// released, TCP on again; the TCP rapid that follows positions the tool.
+  void switch_to_tcp(int cl_line) {
+    exit_along_axis();
+    work_plane_off();
+    if (have_state_) emit_safe_z();
+    unclamp_rotaries();
+    restore_tcp_state();
+    tool_tip_control_on(cl_line);
+  }
+
+  /// The TCP program's settings again, with its Cartesian state at the machine axes the tool is at.
+  void restore_tcp_state() {
+    cart_ = true;
+    vectors_ = tcp_vectors_;
+    axis_retract_ = tcp_axis_retract_;
+    if (have_state_) {
+      const kin::Posed here = kin_.forward(cur_);
+      cart_q_ = ctrl_q_ = cur_;
+      cart_tip_ = here.tip_mm;
+      cart_axis_ = here.axis;
+      cur_ = cartesian_words(here.tip_mm, here.axis, cur_);
+    }
+    forget_words();
+  }
+
+  /// The words change meaning (tip words <-> machine words): every word and the feed are written again.
+  void forget_words() {
+    have_word_.fill(false);
+    last_feed_ = -1.0;
   }
 
   // --- Tilted work planes (3+2) ------------------------------------------------------------------------
@@ -1307,10 +1380,13 @@ class Sequencer {
   std::array<bool, 5> clamped_{};
   int z_ = -1;
   double safe_z_ = 0.0;
-  bool cart_ = false;     ///< Cartesian (TCP) output: slots hold tip + tool-vector rotaries
-  bool vectors_ = false;  ///< TCP with the tool vector instead of rotary words
-  bool tcp_on_ = false;   ///< tool-tip control switched on in the program
-  int tool_h_ = 0;        ///< length offset register of the loaded tool
+  bool cart_ = false;              ///< Cartesian (TCP) output: slots hold tip + tool-vector rotaries (now)
+  bool vectors_ = false;           ///< TCP with the tool vector instead of rotary words (now)
+  bool tcp_program_ = false;       ///< the program is a TCP program (cart_ is false only inside plane stretches)
+  bool tcp_vectors_ = false;       ///< vectors_ of the TCP program
+  bool tcp_axis_retract_ = false;  ///< axis_retract_ of the TCP program
+  bool tcp_on_ = false;            ///< tool-tip control switched on in the program
+  int tool_h_ = 0;                 ///< length offset register of the loaded tool
   bool warned_h0_ = false;
   bool axis_retract_ = false;  ///< retract along the tool axis to z = safe_z_mm (no Z axis, or Cartesian)
   Vec3 cart_tip_ = Vec3::Zero(), cart_axis_ = Vec3::UnitZ();  ///< last Cartesian position (part frame)

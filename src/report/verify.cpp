@@ -197,24 +197,82 @@ std::string resolve_tool_vectors(nc::Program& nc, const kin::Kinematics& k, int*
 }
 
 std::string resolve_work_planes(nc::Program& nc, const kin::Kinematics& k, int* bad_line) {
-  if (!nc.work_planes) return {};
-  const auto rp = k.rotary_pair();
+  // A TCP program that cancels tool-tip control for its planes has machine-word blocks (all of them, when every
+  // stretch is a plane) besides tip-word ones. Not a program whose header alone says TCP (no word switches it).
+  std::size_t last_machine = 0;  // one past the last machine-word block of such a program
+  if (nc.tcp_words)
+    for (std::size_t bi = 0; bi < nc.blocks.size(); ++bi)
+      if (!nc.blocks[bi].tcp) last_machine = bi + 1;
+  const bool mixed = last_machine > 0;
   const auto& xyz = nc.xyz_slots;
+  const bool have_xyz = xyz[0] >= 0 && xyz[1] >= 0 && xyz[2] >= 0;
+  if (!nc.work_planes && !(mixed && have_xyz)) return {};
+  const auto rp = k.rotary_pair();
   auto fail = [&](const nc::Block& b, const std::string& what) {
     if (bad_line) *bad_line = b.line;
     return what;
   };
-  if (xyz[0] < 0 || xyz[1] < 0 || xyz[2] < 0)
+  if (!have_xyz)
     return fail(nc.blocks.empty() ? nc::Block{} : nc.blocks.front(),
                 "a tilted work plane on a machine without linear axes lettered X, Y, Z is not read");
-  kin::Axes prev = kin::Axes::Zero();
+  kin::Axes prev = kin::Axes::Zero();  // the machine axes where the machine is
   bool have_prev = false;
   int plane_line = -1;          // the plane the blocks are in
   Vec3 p_plane = Vec3::Zero();  // the modal plane coordinates
   std::array<bool, 3> p_known{};
   std::array<double, 2> rot_at{};  // the rotaries the plane was switched on at
   const double cos_tol = std::cos(deg2rad(tol::kVerifySlackDeg));
-  for (auto& b : nc.blocks) {
+  auto all_known = [](const nc::Block& b) {
+    return std::all_of(b.known.begin(), b.known.end(), [](bool x) { return x; });
+  };
+  // A machine-word block of a mixed program as the tip words of its machine axes (the rotaries stay; in vector form
+  // the tool vector is the axis there), so that the whole program reads as one TCP program; its axes are kept. Inside a
+  // 3+2 stretch the rotaries stand still and the tip moves straight with the linear axes: the TCP view interpolates it
+  // exactly.
+  auto to_tip_words = [&](std::size_t bi, nc::Block& b) {
+    if (!mixed || !all_known(b)) return;
+    nc.machine_axes.emplace_back(bi, b.axes);  // the machine goes exactly there (the gate's limits)
+    kin::Axes q;
+    for (int i = 0; i < 5; ++i) q[i] = b.axes[static_cast<size_t>(i)];
+    const kin::Posed p = k.forward(q);
+    for (int c = 0; c < 3; ++c) {
+      const auto s = static_cast<size_t>(xyz[static_cast<size_t>(c)]);
+      if (b.words[s] || std::abs(p.tip_mm[c] - b.axes[s]) > 0) b.words[s] = true;
+      b.axes[s] = p.tip_mm[c];
+    }
+    if (nc.tcp_vectors) {
+      b.tool_vector = {p.axis.x(), p.axis.y(), p.axis.z()};
+      b.has_vector = true;
+    }
+  };
+  for (std::size_t bi = 0; bi < nc.blocks.size(); ++bi) {
+    nc::Block& b = nc.blocks[bi];
+    if (mixed && b.tcp) {
+      // Tip words: where the control moves the machine, followed only as far as a machine-word block comes later
+      // (its words not given are those axes).
+      plane_line = -1;
+      // A word not given stays where the block before left it, in tip words (the reader's modal value is a machine
+      // word after a switch).
+      if (bi > 0)
+        for (std::size_t i = 0; i < 5; ++i)
+          if (!b.words[i] && nc.blocks[bi - 1].known[i]) b.axes[i] = nc.blocks[bi - 1].axes[i];
+      if (bi >= last_machine || !all_known(b)) continue;
+      const Vec3 tip(b.axes[static_cast<size_t>(xyz[0])], b.axes[static_cast<size_t>(xyz[1])],
+                     b.axes[static_cast<size_t>(xyz[2])]);
+      Vec3 axis(b.tool_vector[0], b.tool_vector[1], b.tool_vector[2]);
+      bool ok = nc.tcp_vectors
+                    ? b.has_vector && axis.norm() > 0
+                    : k.tool_axis_at(b.axes[static_cast<size_t>(rp[0])], b.axes[static_cast<size_t>(rp[1])], tip, axis);
+      // Angle words name the rotaries (the linear axes follow from the tip); a vector leaves the choice to the control.
+      kin::Axes sol = prev;
+      sol[rp[0]] = b.axes[static_cast<size_t>(rp[0])];
+      sol[rp[1]] = b.axes[static_cast<size_t>(rp[1])];
+      const kin::Posed pose{tip, axis.normalized()};
+      ok = ok && (nc.tcp_vectors ? kin::nearest_solution(k, pose, prev, sol) : k.solve_for_rotaries(pose, sol));
+      if (ok) prev = sol;
+      have_prev = ok;
+      continue;
+    }
     if (!b.plane) {
       plane_line = -1;
       if (have_prev)  // a word not given: the axis stays where it is (also after a plane)
@@ -223,10 +281,11 @@ std::string resolve_work_planes(nc::Program& nc, const kin::Kinematics& k, int* 
             b.axes[static_cast<size_t>(i)] = prev[i];
             b.known[static_cast<size_t>(i)] = true;
           }
-      if (std::all_of(b.known.begin(), b.known.end(), [](bool x) { return x; })) {
+      if (all_known(b)) {
         for (int i = 0; i < 5; ++i) prev[i] = b.axes[static_cast<size_t>(i)];
         have_prev = true;
       }
+      to_tip_words(bi, b);
       continue;
     }
     const nc::WorkPlane& w = *b.plane;
@@ -279,12 +338,13 @@ std::string resolve_work_planes(nc::Program& nc, const kin::Kinematics& k, int* 
     b.plane.reset();
     prev = q;
     have_prev = true;
+    to_tip_words(bi, b);
   }
   return {};
 }
 
 void resolve_work_planes(nc::Program& nc, const machine::Machine& m) {
-  if (!nc.work_planes) return;
+  if (!nc.work_planes && !nc.tcp_words) return;
   const auto k = m.make_kinematics(nc.tool_length_mm.value_or(m.default_tool_length_mm));
   if (const std::string why = resolve_work_planes(nc, *k); !why.empty()) throw InputError(why);  // names file:line
 }

@@ -10,6 +10,7 @@
 #include <memory>
 #include <optional>
 #include <string>
+#include <utility>
 #include <vector>
 
 namespace cscam::nc {
@@ -64,6 +65,10 @@ struct Block {
   std::array<bool, 5> words{};  ///< the axis word appears in this block
   bool inverse_time = false;    ///< G93 active
   bool has_vector = false;      ///< a tool vector has been programmed so far
+  /// Written while tool-tip control was on (G43.4 ... G49, TRAORI ... TRAFOOF, ...): its linear words are the tip
+  /// in the part frame. A program that switches TCP off for tilted planes has both kinds; report::resolve_work_planes
+  /// turns the machine-word blocks into tip words.
+  bool tcp = false;
 };
 
 /// The axis values at parameter t in [0, 1] of block `b` travelled from `start` (the previous block's axes):
@@ -76,10 +81,14 @@ struct Program {
   std::string file;
   std::vector<Block> blocks;
   std::optional<double> tool_length_mm;  ///< from a "(cscam tool_length_mm=...)" header comment
-  bool tcp = false;                ///< G43.4/G43.5/G234/M428/TRAORI/TCPM/M128 seen: axis values are part coordinates
+  bool tcp = false;  ///< G43.4/G43.5/G234/M428/TRAORI/TCPM/M128 seen: axis values are part coordinates (Block::tcp)
+  bool tcp_words = false;          ///< a word switched tool-tip control on (Block::tcp follows it; not a header alone)
   bool tcp_vectors = false;        ///< the tool orientation is given as vectors (Block::tool_vector)
   std::vector<std::string> notes;  ///< things skipped on purpose (G28/G53, SUPA, M91/M92 blocks)
   bool work_planes = false;        ///< some block is in a tilted work plane (Block::plane)
+  /// A TCP program that cancels TCP for its tilted planes: the machine axes of its blocks written without TCP (block
+  /// index, axes; in order), kept by report::resolve_work_planes when it turns their words into tip words.
+  std::vector<std::pair<std::size_t, std::array<double, 5>>> machine_axes;
   std::array<int, 3> xyz_slots{-1, -1, -1};  ///< the slots lettered X, Y, Z (the plane words' axes)
   /// The machine named by our post's header comment "(cscam post: machine NAME dialect ...)", if present.
   std::optional<std::string> header_machine;

@@ -91,6 +91,9 @@ class Formatter {
   /// Tool-tip control off (before a tool change and at the end) and on (after it), where the dialect needs it.
   virtual void tcp_on(std::string& out, int h);
   virtual void tcp_off(std::string& out);
+  /// Plain tool-length compensation after tool-tip control was cancelled for a tilted work plane, where cancelling
+  /// TCP cancels the length too (fanuc, haas: G43 H; elsewhere the length stays active: nothing).
+  virtual void length_on(std::string& out, int h);
   /// Rotary clamp / unclamp (M-codes from the machine file) around indexed (3+2) positioning.
   virtual void clamp(std::string& out, const std::string& code);
   virtual void spindle(std::string& out, double rpm, bool clockwise);
