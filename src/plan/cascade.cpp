@@ -74,28 +74,39 @@ void avoid_swept_collisions(const SegmentView& v, SegmentCells& d, Cascade& c, s
                          is_axial_approach(v.program, last, last - 1);
   // Moves found free in an earlier round (most of the path stays): (layer, from cell, into cell) on the grid.
   std::set<std::tuple<std::size_t, std::uint64_t, std::uint64_t>> known_free;
-  geom::QueryWorkspace ws;
   for (std::size_t round = 0; round < max_rounds; ++round) {
     std::vector<std::size_t> bad, free_into;
     const bool searches_moves = c.tier == Tier::Shortest && !v.exact;
+    // The moves to sweep (in parallel: each is its own question), then their verdicts in path order.
+    std::vector<std::size_t> todo;
     for (std::size_t k = 0; k + 1 < c.path.size(); ++k) {
       if ((k == 0 && skip_first) || (k + 2 == c.path.size() && skip_last)) continue;
       const Cell &a = *c.path[k], &b = *c.path[k + 1];
-      const auto id = std::make_tuple(k + 1, key(a.i1, a.i2), key(b.i1, b.i2));
-      if (!v.exact && known_free.count(id)) {
+      if (!v.exact && known_free.count(std::make_tuple(k + 1, key(a.i1, a.i2), key(b.i1, b.i2)))) {
         free_into.push_back(k + 1);
         continue;
       }
-      const auto st = v.space.swept(a.axes, b.axes, cspace::SweepMode::Cutting, ws, d.counters).status;
+      todo.push_back(k);
+    }
+    std::vector<cspace::SweepStatus> status(todo.size());
+    parallel_items(todo.size(), d.counters, [&](std::size_t i, geom::QueryWorkspace& wsi, cspace::Counters& cc) {
+      const std::size_t k = todo[i];
+      status[i] = v.space.swept(c.path[k]->axes, c.path[k + 1]->axes, cspace::SweepMode::Cutting, wsi, cc).status;
+    });
+    for (std::size_t i = 0; i < todo.size(); ++i) {
+      const std::size_t k = todo[i];
+      const Cell &a = *c.path[k], &b = *c.path[k + 1];
+      const auto st = status[i];
       // A move that cannot be certified free (it skims the part) is avoided as a colliding one is where tier 4
       // can search around it move by move; a tier 1-3 answer is not given up for it (the final check warns).
       if (st == cspace::SweepStatus::Collides || (st == cspace::SweepStatus::Uncertified && searches_moves)) {
         bad.push_back(k + 1);
       } else if (st == cspace::SweepStatus::Free) {
         free_into.push_back(k + 1);
-        known_free.insert(id);
+        known_free.insert(std::make_tuple(k + 1, key(a.i1, a.i2), key(b.i1, b.i2)));
       }
     }
+    std::sort(free_into.begin(), free_into.end());
     if (bad.empty()) {
       // The final check need not repeat these (unless an approach/retract moves an end).
       for (std::size_t k : free_into) swept_ok[d.layers[k].move] = 1;

@@ -190,33 +190,50 @@ bool swept_layer(const SegmentView& v, SegmentCells& d, const std::vector<State>
   // certified move reaches this point, so that a path still exists (the final check then warns about them).
   std::vector<State> skimming;
   std::size_t sweeps = 0;
-  for (const Candidate& cd : cand) {
+  // Candidates in blocks of a fixed size, in parallel: each evaluates its cell and sweeps its predecessors, cheapest
+  // first, up to the first free move. The block is then replayed in order under the serial rules (beam, sweep
+  // budget), so the states, the sweep cache and the answer are those of a serial scan at any thread count; sweeps past
+  // where the serial scan stops are wasted work (counted).
+  constexpr std::size_t kBlock = 2;
+  std::vector<std::vector<std::pair<cspace::SweepStatus, bool>>> tried;  // per candidate: (status, swept now)
+  for (std::size_t b = 0; b < cand.size(); b += kBlock) {
     if (S.size() >= kSweptBeam || sweeps >= kSweepsPerLayer) break;
-    Cell& c = cells[cd.cell];
+    const std::size_t e = std::min(cand.size(), b + kBlock);
+    tried.assign(e - b, {});
     d.certs.reserve();
-    d.certs.evaluate(d.layers[k].cl, c, d.ws, d.counters);
-    if (c.status != Status::Feasible) continue;
-    const double orient = opt.orientation_weight * c.orient_err;
-    for (std::size_t t = 0; t < cd.preds.size() && t < kSweptTries && sweeps < kSweepsPerLayer; ++t) {
-      const State& from = prev[static_cast<std::size_t>(cd.preds[t].second)];
-      const auto id = std::make_tuple(k, key(from.cell->i1, from.cell->i2), key(c.i1, c.i2));
-      auto it = d.sweeps.find(id);
-      if (it == d.sweeps.end()) {
-        ++sweeps;
-        it = d.sweeps
-                 .emplace(
-                     id,
-                     v.space.swept(from.cell->axes, c.axes, cspace::SweepMode::Cutting, d.ws, d.counters, kSweptBudget)
-                         .status)
-                 .first;
+    parallel_items(e - b, d.counters, [&](std::size_t i, geom::QueryWorkspace& ws, cspace::Counters& cc) {
+      const Candidate& cd = cand[b + i];
+      Cell& c = cells[cd.cell];
+      d.certs.evaluate(d.layers[k].cl, c, ws, cc);
+      if (c.status != Status::Feasible) return;
+      for (std::size_t t = 0; t < cd.preds.size() && t < kSweptTries; ++t) {
+        const State& from = prev[static_cast<std::size_t>(cd.preds[t].second)];
+        const auto it = d.sweeps.find(std::make_tuple(k, key(from.cell->i1, from.cell->i2), key(c.i1, c.i2)));
+        const bool now = it == d.sweeps.end();  // the cache is only read inside the block
+        const cspace::SweepStatus st =
+            now ? v.space.swept(from.cell->axes, c.axes, cspace::SweepMode::Cutting, ws, cc, kSweptBudget).status
+                : it->second;
+        tried[i].push_back({st, now});
+        if (st == cspace::SweepStatus::Free) break;
       }
-      const cspace::SweepStatus st = it->second;
-      if (st == cspace::SweepStatus::Free) {
-        S.push_back({&c, cd.preds[t].first + orient, cd.preds[t].second});
-        break;
+    });
+    for (std::size_t i = 0; i < e - b && S.size() < kSweptBeam && sweeps < kSweepsPerLayer; ++i) {
+      const Candidate& cd = cand[b + i];
+      Cell& c = cells[cd.cell];
+      if (c.status != Status::Feasible) continue;
+      const double orient = opt.orientation_weight * c.orient_err;
+      for (std::size_t t = 0; t < tried[i].size() && sweeps < kSweepsPerLayer; ++t) {
+        const auto [st, now] = tried[i][t];
+        const State& from = prev[static_cast<std::size_t>(cd.preds[t].second)];
+        if (now && d.sweeps.emplace(std::make_tuple(k, key(from.cell->i1, from.cell->i2), key(c.i1, c.i2)), st).second)
+          ++sweeps;
+        if (st == cspace::SweepStatus::Free) {
+          S.push_back({&c, cd.preds[t].first + orient, cd.preds[t].second});
+          break;
+        }
+        if (st == cspace::SweepStatus::Uncertified && skimming.size() < kSweptBeam)
+          skimming.push_back({&c, cd.preds[t].first + orient, cd.preds[t].second});
       }
-      if (st == cspace::SweepStatus::Uncertified && skimming.size() < kSweptBeam)
-        skimming.push_back({&c, cd.preds[t].first + orient, cd.preds[t].second});
     }
   }
   if (S.empty()) S = std::move(skimming);
