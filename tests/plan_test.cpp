@@ -9,6 +9,7 @@
 #include <cmath>
 #include <cstdlib>
 #include <fstream>
+#include <iostream>
 #include <map>
 #include <memory>
 #include <nlohmann/json.hpp>
@@ -1095,4 +1096,69 @@ TEST(PlannerDetail, CellIndexAnswersAsAnUnorderedMap) {
   index.clear();
   EXPECT_EQ(index.size(), 0u);
   EXPECT_FALSE(index.contains(oracle.begin()->first));
+}
+
+// The swept check against dense sampling on the groove (ball D10 whose flutes pass near the lip), on moves between
+// random tilts up to about 24 deg: every move it calls free must be free at 400 evenly spaced poses (the cutter body
+// and the rest of the tool carry their own motion margins), and every move the samples see hit is called colliding
+// or uncertified. (A consistency check of the verdicts on a real part; the margins' bound itself is what
+// docs/safety.md derives.)
+TEST(PlannerIssue11, SweptVerdictsAgreeWithDenseSamplingOnTheGroove) {
+  geom::Scene scene;
+  scene.add("groove", geom::ObstacleRole::Part, geom::load_mesh(test::source_path("examples/groove/groove.stl")));
+  scene.build(false);
+  const cl::Program prog = cl::read_file(test::source_path("examples/groove/groove.cls"));
+  const auto m = trunnion();
+  const auto k = m.kinematics();
+  const auto tool = geom::ToolShape::from_cutter(10, 5, 30);
+  cspace::Options o;
+  o.check_collision = true;
+  const cspace::Space sp(k, &scene, &tool, o);
+  geom::QueryWorkspace ws;
+  cspace::Counters c;
+  auto rng = test::rng(33);
+  std::uniform_real_distribution<double> U(-1.0, 1.0);
+  const auto rp = k->rotary_pair();
+  // A pose at a CL point of the cut: the ball centre kept, the axis within about 24 deg of the vertical.
+  // With `near`: the solution whose rotaries are closest to it (the move a planner would make).
+  auto pose_near = [&](std::size_t i, kin::Axes& q, const kin::Axes* near) {
+    const auto& mv = prog.moves[i];
+    const Vec3 centre = mv.tip_in_part_mm + 5.0 * mv.axis_in_part.normalized();
+    const Vec3 a = (Vec3::UnitZ() + 0.45 * Vec3(U(rng), U(rng), 0.0)).normalized();  // about the vertical
+    std::vector<kin::Solution> sols;
+    k->inverse_all({centre - 5.0 * a, a}, nullptr, sols);
+    double best = std::numeric_limits<double>::infinity();
+    for (const auto& s : sols) {
+      if (!k->check_limits(s.axes).empty()) continue;
+      const double d = near ? std::abs(s.axes[rp[0]] - (*near)[rp[0]]) + std::abs(s.axes[rp[1]] - (*near)[rp[1]]) : 0;
+      if (d < best) {
+        best = d;
+        q = s.axes;
+      }
+    }
+    return best < std::numeric_limits<double>::infinity();
+  };
+  int free_moves = 0, sampled_hits = 0, ends_free = 0;
+  for (int trial = 0; trial < 60; ++trial) {
+    const std::size_t i = 2 + static_cast<std::size_t>((prog.moves.size() - 4) * (0.5 + 0.5 * U(rng)));
+    kin::Axes qa, qb;
+    if (!pose_near(i, qa, nullptr) || !pose_near(i + 1, qb, &qa)) continue;
+    if (!geom::check(scene, tool, k->forward(qa), o.collision, ws).collides &&
+        !geom::check(scene, tool, k->forward(qb), o.collision, ws).collides)
+      ++ends_free;
+    const auto r = sp.swept(qa, qb, cspace::SweepMode::Cutting, ws, c);
+    bool hit = false;
+    for (int s = 0; s <= 400 && !hit; ++s)
+      hit = geom::check(scene, tool, k->forward(qa + (s / 400.0) * (qb - qa)), o.collision, ws).collides;
+    sampled_hits += hit;
+    if (r.status == cspace::SweepStatus::Free) {
+      ++free_moves;
+      EXPECT_FALSE(hit) << "trial " << trial << ": called free, a sample collides";
+    }
+    if (hit) EXPECT_NE(r.status, cspace::SweepStatus::Free);
+  }
+  EXPECT_GE(free_moves, 10);
+  EXPECT_GE(sampled_hits, 3);
+  std::cout << "swept vs dense sampling: " << free_moves << " free, " << sampled_hits << " hit, " << ends_free
+            << " with free ends\n";
 }

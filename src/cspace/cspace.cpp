@@ -64,6 +64,8 @@ Space::Space(std::shared_ptr<const kin::Kinematics> kinematics, const geom::Scen
       top = std::max(top, sgm.z1_mm);
     }
     reach_mm_ = top + rmax + std::max(opt_.collision.clearance_mm, opt_.collision.cutter_clearance_mm);
+    cutter_reach_mm_ = tool_->cutter.flute_length_mm + 0.5 * tool_->cutter.diameter_mm +
+                       2.0 * std::max(0.0, opt_.collision.cutter_clearance_mm);
   }
   const auto rp = kin_->rotary_pair();
   rot1_ = rp[0];

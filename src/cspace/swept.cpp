@@ -24,6 +24,8 @@ const char* to_string(SweepStatus s) {
 
 namespace {
 
+constexpr double kInfinity = std::numeric_limits<double>::infinity();
+
 /// Bisection limits of one swept move: past these the move is reported Uncertified (never Free).
 constexpr int kMaxDepth = 40;
 constexpr std::uint64_t kMaxQueriesPerMove = 2000;
@@ -57,7 +59,8 @@ double Space::cutting_margin_cap_mm() const {
 }
 
 std::string Space::collision_inflated(const kin::Axes& q, const kin::Posed& pose, double m, SweepMode mode,
-                                      geom::QueryWorkspace& ws, Counters& c) const {
+                                      geom::QueryWorkspace& ws, Counters& c, double m_cutter) const {
+  if (m_cutter < 0) m_cutter = m;
   if (!checks_collision()) return {};
   auto name = [&](const geom::CollisionResult& r, const char* part) {
     return fmt::format(
@@ -70,10 +73,10 @@ std::string Space::collision_inflated(const kin::Axes& q, const kin::Posed& pose
   geom::CheckOptions scratch;
   geom::CheckOptions o = with_links(q, links, scratch);
   o.clearance_mm += m;
-  o.cutter_clearance_mm += m;
+  o.cutter_clearance_mm += m_cutter;
   if (mode == SweepMode::Cutting) {
-    // The checked cutter body reaches down m further toward the tip (the Minkowski sum's lower cap).
-    o.relief_mm = std::max(0.0, cutting_margin_cap_mm() - m);
+    // The checked cutter body reaches down its margin further toward the tip (the Minkowski sum's lower cap).
+    o.relief_mm = std::max(0.0, cutting_margin_cap_mm() - m_cutter);
     ++c.collision;
     const geom::CollisionResult r = geom::check(*scene_, *tool_, pose, o, ws);
     return r.collides ? name(r, nullptr) : std::string();
@@ -84,7 +87,7 @@ std::string Space::collision_inflated(const kin::Axes& q, const kin::Posed& pose
   ++c.collision;
   const geom::CollisionResult r = geom::check(*scene_, *tool_, pose, o, ws);
   if (r.collides) return name(r, nullptr);
-  const kin::Posed low{pose.tip_mm - m * pose.axis, pose.axis};
+  const kin::Posed low{pose.tip_mm - m_cutter * pose.axis, pose.axis};
   ++c.collision;
   const geom::CollisionResult t = geom::check(*scene_, tip_tool_, low, o, ws);
   return t.collides ? name(t, "cutter tip") : std::string();
@@ -131,8 +134,9 @@ SweptResult Space::swept(const kin::Axes& qa, const kin::Axes& qb, SweepMode mod
       }
     }
     const double denom = 1.0 - 2.0 * h * B;
-    if (denom < 0.5) return std::numeric_limits<double>::infinity();  // interval turns too far: split
-    return (A + Brho) / denom + reach_mm_ * Vaxis;
+    if (denom < 0.5) return std::pair{kInfinity, kInfinity};  // interval turns too far: split
+    // The whole body, and the cutter body alone (a shorter lever: near the part it is often what limits the margin).
+    return std::pair{(A + Brho) / denom + reach_mm_ * Vaxis, (A + Brho) / denom + cutter_reach_mm_ * Vaxis};
   };
   struct Interval {
     double lo, hi;
@@ -145,10 +149,13 @@ SweptResult Space::swept(const kin::Axes& qa, const kin::Axes& qb, SweepMode mod
     const double t = 0.5 * (iv.lo + iv.hi);
     const kin::Axes q = qa + t * dq;
     const kin::Posed pose = kin_->forward(q);
-    const double m = 0.5 * (iv.hi - iv.lo) * speed_bound(iv.lo, iv.hi) + 1e-6;
-    if (m <= cap) {
+    const auto [v_body, v_cutter] = speed_bound(iv.lo, iv.hi);
+    const double m = 0.5 * (iv.hi - iv.lo) * v_body + 1e-6, m_cutter = 0.5 * (iv.hi - iv.lo) * v_cutter + 1e-6;
+    // The cutter body near the part bounds its margin by the relief; the others' margins have no such bound, but
+    // past the rapid cap an inflated probe fails near anything, and splitting is cheaper.
+    if (m_cutter <= cap && m <= std::max(cap, kRapidSweepMarginCapMm)) {
       ++res.queries;
-      if (collision_inflated(q, pose, m, mode, ws, q_count).empty()) {
+      if (collision_inflated(q, pose, m, mode, ws, q_count, m_cutter).empty()) {
         if (head_) {
           // Head meshes: at the certified poses (sampled, not certified).
           const std::string h = collision_at_axes(q, ws, q_count);

@@ -161,6 +161,10 @@ std::vector<ToolSegment> checked_segments(const ToolShape& tool, const CheckOpti
       if (!opt.check_cutter_body) continue;
       s.z0_mm = r + relief;
       s.radius_mm += std::max(0.0, opt.cutter_clearance_mm);
+      // A cutter wider than the shank has an exposed top face: inflated upward too (a pose within the margin of
+      // this one may lift that face by the margin).
+      if (i + 1 < all.size() && all[i].radius_mm > all[i + 1].radius_mm)
+        s.z1_mm += std::max(0.0, opt.cutter_clearance_mm);
       if (s.z1_mm - s.z0_mm <= 1e-9) continue;
       out.push_back(s);
       continue;

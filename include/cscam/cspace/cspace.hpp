@@ -149,8 +149,10 @@ class Space {
                                   Counters& c, std::uint64_t max_queries = 0) const;
   /// Whether the tool at `pose` (the FK of axes `q`, which place any machine bodies), inflated by `margin_mm` in
   /// every direction (superset of the Minkowski sum), is free. Empty string if free.
+  /// `cutter_margin_mm` >= 0: the cutter body's own (smaller) margin, the others keep `margin_mm`.
   [[nodiscard]] std::string collision_inflated(const kin::Axes& q, const kin::Posed& pose, double margin_mm,
-                                               SweepMode mode, geom::QueryWorkspace& ws, Counters& c) const;
+                                               SweepMode mode, geom::QueryWorkspace& ws, Counters& c,
+                                               double cutter_margin_mm = -1.0) const;
   /// Largest motion margin a Cutting-mode inflated check accepts (the relief above the cutting end), mm.
   [[nodiscard]] double cutting_margin_cap_mm() const;
   [[nodiscard]] bool checks_collision() const { return opt_.check_collision && scene_ && tool_; }
@@ -180,7 +182,8 @@ class Space {
   std::vector<Eigen::Matrix3d> R1_grid_;  ///< Kinematics::axis_factors per grid row (empty: no such factors)
   std::vector<Eigen::Vector3d> v2_grid_;  ///< ... per grid column
   geom::ToolShape tip_tool_;              ///< the lowest part of the cutter as a flat cylinder (Rapid-mode sweeps)
-  double reach_mm_ = 0.0;  ///< tool length plus largest checked radius: lever arm of a tool-axis rotation
+  double reach_mm_ = 0.0;         ///< tool length plus largest checked radius: lever arm of a tool-axis rotation
+  double cutter_reach_mm_ = 0.0;  ///< the same for the cutter body alone (its top plus its checked radius)
   int rot1_ = 0, rot2_ = 0;
   int i1_min_ = 0, i1_max_ = 0, i2_min_ = 0, i2_max_ = 0;
 };
