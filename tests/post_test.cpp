@@ -1398,6 +1398,18 @@ TEST(PostWorkPlane, CirclesInAPlaneBecomeArcsInItsCoordinatesAndReadBackOnTheClC
         ++n_arcs;
       }
       EXPECT_EQ(n_arcs, want);
+      // the gate reads the arcs: a centre moved 0.1 mm along the plane's X inside it is refused
+      if (want > 0) {
+        const std::regex first_i("(\n[^\n]*G[23] [^\n]* I)(-?[0-9]+\.[0-9]+)");
+        std::smatch mt;
+        ASSERT_TRUE(std::regex_search(p.text, mt, first_i));
+        std::string moved = p.text;
+        moved.replace(static_cast<size_t>(mt.position(2)), static_cast<size_t>(mt.length(2)),
+                      fmt::format("{:.4f}", std::stod(mt.str(2)) + 0.1));
+        const auto ms = gate::check(moved, tag + "-moved", prog, m, *k, gate::options_for(m, 0, 0, 0));
+        EXPECT_FALSE(ms.ok) << mt.str(0);
+        EXPECT_NE(ms.message.find("tool tip leaves the CL path"), std::string::npos) << ms.message;
+      }
       // the gate still refuses a plane bent by 0.1 deg with arcs in it
       if (const auto bent = bent_plane(p.text, dialect)) {
         const auto bs = gate::check(*bent, tag + "-bent", prog, m, *k, gate::options_for(m, 0, 0, 0));
