@@ -226,6 +226,29 @@ TEST(NcReader, SiemensCycle800Mode57AndHeidenhainPlaneSpatial) {
   EXPECT_NE(h.notes[0].find("h.h:9: M91"), std::string::npos) << h.notes[0];
 }
 
+TEST(NcReader, ArcsInATiltedPlaneAreReadInItsCoordinates) {
+  // G68.2 / CYCLE800: G17 is the plane's XY; centre and ends are plane coordinates until resolve_work_planes.
+  for (const std::string& text :
+       {std::string("%\nG0 X0 Y0 Z100 B0 C0\nG0 B30 C45\nG68.2 X0 Y0 Z0 I45 J30 K0\nG53.1\nG0 X10 Y0 Z5\n"
+                    "G1 Z0 F100\nG17 G3 X0 Y10 I-10 J0\nG2 X10 Y0 R10\nG69\nM30\n%\n"),
+        std::string("G71 G90\nG0 X0 Y0 Z100 B0 C0\nG0 B30 C45\nCYCLE800(0,\"TC1\",0,57,0,0,0,10,20,30,0,0,0,1,0)\n"
+                    "G0 X10 Y0 Z5\nG1 Z0 F100\nG17 G3 X0 Y10 I-10 J0\nG2 X10 Y0 R10\nCYCLE800()\nM30\n")}) {
+    const auto p = nc::read_text(text, "a.ngc", xyzbc());
+    ASSERT_EQ(p.blocks.size(), 6u);
+    for (std::size_t i : {4u, 5u}) {
+      const nc::Block& b = p.blocks[i];
+      ASSERT_NE(b.plane, nullptr);
+      ASSERT_NE(b.arc, nullptr);
+      EXPECT_EQ(b.arc->plane, 17);
+      EXPECT_FALSE(b.arc->tilted);  // in the plane's coordinates: a plain G17 circle there
+      EXPECT_NEAR(b.arc->centre_u, 0.0, 1e-12);
+      EXPECT_NEAR(b.arc->centre_v, 0.0, 1e-12);
+      EXPECT_NEAR(b.arc->start_radius_mm, 10.0, 1e-12);
+      EXPECT_NEAR(b.arc->sweep_rad, i == 4 ? 0.5 * kPi : -0.5 * kPi, 1e-12);
+    }
+  }
+}
+
 TEST(NcReader, WorkPlaneFormsItCannotFollowAreRefusedWithTheirLine) {
   auto error_of = [](const std::string& text) {
     try {
@@ -238,8 +261,12 @@ TEST(NcReader, WorkPlaneFormsItCannotFollowAreRefusedWithTheirLine) {
   EXPECT_NE(error_of("G0 X0 Y0 Z0 B0 C0\nCYCLE800(0,\"TC1\",0,27,0,0,0,10,0,0,0,0,0,1,0)\n")
                 .find("CYCLE800 mode 27 is not read"),
             std::string::npos);
+  // an arc's start must be given in the plane's coordinates (the machine position before it is in other ones)
   EXPECT_NE(error_of("G0 X0 Y0 Z0 B0 C0\nG68.2 X0 Y0 Z0 I0 J10 K0\nG2 X1 Y1 I1 J0 F100\n")
-                .find("e.ngc:3:1: arcs in a tilted work plane (G68.2) are not read"),
+                .find("e.ngc:3:1: arc in a tilted work plane (G68.2) before its plane's axes are given in it"),
+            std::string::npos);
+  EXPECT_NE(error_of("G0 X0 Y0 Z0 B0 C0\nG68.2 X0 Y0 Z0 I0 J10 K0\nG1 X5 Z1 F100\nG3 X0 Y5 I-5 J0\n")
+                .find("e.ngc:4:1: arc in a tilted work plane (G68.2) before its plane's axes are given in it"),
             std::string::npos);
   EXPECT_NE(error_of("G0 X0 Y0 Z0 B0 C0\nG68.2 X0 Y0 Z0 I0 J10 K0\nG91 G1 X1 F100\n")
                 .find("e.ngc:3:1: incremental (G91) words in a tilted work plane (G68.2) are not read"),

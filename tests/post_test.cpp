@@ -1258,3 +1258,166 @@ TEST(PostWorkPlane, UnderTcpAJobOfPlanesOnlyIsThePlaneProgramWithTcpSwitchedOff)
     expect_every_cl_point_reached(text, prog, m, *k, "nx-tcp-" + dialect);
   }
 }
+
+// --- CL arcs inside tilted work planes ----------------------------------------------------------------------
+
+namespace {
+
+/// Circles on a face tilted 25 deg about X and 10 deg about Z (3+2), between two simultaneous stretches. In the
+/// face's own frame (R, t: part = R local + t): a quarter counter-clockwise about the origin (radius 10), a half
+/// clockwise about (0, 15) (radius 5), a half helix down 1 mm counter-clockwise about (0, 10) (radius 10), all with
+/// normals along the face's Z, then a half circle standing in the face's XZ plane about (-5, 0, -1) (normal along
+/// its Y: no arc of the plane's XY). The path never runs back over itself (the gate follows the CL in order).
+struct TiltedPocket {
+  Eigen::Matrix3d R;
+  Vec3 t;
+  std::string cl;
+};
+
+TiltedPocket tilted_pocket() {
+  TiltedPocket p;
+  p.R = (Eigen::AngleAxisd(deg2rad(10.0), Vec3::UnitZ()) * Eigen::AngleAxisd(deg2rad(25.0), Vec3::UnitX()))
+            .toRotationMatrix();
+  p.t = Vec3(10, -20, 0);
+  const Vec3 a = p.R * Vec3::UnitZ();
+  const auto part = [&](const Vec3& local) { return Vec3(p.R * local + p.t); };
+  const auto go = [&](const Vec3& local) {
+    const Vec3 q = part(local);
+    return fmt::format("GOTO/{:.7f},{:.7f},{:.7f},{:.7f},{:.7f},{:.7f}\n", q.x(), q.y(), q.z(), a.x(), a.y(), a.z());
+  };
+  // NX's CIRCLE/ runs clockwise about its i,j,k (cl reader): -Z of the face is counter-clockwise seen from its +Z.
+  const auto circle = [&](const Vec3& centre_local, const Vec3& normal_local, double r) {
+    const Vec3 c = part(centre_local), n = p.R * normal_local;
+    return fmt::format("CIRCLE/{:.7f},{:.7f},{:.7f},{:.7f},{:.7f},{:.7f},{},0.01\n", c.x(), c.y(), c.z(), n.x(), n.y(),
+                       n.z(), r);
+  };
+  p.cl =
+      "UNITS/MM\nMULTAX\nFEDRAT/MMPM,800\nRAPID\nGOTO/0,-60,20,0,0,1\nGOTO/10,-60,20,0.1,0,0.9949874\n"
+      "GOTO/20,-60,20,0.2,0,0.9797959\nRAPID\n" +
+      go({10, 0, 5}) + go({10, 0, 0}) + circle({0, 0, 0}, {0, 0, -1}, 10) + go({0, 10, 0}) +
+      circle({0, 15, 0}, {0, 0, 1}, 5) + go({0, 20, 0}) + circle({0, 10, 0}, {0, 0, -1}, 10) + go({0, 0, -1}) +
+      circle({-5, 0, -1}, {0, 1, 0}, 5) + go({-10, 0, -1}) + go({-10, 0, 5}) +
+      "RAPID\nGOTO/0,0,25,-0.1,0.25,0.9630680\nGOTO/10,0,25,0,0.2,0.9797959\nGOTO/20,0,25,0.1,0.2,0.9746794\n"
+      "FINI\n";
+  return p;
+}
+
+/// The lines of a program without sequence numbers (N10, Heidenhain's leading block numbers).
+std::vector<std::string> unnumbered_lines(const std::string& text) {
+  std::vector<std::string> out;
+  std::istringstream in(text);
+  for (std::string l; std::getline(in, l);) out.push_back(std::regex_replace(l, std::regex("^N?[0-9]+ "), ""));
+  return out;
+}
+
+}  // namespace
+
+TEST(PostWorkPlane, CirclesInAPlaneBecomeArcsInItsCoordinatesAndReadBackOnTheClCircle) {
+  const TiltedPocket pocket = tilted_pocket();
+  const cl::Program prog = cl::read_text(pocket.cl, "pocket.cls");
+  ASSERT_EQ(prog.arcs.size(), 4u);
+  const std::regex arc_block("(^| )G[23] ");
+  double worst_mm = 0.0;
+  for (const char* name : {"haas-umc750", "trunnion-ac"}) {
+    const auto m = load_machine(name);
+    const auto k = m.kinematics();
+    const auto m_points = machine_with_post(name, "  arcs: false\n");
+    for (const auto& [dialect, codes] : plane_codes()) {
+      const std::string tag = std::string(name) + "-" + dialect;
+      SCOPED_TRACE(tag);
+      const Posted p = post_with_plane(prog, m, *k, dialect, "tilted");
+      ASSERT_EQ(p.summary.work_planes, 1u) << p.text;
+      // Heidenhain writes no arcs at all (its CC / C form is not written): points, in the plane as outside. Haas G254
+      // keeps machine words, so the machine-coordinate rules: the arcs of the machine-word program (the standing half
+      // circle too where the rotaries turn its plane into a machine plane).
+      const std::size_t want = dialect == "heidenhain" ? 0u
+                               : dialect == "haas" ? post_with_plane(prog, m, *k, dialect, "machine").summary.arc_blocks
+                                                   : 3u;
+      EXPECT_GE(want, dialect == "heidenhain" ? 0u : 3u);
+      EXPECT_EQ(p.summary.arc_blocks, want) << p.text;
+      // (a) the arc blocks are inside the plane stretch (and only there)
+      const auto lines = unnumbered_lines(p.text);
+      std::size_t on = lines.size(), off = lines.size(), inside = 0, outside = 0;
+      for (std::size_t i = 0; i < lines.size(); ++i) {
+        const std::string l = lines[i] + "\n";
+        if (on == lines.size() && l.find(codes.first) != std::string::npos) on = i;
+        if (on < lines.size() && off == lines.size() && l.find(codes.second) != std::string::npos) off = i;
+        if (std::regex_search(lines[i], arc_block)) (on < i && off == lines.size() ? inside : outside) += 1;
+      }
+      ASSERT_LT(off, lines.size()) << p.text;
+      EXPECT_EQ(inside, want) << p.text;
+      EXPECT_EQ(outside, 0u) << p.text;
+      if (dialect == "fanuc" || dialect == "siemens") {  // the plane's own XY
+        EXPECT_NE(p.text.find("G17"), std::string::npos) << p.text;
+      }
+      // (e) outside the plane stretch the program is the one with arcs off
+      const Posted q = post_with_plane(prog, m_points, *m_points.kinematics(), dialect, "tilted");
+      const auto q_lines = unnumbered_lines(q.text);
+      ASSERT_GE(q_lines.size(), lines.size() - off);
+      EXPECT_TRUE(std::equal(lines.begin(), lines.begin() + static_cast<std::ptrdiff_t>(on + 1), q_lines.begin()));
+      EXPECT_TRUE(std::equal(lines.begin() + static_cast<std::ptrdiff_t>(off), lines.end(),
+                             q_lines.end() - static_cast<std::ptrdiff_t>(lines.size() - off)))
+          << p.text << "\n----\n"
+          << q.text;
+      if (want == 0) EXPECT_EQ(p.text, q.text);
+      // (b) the gate passes
+      const auto gs = gate::check(p.text, tag, prog, m, *k, gate::options_for(m, 0, 0, 0));
+      EXPECT_TRUE(gs.ok) << gs.message << "\n" << p.text;
+      // (c) read back, the arcs sampled: each point on its CL circle, in the face's frame (the helix at the height
+      // its angle gives). (d) the standing half circle is no arc block in plane coordinates.
+      const nc::Program ncp = report::read_for_machine(p.text, tag, m);
+      std::size_t n_arcs = 0;
+      for (std::size_t bi = 1; bi < ncp.blocks.size(); ++bi) {
+        const nc::Block& b = ncp.blocks[bi];
+        if (!b.arc) continue;
+        ASSERT_LT(n_arcs, 4u);
+        for (int s = 0; s <= 64; ++s) {
+          const auto a = nc::point_on(ncp.blocks[bi - 1].axes, b, s / 64.0);
+          kin::Axes qa;
+          for (int i = 0; i < 5; ++i) qa[i] = a[static_cast<size_t>(i)];
+          const Vec3 local = pocket.R.transpose() * (k->forward(qa).tip_mm - pocket.t);
+          double d = 0.0;
+          if (n_arcs == 0) {
+            d = std::hypot(std::hypot(local.x(), local.y()) - 10.0, local.z());
+            EXPECT_GE(std::min(local.x(), local.y()), -1e-3);  // the first quadrant
+          } else if (n_arcs == 1) {
+            d = std::hypot(std::hypot(local.x(), local.y() - 15.0) - 5.0, local.z());
+            EXPECT_LE(local.x(), 1e-3);  // clockwise from (0, 10): through (-5, 15)
+          } else if (n_arcs == 2) {
+            double ang = std::atan2(local.y() - 10.0, local.x());  // pi/2 .. 3 pi/2, counter-clockwise
+            if (ang < 0.0) ang += 2.0 * kPi;
+            d = std::hypot(std::hypot(local.x(), local.y() - 10.0) - 10.0, local.z() + (ang - 0.5 * kPi) / kPi);
+            EXPECT_LE(local.x(), 1e-3);
+          } else {  // Haas: the standing half circle in machine words
+            const Vec3 c = local - Vec3(-5, 0, -1);
+            d = std::hypot(std::hypot(c.x(), c.z()) - 5.0, c.y());
+          }
+          worst_mm = std::max(worst_mm, d);
+          EXPECT_LT(d, m.post.tolerance_mm) << "arc " << n_arcs << " sample " << s << " at " << local.transpose();
+        }
+        ++n_arcs;
+      }
+      EXPECT_EQ(n_arcs, want);
+      // the gate reads the arcs: a centre moved 0.1 mm along the plane's X inside it is refused
+      if (want > 0) {
+        const std::regex first_i("(\n[^\n]*G[23] [^\n]* I)(-?[0-9]+\.[0-9]+)");
+        std::smatch mt;
+        ASSERT_TRUE(std::regex_search(p.text, mt, first_i));
+        std::string moved = p.text;
+        moved.replace(static_cast<size_t>(mt.position(2)), static_cast<size_t>(mt.length(2)),
+                      fmt::format("{:.4f}", std::stod(mt.str(2)) + 0.1));
+        const auto ms = gate::check(moved, tag + "-moved", prog, m, *k, gate::options_for(m, 0, 0, 0));
+        EXPECT_FALSE(ms.ok) << mt.str(0);
+        EXPECT_NE(ms.message.find("tool tip leaves the CL path"), std::string::npos) << ms.message;
+      }
+      // the gate still refuses a plane bent by 0.1 deg with arcs in it
+      if (const auto bent = bent_plane(p.text, dialect)) {
+        const auto bs = gate::check(*bent, tag + "-bent", prog, m, *k, gate::options_for(m, 0, 0, 0));
+        EXPECT_FALSE(bs.ok);
+        EXPECT_NE(bs.message.find("the Z axis of"), std::string::npos) << bs.message;
+      }
+    }
+  }
+  std::cout << fmt::format("[ figures  ] arcs in tilted planes read back: max distance to the CL circle {:.6f} mm\n",
+                           worst_mm);
+}

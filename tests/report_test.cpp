@@ -435,3 +435,60 @@ TEST(Verify, ATcpProgramThatSwitchesTcpOffIsReadAsTipWordsWithTheMachineAxesKept
   EXPECT_NEAR(p.blocks[2].axes[1], tip_up.y(), 1e-9);
   EXPECT_NEAR(p.blocks[2].axes[2], tip_up.z(), 1e-9);
 }
+
+TEST(Verify, ArcsInATiltedPlaneBecomeCirclesOfTheMachineAxes) {
+  // G68.2 tilted 30 deg about X on the trunnion, A positioned for it: a quarter circle and a quarter helix (down 1 mm)
+  // in the plane's XY. Oracle by hand: the plane is Rx(J) about the part origin; sampled along each arc, FK of the
+  // machine axes put back into the plane lies on the circle about its origin, radius 10, at the height the helix has
+  // reached; the path length is the helix' (stats, the gate's feed check).
+  const machine::Machine m = machine::load(test::source_path("machines/trunnion-ac.yaml"));
+  const auto k = m.kinematics();
+  Eigen::Vector3d axis;
+  const auto rp = k->rotary_pair();  // A at -30, C at 0
+  ASSERT_TRUE(k->tool_axis_at(rp[0] == 3 ? deg2rad(-30.0) : 0.0, rp[0] == 3 ? 0.0 : deg2rad(-30.0),
+                              Eigen::Vector3d::Zero(), axis));
+  const double j_deg = rad2deg(std::atan2(-axis.y(), axis.z()));  // Rx(J) e_z = (0, -sin J, cos J)
+  ASSERT_NEAR(std::abs(j_deg), 30.0, 1e-9);
+  const nc::Program p = report::read_for_machine(
+      fmt::format(
+          "%\n(cscam tool_length_mm=0.0000 tolerance_mm=0.0100)\nG0 X0 Y0 Z100 A-30 C0\nG68.2 X0 Y0 Z0 I0 J{:.4f} "
+          "K0\nG53.1\nG0 X10 Y0 Z5\nG1 Z0 F500\nG17 G3 X0 Y10 I-10 J0\nG2 X10 Y0 Z-1 R10\nG69\nG0 Z100\nM30\n%\n",
+          j_deg),
+      "arcs.nc", m);
+  const Eigen::Matrix3d R = Eigen::AngleAxisd(deg2rad(j_deg), Eigen::Vector3d::UnitX()).toRotationMatrix();
+  std::size_t arcs = 0;
+  for (std::size_t bi = 1; bi < p.blocks.size(); ++bi) {
+    const nc::Block& b = p.blocks[bi];
+    EXPECT_EQ(b.plane, nullptr);  // resolved into machine axes
+    if (!b.arc) continue;
+    ASSERT_TRUE(b.arc->tilted);
+    for (int s = 0; s <= 32; ++s) {
+      const auto a = nc::point_on(p.blocks[bi - 1].axes, b, s / 32.0);
+      kin::Axes q;
+      for (int i = 0; i < 5; ++i) q[i] = a[static_cast<size_t>(i)];
+      const Eigen::Vector3d in_plane = R.transpose() * k->forward(q).tip_mm;
+      const double z = arcs == 0 ? 0.0 : -s / 32.0;
+      EXPECT_NEAR(std::hypot(in_plane.x(), in_plane.y()), 10.0, 1e-9) << arcs << " " << s;
+      EXPECT_NEAR(in_plane.z(), z, 1e-9) << arcs << " " << s;
+      const double ang = std::atan2(in_plane.y(), in_plane.x());
+      EXPECT_NEAR(ang, arcs == 0 ? s / 32.0 * 0.5 * kPi : (1.0 - s / 32.0) * 0.5 * kPi, 1e-9);
+    }
+    const double quarter = 0.5 * kPi * 10.0;
+    EXPECT_NEAR(nc::linear_path_mm(p.blocks[bi - 1].axes, b, {false, false, false, true, true}),
+                arcs == 0 ? quarter : std::hypot(quarter, 1.0), 1e-9);
+    ++arcs;
+  }
+  EXPECT_EQ(arcs, 2u);
+  // a program that switches tool-tip control is not read with arcs in its planes (the post writes none there)
+  try {
+    report::read_for_machine(
+        fmt::format("%\nG43.4 H1\nG0 X0 Y0 Z100 A-30 C0\nG49\nG43 H1\nG68.2 X0 Y0 Z0 I0 J{:.4f} K0\nG53.1\n"
+                    "G0 X10 Y0 Z5\nG1 Z0 F500\nG3 X0 Y10 I-10 J0\nG69\nM30\n%\n",
+                    j_deg),
+        "mixed.nc", m);
+    ADD_FAILURE() << "read";
+  } catch (const InputError& e) {
+    EXPECT_NE(std::string(e.what()).find("mixed.nc:10: an arc in the tilted work plane G68.2"), std::string::npos)
+        << e.what();
+  }
+}

@@ -245,9 +245,10 @@ Summary check(const std::string& nc_text, const std::string& nc_name, const cl::
     }
     kin::Axes dq = joints[bi] - joints[bi - 1];
     if (b.arc && !s.tool_tip_control) {
-      // On an arc the plane's axes peak at the path speed in the plane: their "distance" is the arc's length.
-      const double in_plane = 0.5 * (b.arc->start_radius_mm + b.arc->end_radius_mm) * std::abs(b.arc->sweep_rad);
-      dq[b.arc->slot[0]] = dq[b.arc->slot[1]] = in_plane;
+      // On an arc the plane's axes peak at the path speed in the plane: their "distance" is the arc's length (in a
+      // tilted plane each machine axis' share of it).
+      const auto travel = nc::arc_axis_travel(ncp.blocks[bi - 1].axes, b);
+      for (int i = 0; i < 5; ++i) dq[i] = travel[static_cast<size_t>(i)];
     }
     if (dq.cwiseAbs().maxCoeff() < 1e-12) continue;
     double minutes = 0.0;

@@ -2,6 +2,7 @@
 
 #include <fmt/format.h>
 
+#include <Eigen/Geometry>
 #include <algorithm>
 #include <cctype>
 #include <charconv>
@@ -424,6 +425,7 @@ Program read_text(const std::string& text, const std::string& name, const AxisLe
         xyz[static_cast<size_t>(k)] = a;
   prog.xyz_slots = xyz;
   std::shared_ptr<const WorkPlane> work_plane;  // the tilted work plane in force (shared by its blocks)
+  std::array<bool, 3> plane_given{};            // X, Y, Z given in it: the modal values are plane coordinates
   double feed = 0.0;
   // Tokenising is most of the reading and needs no modal state: the lines ahead are tokenised in parallel, a
   // window at a time (fixed chunks), and read in order below.
@@ -761,11 +763,10 @@ Program read_text(const std::string& text, const std::string& name, const AxisLe
     if (work_plane && (any_axis || vector_words)) {
       if (!absolute)
         fail(0, fmt::format("incremental (G91) words in a tilted work plane ({}) are not read", work_plane->form));
-      if (motion == Motion::ArcCW || motion == Motion::ArcCCW)
-        fail(0, fmt::format("arcs in a tilted work plane ({}) are not read", work_plane->form));
       if (vector_words || g435 || tcp_on)  // a control refuses it too: TCP is cancelled before the plane
         fail(0, fmt::format("a tilted work plane ({}) under tool-tip control is not read", work_plane->form));
     }
+    if (work_plane != state.plane) plane_given = {};  // a new plane (or none): its coordinates start unknown
     b.plane = work_plane;
     b.tcp = tcp_on;
     if (vector_words) {
@@ -812,6 +813,12 @@ Program read_text(const std::string& text, const std::string& name, const AxisLe
       const auto su = static_cast<size_t>(g.slot[0]), sv = static_cast<size_t>(g.slot[1]);
       if (!state.known[su] || !state.known[sv])
         fail(0, "arc before its plane's axes have a position: its start is unknown");
+      // In a tilted work plane the arc is in its coordinates (G17: the plane's XY; report::resolve_work_planes
+      // turns it into machine axes): its start must be given in them, not the machine position before the plane.
+      if (work_plane && (!plane_given[static_cast<size_t>(uvw[0])] || !plane_given[static_cast<size_t>(uvw[1])]))
+        fail(0, fmt::format("arc in a tilted work plane ({}) before its plane's axes are given in it: its start is "
+                            "unknown",
+                            work_plane->form));
       const double scale = inch ? kMmPerInch : 1.0;
       const double u0 = state.axes[su], v0 = state.axes[sv], u1 = b.axes[su], v1 = b.axes[sv];
       const bool cw = motion == Motion::ArcCW;
@@ -845,6 +852,10 @@ Program read_text(const std::string& text, const std::string& name, const AxisLe
       g.sweep_rad = cw ? -cwa : ccw;
       b.arc = std::make_shared<const ArcGeometry>(g);
     }
+    if (work_plane)
+      for (int k = 0; k < 3; ++k)
+        if (xyz[static_cast<size_t>(k)] >= 0 && b.words[static_cast<size_t>(xyz[static_cast<size_t>(k)])])
+          plane_given[static_cast<size_t>(k)] = true;
     b.line = lineno;
     b.motion = motion;
     b.inverse_time = g93;
@@ -855,6 +866,14 @@ Program read_text(const std::string& text, const std::string& name, const AxisLe
   return prog;
 }
 
+namespace {
+
+Eigen::Vector3d xyz_of(const std::array<double, 5>& q, const ArcGeometry& g) {
+  return {q[static_cast<size_t>(g.slot[0])], q[static_cast<size_t>(g.slot[1])], q[static_cast<size_t>(g.slot[2])]};
+}
+
+}  // namespace
+
 std::array<double, 5> point_on(const std::array<double, 5>& start, const Block& b, double t) {
   std::array<double, 5> q{};
   for (size_t a = 0; a < 5; ++a) q[a] = start[a] + t * (b.axes[a] - start[a]);
@@ -862,22 +881,56 @@ std::array<double, 5> point_on(const std::array<double, 5>& start, const Block& 
     const ArcGeometry& g = *b.arc;
     const double ang = g.start_angle_rad + t * g.sweep_rad;
     const double r = g.start_radius_mm + t * (g.end_radius_mm - g.start_radius_mm);
-    q[static_cast<size_t>(g.slot[0])] = g.centre_u + r * std::cos(ang);
-    q[static_cast<size_t>(g.slot[1])] = g.centre_v + r * std::sin(ang);
+    if (g.tilted) {  // the chord's point moved within the tilted plane onto the circle; along the normal it stays
+      const ArcGeometry::Tilted& c = *g.tilted;
+      const Eigen::Vector3d n = c.u.cross(c.v);
+      const Eigen::Vector3d p =
+          c.centre_mm + n.dot(xyz_of(q, g) - c.centre_mm) * n + r * std::cos(ang) * c.u + r * std::sin(ang) * c.v;
+      for (int k = 0; k < 3; ++k) q[static_cast<size_t>(g.slot[static_cast<size_t>(k)])] = p[k];
+    } else {
+      q[static_cast<size_t>(g.slot[0])] = g.centre_u + r * std::cos(ang);
+      q[static_cast<size_t>(g.slot[1])] = g.centre_v + r * std::sin(ang);
+    }
   }
   return q;
 }
 
 double linear_path_mm(const std::array<double, 5>& start, const Block& b, const std::array<bool, 5>& rotary) {
   double lin2 = 0.0;
+  const bool tilted = b.arc && b.arc->tilted;
   for (size_t a = 0; a < 5; ++a)
-    if (!rotary[a] && !(b.arc && (static_cast<int>(a) == b.arc->slot[0] || static_cast<int>(a) == b.arc->slot[1])))
+    if (!rotary[a] && !(b.arc && (static_cast<int>(a) == b.arc->slot[0] || static_cast<int>(a) == b.arc->slot[1] ||
+                                  (tilted && static_cast<int>(a) == b.arc->slot[2]))))
       lin2 += (b.axes[a] - start[a]) * (b.axes[a] - start[a]);
   if (b.arc) {
     const double in_plane = 0.5 * (b.arc->start_radius_mm + b.arc->end_radius_mm) * std::abs(b.arc->sweep_rad);
     lin2 += in_plane * in_plane;
   }
+  if (tilted) {  // the helix' rise along the tilted normal
+    const ArcGeometry::Tilted& c = *b.arc->tilted;
+    const double rise = c.u.cross(c.v).dot(xyz_of(b.axes, *b.arc) - xyz_of(start, *b.arc));
+    lin2 += rise * rise;
+  }
   return std::sqrt(lin2);
+}
+
+std::array<double, 5> arc_axis_travel(const std::array<double, 5>& start, const Block& b) {
+  std::array<double, 5> d{};
+  for (size_t a = 0; a < 5; ++a) d[a] = std::abs(b.axes[a] - start[a]);
+  if (!b.arc) return d;
+  const ArcGeometry& g = *b.arc;
+  const double in_plane = 0.5 * (g.start_radius_mm + g.end_radius_mm) * std::abs(g.sweep_rad);
+  if (!g.tilted) {
+    d[static_cast<size_t>(g.slot[0])] = d[static_cast<size_t>(g.slot[1])] = in_plane;
+    return d;
+  }
+  const ArcGeometry::Tilted& c = *g.tilted;
+  const Eigen::Vector3d n = c.u.cross(c.v);
+  const double rise = std::abs(n.dot(xyz_of(b.axes, g) - xyz_of(start, g)));
+  for (int k = 0; k < 3; ++k)
+    d[static_cast<size_t>(g.slot[static_cast<size_t>(k)])] =
+        in_plane * std::hypot(c.u[k], c.v[k]) + rise * std::abs(n[k]);
+  return d;
 }
 
 Program read_file(const std::string& path, const AxisLetters& letters) {

@@ -834,9 +834,12 @@ class Sequencer {
 
   /// When moves[i] is the first point of a CL arc that can be one circular block (rotaries fixed over the whole
   /// arc, its machine-coordinate plane XY, ZX or YZ, no event inside), writes that block and returns the index
-  /// of the arc's end move; else returns 0 and writes nothing.
+  /// of the arc's end move; else returns 0 and writes nothing. In a tilted work plane whose words are its
+  /// coordinates (G68.2, CYCLE800) the arc is written in them when its normal is the plane's Z (G17 there, the
+  /// plane's own XY); under Haas G254 the words stay machine words and so do the rules.
   std::size_t arc_end(const std::vector<kin::Axes>& axes, std::size_t i) {
-    if (!arcs_ || i == 0 || plane_active_) return 0;  // arcs in a tilted plane: written as points
+    if (!arcs_ || i == 0) return 0;
+    const bool in_plane = plane_active_ && plane_words_;
     const auto& moves = prog_.moves;
     const int a = moves[i].arc_index;
     if (a < 0 || moves[i - 1].arc_index == a || moves[i - 1].kind != cl::MotionKind::Feed) return 0;
@@ -860,18 +863,40 @@ class Sequencer {
       for (int k = 0; k < 3; ++k) out[k] = q[xyz_[static_cast<size_t>(k)]];
       return true;
     };
+    // The X Y Z words of a tip p (part frame): the machine's linear axes, or in a plane its coordinates (the
+    // frame of the printed angles, as add_plane_words writes them).
+    auto word_xyz = [&](const Vec3& p, Vec3& out) {
+      if (!in_plane) return machine_xyz(p, out);
+      kin::Axes q = q0;
+      if (!kin_.solve_for_rotaries(kin::Posed{p, cl_axis}, q)) return false;
+      out = plane_R_.transpose() * kin_.forward(q).tip_mm;
+      return true;
+    };
     Vec3 c_m, cn_m;
-    if (!machine_xyz(arc.centre_in_part_mm + lift, c_m) ||
-        !machine_xyz(arc.centre_in_part_mm + lift + arc.normal_in_part, cn_m))
+    if (!word_xyz(arc.centre_in_part_mm + lift, c_m) ||
+        !word_xyz(arc.centre_in_part_mm + lift + arc.normal_in_part, cn_m))
       return 0;
     const Vec3 n_m = cn_m - c_m;
     int w = -1;
     for (int k = 0; k < 3; ++k)
       if (std::abs(std::abs(n_m[k]) - 1.0) < 1e-9) w = k;
     if (w < 0 || std::abs(n_m.norm() - 1.0) > 1e-9) return 0;  // not a machine plane (or not a rigid map)
+    if (in_plane && w != 2) return 0;                          // in a plane only its XY: other arcs are points
+    // The machine's X Y Z per unit of each word (identity for machine words): the feed cap below.
+    Eigen::Matrix3d word_to_machine = Eigen::Matrix3d::Identity();
+    if (in_plane) {
+      Vec3 at, step;
+      if (!machine_xyz(arc.centre_in_part_mm + lift, at)) return 0;
+      for (int j = 0; j < 3; ++j) {
+        if (!machine_xyz(arc.centre_in_part_mm + lift + plane_R_.col(j), step)) return 0;
+        word_to_machine.col(j) = step - at;
+      }
+    }
     const int plane = w == 2 ? 17 : (w == 1 ? 18 : 19);
     const int u = (w + 1) % 3, v = (w + 2) % 3;  // (X,Y) for G17, (Z,X) for G18, (Y,Z) for G19
-    auto xyz_of = [&](const kin::Axes& q) { return Vec3(q[xyz_[0]], q[xyz_[1]], q[xyz_[2]]); };
+    auto xyz_of = [&](const kin::Axes& q) {
+      return in_plane ? Vec3(plane_R_.transpose() * kin_.forward(q).tip_mm) : Vec3(q[xyz_[0]], q[xyz_[1]], q[xyz_[2]]);
+    };
     const Vec3 p0 = xyz_of(q0), p1 = xyz_of(axes[end]);
     const double r = arc.radius_mm;
     const double ccw_sign = n_m[w] > 0 ? 1.0 : -1.0;  // the CL's counter-clockwise, seen from +w
@@ -879,14 +904,17 @@ class Sequencer {
     const double ang0 = std::atan2(p0[v] - c_m[v], p0[u] - c_m[u]);
     // Every CL point of the arc on the machine helix (else the map is not what we assumed: points).
     const double on_helix = 0.1 * tol_mm_;
+    // In a plane its Z (from the printed angles) and the CL's normal differ by ~1e-7 rad: a helix' points project
+    // some nm off, so the angle along the arc gets the slack of the distance check there.
+    const double slack_rad = in_plane ? on_helix / r : 1e-9, t_slack = in_plane ? slack_rad / arc.sweep_rad : 1e-9;
     for (std::size_t k = i; k <= end; ++k) {
       const Vec3 p = xyz_of(axes[k]);
       const double rk = std::hypot(p[u] - c_m[u], p[v] - c_m[v]);
       double d = std::atan2(p[v] - c_m[v], p[u] - c_m[u]) - ang0;
       d = sweep > 0 ? std::fmod(d + 4 * kPi, 2 * kPi) : -std::fmod(-d + 4 * kPi, 2 * kPi);
-      if (k == end && std::abs(d) < 1e-9) d = sweep;  // a full circle ends where it started
+      if (k == end && std::abs(d) < slack_rad) d = sweep;  // a full circle ends where it started
       const double t = d / sweep;
-      if (std::abs(rk - r) > on_helix || t < -1e-9 || t > 1 + 1e-9 ||
+      if (std::abs(rk - r) > on_helix || t < -t_slack || t > 1 + t_slack ||
           std::abs(p[w] - (p0[w] + t * (p1[w] - p0[w]))) > on_helix)
         return 0;
     }
@@ -903,7 +931,8 @@ class Sequencer {
       words.ijk[static_cast<size_t>(k)] = std::llround(c_m[k] * to_file_[s] * scale_[s]) - last_[s];
       words.write[static_cast<size_t>(k)] = true;
     }
-    // Feed: the path's speed F; no axis of the plane exceeds max_feed (each peaks at F r |sweep| / L).
+    // Feed: the path's speed F; no machine axis exceeds max_feed (in the arc's plane each peaks at F r |sweep| / L,
+    // times its share of the plane's two directions in a tilted plane).
     cur_line_ = arc.line;
     const double dw = p1[w] - p0[w];
     const double len = std::hypot(r * arc.sweep_rad, dw);
@@ -911,7 +940,9 @@ class Sequencer {
     const double programmed = f_mm;
     for (int k = 0; k < 3; ++k) {
       const double vmax = m_.axes[static_cast<size_t>(xyz_[static_cast<size_t>(k)])].max_feed;
-      const double share = k == w ? std::abs(dw) / len : r * arc.sweep_rad / len;
+      const double share = (r * arc.sweep_rad * std::hypot(word_to_machine(k, u), word_to_machine(k, v)) +
+                            std::abs(dw * word_to_machine(k, w))) /
+                           len;
       if (vmax > 0 && share > 0) f_mm = std::min(f_mm, vmax / share);
     }
     if (f_mm < programmed * (1.0 - 1e-9) && capped_blocks_++ == 0) first_capped_line_ = next_nc_line();

@@ -196,6 +196,50 @@ std::string resolve_tool_vectors(nc::Program& nc, const kin::Kinematics& k, int*
   return {};
 }
 
+namespace {
+
+/// Replaces the arc of block b, read in the coordinates of work plane w (nc reader: centre_u/v in the plane's axes
+/// of b.arc->plane), by its circle in machine axes at the fixed rotaries of q. With the rotaries fixed the machine's
+/// X Y Z follow the tip rigidly: the plane's directions map to machine directions, found through the kinematics
+/// (no assumption about the machine's layout). Returns why it cannot, or nothing.
+std::string tilted_arc(nc::Block& b, const kin::Kinematics& k, const nc::WorkPlane& w, const kin::Axes& q,
+                       const Vec3& axis, const Vec3& p_start) {
+  const nc::ArcGeometry& g = *b.arc;
+  const std::array<int, 3> uvw = g.plane == 17   ? std::array<int, 3>{0, 1, 2}
+                                 : g.plane == 18 ? std::array<int, 3>{2, 0, 1}
+                                                 : std::array<int, 3>{1, 2, 0};
+  std::array<int, 3> slot{};  // the machine's X Y Z slots (the reader's arc has them in u v w order)
+  for (int c = 0; c < 3; ++c) slot[static_cast<size_t>(uvw[static_cast<size_t>(c)])] = g.slot[static_cast<size_t>(c)];
+  auto machine_xyz = [&](const Vec3& p_in_plane, Vec3& out) {
+    kin::Axes s = q;
+    if (!k.solve_for_rotaries(kin::Posed{rot::from_plane(w.R_part_plane, w.origin_in_part_mm, p_in_plane), axis}, s))
+      return false;
+    for (int c = 0; c < 3; ++c) out[c] = s[slot[static_cast<size_t>(c)]];
+    return true;
+  };
+  Vec3 centre_in_plane = p_start;
+  centre_in_plane[uvw[0]] = g.centre_u;
+  centre_in_plane[uvw[1]] = g.centre_v;
+  nc::ArcGeometry::Tilted t;
+  Vec3 at_u, at_v;
+  if (!machine_xyz(centre_in_plane, t.centre_mm) || !machine_xyz(centre_in_plane + Vec3::Unit(uvw[0]), at_u) ||
+      !machine_xyz(centre_in_plane + Vec3::Unit(uvw[1]), at_v))
+    return fmt::format("no machine axis values put the tip at the centre of the arc in {} (line {})", w.form, w.line);
+  t.u = at_u - t.centre_mm;
+  t.v = at_v - t.centre_mm;
+  if (std::abs(t.u.norm() - 1.0) > 1e-9 || std::abs(t.v.norm() - 1.0) > 1e-9 || std::abs(t.u.dot(t.v)) > 1e-9)
+    return fmt::format("the arc in {} (line {}) is no circle of the machine's axes (they do not move the tip rigidly)",
+                       w.form, w.line);
+  nc::ArcGeometry m = g;
+  m.slot = slot;
+  m.centre_u = m.centre_v = 0.0;
+  m.tilted = t;
+  b.arc = std::make_shared<const nc::ArcGeometry>(m);
+  return {};
+}
+
+}  // namespace
+
 std::string resolve_work_planes(nc::Program& nc, const kin::Kinematics& k, int* bad_line) {
   // A TCP program that cancels tool-tip control for its planes has machine-word blocks (all of them, when every
   // stretch is a plane) besides tip-word ones. Not a program whose header alone says TCP (no word switches it).
@@ -304,6 +348,7 @@ std::string resolve_work_planes(nc::Program& nc, const kin::Kinematics& k, int* 
     }
     if (std::abs(q[rp[0]] - rot_at[0]) > 1e-12 || std::abs(q[rp[1]] - rot_at[1]) > 1e-12)
       return fail(b, where + fmt::format("a rotary turns inside the tilted work plane {} (line {})", w.form, w.line));
+    const Vec3 p_start = p_plane;  // an arc's start, in plane coordinates
     for (int c = 0; c < 3; ++c)
       if (b.words[static_cast<size_t>(xyz[static_cast<size_t>(c)])]) {
         p_plane[c] = b.axes[static_cast<size_t>(xyz[static_cast<size_t>(c)])];
@@ -328,6 +373,17 @@ std::string resolve_work_planes(nc::Program& nc, const kin::Kinematics& k, int* 
       return fail(b, where + fmt::format("no machine axis values put the tip at ({:.4f}, {:.4f}, {:.4f}) in {} "
                                          "(line {}) at the positioned rotaries",
                                          tip.x(), tip.y(), tip.z(), w.form, w.line));
+    if (b.arc) {  // the circle in the plane's coordinates, into machine axes
+      if (mixed)
+        return fail(b, where + fmt::format("an arc in the tilted work plane {} (line {}) of a program that switches "
+                                           "tool-tip control is not read",
+                                           w.form, w.line));
+      if (!have_prev)
+        return fail(
+            b, where + fmt::format("an arc in {} (line {}) before the machine's position is known", w.form, w.line));
+      const std::string why = tilted_arc(b, k, w, q, axis, p_start);
+      if (!why.empty()) return fail(b, where + why);
+    }
     for (int i = 0; i < 5; ++i) {
       b.axes[static_cast<size_t>(i)] = q[i];
       b.known[static_cast<size_t>(i)] = true;

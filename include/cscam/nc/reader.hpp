@@ -36,6 +36,14 @@ struct ArcGeometry {
   double start_angle_rad = 0.0;                       ///< of the start point about the centre, from +u toward +v
   double sweep_rad = 0.0;                             ///< signed: > 0 counter-clockwise (G3), < 0 clockwise (G2)
   double start_radius_mm = 0.0, end_radius_mm = 0.0;  ///< unequal for a malformed arc: read as a spiral
+  /// An arc of a tilted work plane resolved into machine axes (report::resolve_work_planes): its plane is no machine
+  /// plane. Its circle is centre + r (cos a u + sin a v) in the machine's X Y Z (slot = the X, Y, Z slots;
+  /// centre_u/v unused); motion along u x v and of every other axis is linear.
+  struct Tilted {
+    Eigen::Vector3d centre_mm = Eigen::Vector3d::Zero();                         ///< machine X Y Z, on the arc's axis
+    Eigen::Vector3d u = Eigen::Vector3d::UnitX(), v = Eigen::Vector3d::UnitY();  ///< unit, machine X Y Z
+  };
+  std::optional<Tilted> tilted;
 };
 
 /// A tilted work plane in force: the linear words of a block in it are the tip in this frame (part frame:
@@ -76,6 +84,10 @@ struct Block {
 std::array<double, 5> point_on(const std::array<double, 5>& start, const Block& b, double t);
 /// The length of the linear axes' path of block `b` from `start` (mm): the helix of an arc, else the chord.
 double linear_path_mm(const std::array<double, 5>& start, const Block& b, const std::array<bool, 5>& rotary);
+/// How far each axis moves at most, as the control's speed sees it, on arc block `b` from `start`: for the axes of
+/// the arc's plane its length in that plane (times the axis' share of the plane's two directions in a tilted plane),
+/// plus their share of the motion along the normal there; the chord for every other axis.
+std::array<double, 5> arc_axis_travel(const std::array<double, 5>& start, const Block& b);
 
 struct Program {
   std::string file;
