@@ -904,3 +904,47 @@ TEST(GeomQuery, LinkedMachineObstaclesArePlacedByTheirLinkPose) {
   both[0].translation() = Eigen::Vector3d(100, 0, 50);
   EXPECT_FALSE(check_meshes(head, Eigen::Isometry3d::Identity(), scene, o, ws).collides);
 }
+
+// CheckOptions::erosion_mm against plain checks: whenever the tool eroded by m hits the groove at a pose, the whole
+// tool hits it at every pose whose points all lie within m of their place there (random shifts of the tip and turns
+// of the axis with |shift| + reach * |axis change| < m). The planner's hit certificates rest on this.
+TEST(GeomQuery, AnErodedHitMeansEveryPoseWithinTheErosionHits) {
+  Scene scene;
+  scene.add("groove", ObstacleRole::Part, load_mesh(test::source_path("examples/groove/groove.stl")));
+  scene.build(false);
+  const ToolShape tool = ToolShape::from_cutter(10, 5, 30);
+  double reach = 0;  // the farthest checked point from the tip
+  for (const ToolSegment& s : tool.segments()) reach = std::max(reach, std::hypot(s.z1_mm, s.radius_mm));
+  QueryWorkspace ws;
+  auto rng = test::rng(41);
+  std::uniform_real_distribution<double> U(-1.0, 1.0);
+  auto unit = [&] {
+    Eigen::Vector3d v;
+    do v = Eigen::Vector3d(U(rng), U(rng), U(rng));
+    while (v.norm() < 0.1 || v.norm() > 1.0);
+    return v.normalized();
+  };
+  int eroded_hits = 0, checked = 0;
+  for (int trial = 0; trial < 400; ++trial) {
+    // Along the groove, tilted up to about 35 deg toward its walls.
+    const kin::Posed p{Eigen::Vector3d(40 * U(rng), 6 * U(rng), 2 + 4 * U(rng)),
+                       (Eigen::Vector3d::UnitZ() + 0.7 * Eigen::Vector3d(U(rng), U(rng), 0)).normalized()};
+    CheckOptions eroded;
+    eroded.erosion_mm = 0.25 + 0.75 * (0.5 + 0.5 * U(rng));
+    if (!check(scene, tool, p, eroded, ws).collides) continue;
+    ++eroded_hits;
+    for (int k = 0; k < 10; ++k) {
+      // Split the budget between a shift and a turn about the tip.
+      const double share = 0.5 + 0.5 * U(rng), budget = 0.999 * eroded.erosion_mm;
+      const Eigen::Vector3d shift = share * budget * unit();
+      const double chord = (1 - share) * budget / reach, angle = 2 * std::asin(0.5 * chord);
+      const Eigen::Vector3d turned = Eigen::AngleAxisd(angle, p.axis.cross(unit()).normalized()) * p.axis;
+      const kin::Posed q{p.tip_mm + shift, turned};
+      ++checked;
+      EXPECT_TRUE(check(scene, tool, q, CheckOptions{}, ws).collides)
+          << "trial " << trial << ": the eroded tool hits, a pose within the erosion does not";
+    }
+  }
+  EXPECT_GE(eroded_hits, 40);
+  EXPECT_GE(checked, 400);
+}

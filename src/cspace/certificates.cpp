@@ -29,18 +29,19 @@ void CertificateStore::evaluate(const kin::Posed& cl, Cell& cell, geom::QueryWor
     return;
   }
   if (e->room == Room::Tight) {
-    sp_.evaluate(cl, cell, ws, c);
+    sp_.evaluate(cl, cell, ws, c, nullptr, &e->hit);
     if (cell.status != Status::Feasible) e->room = Room::Unknown;
     return;
   }
   if (e->room == Room::Unknown) e->cert.probe_mm = 1.0;
   if (e->room == Room::Unknown && !e->cert.valid) {
-    sp_.evaluate(cl, cell, ws, c);
+    // (A cell that collided lands here each time: its hit certificate spares the queries.)
+    sp_.evaluate(cl, cell, ws, c, nullptr, &e->hit);
     if (cell.status == Status::Feasible) e->room = Room::Free;
     return;
   }
   // Covered by the certificate, or free before: reuse, or probe with the margin (Space::evaluate decides).
-  sp_.evaluate(cl, cell, ws, c, &e->cert);
+  sp_.evaluate(cl, cell, ws, c, &e->cert, &e->hit);
   if (cell.status != Status::Feasible) {
     e->room = Room::Unknown;
   } else if (!e->cert.valid) {

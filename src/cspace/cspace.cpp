@@ -276,7 +276,8 @@ void Space::enumerate(const kin::Posed& cl, std::vector<Cell>& out, std::size_t 
   c.cells_enumerated += out.size();
 }
 
-void Space::evaluate(const kin::Posed& cl, Cell& cell, geom::QueryWorkspace& ws, Counters& c, Certificate* cert) const {
+void Space::evaluate(const kin::Posed& cl, Cell& cell, geom::QueryWorkspace& ws, Counters& c, Certificate* cert,
+                     HitCertificate* hit) const {
   if (cell.status != Status::Unknown) {
     ++c.cache_hits;
     return;
@@ -313,6 +314,34 @@ void Space::evaluate(const kin::Posed& cl, Cell& cell, geom::QueryWorkspace& ws,
       cell.status = Status::Feasible;
       return;
     }
+    if (hit && certify) {
+      // A hit certificate from a neighbouring point covers this pose: same rotaries and axis, moved less than the
+      // margin.
+      if (hit->valid && cell.r1 == hit->r1 && cell.r2 == hit->r2 && pose.axis.dot(hit->axis) > 1.0 - 1e-15 &&
+          (pose.tip_mm - hit->tip_mm).norm() < hit->margin_mm) {
+        ++c.certified;
+        cell.status = Status::Collision;
+        cell.detail = hit->detail;
+        return;
+      }
+      hit->valid = false;
+      if (hit->collided_before && hit->probe_mm >= kMinHitProbeMm) {
+        // It collided last time: probe eroded. A hit decides this cell and certifies the next points.
+        geom::CheckOptions o = co;
+        o.erosion_mm = hit->probe_mm;
+        ++c.collision;
+        const geom::CollisionResult r = geom::check(*scene_, *tool_, pose, o, ws);
+        if (r.collides) {
+          cell.status = Status::Collision;
+          cell.detail = fmt::format(
+              "{} hits {}", geom::to_string(r.part),
+              r.obstacle >= 0 ? scene_->obstacle_name(static_cast<std::size_t>(r.obstacle)) : std::string("?"));
+          *hit = {true, pose.tip_mm, pose.axis, cell.r1, cell.r2, hit->probe_mm, hit->probe_mm, true, cell.detail};
+          return;
+        }
+        hit->probe_mm *= 0.5;  // less erosion next time (a deep hit is rare at the edge of the free region)
+      }
+    }
     if (cert && certify) {
       // Probe with a margin; on success this pose certifies its neighbours. The cutter body is extended
       // toward the tip by the margin (less relief) so that a translation along the axis is covered too.
@@ -335,6 +364,7 @@ void Space::evaluate(const kin::Posed& cl, Cell& cell, geom::QueryWorkspace& ws,
     }
     ++c.collision;
     const geom::CollisionResult r = geom::check(*scene_, *tool_, pose, co, ws);
+    if (hit) hit->collided_before = r.collides;
     if (r.collides) {
       cell.status = Status::Collision;
       cell.detail =
@@ -342,6 +372,7 @@ void Space::evaluate(const kin::Posed& cl, Cell& cell, geom::QueryWorkspace& ws,
                       r.obstacle >= 0 ? scene_->obstacle_name(static_cast<std::size_t>(r.obstacle)) : std::string("?"));
       return;
     }
+    if (hit) hit->probe_mm = 1.0;
     if (!std::isnan(r.min_distance_mm)) cell.clearance_mm = static_cast<float>(r.min_distance_mm);
     if (head_) {
       Eigen::Isometry3d T;

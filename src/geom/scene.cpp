@@ -155,6 +155,13 @@ std::vector<ToolSegment> checked_segments(const ToolShape& tool, const CheckOpti
   const double c = std::max(0.0, opt.clearance_mm);
   const std::vector<ToolSegment> all = tool.segments();
   std::vector<ToolSegment> out;
+  const double e = std::max(0.0, opt.erosion_mm);
+  auto keep = [&](ToolSegment s) {
+    s.radius_mm -= e;
+    s.z0_mm += e;
+    s.z1_mm -= e;
+    if (s.radius_mm > 1e-9 && s.z1_mm - s.z0_mm > 1e-9) out.push_back(s);
+  };
   for (std::size_t i = 0; i < all.size(); ++i) {
     ToolSegment s = all[i];
     if (s.part == ToolPart::CutterBody) {
@@ -166,7 +173,7 @@ std::vector<ToolSegment> checked_segments(const ToolShape& tool, const CheckOpti
       if (i + 1 < all.size() && all[i].radius_mm > all[i + 1].radius_mm)
         s.z1_mm += std::max(0.0, opt.cutter_clearance_mm);
       if (s.z1_mm - s.z0_mm <= 1e-9) continue;
-      out.push_back(s);
+      keep(s);
       continue;
     }
     // Inflate by the clearance; extend an end only where it is an exposed face (the neighbour is narrower or
@@ -176,7 +183,7 @@ std::vector<ToolSegment> checked_segments(const ToolShape& tool, const CheckOpti
     if (s.radius_mm > below) s.z0_mm -= c;
     if (s.radius_mm > above) s.z1_mm += c;
     s.radius_mm += c;
-    out.push_back(s);
+    keep(s);
   }
   return out;
 }
@@ -289,7 +296,7 @@ struct QueryWorkspace::Impl {
   };
   // Cache key: the tool and the options that change the shapes.
   std::optional<ToolShape> tool;
-  double clearance = 0.0, cutter_clearance = 0.0, relief = 0.0;
+  double clearance = 0.0, cutter_clearance = 0.0, relief = 0.0, erosion = 0.0;
   bool check_cutter = true;
   std::vector<Seg> segs;
 
@@ -316,7 +323,7 @@ struct QueryWorkspace::Impl {
 
   void prepare(const ToolShape& t, const CheckOptions& o) {
     if (tool && *tool == t && clearance == o.clearance_mm && cutter_clearance == o.cutter_clearance_mm &&
-        relief == o.relief_mm && check_cutter == o.check_cutter_body)
+        relief == o.relief_mm && check_cutter == o.check_cutter_body && erosion == o.erosion_mm)
       return;
     t.validate();
     segs.clear();
@@ -327,6 +334,7 @@ struct QueryWorkspace::Impl {
     cutter_clearance = o.cutter_clearance_mm;
     relief = o.relief_mm;
     check_cutter = o.check_cutter_body;
+    erosion = o.erosion_mm;
   }
 
   /// Places the segments and the obstacles for one query.

@@ -32,6 +32,7 @@ class CertificateStore {
   static constexpr double kMinProbeMm = 1.0 / 16.0;
   struct Entry {
     Certificate cert;
+    HitCertificate hit;
     Room room = Room::Unknown;
   };
   Entry* entry(int i1, int i2);

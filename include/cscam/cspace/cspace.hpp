@@ -72,6 +72,20 @@ struct Certificate {
   double probe_mm = 1.0;
 };
 
+/// The counterpart for collisions: a pose whose tool, eroded by a margin m, still hits an obstacle makes every pose
+/// within m of it hit too (the eroded body plus m lies inside the tool there). With the same rotaries (same axis and
+/// machine-body poses), a cell that collided stays colliding over the next points until the tool has moved m.
+struct HitCertificate {
+  bool valid = false;
+  Eigen::Vector3d tip_mm = Eigen::Vector3d::Zero();
+  Eigen::Vector3d axis = Eigen::Vector3d::UnitZ();
+  double r1 = 0.0, r2 = 0.0;  ///< rotary values of the certified pose, rad
+  double margin_mm = 0.0;
+  double probe_mm = 1.0;         ///< the erosion the next probe asks for (halved after a probe that found no hit)
+  bool collided_before = false;  ///< the cell's last evaluation collided: probe eroded at the next one
+  std::string detail;            ///< what the eroded tool hit
+};
+
 /// How a motion between two poses is checked. Cutting: the cutting end (ball or corner radius plus relief) is in
 /// contact with the material by design and is excluded, as at the CL points. Rapid: the whole tool body from the
 /// tip counts (a rapid must not touch anything).
@@ -80,6 +94,9 @@ enum class SweepMode : std::uint8_t { Cutting, Rapid };
 /// Largest inflation a Rapid-mode swept check uses before it bisects an interval, mm: larger margins certify
 /// longer intervals in open space with fewer queries; near obstacles they fail anyway.
 inline constexpr double kRapidSweepMarginCapMm = 5.0;
+
+/// Smallest erosion a hit probe uses, mm (below it a probe rarely certifies more than the point itself).
+inline constexpr double kMinHitProbeMm = 1.0 / 16.0;
 
 /// Outcome of a swept check of one straight joint-space move.
 enum class SweepStatus : std::uint8_t {
@@ -128,8 +145,11 @@ class Space {
   /// The tool pose a cell gives at a CL pose (tip moves for a ball mill so the centre stays put).
   [[nodiscard]] kin::Posed tool_pose(const kin::Posed& cl_pose, double r1, double r2) const;
   /// Stroke and collision of a cell (the orientation test must have passed). Fills status, axes, detail.
+  /// With `hit`, the same for collisions: a cell that collided at its previous evaluation is probed with the tool
+  /// eroded (one query that, when it hits, certifies the next points), and a pose the certificate covers collides
+  /// without a query.
   void evaluate(const kin::Posed& cl_pose, Cell& cell, geom::QueryWorkspace& ws, Counters& c,
-                Certificate* certificate = nullptr) const;
+                Certificate* certificate = nullptr, HitCertificate* hit = nullptr) const;
   /// Collision of an arbitrary tool pose (for reorientation moves). Empty string if free. Without axis values
   /// it cannot place machine bodies (linked obstacles) or the head: use collision_at_axes() when q is known.
   [[nodiscard]] std::string collision_at(const kin::Posed& tool_pose, geom::QueryWorkspace& ws, Counters& c) const;

@@ -27,8 +27,8 @@ namespace cscam::cspace {
 
 /// What add_machine_bodies() added.
 struct MachineBodiesSummary {
-  std::size_t fixed_bodies = 0;  ///< base and table-side bodies added to the fixed scene
-  std::size_t head_bodies = 0;   ///< head-side bodies added to the head scene
+  std::size_t fixed_bodies = 0;                     ///< base and table-side bodies added to the fixed scene
+  std::size_t head_bodies = 0;                      ///< head-side bodies added to the head scene
   std::vector<geom::MeshCheckReport> mesh_reports;  ///< one per mesh body
 };
 

@@ -213,8 +213,12 @@ struct CheckOptions {
   double cutter_clearance_mm = 0.0;  ///< margin around the checked cutter body (radius only)
   bool check_cutter_body = true;     ///< false: ignore the flutes entirely
   double relief_mm = -1.0;           ///< < 0: 0.2 x corner radius, or 0.5 mm for a flat mill
-  bool compute_distance = false;     ///< check(): also fill min_distance_mm when free (needs distance support)
-  unsigned roles = kAllRoles;        ///< which obstacle roles to test (bit or of ObstacleRole)
+  /// Shrinks every checked segment (after the clearances) by this much in radius and at both ends: a pose whose
+  /// eroded tool touches an obstacle collides whatever pose within this distance the tool takes (the eroded body
+  /// plus the distance lies inside the body there). Segments that vanish are not checked.
+  double erosion_mm = 0.0;
+  bool compute_distance = false;  ///< check(): also fill min_distance_mm when free (needs distance support)
+  unsigned roles = kAllRoles;     ///< which obstacle roles to test (bit or of ObstacleRole)
   /// Pose of the machine frame in the part frame, applied to ObstacleRole::Machine obstacles.
   Eigen::Isometry3d machine_in_part = Eigen::Isometry3d::Identity();
   /// Poses of the machine links in the part frame, indexed by link (Scene::add), for Machine obstacles that
