@@ -52,6 +52,16 @@ Gains gains_at(const kin::Kinematics& k, const kin::Axes& q, const kin::Axes& dq
 
 }  // namespace
 
+double interval_reach_bound(const kin::Posed& at_lo, const kin::Posed& at_hi, double half_width,
+                            const kin::MotionBound& bound, double lever_mm) {
+  const double h2 = half_width * half_width;
+  // The unit axis turns by at most its arc length from the middle, bounded exactly as the tip's path (|a'| is the
+  // angular speed).
+  const double tip = 0.5 * (at_hi.tip_mm - at_lo.tip_mm).norm() + h2 * bound.tip_accel_mm;
+  const double turn = 0.5 * (at_hi.axis - at_lo.axis).norm() + h2 * bound.axis_accel;
+  return tip + lever_mm * turn;
+}
+
 double Space::cutting_margin_cap_mm() const {
   if (!tool_) return 0.0;
   const double r = tool_->cutter.corner_radius_mm;
@@ -138,11 +148,16 @@ SweptResult Space::swept(const kin::Axes& qa, const kin::Axes& qb, SweepMode mod
     // The whole body, and the cutter body alone (a shorter lever: near the part it is often what limits the margin).
     return std::pair{(A + Brho) / denom + reach_mm_ * Vaxis, (A + Brho) / denom + cutter_reach_mm_ * Vaxis};
   };
+  // Where the kinematics bounds the move's second derivatives, the second-order bound from the interval's end poses
+  // (interval_reach_bound) too; the smaller of the two holds.
+  kin::MotionBound mb;
+  const bool second_order = kin_->motion_bound(qa, qb, mb);
   struct Interval {
     double lo, hi;
     int depth;
+    kin::Posed at_lo, at_hi;
   };
-  std::vector<Interval> stack{{0.0, 1.0, 0}};
+  std::vector<Interval> stack{{0.0, 1.0, 0, kin_->forward(qa), kin_->forward(qb)}};
   while (!stack.empty()) {
     const Interval iv = stack.back();
     stack.pop_back();
@@ -150,7 +165,14 @@ SweptResult Space::swept(const kin::Axes& qa, const kin::Axes& qb, SweepMode mod
     const kin::Axes q = qa + t * dq;
     const kin::Posed pose = kin_->forward(q);
     const auto [v_body, v_cutter] = speed_bound(iv.lo, iv.hi);
-    const double m = 0.5 * (iv.hi - iv.lo) * v_body + 1e-6, m_cutter = 0.5 * (iv.hi - iv.lo) * v_cutter + 1e-6;
+    const double h = 0.5 * (iv.hi - iv.lo);
+    double m = h * v_body, m_cutter = h * v_cutter;
+    if (second_order) {
+      m = std::min(m, interval_reach_bound(iv.at_lo, iv.at_hi, h, mb, reach_mm_));
+      m_cutter = std::min(m_cutter, interval_reach_bound(iv.at_lo, iv.at_hi, h, mb, cutter_reach_mm_));
+    }
+    m += 1e-6;
+    m_cutter += 1e-6;
     // The cutter body near the part bounds its margin by the relief; the others' margins have no such bound, but
     // past the rapid cap an inflated probe fails near anything, and splitting is cheaper.
     if (m_cutter <= cap && m <= std::max(cap, kRapidSweepMarginCapMm)) {
@@ -181,8 +203,8 @@ SweptResult Space::swept(const kin::Axes& qa, const kin::Axes& qb, SweepMode mod
       res.detail = fmt::format("clearance too small to certify within {} queries", res.queries);
       break;
     }
-    stack.push_back({t, iv.hi, iv.depth + 1});  // left half first: the earliest hit is found first
-    stack.push_back({iv.lo, t, iv.depth + 1});
+    stack.push_back({t, iv.hi, iv.depth + 1, pose, iv.at_hi});  // left half first: the earliest hit is found first
+    stack.push_back({iv.lo, t, iv.depth + 1, iv.at_lo, pose});
   }
   res.queries = q_count.collision;
   c.swept_queries += q_count.collision;

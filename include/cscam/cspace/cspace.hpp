@@ -113,6 +113,19 @@ struct SweptResult {
   std::uint64_t queries = 0;
 };
 
+/// How far any point of a tool body moves, over a sub-interval [lo, hi] of a straight joint-space move, away from
+/// where it is at the middle of the sub-interval, mm. The body lies within `lever_mm` of the tip (its top along the
+/// axis plus its radius). `at_lo` and `at_hi` are the tool poses at the ends of the sub-interval, `half_width`
+/// = (hi - lo) / 2 in the move's parameter, and `bound` the kinematics' MotionBound of the whole move.
+///
+/// Second order: with K >= |tip''|, |tip'(mid)| <= |tip(hi) - tip(lo)| / (2 h) + h K / 2 (h the half width), so the
+/// tip stays within |tip(hi) - tip(lo)| / 2 + h^2 K of its middle position; the axis likewise turns by at most
+/// |a(hi) - a(lo)| / 2 + h^2 K_axis. Where the linear axes cancel the tip motion a rotary causes (a table machine),
+/// and near the singular axis where the primary rotary barely tilts the tool, this is far below a first-order
+/// bound from the axes' gains.
+[[nodiscard]] double interval_reach_bound(const kin::Posed& at_lo, const kin::Posed& at_hi, double half_width,
+                                          const kin::MotionBound& bound, double lever_mm);
+
 /// The C-space model: immutable, shared by threads. Per-thread scratch lives in Workspace.
 class Space {
  public:
@@ -161,8 +174,9 @@ class Space {
   [[nodiscard]] std::string collision_at_axes(const kin::Axes& q, geom::QueryWorkspace& ws, Counters& c) const;
   /// Swept check of the straight joint-space move qa -> qb (what a control does between two blocks), with a
   /// clearance certificate: the interval around a pose is free when the tool there, inflated by the largest
-  /// distance any tool point can travel over the interval (a bound from the axis travel, the tip's lever arms
-  /// about the rotaries and the tool length), is free. Intervals that cannot be certified are bisected.
+  /// distance any tool point can travel over the interval, is free. That distance is the smaller of a first-order bound
+  /// (the axis travel, the tip's lever arms about the rotaries, the tool length) and, where the kinematics gives a
+  /// MotionBound, interval_reach_bound. Intervals that cannot be certified are bisected.
   /// Machine head meshes are checked at the certified poses only (sampled, not certified). A move not certified
   /// within `max_queries` collision queries (0: the default budget, 2000) is Uncertified.
   [[nodiscard]] SweptResult swept(const kin::Axes& qa, const kin::Axes& qb, SweepMode mode, geom::QueryWorkspace& ws,
