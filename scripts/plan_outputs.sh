@@ -123,5 +123,7 @@ if [[ -z "$differing" ]]; then
   exit 0
 fi
 head -200 "$tmp/diff"
+echo "--- differing files:"
+echo "$differing" | sed -E 's/^diff -r .* [^ ]*\/now\//  /'
 echo "DIFFERENT: $(echo "$differing" | wc -l) file(s) differ" >&2
 exit 1

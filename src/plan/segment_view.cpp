@@ -193,33 +193,79 @@ void check_points(const SegmentView& v, SegmentCells& d, std::size_t& points_bey
   // called infeasible only once every cell of its cone has been shown infeasible: a truncated list whose
   // cells all fail is first extended to the whole cone.
   // In parallel first, in fixed runs of points (the same cells evaluated at any thread count): a point tries the
-  // cell found feasible at the point before it (neighbouring points mostly share one), and only otherwise its
-  // cells nearest first up to the first feasible one. Where the cells nearest the CL axis collide (a wall or lip
-  // beside the path) this saves a scan through all of them at every point.
-  constexpr std::size_t kRun = 32;
+  // cell found feasible at the point before it (neighbouring points mostly share one), then that cell's
+  // neighbourhood, and only a run's first point scans its cells nearest first. Where the cells nearest the CL axis
+  // collide (a wall or lip beside the path) a scan passes hundreds of colliding cells: long runs, few scans.
+  // The hint carries a clearance certificate: while it holds (same cell, tool moved less than its margin) the hint
+  // needs no query at all, and its margin probe halves while it fails so that a tight hint costs one query, not two.
+  constexpr std::size_t kRun = 256;
+  constexpr int kRing = 3;
   const std::size_t runs = (layers.size() + kRun - 1) / kRun;
   parallel_items(runs, d.counters, [&](std::size_t r, geom::QueryWorkspace& ws, cspace::Counters& c) {
     const Cell* hint = nullptr;
+    cspace::Certificate cert;
+    std::vector<std::pair<double, Cell*>> by_angle;
+    auto try_cell = [&](const Layer& l, Cell& cell) {
+      if (cell.status == Status::Unknown) space.evaluate(l.cl, cell, ws, c);
+      return cell.status == Status::Feasible;
+    };
     for (std::size_t k = r * kRun; k < std::min(layers.size(), (r + 1) * kRun); ++k) {
       Layer& l = layers[k];
       if (hint) {
         if (const int at = l.index.find(key(hint->i1, hint->i2)); at >= 0) {
           Cell& cell = l.cells[static_cast<std::size_t>(at)];
-          if (cell.status == Status::Unknown) space.evaluate(l.cl, cell, ws, c);
+          if (cell.status == Status::Unknown) {
+            const bool probe = cert.valid || cert.probe_mm >= cspace::CertificateStore::kMinProbeMm;
+            space.evaluate(l.cl, cell, ws, c, probe ? &cert : nullptr);
+            if (probe && cell.status == Status::Feasible && !cert.valid) cert.probe_mm *= 0.5;
+          }
           if (cell.status == Status::Feasible) {
             hint = &cell;
             continue;
           }
         }
       }
-      hint = nullptr;
-      for (Cell& cell : l.cells) {
-        if (cell.status == Status::Unknown) space.evaluate(l.cl, cell, ws, c);
-        if (cell.status == Status::Feasible) {
-          hint = &cell;
-          break;
+      const Cell* found = nullptr;
+      if (hint) {
+        // The free region moves little from point to point: look around the old hint, first ring by ring on the grid,
+        // then through the cells by the angle between their tool axis and the hint's (near the singular axis many
+        // grid steps of the primary are a small turn), rather than from the CL axis outward, where a wall or lip
+        // beside the path makes the nearest cells collide.
+        const int h1 = hint->i1, h2 = hint->i2;
+        for (int rad = 1; rad <= kRing && !found; ++rad)
+          for (int a = -rad; a <= rad && !found; ++a)
+            for (int b = -rad; b <= rad && !found; ++b) {
+              if (std::max(std::abs(a), std::abs(b)) != rad) continue;
+              if (const int at = l.index.find(key(h1 + a, h2 + b)); at >= 0) {
+                Cell& cell = l.cells[static_cast<std::size_t>(at)];
+                if (try_cell(l, cell)) found = &cell;
+              }
+            }
+        if (!found) {
+          const Eigen::Vector3d hint_axis = space.axis_of(hint->r1, hint->r2);
+          by_angle.clear();
+          for (Cell& cell : l.cells)
+            if (cell.status == Status::Unknown || cell.status == Status::Feasible)
+              by_angle.emplace_back(-space.axis_of(cell.r1, cell.r2).dot(hint_axis), &cell);
+          std::sort(by_angle.begin(), by_angle.end(), [](const auto& x, const auto& y) {
+            return x.first != y.first ? x.first < y.first
+                                      : key(x.second->i1, x.second->i2) < key(y.second->i1, y.second->i2);
+          });
+          for (auto& [dot, cell] : by_angle)
+            if (try_cell(l, *cell)) {
+              found = cell;
+              break;
+            }
         }
+      } else {
+        for (Cell& cell : l.cells)
+          if (try_cell(l, cell)) {
+            found = &cell;
+            break;
+          }
       }
+      hint = found;
+      cert = {};
     }
   });
   for (std::size_t k = 0; k < layers.size(); ++k) {

@@ -53,26 +53,40 @@ bool tier_monotonic(const SegmentView& v, SegmentCells& d, TierOutcome& out) {
   std::size_t furthest = 0;
   Why furthest_why{FailureCause::Orientation, ""};
   double best_travel = kInf;
+  // Every layer's cells in grid order (rows by secondary, primary inside a row), sorted once for the four
+  // direction pairs: each walks the rows and the cells inside a row forward or backward.
+  struct Rows {
+    std::vector<Cell*> cells;         // by (i2, i1)
+    std::vector<std::size_t> starts;  // row starts, plus cells.size()
+  };
+  std::vector<Rows> rows(n);
+  parallel_indices(n, [&](std::size_t k) {
+    Rows& r = rows[k];
+    r.cells.reserve(L[k].cells.size());
+    for (Cell& c : L[k].cells) r.cells.push_back(&c);
+    std::sort(r.cells.begin(), r.cells.end(),
+              [](const Cell* x, const Cell* y) { return x->i2 != y->i2 ? x->i2 < y->i2 : x->i1 < y->i1; });
+    for (std::size_t i = 0; i < r.cells.size(); ++i)
+      if (i == 0 || r.cells[i]->i2 != r.cells[i - 1]->i2) r.starts.push_back(i);
+    r.starts.push_back(r.cells.size());
+  });
   for (int d1 : {+1, -1})
     for (int d2 : {+1, -1}) {
       Why why{FailureCause::Orientation, ""};
       LayeredDp<Step> dp;
       const std::size_t k_end =
           dp.forward(n, [&](std::size_t k, const std::vector<Step>& prev, std::vector<Step>& stair) {
-            // Rows by b (ascending), a ascending inside a row.
-            std::vector<std::pair<std::pair<long long, long long>, Cell*>> cells;
-            cells.reserve(L[k].cells.size());
-            for (Cell& c : L[k].cells)
-              cells.push_back({{static_cast<long long>(d2) * c.i2, static_cast<long long>(d1) * c.i1}, &c});
-            std::sort(cells.begin(), cells.end(), [](const auto& x, const auto& y) { return x.first < y.first; });
+            // Rows by b = d2 i2 ascending, a = d1 i1 ascending inside a row.
+            const Rows& r = rows[k];
+            const std::size_t n_rows = r.starts.size() - 1;
             std::size_t pi = 0;
             long long lb = std::numeric_limits<long long>::max();  // min a over prev staircase with b' <= b
             int lb_idx = -1;
             long long cur_min_a = std::numeric_limits<long long>::max();
-            for (std::size_t i = 0; i < cells.size();) {
-              const long long b = cells[i].first.first;
-              std::size_t j = i;
-              while (j < cells.size() && cells[j].first.first == b) ++j;
+            for (std::size_t ri = 0; ri < n_rows; ++ri) {
+              const std::size_t row = d2 > 0 ? ri : n_rows - 1 - ri;
+              const std::size_t i = r.starts[row], j = r.starts[row + 1];
+              const long long b = static_cast<long long>(d2) * r.cells[i]->i2;
               while (pi < prev.size() && prev[pi].b <= b) {
                 if (prev[pi].a < lb) {
                   lb = prev[pi].a;
@@ -82,19 +96,19 @@ bool tier_monotonic(const SegmentView& v, SegmentCells& d, TierOutcome& out) {
               }
               if (k == 0) lb = std::numeric_limits<long long>::min();
               if (k == 0 || lb_idx >= 0) {
-                for (std::size_t t = i; t < j; ++t) {
-                  const long long a = cells[t].first.second;
+                for (std::size_t u = 0; u < j - i; ++u) {
+                  Cell* cell = r.cells[d1 > 0 ? i + u : j - 1 - u];
+                  const long long a = static_cast<long long>(d1) * cell->i1;
                   if (a < lb) continue;
                   if (a >= cur_min_a) break;  // dominated by a reachable cell of a lower row
-                  if (feasible(v, d, k, *cells[t].second)) {
-                    stair.push_back({a, b, cells[t].second, lb_idx});
+                  if (feasible(v, d, k, *cell)) {
+                    stair.push_back({a, b, cell, lb_idx});
                     cur_min_a = a;
                     break;
                   }
-                  why = {cause_of(cells[t].second->status), cells[t].second->detail};
+                  why = {cause_of(cell->status), cell->detail};
                 }
               }
-              i = j;
             }
             return !stair.empty();
           });

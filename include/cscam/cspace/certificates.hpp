@@ -26,10 +26,11 @@ class CertificateStore {
   /// Allocates the grid (call once before evaluating in parallel).
   void reserve();
 
- private:
-  enum class Room : std::uint8_t { Unknown, Free, Tight };
   /// Smallest probe margin worth a query, mm: at 1/16 mm a certificate still covers a few points of a fine path.
   static constexpr double kMinProbeMm = 1.0 / 16.0;
+
+ private:
+  enum class Room : std::uint8_t { Unknown, Free, Tight };
   struct Entry {
     Certificate cert;
     HitCertificate hit;
