@@ -20,6 +20,8 @@ std::string SegmentView::n2() const {
 
 void enumerate_layer(const SegmentView& v, Layer& l, std::size_t cap, cspace::Counters& counters) {
   v.space.enumerate(l.cl, l.cells, cap, counters);
+  l.grid_order.clear();
+  l.row_starts.clear();
   l.truncated = l.cells.size() >= cap;
   l.index.clear();
   l.index.reserve(l.cells.size());
@@ -69,6 +71,8 @@ void expand_singular(std::vector<Layer>& layers) {
       }
     }
     cells = std::move(out);
+    layers[k].grid_order.clear();
+    layers[k].row_starts.clear();
     layers[k].index.clear();
     for (std::size_t j = 0; j < cells.size(); ++j)
       layers[k].index.emplace(key(cells[j].i1, cells[j].i2), static_cast<int>(j));
@@ -115,6 +119,8 @@ SegmentCells make_cells(const SegmentView& v, std::size_t first, std::size_t las
     c.i2 = static_cast<int>(std::lround(c.r2 / kr));
     (void)v.space.in_cone(l.cl, c.r1, c.r2, &c.orient_err);
     l.cells.assign(1, c);
+    l.grid_order.clear();
+    l.row_starts.clear();
     l.index.clear();
     l.index.emplace(key(c.i1, c.i2), 0);
     l.extra.clear();
@@ -201,6 +207,7 @@ void check_points(const SegmentView& v, SegmentCells& d, std::size_t& points_bey
   constexpr std::size_t kRun = 256;
   constexpr int kRing = 3;
   const std::size_t runs = (layers.size() + kRun - 1) / kRun;
+  std::vector<char> found_at(layers.size(), 0);
   parallel_items(runs, d.counters, [&](std::size_t r, geom::QueryWorkspace& ws, cspace::Counters& c) {
     const Cell* hint = nullptr;
     cspace::Certificate cert;
@@ -221,6 +228,7 @@ void check_points(const SegmentView& v, SegmentCells& d, std::size_t& points_bey
           }
           if (cell.status == Status::Feasible) {
             hint = &cell;
+            found_at[k] = 1;
             continue;
           }
         }
@@ -265,13 +273,12 @@ void check_points(const SegmentView& v, SegmentCells& d, std::size_t& points_bey
           }
       }
       hint = found;
+      found_at[k] = found != nullptr;
       cert = {};
     }
   });
   for (std::size_t k = 0; k < layers.size(); ++k) {
-    if (std::any_of(layers[k].cells.begin(), layers[k].cells.end(),
-                    [](const Cell& c) { return c.status == Status::Feasible; }))
-      continue;
+    if (found_at[k]) continue;
     bool any = false;
     int n_stroke = 0, n_coll = 0;
     std::string example;

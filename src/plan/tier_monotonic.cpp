@@ -53,22 +53,37 @@ bool tier_monotonic(const SegmentView& v, SegmentCells& d, TierOutcome& out) {
   std::size_t furthest = 0;
   Why furthest_why{FailureCause::Orientation, ""};
   double best_travel = kInf;
-  // Every layer's cells in grid order (rows by secondary, primary inside a row), sorted once for the four
-  // direction pairs: each walks the rows and the cells inside a row forward or backward.
-  struct Rows {
-    std::vector<Cell*> cells;         // by (i2, i1)
-    std::vector<std::size_t> starts;  // row starts, plus cells.size()
-  };
-  std::vector<Rows> rows(n);
+  // Every layer's cells in grid order (rows by secondary, primary inside a row), sorted once per cell list (kept in
+  // the layer across cascade re-runs) for the four direction pairs: each walks the rows and the cells inside a row
+  // forward or backward.
   parallel_indices(n, [&](std::size_t k) {
-    Rows& r = rows[k];
-    r.cells.reserve(L[k].cells.size());
-    for (Cell& c : L[k].cells) r.cells.push_back(&c);
-    std::sort(r.cells.begin(), r.cells.end(),
-              [](const Cell* x, const Cell* y) { return x->i2 != y->i2 ? x->i2 < y->i2 : x->i1 < y->i1; });
-    for (std::size_t i = 0; i < r.cells.size(); ++i)
-      if (i == 0 || r.cells[i]->i2 != r.cells[i - 1]->i2) r.starts.push_back(i);
-    r.starts.push_back(r.cells.size());
+    Layer& l = L[k];
+    if (l.grid_order.size() == l.cells.size() && !l.row_starts.empty()) return;
+    const auto& cells = l.cells;
+    // Two stable counting passes (by i1, then by i2): linear in the cells, where a comparison sort of thousands of
+    // cells per point was tier 3's largest cost.
+    std::vector<std::uint32_t> by_i1(cells.size());
+    l.grid_order.resize(cells.size());
+    auto counting = [&](auto index_of, const std::vector<std::uint32_t>* in, std::vector<std::uint32_t>& out) {
+      int lo = std::numeric_limits<int>::max(), hi = std::numeric_limits<int>::min();
+      for (const Cell& c : cells) lo = std::min(lo, index_of(c)), hi = std::max(hi, index_of(c));
+      std::vector<std::uint32_t> start(static_cast<std::size_t>(hi - lo) + 2, 0);
+      for (const Cell& c : cells) ++start[static_cast<std::size_t>(index_of(c) - lo) + 1];
+      for (std::size_t b = 1; b < start.size(); ++b) start[b] += start[b - 1];
+      for (std::size_t i = 0; i < cells.size(); ++i) {
+        const auto at = in ? (*in)[i] : static_cast<std::uint32_t>(i);
+        out[start[static_cast<std::size_t>(index_of(cells[at]) - lo)]++] = at;
+      }
+    };
+    if (!cells.empty()) {
+      counting([](const Cell& c) { return c.i1; }, nullptr, by_i1);
+      counting([](const Cell& c) { return c.i2; }, &by_i1, l.grid_order);
+    }
+    l.row_starts.clear();
+    for (std::size_t i = 0; i < l.grid_order.size(); ++i)
+      if (i == 0 || cells[l.grid_order[i]].i2 != cells[l.grid_order[i - 1]].i2)
+        l.row_starts.push_back(static_cast<std::uint32_t>(i));
+    l.row_starts.push_back(static_cast<std::uint32_t>(l.grid_order.size()));
   });
   for (int d1 : {+1, -1})
     for (int d2 : {+1, -1}) {
@@ -77,16 +92,16 @@ bool tier_monotonic(const SegmentView& v, SegmentCells& d, TierOutcome& out) {
       const std::size_t k_end =
           dp.forward(n, [&](std::size_t k, const std::vector<Step>& prev, std::vector<Step>& stair) {
             // Rows by b = d2 i2 ascending, a = d1 i1 ascending inside a row.
-            const Rows& r = rows[k];
-            const std::size_t n_rows = r.starts.size() - 1;
+            Layer& l = L[k];
+            const std::size_t n_rows = l.row_starts.size() - 1;
             std::size_t pi = 0;
             long long lb = std::numeric_limits<long long>::max();  // min a over prev staircase with b' <= b
             int lb_idx = -1;
             long long cur_min_a = std::numeric_limits<long long>::max();
             for (std::size_t ri = 0; ri < n_rows; ++ri) {
               const std::size_t row = d2 > 0 ? ri : n_rows - 1 - ri;
-              const std::size_t i = r.starts[row], j = r.starts[row + 1];
-              const long long b = static_cast<long long>(d2) * r.cells[i]->i2;
+              const std::size_t i = l.row_starts[row], j = l.row_starts[row + 1];
+              const long long b = static_cast<long long>(d2) * l.cells[l.grid_order[i]].i2;
               while (pi < prev.size() && prev[pi].b <= b) {
                 if (prev[pi].a < lb) {
                   lb = prev[pi].a;
@@ -97,7 +112,7 @@ bool tier_monotonic(const SegmentView& v, SegmentCells& d, TierOutcome& out) {
               if (k == 0) lb = std::numeric_limits<long long>::min();
               if (k == 0 || lb_idx >= 0) {
                 for (std::size_t u = 0; u < j - i; ++u) {
-                  Cell* cell = r.cells[d1 > 0 ? i + u : j - 1 - u];
+                  Cell* cell = &l.cells[l.grid_order[d1 > 0 ? i + u : j - 1 - u]];
                   const long long a = static_cast<long long>(d1) * cell->i1;
                   if (a < lb) continue;
                   if (a >= cur_min_a) break;  // dominated by a reachable cell of a lower row

@@ -103,6 +103,9 @@ struct Layer {
   std::unordered_map<std::uint64_t, Cell> extra;  ///< evaluated cells outside the cap
   bool truncated = false;                         ///< `cells` stopped at the cap: the cone holds more
   bool pinned = false;                            ///< Options::start_rotaries: `cells` is that one cell, no other
+  /// Positions in `cells` by (i2, i1), and where each i2 row starts (plus cells.size()): tier 3's walk, built when
+  /// first needed, cleared whenever `cells` is rebuilt.
+  std::vector<std::uint32_t> grid_order, row_starts;
 };
 
 /// What does not change while a segment is searched.
