@@ -195,6 +195,7 @@ void Space::enumerate(const kin::Posed& cl, std::vector<Cell>& out, std::size_t 
   };
   thread_local std::vector<Item> heap;
   heap.clear();
+  bool push_heap_order = false;
   Eigen::Vector3d a;
   auto push = [&](int i1, int i2) {
     if (i1 < i1_min_ || i1 > i1_max_ || i2 < i2_min_ || i2 > i2_max_) return;
@@ -210,14 +211,16 @@ void Space::enumerate(const kin::Posed& cl, std::vector<Cell>& out, std::size_t 
     const double d = a.dot(cl.axis);
     if (d < cos_cone - 1e-15) return;
     heap.push_back({d, i1, i2});
-    std::push_heap(heap.begin(), heap.end());
+    if (push_heap_order) std::push_heap(heap.begin(), heap.end());
   };
-  for (const auto& s : sols) {
-    const double f1 = s.axes[rot1_] / res, f2 = s.axes[rot2_] / res;
-    for (int d1 = 0; d1 <= 1; ++d1)
-      for (int d2 = 0; d2 <= 1; ++d2)
-        push(static_cast<int>(std::floor(f1)) + d1, static_cast<int>(std::floor(f2)) + d2);
-  }
+  auto seed = [&] {
+    for (const auto& s : sols) {
+      const double f1 = s.axes[rot1_] / res, f2 = s.axes[rot2_] / res;
+      for (int d1 = 0; d1 <= 1; ++d1)
+        for (int d2 = 0; d2 <= 1; ++d2)
+          push(static_cast<int>(std::floor(f1)) + d1, static_cast<int>(std::floor(f2)) + d2);
+    }
+  };
   // Small records while filling; the (larger) cells are built once, in their final order.
   struct Found {
     float err;
@@ -225,18 +228,43 @@ void Space::enumerate(const kin::Posed& cl, std::vector<Cell>& out, std::size_t 
   };
   thread_local std::vector<Found> found;
   found.clear();
-  while (!heap.empty() && found.size() < cap) {
-    std::pop_heap(heap.begin(), heap.end());
-    const Item it = heap.back();
-    heap.pop_back();
+  auto take = [&](const Item& it) {
     const double err = std::acos(std::clamp(it.dot, -1.0, 1.0));
     if (err >= opt_.min_tilt_rad) found.push_back({static_cast<float>(err), it.i1, it.i2});
     push(it.i1 + 1, it.i2);
     push(it.i1 - 1, it.i2);
     push(it.i1, it.i2 + 1);
     push(it.i1, it.i2 - 1);
+  };
+  // First a plain flood fill (a stack, no heap order): when the whole cone fits under the cap, the output is the
+  // whole cone, sorted below, whatever the visiting order. Past the cap it starts again best-first, which visits
+  // only the closest cells.
+  seed();
+  bool whole = true;
+  while (!heap.empty()) {
+    const Item it = heap.back();
+    heap.pop_back();
+    take(it);
+    if (found.size() > cap) {
+      whole = false;
+      break;
+    }
   }
   for (std::size_t at : touched) seen[at] = 0;
+  if (!whole) {
+    touched.clear();
+    heap.clear();
+    found.clear();
+    push_heap_order = true;
+    seed();
+    while (!heap.empty() && found.size() < cap) {
+      std::pop_heap(heap.begin(), heap.end());
+      const Item it = heap.back();
+      heap.pop_back();
+      take(it);
+    }
+    for (std::size_t at : touched) seen[at] = 0;
+  }
   // Sorted by angle, then index: one 64-bit key per cell where the indices fit 16 bits (the bits of a non-negative
   // float order as the float does), which sorts several times faster than the records.
   auto before = [](const Found& x, const Found& y) {
