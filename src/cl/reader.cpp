@@ -1,7 +1,8 @@
 // Reader of cutter-location files: APT/CLDATA (NX CLSF, ISO 4343, CATIA flavours) and a CSV form.
 //
 // Speed matters (a benchmark parses a million GOTO/ lines): the text is read in one go and split by hand with
-// memchr, numbers go through std::from_chars, and per-statement buffers are reused instead of reallocated.
+// memchr, numbers go through decimal_from_chars (from_chars with a fast path), and per-statement buffers are reused
+// instead of reallocated.
 #include <fmt/format.h>
 
 #include <Eigen/Geometry>
@@ -16,6 +17,7 @@
 #include <utility>
 
 #include "cscam/cl/program.hpp"
+#include "cscam/core/numparse.hpp"
 
 #if defined(__unix__)
 #include <fcntl.h>
@@ -86,7 +88,7 @@ NumStatus parse_number(string_view s, double& v) {
   const char* e = b + s.size();
   if (b != e && *b == '+' && b + 1 != e && *(b + 1) != '-' && *(b + 1) != '+') ++b;
   if (b == e) return NumStatus::Malformed;
-  const auto [ptr, ec] = std::from_chars(b, e, v);
+  const auto [ptr, ec] = decimal_from_chars(b, e, v);
   if (ec == std::errc::result_out_of_range) return NumStatus::OutOfRange;
   if (ec != std::errc() || ptr != e) return NumStatus::Malformed;
   return std::isfinite(v) ? NumStatus::Ok : NumStatus::NonFinite;
@@ -404,7 +406,7 @@ int AptReader::parse_numbers(const Statement& st, string_view s, size_t base, do
     const char* e = s.data() + size;
     if (b != e && *b == '+' && b + 1 != e && (std::isdigit(static_cast<unsigned char>(b[1])) || b[1] == '.')) ++b;
     double x = 0.0;
-    const auto [ptr, ec] = std::from_chars(b, e, x);
+    const auto [ptr, ec] = decimal_from_chars(b, e, x);
     size_t q = static_cast<size_t>(ptr - s.data());
     bool ok = ec == std::errc();
     if (ok) {

@@ -14,6 +14,7 @@
 #include <sstream>
 
 #include "cscam/core/error.hpp"
+#include "cscam/core/numparse.hpp"
 #include "cscam/core/parallel.hpp"
 #include "cscam/core/rotations.hpp"
 #include "cscam/core/units.hpp"
@@ -46,6 +47,11 @@ std::string_view trim(std::string_view s) {
 bool gcode_number(std::string_view num, double& v) {
   if (!num.empty() && num[0] == '+') num.remove_prefix(1);
   if (num.empty()) return false;
+  // Nearly every word is a plain "-12.345": read in place when that takes the whole word.
+  if (num[0] != '.' && num.back() != '.' && !(num.size() > 1 && num[0] == '-' && num[1] == '.')) {
+    const auto r = decimal_from_chars(num.data(), num.data() + num.size(), v);
+    return r.ec == std::errc() && r.ptr == num.data() + num.size();
+  }
   char small[64];
   std::string big;  // only for absurdly long words
   char* fixed = small;
