@@ -1033,12 +1033,20 @@ class Sequencer {
     cur_ = q1;
   }
 
+  /// One segment split ahead (split_ahead).
+  struct Ahead {
+    bool ready = false;
+    std::vector<Linearizer::Piece> pieces;
+    Linearizer::Stats stats;
+  };
+
   /// The linearisation of a CL segment is a pure function of its ends and their axis values, and most of the
   /// post's time: the segments ahead (moves[i - 1] -> moves[i] at axes[i - 1], axes[i]) are split in parallel, a
-  /// window at a time, and taken from there when the sequencer asks for exactly that segment. A segment whose
-  /// split throws, or one the sequencer asks for with other axis values (after a retract or flip), is split here
-  /// as before, so the output and the errors are those of the sequential post. Not on models whose FK/IK depend
-  /// on call order (the XMINI): there the numbers must come in order.
+  /// window at a time, and taken from there when the sequencer asks for exactly that segment. While the sequencer
+  /// works through one window the next is split in the background, so the two overlap. A segment whose split
+  /// throws, or one the sequencer asks for with other axis values (after a retract or flip), is split here as
+  /// before, so the output and the errors are those of the sequential post. Not on models whose FK/IK depend on
+  /// call order (the XMINI): there the numbers must come in order.
   bool split_ahead(const cl::Move& m0, const kin::Axes& q0, const cl::Move& m1, const kin::Axes& q1,
                    Linearizer::Stats& st) {
     if (!axes_ || traits_.forward_depends_on_call_order) return false;
@@ -1047,24 +1055,28 @@ class Sequencer {
     const std::size_t i = static_cast<std::size_t>(&m1 - moves.data());
     const auto& axes = *axes_;
     if (&m0 != &moves[i - 1] || i >= axes.size() || q0 != axes[i - 1] || q1 != axes[i]) return false;
-    constexpr std::size_t kWindow = 4096;
     if (i < ahead_begin_ || i >= ahead_begin_ + ahead_.size()) {
-      ahead_begin_ = i;
-      const std::size_t end = std::min(moves.size(), i + kWindow);
-      ahead_.assign(end - i, Ahead{});
-      parallel_range(i, end, 64, [&](const tbb::blocked_range<std::size_t>& r) {
-        Linearizer lin = lin_;  // its scratch stack is per task
-        for (std::size_t k = r.begin(); k != r.end(); ++k) {
-          if (moves[k].kind == cl::MotionKind::Rapid || moves[k - 1].kind == cl::MotionKind::Rapid) continue;
-          Ahead& a = ahead_[k - i];
-          try {
-            lin.split(moves[k - 1], axes[k - 1], moves[k], axes[k], prog_.file, a.pieces, a.stats);
-            a.ready = true;
-          } catch (...) {  // split again in order, where it throws for the sequential post too
-            a = Ahead{};
-          }
-        }
-      });
+      if (next_pending_) {
+        next_job_.wait();
+        next_pending_ = false;
+      }
+      if (i >= next_begin_ && i < next_begin_ + next_.size()) {
+        ahead_.swap(next_);
+        ahead_begin_ = next_begin_;
+      } else {
+        ahead_begin_ = i;
+        split_window(ahead_, i, std::min(moves.size(), i + kAheadWindow));
+      }
+      // The window after this one, beside the sequencer.
+      const std::size_t begin = ahead_begin_ + ahead_.size();
+      if (begin < moves.size()) {
+        next_begin_ = begin;
+        next_pending_ = true;
+        next_job_.run(
+            [this, begin, end = std::min(moves.size(), begin + kAheadWindow)] { split_window(next_, begin, end); });
+      } else {
+        next_.clear();
+      }
     }
     Ahead& a = ahead_[i - ahead_begin_];
     if (!a.ready) return false;
@@ -1072,6 +1084,27 @@ class Sequencer {
     pieces_.swap(a.pieces);
     st = std::move(a.stats);
     return true;
+  }
+
+  /// Splits the segments ending at moves [begin, end) into `window` (in parallel; reads only the program, the axes
+  /// and lin_proto_, so it may run beside the sequencer).
+  void split_window(std::vector<Ahead>& window, std::size_t begin, std::size_t end) const {
+    const auto& moves = prog_.moves;
+    const auto& axes = *axes_;
+    window.assign(end - begin, Ahead{});
+    parallel_range(begin, end, 64, [&](const tbb::blocked_range<std::size_t>& r) {
+      Linearizer lin = lin_proto_;  // its scratch stack is per task
+      for (std::size_t k = r.begin(); k != r.end(); ++k) {
+        if (moves[k].kind == cl::MotionKind::Rapid || moves[k - 1].kind == cl::MotionKind::Rapid) continue;
+        Ahead& a = window[k - begin];
+        try {
+          lin.split(moves[k - 1], axes[k - 1], moves[k], axes[k], prog_.file, a.pieces, a.stats);
+          a.ready = true;
+        } catch (...) {  // split again in order, where it throws for the sequential post too
+          a = Ahead{};
+        }
+      }
+    });
   }
 
   /// A feed block qa -> qb that covers tip_len_mm of the CL path: inverse time (G93) where the dialect has it,
@@ -1379,13 +1412,14 @@ class Sequencer {
   Linearizer lin_;
   std::vector<Linearizer::Piece> pieces_;
   const std::vector<kin::Axes>* axes_ = nullptr;  ///< the axis values run() was given
-  struct Ahead {
-    bool ready = false;
-    std::vector<Linearizer::Piece> pieces;
-    Linearizer::Stats stats;
-  };
-  std::vector<Ahead> ahead_;  ///< split_ahead's window: segments ahead_begin_ ...
+  static constexpr std::size_t kAheadWindow = 4096;
+  const Linearizer lin_proto_{lin_};  ///< untouched by the sequencer: copied by the splits ahead
+  std::vector<Ahead> ahead_;          ///< split_ahead's window: segments ahead_begin_ ...
   std::size_t ahead_begin_ = 0;
+  std::vector<Ahead> next_;  ///< the window after it, split in the background (next_job_)
+  std::size_t next_begin_ = 0;
+  bool next_pending_ = false;
+  Background next_job_;  ///< declared after what it writes: destroyed (joined) first
   ProgramInfo info_;
   std::unique_ptr<Formatter> fmt_;
   BlockSpec blk_;
