@@ -5,11 +5,13 @@
 
 #include <algorithm>
 #include <array>
+#include <atomic>
 #include <cmath>
 #include <fstream>
 #include <limits>
 #include <sstream>
 #include <stdexcept>
+#include <string_view>
 
 #include "cscam/core/error.hpp"
 #include "cscam/core/parallel.hpp"
@@ -142,9 +144,21 @@ class TipWordsKinematics final : public kin::Kinematics {
 }  // namespace
 
 bool uses_tool_tip_control(const std::string& t) {
-  for (const char* w : {"(cartesian:", "G43.4", "G43.5", "G234", "M428", "TRAORI", "TCPM", "M128"})
-    if (t.find(w) != std::string::npos) return true;
-  return false;
+  static constexpr std::array<std::string_view, 8> kWords = {"(cartesian:", "G43.4",  "G43.5", "G234",
+                                                             "M428",        "TRAORI", "TCPM",  "M128"};
+  auto any_in = [](std::string_view v) {
+    return std::any_of(kWords.begin(), kWords.end(), [v](std::string_view w) { return v.find(w) != v.npos; });
+  };
+  // Eight searches through a million-block text: in parallel pieces, each overlapping the next by more than
+  // a word, so that every occurrence lies whole in some piece.
+  constexpr std::size_t kPiece = std::size_t{1} << 20, kOverlap = 16;
+  if (t.size() <= kPiece) return any_in(t);
+  std::atomic<bool> found{false};
+  parallel_range(0, (t.size() + kPiece - 1) / kPiece, 1, [&](const tbb::blocked_range<std::size_t>& r) {
+    for (std::size_t c = r.begin(); c != r.end() && !found.load(std::memory_order_relaxed); ++c)
+      if (any_in(std::string_view(t).substr(c * kPiece, kPiece + kOverlap))) found = true;
+  });
+  return found;
 }
 
 nc::Program read_for_machine(const std::string& nc_text, const std::string& name, const machine::Machine& m) {
