@@ -57,6 +57,15 @@ std::array<double, 2> xmini_virtual_ca(const Vec3& u_W, double q_c, double q_a) 
   return best;
 }
 
+/// std::llround (half away from zero) without its libm call: the sequencer rounds every axis word of every block
+/// several times. Below 2^52 the truncation and the fraction x - trunc(x) are exact, so the result is llround's.
+long long round_half_away(double x) {
+  if (!(std::abs(x) < 4503599627370496.0)) return std::llround(x);  // larger values are whole numbers; NaN
+  const auto i = static_cast<long long>(x);
+  const double frac = x - static_cast<double>(i);
+  return frac >= 0.5 ? i + 1 : (frac <= -0.5 ? i - 1 : i);
+}
+
 /// Rotary changes between two CL points below this are taken as continuing the branch without a check.
 constexpr double kFlipCheckRad = 0.5235987756;  // 30 deg
 
@@ -489,7 +498,7 @@ class Sequencer {
     bool any = false;
     for (int k = 0; k < 3; ++k) {
       const auto u = static_cast<size_t>(xyz_[static_cast<size_t>(k)]);
-      const long long r = std::llround(p[k] * to_file_[u] * scale_[u]);
+      const long long r = round_half_away(p[k] * to_file_[u] * scale_[u]);
       if (!force && have_word_[u] && r == last_[u]) continue;
       blk_.words.push_back({static_cast<int>(u), r, decimals_[u], false});
       last_[u] = r;
@@ -523,8 +532,8 @@ class Sequencer {
   long long rounded(int i, double v) const {
     double f = v * to_file_[static_cast<size_t>(i)];
     if (shortest_[static_cast<size_t>(i)]) f -= 360.0 * std::floor(f / 360.0);  // modulo output in [0, 360)
-    long long r = std::llround(f * scale_[static_cast<size_t>(i)]);
-    if (shortest_[static_cast<size_t>(i)] && r == std::llround(360.0 * scale_[static_cast<size_t>(i)])) r = 0;
+    long long r = round_half_away(f * scale_[static_cast<size_t>(i)]);
+    if (shortest_[static_cast<size_t>(i)] && r == round_half_away(360.0 * scale_[static_cast<size_t>(i)])) r = 0;
     return r;
   }
 
@@ -579,7 +588,8 @@ class Sequencer {
       // Printed rounded down: a block is never faster than the time the sequencer gave it.
       // Slow per-minute feeds (a capped block that mostly turns a rotary) keep four decimals.
       blk_.feed_decimals = mode93_ ? 3 : (*feed < 100.0 ? 4 : 1);
-      const double p = std::pow(10.0, blk_.feed_decimals);
+      static constexpr double kPow10[] = {1.0, 10.0, 100.0, 1000.0, 10000.0};
+      const double p = kPow10[blk_.feed_decimals];
       blk_.feed = std::max(std::floor(*feed * p * (1.0 + kFeedFloorSlack)) / p, 1.0 / p);
     }
     fmt_->block(buf_, blk_);
@@ -928,7 +938,7 @@ class Sequencer {
     for (int k : {u, v}) {
       const auto s = static_cast<size_t>(xyz_[static_cast<size_t>(k)]);
       if (!have_word_[s]) return 0;
-      words.ijk[static_cast<size_t>(k)] = std::llround(c_m[k] * to_file_[s] * scale_[s]) - last_[s];
+      words.ijk[static_cast<size_t>(k)] = round_half_away(c_m[k] * to_file_[s] * scale_[s]) - last_[s];
       words.write[static_cast<size_t>(k)] = true;
     }
     // Feed: the path's speed F; no machine axis exceeds max_feed (in the arc's plane each peaks at F r |sweep| / L,
@@ -975,7 +985,7 @@ class Sequencer {
       // The move as the control sees it is between the printed (rounded) words: a short block's rounding may
       // make it longer than the model's.
       const double f = to_file_[static_cast<size_t>(i)] * scale_[static_cast<size_t>(i)];
-      const double printed = std::abs(static_cast<double>(std::llround(qb[i] * f) - std::llround(qa[i] * f))) / f;
+      const double printed = std::abs(static_cast<double>(round_half_away(qb[i] * f) - round_half_away(qa[i] * f))) / f;
       minutes = std::max(minutes, std::max(std::abs(qb[i] - qa[i]), printed) / vmax);
     }
     if (minutes > programmed_minutes * (1.0 + 1e-9) + 1e-12 && programmed_minutes > 0) {
@@ -991,7 +1001,7 @@ class Sequencer {
     for (int i = 0; i < 5; ++i) {  // between the printed (rounded) words, as the control measures it
       const double f = to_file_[static_cast<size_t>(i)] * scale_[static_cast<size_t>(i)];
       const double d =
-          static_cast<double>(std::llround(wb[i] * f) - std::llround(wa[i] * f)) / scale_[static_cast<size_t>(i)];
+          static_cast<double>(round_half_away(wb[i] * f) - round_half_away(wa[i] * f)) / scale_[static_cast<size_t>(i)];
       (m_.axes[static_cast<size_t>(i)].rotary() ? rot2 : lin2) += d * d;
     }
     return lin2 > 1e-18 ? std::sqrt(lin2) : std::sqrt(rot2);
