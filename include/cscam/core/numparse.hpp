@@ -6,8 +6,10 @@
 /// 2^53 and the power at most 22, so one IEEE division gives the correctly rounded value, which is what from_chars
 /// returns (Clinger's fast path). Anything else (an exponent, a long mantissa, "1.", ".5", "inf") goes to
 /// std::from_chars itself, so the result and the end pointer are always those of from_chars.
+#include <bit>
 #include <charconv>
 #include <cstdint>
+#include <cstring>
 
 namespace cscam {
 
@@ -28,6 +30,18 @@ inline std::from_chars_result decimal_from_chars(const char* first, const char* 
   bool fast = p != int_begin;
   if (fast && p != last && *p == '.') {
     const char* const frac_begin = ++p;
+    // Four decimals at a time while four digits follow (NC words have four, CL values seven).
+    while (std::endian::native == std::endian::little && last - p >= 4 && digits <= 15) {
+      std::uint32_t chunk;
+      std::memcpy(&chunk, p, 4);
+      if (((chunk & 0xF0F0F0F0u) | (((chunk + 0x06060606u) & 0xF0F0F0F0u) >> 4)) != 0x33333333u) break;
+      // Little-endian: the first digit is the low byte.
+      chunk -= 0x30303030u;
+      chunk = (chunk * 10 + (chunk >> 8)) & 0x00FF00FFu;
+      m = m * 10000 + ((chunk & 0xFFFFu) * 100 + (chunk >> 16));
+      digits += 4;
+      p += 4;
+    }
     while (p != last && static_cast<unsigned>(*p - '0') < 10u && digits < 19) {
       m = m * 10 + static_cast<unsigned>(*p++ - '0');
       ++digits;
