@@ -1,6 +1,8 @@
 // Tests of the CL reader: real NX CLSF files, CIRCLE/ tessellation checked against NX's own post output,
 // ISO 4343 / CATIA flavour syntax, the CSV form, and the error paths with their file:line:column.
+#include <fmt/format.h>
 #include <gtest/gtest.h>
+#include <tbb/task_arena.h>
 
 #include <Eigen/Geometry>
 #include <algorithm>
@@ -737,6 +739,55 @@ TEST(ClErrors, BadArcTolerance) {
   ReadOptions o;
   o.arc_tolerance_mm = 0;
   EXPECT_THROW((void)read_text("GOTO/0,0,0\n", "t.cls", o), InputError);
+}
+
+// A large file is read with the GOTO/ numbers converted ahead in parallel (more than one thread): the program, its
+// warnings and its errors must be those of the reading on one thread, whatever the lines look like.
+TEST(ClReader, NumbersReadAheadGiveTheSameProgramAndErrors) {
+  std::string text = "PARTNO AHEAD\nUNITS/MM\nMULTAX/ON\nFEDRAT/MMPM,1500\n";
+  const char* forms[] = {"GOTO/{:.4f},{:.4f},{:.4f},0.0000000,0.0000000,1.0000000\n",
+                         "goto / {:.3f} , {:.4f},{:.4f} $$ a comment\n",
+                         "GOTO/+{:.4f},{:.4f},{:.2e}\n",
+                         "GOTO/{:.4f},$\n  {:.4f},{:.4f}\n",
+                         "  GOTO/{:.4f},{:.4f},{:.4f},0,0,1   \r\n",
+                         "GOTO/{:.4f},{:.4f},{:.4f},0.6,0,0.8\n"};
+  for (int i = 0; text.size() < (std::size_t{3} << 20); ++i) {
+    const double x = 0.01 * i, y = std::sin(0.001 * i), z = 1.0 + 1e-3 * (i % 97);
+    text += fmt::format(fmt::runtime(forms[i % 6]), x, y, z);
+    if (i % 1000 == 0) text += "RAPID\n";
+  }
+  auto read_at = [&](int threads, const std::string& t) {
+    tbb::task_arena arena(threads);
+    return arena.execute([&] { return read_text(t, "ahead.cls", {}); });
+  };
+  const Program one = read_at(1, text), two = read_at(2, text);
+  ASSERT_EQ(one.moves.size(), two.moves.size());
+  for (std::size_t i = 0; i < one.moves.size(); ++i) {
+    EXPECT_EQ(one.moves[i].tip_in_part_mm, two.moves[i].tip_in_part_mm) << i;
+    EXPECT_EQ(one.moves[i].axis_in_part, two.moves[i].axis_in_part) << i;
+    EXPECT_EQ(one.moves[i].line, two.moves[i].line) << i;
+    EXPECT_EQ(one.moves[i].kind, two.moves[i].kind) << i;
+  }
+  ASSERT_EQ(one.warnings.size(), two.warnings.size());
+  // Broken GOTO/ lines deep in the file: the same error (line, column, words) at 1 and 2 threads.
+  for (const char* bad : {"GOTO/1.0,2.0,x3\n", "GOTO/1.0,2.0\n", "GOTO/1,2,3,0,0\n", "GOTO/1,2,1e999\n",
+                          "GOTO/1,2,3,0,0,0\n", "GOTO/1,2,3,4,5,6,7\n"}) {
+    std::string broken = text;
+    broken.insert(broken.find('\n', broken.size() * 2 / 3) + 1, bad);
+    std::string e1, e2;
+    try {
+      read_at(1, broken);
+    } catch (const InputError& e) {
+      e1 = e.what();
+    }
+    try {
+      read_at(2, broken);
+    } catch (const InputError& e) {
+      e2 = e.what();
+    }
+    EXPECT_FALSE(e1.empty()) << bad;
+    EXPECT_EQ(e1, e2) << bad;
+  }
 }
 
 }  // namespace

@@ -2,12 +2,16 @@
 #include <gtest/gtest.h>
 #include <unistd.h>
 
+#include <charconv>
+#include <cmath>
+#include <cstring>
 #include <filesystem>
 #include <fstream>
 #include <random>
 
 #include "cscam/core/atomic_file.hpp"
 #include "cscam/core/error.hpp"
+#include "cscam/core/numparse.hpp"
 #include "cscam/core/rotations.hpp"
 #include "cscam/core/tolerances.hpp"
 #include "cscam/core/units.hpp"
@@ -139,4 +143,58 @@ TEST(Rotations, PlaneOfAToolAxisHasItAsZAndMapsPointsBothWays) {
   const Eigen::Vector3d p = o + 10 * u;
   EXPECT_LT((rot::to_plane(R, o, p) - Eigen::Vector3d(0, 0, 10)).norm(), 1e-12);
   EXPECT_LT((rot::from_plane(R, o, rot::to_plane(R, o, p)) - p).norm(), 1e-12);
+}
+
+// decimal_from_chars must be std::from_chars exactly (value bits, end pointer, error): the readers' numbers, and
+// so every program the gate reads back, depend on it.
+TEST(Core, DecimalFromCharsIsFromChars) {
+  std::mt19937_64 g(7);
+  auto same = [](const std::string& s) {
+    double a = 1.5, b = 1.5;
+    const auto ra = decimal_from_chars(s.data(), s.data() + s.size(), a);
+    const auto rb = std::from_chars(s.data(), s.data() + s.size(), b);
+    EXPECT_EQ(ra.ptr, rb.ptr) << s;
+    EXPECT_TRUE(ra.ec == rb.ec) << s;
+    EXPECT_EQ(std::memcmp(&a, &b, sizeof a), 0) << s << ": " << a << " vs " << b;
+  };
+  for (const char* s : {"0",
+                        "-0",
+                        "-0.0",
+                        "12.3456",
+                        "-12.3456",
+                        "0.1",
+                        "1.",
+                        ".5",
+                        "-.5",
+                        "1e5",
+                        "1.5E-3",
+                        "-",
+                        "",
+                        "+1",
+                        "inf",
+                        "nan",
+                        "1..2",
+                        "1.2.3",
+                        "9007199254740992",
+                        "9007199254740993",
+                        "9007199254740992.5",
+                        "123456789012345678901234",
+                        "0.0000000000000000000001",
+                        "0.00000000000000000000001",
+                        "0.12345678901234567890",
+                        "12,5",
+                        "7 "})
+    same(s);
+  const char alphabet[] = "0123456789.-+eE ";
+  for (int i = 0; i < 200000; ++i) {
+    std::string s;
+    const int len = 1 + static_cast<int>(g() % 24);
+    for (int k = 0; k < len; ++k) s += alphabet[g() % (g() % 4 == 0 ? 16 : 10)];
+    same(s);
+    char buf[64];
+    const double x = static_cast<double>(static_cast<long long>(g() % 2000000000000ULL) - 1000000000000LL) /
+                     std::pow(10.0, static_cast<double>(g() % 12));
+    std::snprintf(buf, sizeof buf, "%.*f", static_cast<int>(g() % 18), x);
+    same(buf);
+  }
 }

@@ -14,6 +14,7 @@
 #include <sstream>
 
 #include "cscam/core/error.hpp"
+#include "cscam/core/numparse.hpp"
 #include "cscam/core/parallel.hpp"
 #include "cscam/core/rotations.hpp"
 #include "cscam/core/units.hpp"
@@ -46,6 +47,11 @@ std::string_view trim(std::string_view s) {
 bool gcode_number(std::string_view num, double& v) {
   if (!num.empty() && num[0] == '+') num.remove_prefix(1);
   if (num.empty()) return false;
+  // Nearly every word is a plain "-12.345": read in place when that takes the whole word.
+  if (num[0] != '.' && num.back() != '.' && !(num.size() > 1 && num[0] == '-' && num[1] == '.')) {
+    const auto r = decimal_from_chars(num.data(), num.data() + num.size(), v);
+    return r.ec == std::errc() && r.ptr == num.data() + num.size();
+  }
   char small[64];
   std::string big;  // only for absurdly long words
   char* fixed = small;
@@ -428,41 +434,62 @@ Program read_text(const std::string& text, const std::string& name, const AxisLe
   std::array<bool, 3> plane_given{};            // X, Y, Z given in it: the modal values are plane coordinates
   double feed = 0.0;
   // Tokenising is most of the reading and needs no modal state: the lines ahead are tokenised in parallel, a
-  // window at a time (fixed chunks), and read in order below.
-  constexpr std::size_t kWindow = 1 << 15, kChunk = 1 << 10;
-  std::size_t window_begin = 0, window_end = 0;
-  std::vector<std::vector<Word>> chunk_words;
+  // window at a time (fixed chunks), and read in order below; the window after the one being read is tokenised
+  // in the background meanwhile.
+  static constexpr std::size_t kWindow = 1 << 15, kChunk = 1 << 10;
   struct LineWords {
     std::uint32_t first = 0, count = 0;
     bool simple = false;
   };
-  std::vector<LineWords> line_words;
+  struct TokenWindow {
+    std::size_t begin = 0, end = 0;
+    std::vector<std::vector<Word>> chunk_words;
+    std::vector<LineWords> line_words;
+  };
+  auto tokenise = [&lines](TokenWindow& w, std::size_t begin, std::size_t end) {
+    w.begin = begin;
+    w.end = end;
+    const std::size_t chunks = (end - begin + kChunk - 1) / kChunk;
+    w.chunk_words.resize(chunks);
+    w.line_words.assign(end - begin, LineWords{});
+    parallel_range(0, chunks, 1, [&](const tbb::blocked_range<std::size_t>& r) {
+      for (std::size_t c = r.begin(); c != r.end(); ++c) {
+        auto& words = w.chunk_words[c];
+        words.clear();
+        const std::size_t l0 = begin + c * kChunk, l1 = std::min(end, l0 + kChunk);
+        for (std::size_t l = l0; l < l1; ++l) {
+          LineWords& lw = w.line_words[l - begin];
+          lw.first = static_cast<std::uint32_t>(words.size());
+          lw.simple = simple_words(lines[l], words);
+          if (!lw.simple) words.resize(lw.first);
+          lw.count = static_cast<std::uint32_t>(words.size() - lw.first);
+        }
+      }
+    });
+  };
+  TokenWindow window, next;
+  bool next_pending = false;
+  Background next_job;  // after the windows it writes: joined first when leaving (a throw, the closing '%')
   std::size_t tn = 0;
   auto tokens_for = [&](std::size_t li, std::size_t& count) -> const Word* {
-    if (li >= window_end) {
-      window_begin = li;
-      window_end = std::min(lines.size(), li + kWindow);
-      const std::size_t chunks = (window_end - window_begin + kChunk - 1) / kChunk;
-      chunk_words.resize(chunks);
-      line_words.assign(window_end - window_begin, LineWords{});
-      parallel_range(0, chunks, 1, [&](const tbb::blocked_range<std::size_t>& r) {
-        for (std::size_t c = r.begin(); c != r.end(); ++c) {
-          auto& words = chunk_words[c];
-          words.clear();
-          const std::size_t l0 = window_begin + c * kChunk, l1 = std::min(window_end, l0 + kChunk);
-          for (std::size_t l = l0; l < l1; ++l) {
-            LineWords& lw = line_words[l - window_begin];
-            lw.first = static_cast<std::uint32_t>(words.size());
-            lw.simple = simple_words(lines[l], words);
-            if (!lw.simple) words.resize(lw.first);
-            lw.count = static_cast<std::uint32_t>(words.size() - lw.first);
-          }
-        }
-      });
+    if (li >= window.end) {
+      if (next_pending) {
+        next_job.wait();
+        next_pending = false;
+      }
+      if (li >= next.begin && li < next.end)
+        std::swap(window, next);
+      else
+        tokenise(window, li, std::min(lines.size(), li + kWindow));
+      if (window.end < lines.size()) {
+        next_pending = true;
+        next_job.run(
+            [&tokenise, &next, &lines, b = window.end] { tokenise(next, b, std::min(lines.size(), b + kWindow)); });
+      }
     }
-    const LineWords& lw = line_words[li - window_begin];
+    const LineWords& lw = window.line_words[li - window.begin];
     count = lw.count;
-    return lw.simple ? chunk_words[(li - window_begin) / kChunk].data() + lw.first : nullptr;
+    return lw.simple ? window.chunk_words[(li - window.begin) / kChunk].data() + lw.first : nullptr;
   };
   for (size_t li = first; li < lines.size(); ++li) {
     const std::string_view raw = lines[li];

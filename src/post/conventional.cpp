@@ -68,32 +68,54 @@ std::vector<kin::Axes> conventional_axes(const cl::Program& program, const machi
     return always_axis >= 0 && always_sign * q[always_axis] < -1e-12 ? 1e6 : 0.0;
   };
   // The IK branches of every point do not depend on the previous point (only a singular branch's free angle
-  // does): computed ahead in parallel, a window at a time, and used where no branch is singular. Not on models
-  // whose numbers depend on call order (the XMINI's warm-started solves).
+  // does): computed ahead in parallel, a window at a time, and used where no branch is singular; the window after
+  // the one being walked is computed in the background meanwhile. Not on models whose numbers depend on call
+  // order (the XMINI's warm-started solves).
   const bool ahead = !kinematics.traits().forward_depends_on_call_order;
   constexpr std::size_t kWindow = 4096;
-  std::vector<std::vector<kin::Solution>> branches;
-  std::vector<char> branches_ok;
-  std::size_t window_begin = 0;
+  struct Window {
+    std::size_t begin = 0;
+    std::vector<std::vector<kin::Solution>> branches;
+    std::vector<char> ok;  ///< no branch is singular
+  };
+  auto solve_window = [&program, &kinematics](Window& w, std::size_t begin, std::size_t end) {
+    w.begin = begin;
+    w.branches.resize(end - begin);
+    w.ok.assign(end - begin, 0);
+    parallel_range(begin, end, 256, [&](const tbb::blocked_range<std::size_t>& r) {
+      for (std::size_t k = r.begin(); k != r.end(); ++k) {
+        const cl::Move& m = program.moves[k];
+        auto& b = w.branches[k - begin];
+        kinematics.inverse_branches(kin::Posed{m.tip_in_part_mm, m.axis_in_part.normalized()}, nullptr, b);
+        w.ok[k - begin] = std::none_of(b.begin(), b.end(), [](const kin::Solution& s) { return s.singular; });
+      }
+    });
+  };
+  Window window, next;
+  bool next_pending = false;
+  Background next_job;  // after the windows it writes: joined first when leaving (a throw)
   for (const cl::Move& mv : program.moves) {
     const kin::Posed pose{mv.tip_in_part_mm, mv.axis_in_part.normalized()};
     const std::size_t i = static_cast<std::size_t>(&mv - program.moves.data());
-    if (ahead && (branches.empty() || i >= window_begin + branches.size())) {
-      window_begin = i;
-      const std::size_t end = std::min(program.moves.size(), i + kWindow);
-      branches.resize(end - i);
-      branches_ok.assign(end - i, 0);
-      parallel_range(i, end, 256, [&](const tbb::blocked_range<std::size_t>& r) {
-        for (std::size_t k = r.begin(); k != r.end(); ++k) {
-          const cl::Move& m = program.moves[k];
-          auto& b = branches[k - i];
-          kinematics.inverse_branches(kin::Posed{m.tip_in_part_mm, m.axis_in_part.normalized()}, nullptr, b);
-          branches_ok[k - i] = std::none_of(b.begin(), b.end(), [](const kin::Solution& s) { return s.singular; });
-        }
-      });
+    if (ahead && (window.branches.empty() || i >= window.begin + window.branches.size())) {
+      if (next_pending) {
+        next_job.wait();
+        next_pending = false;
+      }
+      if (!next.branches.empty() && i >= next.begin && i < next.begin + next.branches.size())
+        std::swap(window, next);
+      else
+        solve_window(window, i, std::min(program.moves.size(), i + kWindow));
+      const std::size_t b = window.begin + window.branches.size();
+      if (b < program.moves.size()) {
+        next_pending = true;
+        next_job.run([&solve_window, &next, &program, b] {
+          solve_window(next, b, std::min(program.moves.size(), b + kWindow));
+        });
+      }
     }
     const std::vector<kin::Solution>* given =
-        ahead && branches_ok[i - window_begin] ? &branches[i - window_begin] : nullptr;
+        ahead && window.ok[i - window.begin] ? &window.branches[i - window.begin] : nullptr;
     kin::Axes chosen = kin::Axes::Zero();
     std::string first_violation;
     bool ok = false, singular = false;

@@ -2,6 +2,7 @@
 
 #include <charconv>
 #include <cmath>
+#include <cstring>
 #include <stdexcept>
 
 #include "cscam/core/error.hpp"
@@ -26,6 +27,19 @@ std::string angle_word(double deg, bool plus_sign) {
 /// " F<feed>" with `decimals` decimals: the bytes fmt's "{:.Nf}" writes. The post rounds feeds to whole units of
 /// the last decimal (k / 10^N, every block under inverse time): those are written from the integer k, for which
 /// both roundings agree; any other value goes through fmt.
+/// Writes u / 10^d with d decimals ("12.3400") backwards, ending at `end`; returns its first character. The
+/// formatter runs once per block of a million-block program: digits into a stack buffer, one append per word.
+char* fixed_backwards(char* end, unsigned long long u, int d) {
+  char* p = end;
+  for (int k = 0; k < d; ++k, u /= 10) *--p = static_cast<char>('0' + u % 10);
+  if (d > 0) *--p = '.';
+  do {
+    *--p = static_cast<char>('0' + u % 10);
+    u /= 10;
+  } while (u != 0);
+  return p;
+}
+
 void append_feed(std::string& out, double feed, int decimals) {
   double p = 1.0;
   for (int k = 0; k < decimals; ++k) p *= 10.0;
@@ -33,17 +47,12 @@ void append_feed(std::string& out, double feed, int decimals) {
   if (decimals >= 0 && decimals <= 9 && scaled >= 0.0 && scaled < 1e15) {
     const auto k = std::llround(scaled);
     if (static_cast<double>(k) / p == feed) {
-      const auto unit = static_cast<long long>(p);
-      char tmp[32];
-      out += " F";
-      auto r = std::to_chars(tmp, tmp + sizeof tmp, k / unit);
-      out.append(tmp, r.ptr);
-      if (decimals > 0) {
-        out.push_back('.');
-        r = std::to_chars(tmp, tmp + sizeof tmp, k % unit);
-        out.append(static_cast<size_t>(decimals - (r.ptr - tmp)), '0');
-        out.append(tmp, r.ptr);
-      }
+      char tmp[48];
+      char* const end = tmp + sizeof tmp;
+      char* b = fixed_backwards(end, static_cast<unsigned long long>(k), decimals);
+      *--b = 'F';
+      *--b = ' ';
+      out.append(b, static_cast<size_t>(end - b));
       return;
     }
   }
@@ -63,28 +72,24 @@ std::string sanitize_comment(std::string s) {
 void Formatter::line_start(std::string& out) {
   if (!numbers_) return;
   n_ += step_;
-  fmt::format_to(std::back_inserter(out), "N{} ", n_);
+  char tmp[32];
+  tmp[0] = 'N';
+  char* e = std::to_chars(tmp + 1, tmp + sizeof tmp - 1, n_).ptr;
+  *e++ = ' ';
+  out.append(tmp, static_cast<size_t>(e - tmp));
 }
 
 void Formatter::append_fixed(std::string& out, long long r, int d, bool plus_sign) {
-  if (r < 0) {
-    out.push_back('-');
-    r = -r;
-  } else if (plus_sign) {
-    out.push_back('+');
-  }
-  long long p = 1;
-  for (int k = 0; k < d; ++k) p *= 10;
-  char tmp[32];
-  auto res = std::to_chars(tmp, tmp + sizeof tmp, r / p);
-  out.append(tmp, res.ptr);
-  if (d > 0) {
-    out.push_back('.');
-    res = std::to_chars(tmp, tmp + sizeof tmp, r % p);
-    const auto len = res.ptr - tmp;
-    out.append(static_cast<size_t>(d - len), '0');
-    out.append(tmp, res.ptr);
-  }
+  char tmp[48];
+  char* const end = tmp + sizeof tmp;
+  // The magnitude as unsigned: -r overflows for the most negative value.
+  const auto u = r < 0 ? 0ULL - static_cast<unsigned long long>(r) : static_cast<unsigned long long>(r);
+  char* b = fixed_backwards(end, u, d);
+  if (r < 0)
+    *--b = '-';
+  else if (plus_sign)
+    *--b = '+';
+  out.append(b, static_cast<size_t>(end - b));
 }
 
 void Formatter::comment(std::string& out, const std::string& text) {
@@ -212,9 +217,23 @@ void Formatter::block(std::string& out, const BlockSpec& b) {
   if (b.feed_mode == BlockSpec::FeedMode::PerMinute) out += "G94 ";
   motion_word(out, b);
   for (const auto& w : b.words) {
-    out.push_back(' ');
-    out += info_.letters[static_cast<size_t>(w.slot)];
-    append_fixed(out, w.scaled, w.decimals);
+    // " X-12.3456" built in one buffer, one append.
+    const std::string& letter = info_.letters[static_cast<size_t>(w.slot)];
+    char tmp[64];
+    char* const end = tmp + sizeof tmp;
+    const auto u =
+        w.scaled < 0 ? 0ULL - static_cast<unsigned long long>(w.scaled) : static_cast<unsigned long long>(w.scaled);
+    char* p = fixed_backwards(end, u, w.decimals);
+    if (w.scaled < 0) *--p = '-';
+    if (letter.size() < 16) {
+      p -= letter.size();
+      std::memcpy(p, letter.data(), letter.size());
+      *--p = ' ';
+    } else {
+      out.push_back(' ');
+      out += letter;
+    }
+    out.append(p, static_cast<size_t>(end - p));
   }
   arc_centre_words(out, b);
   if (b.tool_vector) {

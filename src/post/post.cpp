@@ -57,6 +57,15 @@ std::array<double, 2> xmini_virtual_ca(const Vec3& u_W, double q_c, double q_a) 
   return best;
 }
 
+/// std::llround (half away from zero) without its libm call: the sequencer rounds every axis word of every block
+/// several times. Below 2^52 the truncation and the fraction x - trunc(x) are exact, so the result is llround's.
+long long round_half_away(double x) {
+  if (!(std::abs(x) < 4503599627370496.0)) return std::llround(x);  // larger values are whole numbers; NaN
+  const auto i = static_cast<long long>(x);
+  const double frac = x - static_cast<double>(i);
+  return frac >= 0.5 ? i + 1 : (frac <= -0.5 ? i - 1 : i);
+}
+
 /// Rotary changes between two CL points below this are taken as continuing the branch without a check.
 constexpr double kFlipCheckRad = 0.5235987756;  // 30 deg
 
@@ -489,7 +498,7 @@ class Sequencer {
     bool any = false;
     for (int k = 0; k < 3; ++k) {
       const auto u = static_cast<size_t>(xyz_[static_cast<size_t>(k)]);
-      const long long r = std::llround(p[k] * to_file_[u] * scale_[u]);
+      const long long r = round_half_away(p[k] * to_file_[u] * scale_[u]);
       if (!force && have_word_[u] && r == last_[u]) continue;
       blk_.words.push_back({static_cast<int>(u), r, decimals_[u], false});
       last_[u] = r;
@@ -523,8 +532,8 @@ class Sequencer {
   long long rounded(int i, double v) const {
     double f = v * to_file_[static_cast<size_t>(i)];
     if (shortest_[static_cast<size_t>(i)]) f -= 360.0 * std::floor(f / 360.0);  // modulo output in [0, 360)
-    long long r = std::llround(f * scale_[static_cast<size_t>(i)]);
-    if (shortest_[static_cast<size_t>(i)] && r == std::llround(360.0 * scale_[static_cast<size_t>(i)])) r = 0;
+    long long r = round_half_away(f * scale_[static_cast<size_t>(i)]);
+    if (shortest_[static_cast<size_t>(i)] && r == round_half_away(360.0 * scale_[static_cast<size_t>(i)])) r = 0;
     return r;
   }
 
@@ -579,7 +588,8 @@ class Sequencer {
       // Printed rounded down: a block is never faster than the time the sequencer gave it.
       // Slow per-minute feeds (a capped block that mostly turns a rotary) keep four decimals.
       blk_.feed_decimals = mode93_ ? 3 : (*feed < 100.0 ? 4 : 1);
-      const double p = std::pow(10.0, blk_.feed_decimals);
+      static constexpr double kPow10[] = {1.0, 10.0, 100.0, 1000.0, 10000.0};
+      const double p = kPow10[blk_.feed_decimals];
       blk_.feed = std::max(std::floor(*feed * p * (1.0 + kFeedFloorSlack)) / p, 1.0 / p);
     }
     fmt_->block(buf_, blk_);
@@ -928,7 +938,7 @@ class Sequencer {
     for (int k : {u, v}) {
       const auto s = static_cast<size_t>(xyz_[static_cast<size_t>(k)]);
       if (!have_word_[s]) return 0;
-      words.ijk[static_cast<size_t>(k)] = std::llround(c_m[k] * to_file_[s] * scale_[s]) - last_[s];
+      words.ijk[static_cast<size_t>(k)] = round_half_away(c_m[k] * to_file_[s] * scale_[s]) - last_[s];
       words.write[static_cast<size_t>(k)] = true;
     }
     // Feed: the path's speed F; no machine axis exceeds max_feed (in the arc's plane each peaks at F r |sweep| / L,
@@ -975,7 +985,7 @@ class Sequencer {
       // The move as the control sees it is between the printed (rounded) words: a short block's rounding may
       // make it longer than the model's.
       const double f = to_file_[static_cast<size_t>(i)] * scale_[static_cast<size_t>(i)];
-      const double printed = std::abs(static_cast<double>(std::llround(qb[i] * f) - std::llround(qa[i] * f))) / f;
+      const double printed = std::abs(static_cast<double>(round_half_away(qb[i] * f) - round_half_away(qa[i] * f))) / f;
       minutes = std::max(minutes, std::max(std::abs(qb[i] - qa[i]), printed) / vmax);
     }
     if (minutes > programmed_minutes * (1.0 + 1e-9) + 1e-12 && programmed_minutes > 0) {
@@ -991,7 +1001,7 @@ class Sequencer {
     for (int i = 0; i < 5; ++i) {  // between the printed (rounded) words, as the control measures it
       const double f = to_file_[static_cast<size_t>(i)] * scale_[static_cast<size_t>(i)];
       const double d =
-          static_cast<double>(std::llround(wb[i] * f) - std::llround(wa[i] * f)) / scale_[static_cast<size_t>(i)];
+          static_cast<double>(round_half_away(wb[i] * f) - round_half_away(wa[i] * f)) / scale_[static_cast<size_t>(i)];
       (m_.axes[static_cast<size_t>(i)].rotary() ? rot2 : lin2) += d * d;
     }
     return lin2 > 1e-18 ? std::sqrt(lin2) : std::sqrt(rot2);
@@ -1033,12 +1043,20 @@ class Sequencer {
     cur_ = q1;
   }
 
+  /// One segment split ahead (split_ahead).
+  struct Ahead {
+    bool ready = false;
+    std::vector<Linearizer::Piece> pieces;
+    Linearizer::Stats stats;
+  };
+
   /// The linearisation of a CL segment is a pure function of its ends and their axis values, and most of the
   /// post's time: the segments ahead (moves[i - 1] -> moves[i] at axes[i - 1], axes[i]) are split in parallel, a
-  /// window at a time, and taken from there when the sequencer asks for exactly that segment. A segment whose
-  /// split throws, or one the sequencer asks for with other axis values (after a retract or flip), is split here
-  /// as before, so the output and the errors are those of the sequential post. Not on models whose FK/IK depend
-  /// on call order (the XMINI): there the numbers must come in order.
+  /// window at a time, and taken from there when the sequencer asks for exactly that segment. While the sequencer
+  /// works through one window the next is split in the background, so the two overlap. A segment whose split
+  /// throws, or one the sequencer asks for with other axis values (after a retract or flip), is split here as
+  /// before, so the output and the errors are those of the sequential post. Not on models whose FK/IK depend on
+  /// call order (the XMINI): there the numbers must come in order.
   bool split_ahead(const cl::Move& m0, const kin::Axes& q0, const cl::Move& m1, const kin::Axes& q1,
                    Linearizer::Stats& st) {
     if (!axes_ || traits_.forward_depends_on_call_order) return false;
@@ -1047,24 +1065,28 @@ class Sequencer {
     const std::size_t i = static_cast<std::size_t>(&m1 - moves.data());
     const auto& axes = *axes_;
     if (&m0 != &moves[i - 1] || i >= axes.size() || q0 != axes[i - 1] || q1 != axes[i]) return false;
-    constexpr std::size_t kWindow = 4096;
     if (i < ahead_begin_ || i >= ahead_begin_ + ahead_.size()) {
-      ahead_begin_ = i;
-      const std::size_t end = std::min(moves.size(), i + kWindow);
-      ahead_.assign(end - i, Ahead{});
-      parallel_range(i, end, 64, [&](const tbb::blocked_range<std::size_t>& r) {
-        Linearizer lin = lin_;  // its scratch stack is per task
-        for (std::size_t k = r.begin(); k != r.end(); ++k) {
-          if (moves[k].kind == cl::MotionKind::Rapid || moves[k - 1].kind == cl::MotionKind::Rapid) continue;
-          Ahead& a = ahead_[k - i];
-          try {
-            lin.split(moves[k - 1], axes[k - 1], moves[k], axes[k], prog_.file, a.pieces, a.stats);
-            a.ready = true;
-          } catch (...) {  // split again in order, where it throws for the sequential post too
-            a = Ahead{};
-          }
-        }
-      });
+      if (next_pending_) {
+        next_job_.wait();
+        next_pending_ = false;
+      }
+      if (i >= next_begin_ && i < next_begin_ + next_.size()) {
+        ahead_.swap(next_);
+        ahead_begin_ = next_begin_;
+      } else {
+        ahead_begin_ = i;
+        split_window(ahead_, i, std::min(moves.size(), i + kAheadWindow));
+      }
+      // The window after this one, beside the sequencer.
+      const std::size_t begin = ahead_begin_ + ahead_.size();
+      if (begin < moves.size()) {
+        next_begin_ = begin;
+        next_pending_ = true;
+        next_job_.run(
+            [this, begin, end = std::min(moves.size(), begin + kAheadWindow)] { split_window(next_, begin, end); });
+      } else {
+        next_.clear();
+      }
     }
     Ahead& a = ahead_[i - ahead_begin_];
     if (!a.ready) return false;
@@ -1072,6 +1094,27 @@ class Sequencer {
     pieces_.swap(a.pieces);
     st = std::move(a.stats);
     return true;
+  }
+
+  /// Splits the segments ending at moves [begin, end) into `window` (in parallel; reads only the program, the axes
+  /// and lin_proto_, so it may run beside the sequencer).
+  void split_window(std::vector<Ahead>& window, std::size_t begin, std::size_t end) const {
+    const auto& moves = prog_.moves;
+    const auto& axes = *axes_;
+    window.assign(end - begin, Ahead{});
+    parallel_range(begin, end, 64, [&](const tbb::blocked_range<std::size_t>& r) {
+      Linearizer lin = lin_proto_;  // its scratch stack is per task
+      for (std::size_t k = r.begin(); k != r.end(); ++k) {
+        if (moves[k].kind == cl::MotionKind::Rapid || moves[k - 1].kind == cl::MotionKind::Rapid) continue;
+        Ahead& a = window[k - begin];
+        try {
+          lin.split(moves[k - 1], axes[k - 1], moves[k], axes[k], prog_.file, a.pieces, a.stats);
+          a.ready = true;
+        } catch (...) {  // split again in order, where it throws for the sequential post too
+          a = Ahead{};
+        }
+      }
+    });
   }
 
   /// A feed block qa -> qb that covers tip_len_mm of the CL path: inverse time (G93) where the dialect has it,
@@ -1379,13 +1422,14 @@ class Sequencer {
   Linearizer lin_;
   std::vector<Linearizer::Piece> pieces_;
   const std::vector<kin::Axes>* axes_ = nullptr;  ///< the axis values run() was given
-  struct Ahead {
-    bool ready = false;
-    std::vector<Linearizer::Piece> pieces;
-    Linearizer::Stats stats;
-  };
-  std::vector<Ahead> ahead_;  ///< split_ahead's window: segments ahead_begin_ ...
+  static constexpr std::size_t kAheadWindow = 4096;
+  const Linearizer lin_proto_{lin_};  ///< untouched by the sequencer: copied by the splits ahead
+  std::vector<Ahead> ahead_;          ///< split_ahead's window: segments ahead_begin_ ...
   std::size_t ahead_begin_ = 0;
+  std::vector<Ahead> next_;  ///< the window after it, split in the background (next_job_)
+  std::size_t next_begin_ = 0;
+  bool next_pending_ = false;
+  Background next_job_;  ///< declared after what it writes: destroyed (joined) first
   ProgramInfo info_;
   std::unique_ptr<Formatter> fmt_;
   BlockSpec blk_;

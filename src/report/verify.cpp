@@ -5,11 +5,13 @@
 
 #include <algorithm>
 #include <array>
+#include <atomic>
 #include <cmath>
 #include <fstream>
 #include <limits>
 #include <sstream>
 #include <stdexcept>
+#include <string_view>
 
 #include "cscam/core/error.hpp"
 #include "cscam/core/parallel.hpp"
@@ -27,7 +29,7 @@ using Vec3 = Eigen::Vector3d;
 
 struct ClSeg {
   Vec3 p0, p1, u0, u1;
-  int line;
+  int line = 0;
   bool arc_interior = false;  ///< p1 is a point generated inside a CIRCLE/ (an NC arc passes it between its ends)
   double th = 0.0;            ///< slerp_angle(u0, u1)
 };
@@ -142,9 +144,21 @@ class TipWordsKinematics final : public kin::Kinematics {
 }  // namespace
 
 bool uses_tool_tip_control(const std::string& t) {
-  for (const char* w : {"(cartesian:", "G43.4", "G43.5", "G234", "M428", "TRAORI", "TCPM", "M128"})
-    if (t.find(w) != std::string::npos) return true;
-  return false;
+  static constexpr std::array<std::string_view, 8> kWords = {"(cartesian:", "G43.4",  "G43.5", "G234",
+                                                             "M428",        "TRAORI", "TCPM",  "M128"};
+  auto any_in = [](std::string_view v) {
+    return std::any_of(kWords.begin(), kWords.end(), [v](std::string_view w) { return v.find(w) != v.npos; });
+  };
+  // Eight searches through a million-block text: in parallel pieces, each overlapping the next by more than
+  // a word, so that every occurrence lies whole in some piece.
+  constexpr std::size_t kPiece = std::size_t{1} << 20, kOverlap = 16;
+  if (t.size() <= kPiece) return any_in(t);
+  std::atomic<bool> found{false};
+  parallel_range(0, (t.size() + kPiece - 1) / kPiece, 1, [&](const tbb::blocked_range<std::size_t>& r) {
+    for (std::size_t c = r.begin(); c != r.end() && !found.load(std::memory_order_relaxed); ++c)
+      if (any_in(std::string_view(t).substr(c * kPiece, kPiece + kOverlap))) found = true;
+  });
+  return found;
 }
 
 nc::Program read_for_machine(const std::string& nc_text, const std::string& name, const machine::Machine& m) {
@@ -424,14 +438,33 @@ VerifyResult verify(const nc::Program& nc, const cl::Program& cl, const kin::Kin
     for (const auto& t : cl.tools)
       if (t.is_ball()) ball_r = 0.5 * t.diameter_mm;
   auto point = [&](const Vec3& tip, const Vec3& axis) -> Vec3 { return tip + ball_r * axis; };
+  // The CL feed segments, in order: counted per fixed chunk of moves, then filled in parallel at their places.
   std::vector<ClSeg> segs;
-  for (size_t i = 1; i < cl.moves.size(); ++i) {
-    const auto& a = cl.moves[i - 1];
-    const auto& b = cl.moves[i];
-    if (b.kind != cl::MotionKind::Feed) continue;
-    const Vec3 ua = a.axis_in_part.normalized(), ub = b.axis_in_part.normalized();
-    segs.push_back(
-        {point(a.tip_in_part_mm, ua), point(b.tip_in_part_mm, ub), ua, ub, b.line, b.from_arc, slerp_angle(ua, ub)});
+  {
+    constexpr std::size_t kSegChunk = 4096;
+    const std::size_t n_moves = cl.moves.size();
+    const std::size_t chunks = n_moves > 1 ? (n_moves - 2) / kSegChunk + 1 : 0;  // moves 1 .. n - 1
+    std::vector<std::size_t> first(chunks + 1, 0);
+    for (std::size_t c = 0; c < chunks; ++c) {
+      std::size_t count = 0;
+      for (std::size_t i = 1 + c * kSegChunk; i < std::min(n_moves, 1 + (c + 1) * kSegChunk); ++i)
+        count += cl.moves[i].kind == cl::MotionKind::Feed;
+      first[c + 1] = first[c] + count;
+    }
+    segs.resize(first[chunks]);
+    parallel_range(0, chunks, 1, [&](const tbb::blocked_range<std::size_t>& r) {
+      for (std::size_t c = r.begin(); c != r.end(); ++c) {
+        std::size_t k = first[c];
+        for (std::size_t i = 1 + c * kSegChunk; i < std::min(n_moves, 1 + (c + 1) * kSegChunk); ++i) {
+          const auto& a = cl.moves[i - 1];
+          const auto& b = cl.moves[i];
+          if (b.kind != cl::MotionKind::Feed) continue;
+          const Vec3 ua = a.axis_in_part.normalized(), ub = b.axis_in_part.normalized();
+          segs[k++] = {point(a.tip_in_part_mm, ua), point(b.tip_in_part_mm, ub), ua, ub, b.line, b.from_arc,
+                       slerp_angle(ua, ub)};
+        }
+      }
+    });
   }
   if (segs.empty()) {
     r.ok = true;
