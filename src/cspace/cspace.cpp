@@ -238,19 +238,24 @@ void Space::enumerate(const kin::Posed& cl, std::vector<Cell>& out, std::size_t 
   };
   // First a plain flood fill (a stack, no heap order): when the whole cone fits under the cap, the output is the
   // whole cone, sorted below, whatever the visiting order. Past the cap it starts again best-first, which visits
-  // only the closest cells.
-  seed();
-  bool whole = true;
-  while (!heap.empty()) {
-    const Item it = heap.back();
-    heap.pop_back();
-    take(it);
-    if (found.size() > cap) {
-      whole = false;
-      break;
+  // only the closest cells. (Neighbouring points have cones of about the same size: after an overflow this thread
+  // goes best-first at once. Only the work depends on that, never the cells.)
+  thread_local bool overflowed_before = false;
+  bool whole = !overflowed_before;
+  if (whole) {
+    seed();
+    while (!heap.empty()) {
+      const Item it = heap.back();
+      heap.pop_back();
+      take(it);
+      if (found.size() > cap) {
+        whole = false;
+        break;
+      }
     }
+    for (std::size_t at : touched) seen[at] = 0;
+    overflowed_before = !whole;
   }
-  for (std::size_t at : touched) seen[at] = 0;
   if (!whole) {
     touched.clear();
     heap.clear();
@@ -263,6 +268,7 @@ void Space::enumerate(const kin::Posed& cl, std::vector<Cell>& out, std::size_t 
       heap.pop_back();
       take(it);
     }
+    overflowed_before = !heap.empty();  // in-cone cells left over: the cone is larger than the cap
     for (std::size_t at : touched) seen[at] = 0;
   }
   // Sorted by angle, then index: one 64-bit key per cell where the indices fit 16 bits (the bits of a non-negative
