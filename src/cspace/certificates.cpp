@@ -6,14 +6,14 @@ namespace cscam::cspace {
 
 void CertificateStore::reserve() {
   if (!grid_.empty()) return;
-  const auto n1 = static_cast<std::size_t>(sp_.i1_max() - sp_.i1_min() + 1);
-  const auto n2 = static_cast<std::size_t>(sp_.i2_max() - sp_.i2_min() + 1);
+  const auto n1 = static_cast<std::size_t>(sp_.i1_max() - sp_.i1_min()) + 1;
+  const auto n2 = static_cast<std::size_t>(sp_.i2_max() - sp_.i2_min()) + 1;
   grid_.resize(n1 * n2);
 }
 
 CertificateStore::Entry* CertificateStore::entry(int i1, int i2) {
   if (i1 < sp_.i1_min() || i1 > sp_.i1_max() || i2 < sp_.i2_min() || i2 > sp_.i2_max() || grid_.empty()) return nullptr;
-  const auto n1 = static_cast<std::size_t>(sp_.i1_max() - sp_.i1_min() + 1);
+  const auto n1 = static_cast<std::size_t>(sp_.i1_max() - sp_.i1_min()) + 1;
   return &grid_[static_cast<std::size_t>(i2 - sp_.i2_min()) * n1 + static_cast<std::size_t>(i1 - sp_.i1_min())];
 }
 

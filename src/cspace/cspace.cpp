@@ -86,8 +86,8 @@ Space::Space(std::shared_ptr<const kin::Kinematics> kinematics, const geom::Scen
   // A serial machine's axis is R(primary) v(secondary): one factor per grid row and column instead of two rotation
   // matrices per cell (the flood fill of a cone near the singular axis visits thousands of cells per point).
   if (opt_.cone_rad > 0 && kin_->axis_factors(0.0, 0.0, nullptr, nullptr)) {
-    R1_grid_.resize(static_cast<std::size_t>(i1_max_ - i1_min_ + 1));
-    v2_grid_.resize(static_cast<std::size_t>(i2_max_ - i2_min_ + 1));
+    R1_grid_.resize(static_cast<std::size_t>(i1_max_ - i1_min_) + 1);
+    v2_grid_.resize(static_cast<std::size_t>(i2_max_ - i2_min_) + 1);
     for (int i = i1_min_; i <= i1_max_; ++i)
       kin_->axis_factors(r1_of(i), 0.0, &R1_grid_[static_cast<std::size_t>(i - i1_min_)], nullptr);
     for (int i = i2_min_; i <= i2_max_; ++i)
@@ -182,8 +182,8 @@ void Space::enumerate(const kin::Posed& cl, std::vector<Cell>& out, std::size_t 
   // Visited marks on the dense grid, reused between calls of this thread; only touched entries are reset.
   thread_local std::vector<std::uint8_t> seen;
   thread_local std::vector<std::size_t> touched;
-  const std::size_t n1 = static_cast<std::size_t>(i1_max_ - i1_min_ + 1);
-  const std::size_t ncells = n1 * static_cast<std::size_t>(i2_max_ - i2_min_ + 1);
+  const std::size_t n1 = static_cast<std::size_t>(i1_max_ - i1_min_) + 1;
+  const std::size_t ncells = n1 * (static_cast<std::size_t>(i2_max_ - i2_min_) + 1);
   if (seen.size() < ncells) seen.assign(ncells, 0);
   touched.clear();
   const double cos_cone = std::cos(opt_.cone_rad);
