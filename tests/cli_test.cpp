@@ -963,7 +963,8 @@ TEST(Cli, PlannerFixedTierIsWrittenInATiltedWorkPlane) {
   TempDir d;
   const std::string cl = cscam::test::source_path("examples/groove/groove.cls");
   const std::string stl = cscam::test::source_path("examples/groove/groove.stl");
-  // With --tcp the plane is written with tool-tip control cancelled (TCP words around it): the same checks.
+  // With --tcp the whole job is that plane, which would run with tool-tip control cancelled: the program is the
+  // non-TCP one, and the run says so.
   for (const std::string tcp : {"", " --tcp"})
     for (const auto& [dialect, code] : std::map<std::string, std::string>{
              {"fanuc", "G68.2 "}, {"siemens", "CYCLE800(0,"}, {"heidenhain", "PLANE SPATIAL "}}) {
@@ -977,7 +978,9 @@ TEST(Cli, PlannerFixedTierIsWrittenInATiltedWorkPlane) {
       size_t n = 0;
       for (size_t p = text.find(code); p != std::string::npos; p = text.find(code, p + 1)) ++n;
       EXPECT_EQ(n, 1u) << dialect << "\n" << text.substr(0, 1500);
-      EXPECT_EQ(text.find("(cartesian:") != std::string::npos, !tcp.empty());
+      EXPECT_EQ(text.find("(cartesian:"), std::string::npos);
+      EXPECT_EQ(r.output.find("every stretch is cut in a tilted work plane") != std::string::npos, !tcp.empty())
+          << r.output;
       r = run_command(kCli + " verify " + out + " --machine trunnion-ac --cl " + cl + " --cone 10");
       EXPECT_EQ(r.status, 0) << r.output;
     }

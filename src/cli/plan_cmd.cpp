@@ -296,6 +296,7 @@ int run_plan(const PlanArgs& a) {
   const gate::Summary v = gate::write_checked(out, text, p.program, s->m, *s->kin, gate_options(*s, a, a.cone_deg),
                                               &sum.cl_line_of_nc_line);
   if (!a.svg_dir.empty()) write_svgs(*s, planner, p, post::conventional_axes(s->prog, s->m, *s->kin), a.svg_dir);
+  for (const auto& x : sum.warnings) s->warn(x);  // the post's (capped feeds, a dialect without planes, ...)
   std::cout << p.summary();
   std::cout << fmt::format("wrote {} ({} blocks); verify: {}\n", out, sum.blocks, v.message);
   std::cout << fmt::format(
@@ -398,6 +399,8 @@ int run_compare(const PlanArgs& a) {
   const plan::Plan p = planned(*s, a);
   post::Summary sp;
   const std::string plan_text = post_to_string(*s, p.program, p.axes, a, "cspace-planner", sp);
+  for (const auto& x : sc.warnings) s->warn("conventional program: " + x);
+  for (const auto& x : sp.warnings) s->warn("planned program: " + x);
   const auto vc = verify_text(*s, conv_text, 0.0);
   const auto vp = verify_text(*s, plan_text, a.cone_deg, &p);
   auto stc = stats_of(*s, conv_text, "conventional");

@@ -173,6 +173,18 @@ class Sequencer {
     tcp_axis_retract_ = axis_retract_;
   }
 
+  /// A tool-tip-control program whose every stretch gets a tilted work plane would cancel TCP for all of its motion:
+  /// write_nc then posts it in machine coordinates (as with TCP off), without a TCP word or a Cartesian header.
+  /// The stretches are decided where run() decides them: at the first move and at every rapid.
+  [[nodiscard]] bool planes_only(const std::vector<kin::Axes>& axes) const {
+    if (!tcp_program_ || !planes_ || prog_.moves.empty()) return false;
+    for (size_t i = 0; i < prog_.moves.size(); ++i) {
+      if (i > 0 && prog_.moves[i].kind != cl::MotionKind::Rapid) continue;
+      if (const auto plane = plane_ahead(axes, i); plane && !*plane) return false;
+    }
+    return true;
+  }
+
   void run(const std::vector<kin::Axes>& axes) {
     axes_ = &axes;
     sum_.cl_line_of_nc_line.assign(1, 0);
@@ -334,7 +346,12 @@ class Sequencer {
             known ? fmt::format("TOOL {}: {} D{:.3f}", n, prog_.tools[static_cast<size_t>(e.tool_index)].name,
                                 prog_.tools[static_cast<size_t>(e.tool_index)].diameter_mm)
                   : std::string());
-        if (cart_) tool_tip_control_on(e.line);
+        // A tool whose first stretch is a tilted plane starts without TCP: switch_to_machine writes its plain length
+        // offset there, rather than TCP on here and off again before any motion.
+        if (cart_) {
+          const auto plane = tcp_program_ && planes_ ? plane_ahead(*axes_, e.before_move) : std::nullopt;
+          if (!plane.value_or(false)) tool_tip_control_on(e.line);
+        }
         break;
       }
       case K::SpindleOn:
@@ -1490,6 +1507,20 @@ void write_nc(std::ostream& out, const cl::Program& program, const machine::Mach
               const kin::Kinematics& kinematics, const std::vector<kin::Axes>& axes, const Options& options,
               Summary& summary) {
   CSCAM_CHECK(axes.size() == program.moves.size(), "one axis vector per CL move");
+  {
+    Summary probe;
+    if (Sequencer(out, program, machine, kinematics, options, probe).planes_only(axes)) {
+      Options machine_words = options;
+      machine_words.tcp = false;
+      Sequencer w(out, program, machine, kinematics, machine_words, summary);
+      summary.warnings.push_back(
+          fmt::format("{}: tool-tip control asked for, but every stretch is cut in a tilted work plane: written in "
+                      "machine coordinates (TCP would be cancelled around every plane)",
+                      program.file));
+      w.run(axes);
+      return;
+    }
+  }
   Sequencer w(out, program, machine, kinematics, options, summary);
   w.run(axes);
 }
