@@ -1103,6 +1103,41 @@ TEST(PlannerDetail, CellIndexAnswersAsAnUnorderedMap) {
 // and the rest of the tool carry their own motion margins), and every move the samples see hit is called colliding
 // or uncertified. (A consistency check of the verdicts on a real part; the margins' bound itself is what
 // docs/safety.md derives.)
+TEST(PlannerTiers, NoAnswerJumpsBeyondTheStepBoundBetweenTwoPoints) {
+  // Tiers 2 and 3 ask for monotonic rotaries only; a monotonic path can still unwind a turn or flip between two points
+  // (the groove at cone 5 once went c 262 -> -72 deg in one step, NX's head path c by 64 deg), the sudden rotary change
+  // the planner exists to avoid. Oracle: the planned axes themselves, step by step inside every segment, against the
+  // bound (20 grid steps); and the tier that gave up says why.
+  struct Case {
+    const char* cl;
+    const char* machine;
+  };
+  int segments = 0, jumps_refused = 0;
+  for (const Case& c :
+       {Case{"examples/groove/groove.cls", "haas-umc750"}, Case{"examples/groove/groove.cls", "trunnion-ac"},
+        Case{"tests/data/lcnc-trace/nx_variable_axis_head.cls", "haas-umc750"}}) {
+    SCOPED_TRACE(std::string(c.cl) + " on " + c.machine);
+    const auto m = machine::load(test::source_path(std::string("machines/") + c.machine + ".yaml"));
+    const cl::Program prog = cl::read_file(test::source_path(c.cl));
+    plan::Options o;
+    o.cspace.cone_rad = deg2rad(5.0);
+    const plan::Plan p = plan::Planner(m, m.kinematics(), nullptr, nullptr, o).run(prog);
+    const auto rp = m.kinematics()->rotary_pair();
+    const double bound = 20.0 * o.cspace.resolution_rad + 1e-9;
+    for (const auto& seg : p.segments) {
+      ++segments;
+      for (std::size_t i = seg.first_move + 1; i <= seg.last_move; ++i)
+        for (int r : rp)
+          EXPECT_LE(std::abs(p.axes[i][r] - p.axes[i - 1][r]), bound)
+              << "CL line " << prog.moves[i].line << ", tier " << static_cast<int>(seg.tier) << "\n"
+              << p.summary();
+      for (const auto& f : seg.failures) jumps_refused += f.detail.find("would jump by") != std::string::npos;
+    }
+  }
+  EXPECT_GE(segments, 3);
+  EXPECT_GE(jumps_refused, 2) << "the cases that once jumped must now be refused by tier 2 or 3, saying so";
+}
+
 TEST(PlannerIssue11, IntervalReachBoundHoldsOnRandomMovesOfEverySerialMachine) {
   // The swept check's second-order bound: over a sub-interval of a straight joint move, no point of a body within
   // the lever of the tip leaves its middle position by more than interval_reach_bound. Oracle: dense sampling of the

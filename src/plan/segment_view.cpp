@@ -181,6 +181,21 @@ bool feasible(const SegmentView& v, SegmentCells& d, std::size_t k, Cell& c, csp
   return c.status == Status::Feasible;
 }
 
+bool steps_within_bound(const SegmentView& v, const std::vector<const Cell*>& path, Why& why, std::size_t& at) {
+  const double bound = max_rotary_step(v);
+  for (std::size_t k = 1; k < path.size(); ++k) {
+    const double d1 = std::abs(path[k]->r1 - path[k - 1]->r1), d2 = std::abs(path[k]->r2 - path[k - 1]->r2);
+    if (d1 <= bound + 1e-12 && d2 <= bound + 1e-12) continue;
+    at = k;
+    why = {FailureCause::Transition,
+           fmt::format("its rotaries would jump by {:.3f} deg ({}) and {:.3f} deg ({}) from the previous point, beyond "
+                       "the step bound of {:.2f} deg",
+                       rad2deg(d1), v.n1(), rad2deg(d2), v.n2(), rad2deg(bound))};
+    return false;
+  }
+  return true;
+}
+
 double room(const SegmentView& v, SegmentCells& d, const std::vector<const Cell*>& p) {
   const std::size_t n = p.size();
   double r = 0.0;

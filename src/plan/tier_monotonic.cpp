@@ -53,6 +53,7 @@ bool tier_monotonic(const SegmentView& v, SegmentCells& d, TierOutcome& out) {
   std::size_t furthest = 0;
   Why furthest_why{FailureCause::Orientation, ""};
   double best_travel = kInf;
+  bool jumped = false;  // some direction pair had a whole monotonic path, but one that jumps
   // Every layer's cells in grid order (rows by secondary, primary inside a row), sorted once per cell list (kept in
   // the layer across cascade re-runs) for the four direction pairs: each walks the rows and the cells inside a row
   // forward or backward.
@@ -128,7 +129,7 @@ bool tier_monotonic(const SegmentView& v, SegmentCells& d, TierOutcome& out) {
             return !stair.empty();
           });
       if (k_end < n) {
-        if (k_end >= furthest) {
+        if (!jumped && k_end >= furthest) {
           furthest = k_end;
           furthest_why = why;
         }
@@ -139,6 +140,13 @@ bool tier_monotonic(const SegmentView& v, SegmentCells& d, TierOutcome& out) {
         const std::vector<int> idx = dp.backtrack(static_cast<int>(e));
         std::vector<const Cell*> p(n);
         for (std::size_t kk = 0; kk < n; ++kk) p[kk] = dp.nodes[kk][static_cast<size_t>(idx[kk])].cell;
+        std::size_t jump = 0;
+        if (Why w; !steps_within_bound(v, p, w, jump)) {
+          // A monotonic path exists but jumps: that, not a shorter failure elsewhere, is why this tier gives none.
+          if (!jumped) furthest = jump, furthest_why = w;
+          jumped = true;
+          continue;
+        }
         const double travel = v.options.weight_primary * std::abs(p[n - 1]->r1 - p[0]->r1) +
                               v.options.weight_secondary * std::abs(p[n - 1]->r2 - p[0]->r2);
         if (travel < best_travel - 1e-12) {

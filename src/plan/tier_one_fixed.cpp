@@ -46,6 +46,7 @@ bool tier_one_fixed(const SegmentView& v, SegmentCells& d, TierOutcome& out) {
   std::size_t furthest = 0;
   Why furthest_why{FailureCause::Orientation, ""};
   double best_travel = kInf;
+  bool jumped = false;  // some candidate had a whole monotonic path, but one that jumps
   std::vector<const Cell*> best;
   for (int f = 1; f >= 0; --f) {  // fix the secondary first (e.g. the tilt), then the primary
     // Candidate fixed values: present at the first point, closest orientation first. Later points are
@@ -92,8 +93,14 @@ bool tier_one_fixed(const SegmentView& v, SegmentCells& d, TierOutcome& out) {
           p[k] = chosen;
           prev = f == 0 ? chosen->i2 : chosen->i1;
         }
+        if (k == n && !steps_within_bound(v, p, why, k)) {
+          // A monotonic path exists but jumps: that, not a shorter failure elsewhere, is why this tier gives none.
+          if (!jumped) furthest = k, furthest_why = why;
+          jumped = true;
+          continue;
+        }
         if (k < n) {
-          if (k >= furthest) {
+          if (!jumped && k >= furthest) {
             furthest = k;
             furthest_why = why;
           }

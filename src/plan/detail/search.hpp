@@ -214,6 +214,17 @@ struct Why {
   [[nodiscard]] std::string text() const { return failure_text(cause, detail); }
 };
 
+/// The largest rotary step a path may take from one point to the next (Options::max_step_rad; by default 20 grid
+/// steps, and no bound at cone 0, where the exact orientations must turn fast near the singularity).
+inline double max_rotary_step(const SegmentView& v) {
+  if (v.options.max_step_rad > 0) return v.options.max_step_rad;
+  return v.exact ? kPi : 20.0 * v.space.options().resolution_rad;
+}
+/// Whether every step of `path` stays within max_rotary_step; if not, `why` says where the first one leaves it.
+/// Tiers 2 and 3 only ask for monotonic rotaries: a monotonic path may still jump (unwind a turn, or flip) between
+/// two points, which is the sudden rotary change the planner is there to avoid; such an answer is not taken.
+bool steps_within_bound(const SegmentView& v, const std::vector<const Cell*>& path, Why& why, std::size_t& at);
+
 /// A state of a DP over a layer's own cell list: cost and predecessor per cell (kInf / -1: unreachable).
 struct CostNode {
   double cost = kInf;
