@@ -44,6 +44,97 @@ struct Step {
   int pred;
   double cost = 0.0;  // unused: any final step is reachable, the least travel picks one
 };
+
+/// Both rotaries monotonic, every step within the bound: the exact search, for a direction pair whose staircase path
+/// jumps. The states of a point are all its feasible cells that a state of the point before reaches with a step in
+/// [0, W] grid steps on both directed axes; each keeps the least weighted travel to it and its predecessor. The reach
+/// is a one-sided sliding minimum over W steps, along the rows and then the columns of the previous states' box.
+/// Costlier than the staircase (it evaluates every reachable cell), so only run where the staircase's answer jumped.
+bool bounded_monotonic(const SegmentView& v, SegmentCells& d, int d1, int d2, std::vector<const Cell*>& path) {
+  const std::size_t n = d.layers.size();
+  const double res = v.space.options().resolution_rad;
+  const auto W = static_cast<long long>(std::floor(max_rotary_step(v) / res + 1e-9));
+  const double w1 = v.options.weight_primary * res, w2 = v.options.weight_secondary * res;
+  struct State {
+    Cell* cell;
+    long long a, b;  // directed grid coordinates
+    double cost;
+    int pred;
+  };
+  std::vector<std::vector<State>> states(n);
+  for (Cell& c : d.layers[0].cells)
+    if (feasible(v, d, 0, c))
+      states[0].push_back({&c, d1 * static_cast<long long>(c.i1), d2 * static_cast<long long>(c.i2), 0.0, -1});
+  std::vector<double> g, h;
+  std::vector<int> g_src, h_src;
+  std::vector<long long> dq;
+  // out[i] = min over i - W <= j <= i of in[j], along a line of `len` entries `stride` apart from `start`.
+  auto sliding_min = [&](const std::vector<double>& in, const std::vector<int>& in_src, std::vector<double>& out,
+                         std::vector<int>& out_src, std::size_t start, std::size_t stride, long long len) {
+    dq.clear();
+    std::size_t head = 0;
+    for (long long i = 0; i < len; ++i) {
+      const std::size_t at = start + static_cast<std::size_t>(i) * stride;
+      while (dq.size() > head && in[start + static_cast<std::size_t>(dq.back()) * stride] >= in[at]) dq.pop_back();
+      dq.push_back(i);
+      while (dq[head] < i - W) ++head;
+      const std::size_t best = start + static_cast<std::size_t>(dq[head]) * stride;
+      out[at] = in[best];
+      out_src[at] = in_src[best];
+    }
+  };
+  for (std::size_t k = 1; k < n && !states[k - 1].empty(); ++k) {
+    const auto& prev = states[k - 1];
+    long long a0 = prev.front().a, a1 = a0, b0 = prev.front().b, b1 = b0;
+    for (const State& s : prev) {
+      a0 = std::min(a0, s.a);
+      a1 = std::max(a1, s.a);
+      b0 = std::min(b0, s.b);
+      b1 = std::max(b1, s.b);
+    }
+    a1 += W;
+    b1 += W;
+    const long long na = a1 - a0 + 1, nb = b1 - b0 + 1;
+    const auto cells = static_cast<std::size_t>(na * nb);
+    // Costs relative to the box's corner: cost(p) - w1 (a_p - a0) - w2 (b_p - b0), so that a cell's cost is the
+    // minimum over its reach plus w1 (a - a0) + w2 (b - b0) (a monotone path's travel telescopes).
+    g.assign(cells, kInf);
+    g_src.assign(cells, -1);
+    for (std::size_t p = 0; p < prev.size(); ++p) {
+      const auto at = static_cast<std::size_t>((prev[p].b - b0) * na + (prev[p].a - a0));
+      const double val =
+          prev[p].cost - w1 * static_cast<double>(prev[p].a - a0) - w2 * static_cast<double>(prev[p].b - b0);
+      if (val < g[at]) {
+        g[at] = val;
+        g_src[at] = static_cast<int>(p);
+      }
+    }
+    h.assign(cells, kInf);
+    h_src.assign(cells, -1);
+    for (long long b = 0; b < nb; ++b) sliding_min(g, g_src, h, h_src, static_cast<std::size_t>(b * na), 1, na);
+    for (long long a = 0; a < na; ++a)
+      sliding_min(h, h_src, g, g_src, static_cast<std::size_t>(a), static_cast<std::size_t>(na), nb);
+    for (Cell& c : d.layers[k].cells) {
+      const long long a = d1 * static_cast<long long>(c.i1), b = d2 * static_cast<long long>(c.i2);
+      if (a < a0 || a > a1 || b < b0 || b > b1) continue;
+      const auto at = static_cast<std::size_t>((b - b0) * na + (a - a0));
+      if (g_src[at] < 0 || !feasible(v, d, k, c)) continue;
+      states[k].push_back(
+          {&c, a, b, g[at] + w1 * static_cast<double>(a - a0) + w2 * static_cast<double>(b - b0), g_src[at]});
+    }
+  }
+  if (states[n - 1].empty()) return false;
+  std::size_t at = 0;
+  for (std::size_t e = 1; e < states[n - 1].size(); ++e)
+    if (states[n - 1][e].cost < states[n - 1][at].cost) at = e;
+  path.assign(n, nullptr);
+  for (std::size_t k = n; k-- > 0;) {
+    const State& s = states[k][at];
+    path[k] = s.cell;
+    at = static_cast<std::size_t>(s.pred);
+  }
+  return true;
+}
 }  // namespace
 
 bool tier_monotonic(const SegmentView& v, SegmentCells& d, TierOutcome& out) {
@@ -135,7 +226,9 @@ bool tier_monotonic(const SegmentView& v, SegmentCells& d, TierOutcome& out) {
         }
         continue;
       }
-      // Any final staircase cell is reachable; take the one with the least travel.
+      // Any final staircase cell is reachable; take the one with the least travel. Where every such path jumps beyond
+      // the step bound, the exact bounded search (bounded_monotonic) gives this direction pair's answer, if any.
+      std::vector<std::vector<const Cell*>> paths;
       for (std::size_t e = 0; e < dp.nodes[n - 1].size(); ++e) {
         const std::vector<int> idx = dp.backtrack(static_cast<int>(e));
         std::vector<const Cell*> p(n);
@@ -147,6 +240,13 @@ bool tier_monotonic(const SegmentView& v, SegmentCells& d, TierOutcome& out) {
           jumped = true;
           continue;
         }
+        paths.push_back(std::move(p));
+      }
+      if (paths.empty()) {
+        std::vector<const Cell*> p;
+        if (bounded_monotonic(v, d, d1, d2, p)) paths.push_back(std::move(p));
+      }
+      for (const auto& p : paths) {
         const double travel = v.options.weight_primary * std::abs(p[n - 1]->r1 - p[0]->r1) +
                               v.options.weight_secondary * std::abs(p[n - 1]->r2 - p[0]->r2);
         if (travel < best_travel - 1e-12) {
