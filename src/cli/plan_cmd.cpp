@@ -399,8 +399,13 @@ int run_compare(const PlanArgs& a) {
   const plan::Plan p = planned(*s, a);
   post::Summary sp;
   const std::string plan_text = post_to_string(*s, p.program, p.axes, a, "cspace-planner", sp);
-  for (const auto& x : sc.warnings) s->warn("conventional program: " + x);
-  for (const auto& x : sp.warnings) s->warn("planned program: " + x);
+  // A warning both programs raise (e.g. the CL's H0) once, as the file's.
+  auto in = [](const std::vector<std::string>& v, const std::string& x) {
+    return std::find(v.begin(), v.end(), x) != v.end();
+  };
+  for (const auto& x : sc.warnings) s->warn(in(sp.warnings, x) ? "both programs: " + x : "conventional program: " + x);
+  for (const auto& x : sp.warnings)
+    if (!in(sc.warnings, x)) s->warn("planned program: " + x);
   const auto vc = verify_text(*s, conv_text, 0.0);
   const auto vp = verify_text(*s, plan_text, a.cone_deg, &p);
   auto stc = stats_of(*s, conv_text, "conventional");
