@@ -49,8 +49,16 @@ struct Step {
 /// jumps. The states of a point are all its feasible cells that a state of the point before reaches with a step in
 /// [0, W] grid steps on both directed axes; each keeps the least weighted travel to it and its predecessor. The reach
 /// is a one-sided sliding minimum over W steps, along the rows and then the columns of the previous states' box.
-/// Costlier than the staircase (it evaluates every reachable cell), so only run where the staircase's answer jumped.
-bool bounded_monotonic(const SegmentView& v, SegmentCells& d, int d1, int d2, std::vector<const Cell*>& path) {
+/// Costlier than the staircase (it evaluates every reachable cell), so only run where the staircase's answer jumped,
+/// and within kBoundedSearchCells cell evaluations (`stopped` then says so; the tier reports it).
+constexpr std::size_t kBoundedSearchCells = 50000;
+bool bounded_monotonic(const SegmentView& v, SegmentCells& d, int d1, int d2, std::vector<const Cell*>& path,
+                       bool& stopped) {
+  std::size_t evaluated = 0;
+  auto reachable_and_feasible = [&](std::size_t k, Cell& c) {
+    if (c.status == Status::Unknown && ++evaluated > kBoundedSearchCells) stopped = true;
+    return !stopped && feasible(v, d, k, c);
+  };
   const std::size_t n = d.layers.size();
   const double res = v.space.options().resolution_rad;
   const auto W = static_cast<long long>(std::floor(max_rotary_step(v) / res + 1e-9));
@@ -63,7 +71,7 @@ bool bounded_monotonic(const SegmentView& v, SegmentCells& d, int d1, int d2, st
   };
   std::vector<std::vector<State>> states(n);
   for (Cell& c : d.layers[0].cells)
-    if (feasible(v, d, 0, c))
+    if (reachable_and_feasible(0, c))
       states[0].push_back({&c, d1 * static_cast<long long>(c.i1), d2 * static_cast<long long>(c.i2), 0.0, -1});
   std::vector<double> g, h;
   std::vector<int> g_src, h_src;
@@ -83,7 +91,7 @@ bool bounded_monotonic(const SegmentView& v, SegmentCells& d, int d1, int d2, st
       out_src[at] = in_src[best];
     }
   };
-  for (std::size_t k = 1; k < n && !states[k - 1].empty(); ++k) {
+  for (std::size_t k = 1; k < n && !stopped && !states[k - 1].empty(); ++k) {
     const auto& prev = states[k - 1];
     long long a0 = prev.front().a, a1 = a0, b0 = prev.front().b, b1 = b0;
     for (const State& s : prev) {
@@ -118,12 +126,12 @@ bool bounded_monotonic(const SegmentView& v, SegmentCells& d, int d1, int d2, st
       const long long a = d1 * static_cast<long long>(c.i1), b = d2 * static_cast<long long>(c.i2);
       if (a < a0 || a > a1 || b < b0 || b > b1) continue;
       const auto at = static_cast<std::size_t>((b - b0) * na + (a - a0));
-      if (g_src[at] < 0 || !feasible(v, d, k, c)) continue;
+      if (g_src[at] < 0 || !reachable_and_feasible(k, c)) continue;
       states[k].push_back(
           {&c, a, b, g[at] + w1 * static_cast<double>(a - a0) + w2 * static_cast<double>(b - b0), g_src[at]});
     }
   }
-  if (states[n - 1].empty()) return false;
+  if (stopped || states[n - 1].empty()) return false;
   std::size_t at = 0;
   for (std::size_t e = 1; e < states[n - 1].size(); ++e)
     if (states[n - 1][e].cost < states[n - 1][at].cost) at = e;
@@ -244,7 +252,11 @@ bool tier_monotonic(const SegmentView& v, SegmentCells& d, TierOutcome& out) {
       }
       if (paths.empty()) {
         std::vector<const Cell*> p;
-        if (bounded_monotonic(v, d, d1, d2, p)) paths.push_back(std::move(p));
+        bool stopped = false;
+        if (bounded_monotonic(v, d, d1, d2, p, stopped)) paths.push_back(std::move(p));
+        if (stopped)
+          furthest_why.detail +=
+              fmt::format("; the exact search within the step bound stopped after {} cells", kBoundedSearchCells);
       }
       for (const auto& p : paths) {
         const double travel = v.options.weight_primary * std::abs(p[n - 1]->r1 - p[0]->r1) +
