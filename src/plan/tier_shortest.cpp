@@ -254,7 +254,7 @@ bool tier_shortest(const SegmentView& v, SegmentCells& d, TierOutcome& out) {
   const Options& opt = v.options;
   const double res = v.space.options().resolution_rad;
   // Exact orientations (cone 0) must be free to turn fast near the singularity: no default bound there.
-  const double max_step = opt.max_step_rad > 0 ? opt.max_step_rad : v.exact ? kPi : 20.0 * res;
+  const double max_step = max_rotary_step(v);  // the bound tiers 2 and 3 hold too
   const std::size_t beam = 256;
   if (v.exact) {
     std::size_t fl = 0;
