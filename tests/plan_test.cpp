@@ -1153,6 +1153,61 @@ TEST(PlannerTiers, NoAnswerJumpsBeyondTheStepBoundBetweenTwoPoints) {
   EXPECT_GE(monotonic, 1);
 }
 
+TEST(PlannerTiers, NoSegmentIsEnteredThroughAWholeTurn) {
+  // A rotary whose grid spans more than a turn (the UMC-750's cyclic C, the head's C of +-360 deg) offers every
+  // orientation at two windings or more, at the same cost along the segment. The planner once took the lowest (tier 2:
+  // C fixed at -360 deg from home at 0, a full turn there and back; tier 4 on the groove C 256 deg instead of -104).
+  // Oracle: the planned axes. Where a segment starts more than half a turn from where the previous one ended (or from
+  // home), shifting the whole segment by the turns between must leave the grid or the axis limits.
+  struct Case {
+    const char* cl;
+    const char* machine;
+    double cone_deg;
+  };
+  int segments = 0, far_entries = 0;
+  for (const Case& c :
+       {Case{"examples/cl/iso_catia.cls", "haas-umc750", 5}, Case{"examples/cl/iso_catia.cls", "haas-umc750", 0},
+        Case{"examples/cl/points_csv.cls", "haas-umc750", 5}, Case{"examples/cl/iso_catia.cls", "head-head-ac", 5},
+        Case{"examples/groove/groove.cls", "haas-umc750", 5}, Case{"examples/groove/groove.cls", "head-head-ac", 5},
+        Case{"examples/groove/groove.cls", "head-table-bc45", 5}}) {
+    SCOPED_TRACE(std::string(c.cl) + " on " + c.machine + " at cone " + std::to_string(c.cone_deg));
+    const auto m = machine::load(test::source_path(std::string("machines/") + c.machine + ".yaml"));
+    const cl::Program prog = cl::read_file(test::source_path(c.cl));
+    plan::Options o;
+    o.cspace.cone_rad = deg2rad(c.cone_deg);
+    const plan::Plan p = plan::Planner(m, m.kinematics(), nullptr, nullptr, o).run(prog);
+    const cspace::Space grid(m.kinematics(), nullptr, nullptr, o.cspace);
+    const auto rp = m.kinematics()->rotary_pair();
+    const auto& axes = m.kinematics()->axes();
+    for (std::size_t g = 0; g < p.segments.size(); ++g) {
+      ++segments;
+      const auto& seg = p.segments[g];
+      for (int j = 0; j < 2; ++j) {
+        const int r = rp[static_cast<std::size_t>(j)];
+        const double from = g == 0 ? 0.0 : p.axes[p.segments[g - 1].last_move][r];
+        const double first = p.axes[seg.first_move][r];
+        const double turns = std::round((first - from) / (2 * kPi));
+        if (std::abs(first - from) <= kPi + 1e-9 || turns == 0) continue;
+        ++far_entries;
+        const double lo = (j == 0 ? grid.i1_min() : grid.i2_min()) * o.cspace.resolution_rad - 1e-9;
+        const double hi = (j == 0 ? grid.i1_max() : grid.i2_max()) * o.cspace.resolution_rad + 1e-9;
+        bool fits = true;
+        for (std::size_t i = seg.first_move; i <= seg.last_move; ++i) {
+          const double shifted = p.axes[i][r] - turns * 2 * kPi;
+          fits &= shifted >= lo && shifted <= hi && shifted >= axes[static_cast<std::size_t>(r)].min - 1e-9 &&
+                  shifted <= axes[static_cast<std::size_t>(r)].max + 1e-9;
+        }
+        EXPECT_FALSE(fits) << "segment " << g + 1 << " (CL lines " << seg.first_line << "-" << seg.last_line
+                           << ") enters " << axes[static_cast<std::size_t>(r)].name << " at " << rad2deg(first)
+                           << " deg from " << rad2deg(from) << " deg, a whole turn too far\n"
+                           << p.summary();
+      }
+    }
+  }
+  EXPECT_GE(segments, 10);
+  std::cout << "segments " << segments << ", entries over half a turn " << far_entries << "\n";
+}
+
 TEST(PlannerIssue11, IntervalReachBoundHoldsOnRandomMovesOfEverySerialMachine) {
   // The swept check's second-order bound: over a sub-interval of a straight joint move, no point of a body within
   // the lever of the tip leaves its middle position by more than interval_reach_bound. Oracle: dense sampling of the

@@ -12,6 +12,7 @@ namespace cscam::plan::detail {
 
 Cascade run_cascade(const SegmentView& v, SegmentCells& d, std::size_t& points_beyond_cap) {
   Cascade c;
+  d.last_shortest.reset();  // cells may have been ruled out since: tier 4 searches afresh
   TierOutcome t;
   if (tier_fixed(v, d, t)) {
     c.tier = Tier::Fixed2;

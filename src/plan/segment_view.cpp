@@ -131,6 +131,7 @@ SegmentCells make_cells(const SegmentView& v, std::size_t first, std::size_t las
 }
 
 void extend_layer(const SegmentView& v, SegmentCells& d, std::size_t k) {
+  d.last_shortest.reset();  // its states point into the old list
   Layer& l = d.layers[k];
   std::unordered_map<std::uint64_t, Cell> keep;
   keep.swap(l.extra);
@@ -141,6 +142,7 @@ void extend_layer(const SegmentView& v, SegmentCells& d, std::size_t k) {
 }
 
 void list_layers(const SegmentView& v, SegmentCells& d) {
+  d.last_shortest.reset();
   // Every layer on its own (in parallel): the same lists, counters summed.
   parallel_items(d.layers.size() - 1, d.counters, [&](std::size_t i, geom::QueryWorkspace&, cspace::Counters& cc) {
     Layer& l = d.layers[i + 1];
@@ -167,6 +169,97 @@ Cell* cell_at(const SegmentView& v, SegmentCells& d, std::size_t k, int i1, int 
   if (!v.space.in_cone(l.cl, c.r1, c.r2, &c.orient_err)) c.status = Status::Orientation;
   auto& slot = l.extra.emplace(kk, c).first->second;
   return slot.status == Status::Orientation ? nullptr : &slot;
+}
+
+namespace {
+/// Grid cells per whole turn (0: a turn is no whole number of cells).
+long cells_per_turn(const cspace::Space& sp) {
+  const double turn_cells = 2.0 * kPi / sp.options().resolution_rad;
+  const long per_turn = std::lround(turn_cells);
+  return std::abs(turn_cells - static_cast<double>(per_turn)) > 1e-6 ? 0 : per_turn;
+}
+}  // namespace
+
+PathCost path_cost(const SegmentView& v, const std::vector<const Cell*>& path) {
+  PathCost c;
+  if (path.empty()) return c;
+  const auto rp = v.space.kinematics().rotary_pair();
+  const double w1 = v.options.weight_primary, w2 = v.options.weight_secondary;
+  for (std::size_t k = 1; k < path.size(); ++k)
+    c.travel += w1 * std::abs(path[k]->r1 - path[k - 1]->r1) + w2 * std::abs(path[k]->r2 - path[k - 1]->r2);
+  const double p1 = v.prefer ? (*v.prefer)[rp[0]] : 0.0, p2 = v.prefer ? (*v.prefer)[rp[1]] : 0.0;
+  c.entry = w1 * std::abs(path.front()->r1 - p1) + w2 * std::abs(path.front()->r2 - p2);
+  return c;
+}
+
+double whole_turns_rad(const cspace::Space& sp, int j, int i, double from_rad) {
+  const long per_turn = cells_per_turn(sp);
+  if (per_turn <= 0) return 0.0;
+  const int g_lo = j == 0 ? sp.i1_min() : sp.i2_min(), g_hi = j == 0 ? sp.i1_max() : sp.i2_max();
+  const double r = j == 0 ? sp.r1_of(i) : sp.r2_of(i);
+  double best = std::abs(r - from_rad);
+  // Other windings of the same angle on the grid: i + t per_turn for t != 0 within [g_lo, g_hi].
+  const long t_lo = static_cast<long>(std::ceil(static_cast<double>(g_lo - i) / static_cast<double>(per_turn)));
+  const long t_hi = static_cast<long>(std::floor(static_cast<double>(g_hi - i) / static_cast<double>(per_turn)));
+  for (long t = t_lo; t <= t_hi; ++t)
+    best = std::min(best, std::abs(r + 2.0 * kPi * static_cast<double>(t) - from_rad));
+  return std::abs(r - from_rad) - best;
+}
+
+int rewind_to_entry(const SegmentView& v, SegmentCells& d, std::vector<const Cell*>& path) {
+  if (v.exact || path.empty() || d.layers.front().pinned) return 0;
+  const auto& sp = v.space;
+  const auto& kin = sp.kinematics();
+  const auto rp = kin.rotary_pair();
+  const long per_turn = cells_per_turn(sp);
+  if (per_turn <= 0) return 0;
+  int removed = 0;
+  // Any rotary whose grid holds more than a turn (a cyclic axis, or limits wider than a turn): a turn is no motion.
+  for (int j = 0; j < 2; ++j) {
+    const auto axis = static_cast<std::size_t>(rp[static_cast<std::size_t>(j)]);
+    auto idx = [j](const Cell* c) { return j == 0 ? c->i1 : c->i2; };
+    int lo = idx(path.front()), hi = lo;
+    for (const Cell* c : path) lo = std::min(lo, idx(c)), hi = std::max(hi, idx(c));
+    const int g_lo = j == 0 ? sp.i1_min() : sp.i2_min(), g_hi = j == 0 ? sp.i1_max() : sp.i2_max();
+    const auto t_lo = static_cast<long>(std::ceil(static_cast<double>(g_lo - lo) / static_cast<double>(per_turn)));
+    const auto t_hi = static_cast<long>(std::floor(static_cast<double>(g_hi - hi) / static_cast<double>(per_turn)));
+    const double from = v.prefer ? (*v.prefer)[axis] : 0.0;
+    const double r0 = j == 0 ? path.front()->r1 : path.front()->r2;
+    const long t = std::clamp(std::lround((from - r0) / (2.0 * kPi)), t_lo, t_hi);
+    if (t == 0 || t_lo > t_hi) continue;
+    // All or nothing: every shifted cell must be on the grid and within the axis limits.
+    std::vector<Cell*> moved(path.size(), nullptr);
+    bool ok = true;
+    for (std::size_t k = 0; k < path.size() && ok; ++k) {
+      const Cell& c = *path[k];
+      if (c.status != Status::Feasible) {
+        ok = false;
+        break;
+      }
+      const int s = static_cast<int>(t * per_turn);
+      Cell* to = j == 0 ? cell_at(v, d, k, c.i1 + s, c.i2) : cell_at(v, d, k, c.i1, c.i2 + s);
+      if (!to || (to->status != Status::Unknown && to->status != Status::Feasible)) {
+        ok = false;
+        break;
+      }
+      if (to->status == Status::Unknown) {
+        kin::Axes q = c.axes;
+        q[axis] = j == 0 ? to->r1 : to->r2;
+        if (!kin.check_limits(q).empty() || !kin.passive_violation(q).empty()) {
+          ok = false;
+          break;
+        }
+        to->axes = q;
+        to->status = Status::Feasible;
+        to->clearance_mm = c.clearance_mm;
+      }
+      moved[k] = to;
+    }
+    if (!ok) continue;
+    for (std::size_t k = 0; k < path.size(); ++k) path[k] = moved[k];
+    removed += static_cast<int>(std::abs(t));
+  }
+  return removed;
 }
 
 bool feasible(const SegmentView& v, SegmentCells& d, std::size_t k, Cell& c, cspace::Certificate* cert) {

@@ -14,6 +14,9 @@ namespace {
 bool exact_monotonic(const SegmentView& v, SegmentCells& d, TierOutcome& out) {
   std::size_t worst = 0;
   Why why;
+  // Every direction pair that has a path, the least travel taken (then the shortest entry).
+  bool found = false;
+  PathCost best;
   for (int d1 : {+1, -1})
     for (int d2 : {+1, -1}) {
       std::size_t fl = 0;
@@ -21,16 +24,24 @@ bool exact_monotonic(const SegmentView& v, SegmentCells& d, TierOutcome& out) {
       auto allowed = [&](const Cell& a, const Cell& b) {
         return d1 * (static_cast<long long>(b.i1) - a.i1) >= 0 && d2 * (static_cast<long long>(b.i2) - a.i2) >= 0;
       };
-      if (dp_exact(v, d, allowed, out.path, fl, w)) {
-        out.description =
-            fmt::format("{} {}, {} {}", v.n1(), d1 > 0 ? "rising" : "falling", v.n2(), d2 > 0 ? "rising" : "falling");
-        return true;
+      std::vector<const Cell*> p;
+      if (dp_exact(v, d, allowed, p, fl, w)) {
+        const PathCost cost = path_cost(v, p);
+        if (!found || cost.better_than(best)) {
+          found = true;
+          best = cost;
+          out.path = std::move(p);
+          out.description =
+              fmt::format("{} {}, {} {}", v.n1(), d1 > 0 ? "rising" : "falling", v.n2(), d2 > 0 ? "rising" : "falling");
+        }
+        continue;
       }
       if (fl >= worst) {
         worst = fl;
         why = w;
       }
     }
+  if (found) return true;
   out.failure = {Tier::Monotonic, d.layers[worst].move, line_of(v, d, worst), why.cause, why.detail};
   return false;
 }
@@ -271,7 +282,10 @@ bool tier_monotonic(const SegmentView& v, SegmentCells& d, TierOutcome& out) {
         }
       }
     }
-  if (std::isfinite(best_travel)) return true;
+  if (std::isfinite(best_travel)) {
+    rewind_to_entry(v, d, out.path);  // the description gives travels only: unchanged
+    return true;
+  }
   out.failure = {Tier::Monotonic, L[furthest].move, line_of(v, d, furthest), furthest_why.cause, furthest_why.detail};
   return false;
 }

@@ -14,6 +14,10 @@ namespace {
 bool exact_one_fixed(const SegmentView& v, SegmentCells& d, TierOutcome& out) {
   std::size_t worst = 0;
   Why why;
+  // Every (fixed axis, direction) that has a path, the least travel taken (then the shortest entry: the other branch
+  // of a tilt can need half a turn of the primary to get there).
+  bool found = false;
+  PathCost best;
   for (int f = 1; f >= 0; --f)
     for (int dir : {+1, -1}) {
       std::size_t fl = 0;
@@ -23,17 +27,25 @@ bool exact_one_fixed(const SegmentView& v, SegmentCells& d, TierOutcome& out) {
         const long long ma = f == 0 ? a.i2 : a.i1, mb = f == 0 ? b.i2 : b.i1;
         return fa == fb && dir * (mb - ma) >= 0;
       };
-      if (dp_exact(v, d, allowed, out.path, fl, w)) {
-        out.description =
-            fmt::format("{} fixed at {:.3f} deg, the other {}", f == 0 ? v.n1() : v.n2(),
-                        rad2deg(f == 0 ? out.path[0]->r1 : out.path[0]->r2), dir > 0 ? "rising" : "falling");
-        return true;
+      std::vector<const Cell*> p;
+      if (dp_exact(v, d, allowed, p, fl, w)) {
+        const PathCost cost = path_cost(v, p);
+        if (!found || cost.better_than(best)) {
+          found = true;
+          best = cost;
+          out.path = std::move(p);
+          out.description =
+              fmt::format("{} fixed at {:.3f} deg, the other {}", f == 0 ? v.n1() : v.n2(),
+                          rad2deg(f == 0 ? out.path[0]->r1 : out.path[0]->r2), dir > 0 ? "rising" : "falling");
+        }
+        continue;
       }
       if (fl >= worst) {
         worst = fl;
         why = w;
       }
     }
+  if (found) return true;
   out.failure = {Tier::Fixed1, d.layers[worst].move, line_of(v, d, worst), why.cause, why.detail};
   return false;
 }
@@ -48,6 +60,7 @@ bool tier_one_fixed(const SegmentView& v, SegmentCells& d, TierOutcome& out) {
   double best_travel = kInf;
   bool jumped = false;  // some candidate had a whole monotonic path, but one that jumps
   std::vector<const Cell*> best;
+  int best_f = 0, best_dir = 0;
   for (int f = 1; f >= 0; --f) {  // fix the secondary first (e.g. the tilt), then the primary
     // Candidate fixed values: present at the first point, closest orientation first. Later points are
     // scanned lazily along the moving axis (no per-point cell lists, so no cap can hide a cell).
@@ -110,16 +123,20 @@ bool tier_one_fixed(const SegmentView& v, SegmentCells& d, TierOutcome& out) {
         if (travel < best_travel - 1e-12) {
           best_travel = travel;
           best = p;
-          out.description = fmt::format("{} fixed at {:.3f} deg, {} {} by {:.3f} deg", f == 0 ? v.n1() : v.n2(),
-                                        rad2deg(f == 0 ? p[0]->r1 : p[0]->r2), f == 0 ? v.n2() : v.n1(),
-                                        dir > 0 ? "rising" : "falling", rad2deg(travel));
+          best_f = f;
+          best_dir = dir;
         }
       }
       if (!best.empty()) break;  // candidates are in order of orientation closeness
     }
   }
   if (!best.empty()) {
-    out.path = best;
+    rewind_to_entry(v, d, best);
+    const Cell& c0 = *best.front();
+    out.description = fmt::format("{} fixed at {:.3f} deg, {} {} by {:.3f} deg", best_f == 0 ? v.n1() : v.n2(),
+                                  rad2deg(best_f == 0 ? c0.r1 : c0.r2), best_f == 0 ? v.n2() : v.n1(),
+                                  best_dir > 0 ? "rising" : "falling", rad2deg(best_travel));
+    out.path = std::move(best);
     return true;
   }
   out.failure = {Tier::Fixed1, d.layers[furthest].move, line_of(v, d, furthest), furthest_why.cause,

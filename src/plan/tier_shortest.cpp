@@ -10,12 +10,7 @@
 namespace cscam::plan::detail {
 
 namespace {
-/// A state of the beam: a feasible cell, the cost of the best path to it and its predecessor.
-struct State {
-  Cell* cell;
-  double cost;
-  int pred;
-};
+using State = ShortestState;
 /// Tentative states of a layer before the beam is filled: cost, cell, predecessor.
 using Tentative = std::vector<std::pair<double, std::pair<Cell*, int>>>;
 
@@ -271,14 +266,35 @@ bool tier_shortest(const SegmentView& v, SegmentCells& d, TierOutcome& out) {
     return true;
   }
   LayeredDp<State> dp;
-  const std::size_t built = dp.forward(n, [&](std::size_t k, const std::vector<State>& prev, std::vector<State>& S) {
+  // Resume where the swept flags first differ from the last pass's (a pass that went through, on the same lists).
+  std::size_t k0 = 0;
+  if (d.last_shortest && d.last_shortest->nodes.size() == n) {
+    const auto& was = d.last_shortest->swept_layers;
+    auto flag = [](const std::vector<char>& f, std::size_t k) { return k < f.size() && f[k]; };
+    while (k0 < n && flag(was, k0) == flag(d.swept_layers, k0)) ++k0;
+    if (k0 == n) k0 = n - 1;  // nothing changed: the last layer again (cheap)
+    dp.nodes = std::move(d.last_shortest->nodes);
+  }
+  d.last_shortest.reset();
+  const std::size_t built = dp.forward_from(k0, n, [&](std::size_t k, const auto& prev, std::vector<State>& S) {
     // No swept-free (or skimming) move into a flagged point: it is searched as any other (its collision stays
     // reported) rather than failing the whole path.
     if (k > 0 && k < d.swept_layers.size() && d.swept_layers[k] && swept_layer(v, d, prev, k, max_step, S)) return true;
     Tentative tent;
     tent.reserve(L[k].cells.size());
     if (k == 0) {
-      for (Cell& c : L[0].cells) tent.push_back({opt.orientation_weight * c.orient_err, {&c, -1}});
+      // The segment is entered from where the previous one ended (or from home). Whole turns of a rotary on the way
+      // in are travel for nothing (the windings of an angle cost the same along the segment): they count in full.
+      // The rest of the entry reorientation is a rapid, not a cut: a tie-break only, so it never bends the cut
+      // toward it.
+      const auto rp = v.space.kinematics().rotary_pair();
+      const double p1 = v.prefer ? (*v.prefer)[rp[0]] : 0.0, p2 = v.prefer ? (*v.prefer)[rp[1]] : 0.0;
+      for (Cell& c : L[0].cells) {
+        const double entry = opt.weight_primary * std::abs(c.r1 - p1) + opt.weight_secondary * std::abs(c.r2 - p2);
+        const double whole_turns = opt.weight_primary * whole_turns_rad(v.space, 0, c.i1, p1) +
+                                   opt.weight_secondary * whole_turns_rad(v.space, 1, c.i2, p2);
+        tent.push_back({opt.orientation_weight * c.orient_err + whole_turns + 1e-9 * entry, {&c, -1}});
+      }
     } else if (prev.size() * L[k].cells.size() <= 200000) {
       // Each cell's best predecessor on its own (in parallel), then collected in cell order.
       auto& cells = L[k].cells;
@@ -323,8 +339,11 @@ bool tier_shortest(const SegmentView& v, SegmentCells& d, TierOutcome& out) {
     return false;
   }
   const std::vector<int> idx = dp.backtrack(dp.cheapest_last());
+  d.last_shortest = SegmentCells::ShortestPass{std::move(dp.nodes), d.swept_layers};
+  const auto& nodes = d.last_shortest->nodes;
   out.path.assign(n, nullptr);
-  for (std::size_t k = 0; k < n; ++k) out.path[k] = dp.nodes[k][static_cast<size_t>(idx[k])].cell;
+  for (std::size_t k = 0; k < n; ++k) out.path[k] = nodes[k][static_cast<size_t>(idx[k])].cell;
+  rewind_to_entry(v, d, out.path);
   out.description = fmt::format("rotary travel {:.3f} deg (steps bounded by {:.2f} deg)",
                                 rad2deg(rotary_travel(out.path)), rad2deg(max_step));
   return true;

@@ -12,6 +12,7 @@
 #include <limits>
 #include <map>
 #include <memory>
+#include <optional>
 #include <string>
 #include <tuple>
 #include <unordered_map>
@@ -108,6 +109,13 @@ struct Layer {
   std::vector<std::uint32_t> grid_order, row_starts;
 };
 
+/// A state of tier 4's beam: a feasible cell, the cost of the best path to it and its predecessor's index.
+struct ShortestState {
+  Cell* cell;
+  double cost;
+  int pred;
+};
+
 /// What does not change while a segment is searched.
 struct SegmentView {
   const cspace::Space& space;
@@ -135,6 +143,14 @@ struct SegmentCells {
   std::vector<char> swept_layers;
   /// Swept checks of moves into those layers, across the re-searches: (layer, from cell, into cell) -> status.
   std::map<std::tuple<std::size_t, std::uint64_t, std::uint64_t>, cspace::SweepStatus> sweeps;
+  /// Tier 4's last forward pass, for a re-search after avoid_swept_collisions flagged more layers: the layers before
+  /// the first newly flagged one come out the same (their cells are evaluated already and keep their status), so the
+  /// pass resumes there. Valid while the cell lists stay as they were (any re-listing clears it).
+  struct ShortestPass {
+    std::vector<std::vector<ShortestState>> nodes;  ///< per layer, as LayeredDp leaves them
+    std::vector<char> swept_layers;                 ///< the flags the pass ran with
+  };
+  std::optional<ShortestPass> last_shortest;
   SegmentCells(cspace::Counters& c, const cspace::Space& space) : counters(c), certs(space) {}
 };
 
@@ -155,6 +171,25 @@ void check_points(const SegmentView& v, SegmentCells& d, std::size_t& points_bey
 
 /// The cell (i1, i2) at layer k, created (with its orientation test) if needed; null if outside the cone.
 Cell* cell_at(const SegmentView& v, SegmentCells& d, std::size_t k, int i1, int i2);
+/// A grid path of a cyclic rotary can be shifted by whole turns without changing a pose or its travel: the shift
+/// whose first cell lies nearest where the segment is entered from (the previous segment's end, or home), within the
+/// grid and the axis limits. The shifted cells take the originals' collision status (the same physical poses). Returns
+/// the whole turns removed from the entry (0: the path stays).
+int rewind_to_entry(const SegmentView& v, SegmentCells& d, std::vector<const Cell*>& path);
+/// Weighted rotary travel along a path, and into its first cell from where the segment is entered (the previous
+/// segment's end, or home): how tiers that find several answers of one kind choose between them.
+struct PathCost {
+  double travel = 0.0, entry = 0.0;
+  /// Less travel first; about equal travel (1e-9), then the shorter entry.
+  [[nodiscard]] bool better_than(const PathCost& o) const {
+    return travel < o.travel - 1e-9 || (travel <= o.travel + 1e-9 && entry < o.entry - 1e-9);
+  }
+};
+PathCost path_cost(const SegmentView& v, const std::vector<const Cell*>& path);
+/// Rotary travel into grid index `i` of rotary `j` (0: primary, 1: secondary) from `from_rad` beyond the travel into
+/// the nearest winding of the same angle on the grid (whole turns for nothing), rad; 0 where the grid holds no whole
+/// turn.
+double whole_turns_rad(const cspace::Space& sp, int j, int i, double from_rad);
 /// Stroke and collision of a cell of layer k (cached in the cell).
 bool feasible(const SegmentView& v, SegmentCells& d, std::size_t k, Cell& c, cspace::Certificate* cert = nullptr);
 /// CL line of layer k.
@@ -175,9 +210,16 @@ struct LayeredDp {
   /// number of layers built before that: n when the pass went through.
   template <typename Build>
   std::size_t forward(std::size_t n, Build&& build) {
+    return forward_from(0, n, std::forward<Build>(build));
+  }
+  /// The same pass from layer `k0` on, layers [0, k0) kept as they are (built by an earlier pass that would build them
+  /// the same way now).
+  template <typename Build>
+  std::size_t forward_from(std::size_t k0, std::size_t n, Build&& build) {
     static const std::vector<Node> none;
-    nodes.assign(n, {});
-    for (std::size_t k = 0; k < n; ++k)
+    nodes.resize(n);
+    for (std::size_t k = k0; k < n; ++k) nodes[k].clear();
+    for (std::size_t k = k0; k < n; ++k)
       if (!build(k, k ? nodes[k - 1] : none, nodes[k])) return k;
     return n;
   }
