@@ -315,11 +315,29 @@ bool tier_shortest(const SegmentView& v, SegmentCells& d, TierOutcome& out) {
     } else {
       distance_transform(opt, prev, L[k], max_step, res, tent);
     }
-    std::sort(tent.begin(), tent.end(), [](const auto& x, const auto& y) { return x.first < y.first; });
+    // Cheapest first, ties by grid position (a total order: any sort gives the same sequence). The beam fills from
+    // the front, usually within a few hundred of the thousands of cells near a singular axis: sorted a chunk at a
+    // time, as far as the beam reaches.
+    auto cheaper = [](const auto& x, const auto& y) {
+      if (x.first != y.first) return x.first < y.first;
+      const Cell &a = *x.second.first, &b = *y.second.first;
+      return a.i2 != b.i2 ? a.i2 < b.i2 : a.i1 < b.i1;
+    };
+    std::size_t sorted = 0;
+    auto sort_to = [&](std::size_t e) {
+      if (e <= sorted) return;
+      e = std::max(e, std::min(tent.size(), sorted + 2 * beam));
+      const auto first = tent.begin() + static_cast<std::ptrdiff_t>(sorted), last = tent.end();
+      const auto mid = tent.begin() + static_cast<std::ptrdiff_t>(e);
+      if (mid < last) std::nth_element(first, mid, last, cheaper);
+      std::sort(first, mid, cheaper);
+      sorted = e;
+    };
     // The beam: the cheapest feasible cells. Evaluated in parallel blocks of exactly as many cells as the beam
     // still lacks, so the cells evaluated (and the counters) are those of a serial scan, at any thread count.
     for (std::size_t next = 0; next < tent.size() && S.size() < beam;) {
       const std::size_t b = next, e = std::min(tent.size(), next + (beam - S.size()));
+      sort_to(e);
       // The beam revisits the same cells point after point: their clearance certificates spare most queries.
       d.certs.reserve();
       parallel_items(e - b, d.counters, [&](std::size_t i, geom::QueryWorkspace& ws, cspace::Counters& cc) {
