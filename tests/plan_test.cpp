@@ -1208,6 +1208,73 @@ TEST(PlannerTiers, NoSegmentIsEnteredThroughAWholeTurn) {
   std::cout << "segments " << segments << ", entries over half a turn " << far_entries << "\n";
 }
 
+TEST(PlannerTiers, TheDefaultStepBoundGivesWayOnlyWhereNoCellWithinItFollowsTheClAxis) {
+  // The rotary step bound (20 grid steps) keeps the planner from flipping where it need not. Where the CL axis itself
+  // turns faster (here the azimuth jumps 120 deg at a 15 deg tilt between two points: about 30 deg of tool-axis turn)
+  // no cell within the bound follows it, and the planner once refused the whole file ("no feasible cell within a
+  // rotary step of 20 deg") although the conventional post writes it. Oracle: the geometry of the CL: the only step
+  // beyond the bound is into the point after the jump, and a bound the user sets stays hard.
+  const int n = 41;
+  const auto prog = sweep(
+      n, [](double) { return 15.0; }, [](double s) { return s < 0.5 ? 10.0 : 130.0; });
+  const plan::Plan p = run(prog, 3.0);
+  ASSERT_EQ(p.segments.size(), 1u);
+  EXPECT_EQ(p.segments[0].tier, plan::Tier::Shortest) << p.summary();
+  const auto rp = trunnion().kinematics()->rotary_pair();
+  const double bound = deg2rad(20.0) + 1e-9;
+  int beyond = 0;
+  for (int i = 1; i < n; ++i) {
+    const double step =
+        std::max(std::abs(p.axes[i][rp[0]] - p.axes[i - 1][rp[0]]), std::abs(p.axes[i][rp[1]] - p.axes[i - 1][rp[1]]));
+    if (step <= bound) continue;
+    ++beyond;
+    // The azimuth jumps between s = 19/40 and 20/40: into move 20.
+    EXPECT_EQ(i, 20) << "a step of " << rad2deg(step) << " deg into CL line " << prog.moves[i].line;
+  }
+  EXPECT_EQ(beyond, 1);
+  EXPECT_NE(p.segments[0].description.find("except into 1 point(s), CL line(s) " + std::to_string(prog.moves[20].line)),
+            std::string::npos)
+      << p.segments[0].description;
+  // Asked for explicitly, the bound holds: the tier says where it cannot.
+  static const machine::Machine m = trunnion();
+  plan::Options o;
+  o.cspace.cone_rad = deg2rad(3.0);
+  o.cspace.check_collision = false;
+  o.max_step_rad = deg2rad(20.0);
+  EXPECT_THROW(
+      {
+        try {
+          (void)plan::Planner(m, m.kinematics(), nullptr, nullptr, o).run(prog);
+        } catch (const InputError& e) {
+          EXPECT_NE(std::string(e.what()).find("step bound set in the options"), std::string::npos) << e.what();
+          throw;
+        }
+      },
+      InputError);
+}
+
+TEST(PlannerTiers, ANarrowBeamThatDeadEndsIsWidenedBeforeAnyStepLeavesTheBound) {
+  // NX's path on the 45-degree nutating head at cone 5: tier 4's beam of 256 states dead-ended within the step bound
+  // (the planner refused the file, and stepping beyond the bound would have flipped the rotaries 5 times), while
+  // a bounded path runs through states it dropped. Oracle: the planned axes, every step within the bound.
+  const auto m = machine::load(test::source_path("machines/head-table-bc45.yaml"));
+  const cl::Program prog = cl::read_file(test::source_path("examples/nx-haas-umc750/variable_axis.cls"));
+  plan::Options o;
+  o.cspace.cone_rad = deg2rad(5.0);
+  o.cspace.check_collision = false;
+  const plan::Plan p = plan::Planner(m, m.kinematics(), nullptr, nullptr, o).run(prog);
+  const auto rp = m.kinematics()->rotary_pair();
+  const double bound = 20.0 * o.cspace.resolution_rad + 1e-9;
+  int shortest = 0;
+  for (const auto& seg : p.segments) {
+    shortest += seg.tier == plan::Tier::Shortest;
+    EXPECT_EQ(seg.description.find("except into"), std::string::npos) << seg.description;
+    for (std::size_t i = seg.first_move + 1; i <= seg.last_move; ++i)
+      for (int r : rp) EXPECT_LE(std::abs(p.axes[i][r] - p.axes[i - 1][r]), bound) << "CL line " << prog.moves[i].line;
+  }
+  EXPECT_GE(shortest, 1) << p.summary();
+}
+
 TEST(PlannerIssue11, IntervalReachBoundHoldsOnRandomMovesOfEverySerialMachine) {
   // The swept check's second-order bound: over a sub-interval of a straight joint move, no point of a body within
   // the lever of the tip leaves its middle position by more than interval_reach_bound. Oracle: dense sampling of the

@@ -1,7 +1,9 @@
 // Tier 4: least weighted rotary travel along the segment, with a bounded rotary step per point.
 #include <fmt/format.h>
+#include <fmt/ranges.h>
 
 #include <algorithm>
+#include <array>
 #include <cmath>
 
 #include "cscam/core/units.hpp"
@@ -235,6 +237,117 @@ bool swept_layer(const SegmentView& v, SegmentCells& d, const std::vector<State>
   return !S.empty();
 }
 
+/// Layer k of the forward pass: its states from the previous layer's (`prev`), at most `beam` of them, the cheapest
+/// feasible cells within the step bound; with `may_jump` (the widest beam, the default bound), where none is within
+/// the bound, the cheapest step however large. Returns whether the layer has a state.
+bool beam_layer(const SegmentView& v, SegmentCells& d, const std::vector<State>& prev, std::size_t k, double max_step,
+                std::size_t beam, bool may_jump, std::vector<State>& S) {
+  auto& L = d.layers;
+  const Options& opt = v.options;
+  const double res = v.space.options().resolution_rad;
+  // No swept-free (or skimming) move into a flagged point: it is searched as any other (its collision stays
+  // reported) rather than failing the whole path.
+  if (k > 0 && k < d.swept_layers.size() && d.swept_layers[k] && swept_layer(v, d, prev, k, max_step, S)) return true;
+  Tentative tent;
+  tent.reserve(L[k].cells.size());
+  if (k == 0) {
+    // The segment is entered from where the previous one ended (or from home). Whole turns of a rotary on the way
+    // in are travel for nothing (the windings of an angle cost the same along the segment): they count in full.
+    // The rest of the entry reorientation is a rapid, not a cut: a tie-break only, so it never bends the cut
+    // toward it.
+    const auto rp = v.space.kinematics().rotary_pair();
+    const double p1 = v.prefer ? (*v.prefer)[rp[0]] : 0.0, p2 = v.prefer ? (*v.prefer)[rp[1]] : 0.0;
+    for (Cell& c : L[0].cells) {
+      const double entry = opt.weight_primary * std::abs(c.r1 - p1) + opt.weight_secondary * std::abs(c.r2 - p2);
+      const double whole_turns = opt.weight_primary * whole_turns_rad(v.space, 0, c.i1, p1) +
+                                 opt.weight_secondary * whole_turns_rad(v.space, 1, c.i2, p2);
+      tent.push_back({opt.orientation_weight * c.orient_err + whole_turns + 1e-9 * entry, {&c, -1}});
+    }
+  } else if (prev.size() * L[k].cells.size() <= 200000) {
+    // Each cell's best predecessor on its own (in parallel), then collected in cell order.
+    auto& cells = L[k].cells;
+    std::vector<std::pair<double, int>> best(cells.size(), {kInf, -1});
+    parallel_indices(cells.size(), [&](std::size_t j) {
+      const Cell& c = cells[j];
+      for (std::size_t p = 0; p < prev.size(); ++p) {
+        const Cell* pc = prev[p].cell;
+        const double d1 = std::abs(c.r1 - pc->r1), d2 = std::abs(c.r2 - pc->r2);
+        if (d1 > max_step + 1e-12 || d2 > max_step + 1e-12) continue;
+        const double val = prev[p].cost + opt.weight_primary * d1 + opt.weight_secondary * d2;
+        if (val < best[j].first) best[j] = {val, static_cast<int>(p)};
+      }
+    });
+    for (std::size_t j = 0; j < cells.size(); ++j)
+      if (best[j].second >= 0)
+        tent.push_back({best[j].first + opt.orientation_weight * cells[j].orient_err, {&cells[j], best[j].second}});
+  } else {
+    distance_transform(opt, prev, L[k], max_step, res, tent);
+  }
+  // Cheapest first, ties by grid position (a total order: any sort gives the same sequence). The beam fills from
+  // the front, usually within a few hundred of the thousands of cells near a singular axis: sorted a chunk at a
+  // time, as far as the beam reaches.
+  auto cheaper = [](const auto& x, const auto& y) {
+    if (x.first != y.first) return x.first < y.first;
+    const Cell &a = *x.second.first, &b = *y.second.first;
+    return a.i2 != b.i2 ? a.i2 < b.i2 : a.i1 < b.i1;
+  };
+  std::size_t sorted = 0;
+  auto sort_to = [&](std::size_t e) {
+    if (e <= sorted) return;
+    e = std::max(e, std::min(tent.size(), sorted + 2 * beam));
+    const auto first = tent.begin() + static_cast<std::ptrdiff_t>(sorted), last = tent.end();
+    const auto mid = tent.begin() + static_cast<std::ptrdiff_t>(e);
+    if (mid < last) std::nth_element(first, mid, last, cheaper);
+    std::sort(first, mid, cheaper);
+    sorted = e;
+  };
+  // The beam: the cheapest feasible cells. Evaluated in parallel blocks of exactly as many cells as the beam
+  // still lacks, so the cells evaluated (and the counters) are those of a serial scan, at any thread count.
+  for (std::size_t next = 0; next < tent.size() && S.size() < beam;) {
+    const std::size_t b = next, e = std::min(tent.size(), next + (beam - S.size()));
+    sort_to(e);
+    // The beam revisits the same cells point after point: their clearance certificates spare most queries.
+    d.certs.reserve();
+    parallel_items(e - b, d.counters, [&](std::size_t i, geom::QueryWorkspace& ws, cspace::Counters& cc) {
+      d.certs.evaluate(L[k].cl, *tent[b + i].second.first, ws, cc);
+    });
+    for (std::size_t i = b; i < e; ++i)
+      if (tent[i].second.first->status == Status::Feasible)
+        S.push_back({tent[i].second.first, tent[i].first, tent[i].second.second});
+    next = e;
+  }
+  if (S.empty() && k > 0 && may_jump) {
+    // No feasible cell within the default step bound of any state: the CL axis itself turns faster here (every
+    // point has a feasible cell, check_points made sure). The bound is a preference, not the machine's limit: the
+    // cheapest step, however large, is taken (the description names where). A bound the user set stays hard.
+    auto& cells = L[k].cells;
+    std::vector<std::pair<double, int>> best(cells.size(), {kInf, -1});
+    parallel_indices(cells.size(), [&](std::size_t j) {
+      for (std::size_t p = 0; p < prev.size(); ++p) {
+        const double val = prev[p].cost + opt.weight_primary * std::abs(cells[j].r1 - prev[p].cell->r1) +
+                           opt.weight_secondary * std::abs(cells[j].r2 - prev[p].cell->r2);
+        if (val < best[j].first) best[j] = {val, static_cast<int>(p)};
+      }
+    });
+    std::vector<std::pair<double, std::size_t>> order;
+    for (std::size_t j = 0; j < cells.size(); ++j)
+      if (best[j].second >= 0) order.emplace_back(best[j].first + opt.orientation_weight * cells[j].orient_err, j);
+    std::sort(order.begin(), order.end());
+    for (std::size_t next = 0; next < order.size() && S.size() < beam;) {
+      const std::size_t b = next, e = std::min(order.size(), next + (beam - S.size()));
+      d.certs.reserve();
+      parallel_items(e - b, d.counters, [&](std::size_t i, geom::QueryWorkspace& ws, cspace::Counters& cc) {
+        d.certs.evaluate(L[k].cl, cells[order[b + i].second], ws, cc);
+      });
+      for (std::size_t i = b; i < e; ++i)
+        if (Cell& c = cells[order[i].second]; c.status == Status::Feasible)
+          S.push_back({&c, order[i].first, best[order[i].second].second});
+      next = e;
+    }
+  }
+  return !S.empty();
+}
+
 double rotary_travel(const std::vector<const Cell*>& path) {
   double travel = 0;
   for (std::size_t k = 1; k < path.size(); ++k)
@@ -247,10 +360,12 @@ bool tier_shortest(const SegmentView& v, SegmentCells& d, TierOutcome& out) {
   auto& L = d.layers;
   const std::size_t n = L.size();
   const Options& opt = v.options;
-  const double res = v.space.options().resolution_rad;
   // Exact orientations (cone 0) must be free to turn fast near the singularity: no default bound there.
   const double max_step = max_rotary_step(v);  // the bound tiers 2 and 3 hold too
-  const std::size_t beam = 256;
+  // The beam: states kept per point. Where it dead-ends within the step bound it is widened once (a bounded path can
+  // run through states a narrow beam dropped: NX's path on the 45-degree head needs 1024); only the widest beam may
+  // step beyond the bound (below).
+  constexpr std::array<std::size_t, 2> kBeams{256, 1024};
   if (v.exact) {
     std::size_t fl = 0;
     Why w;
@@ -266,6 +381,7 @@ bool tier_shortest(const SegmentView& v, SegmentCells& d, TierOutcome& out) {
     return true;
   }
   LayeredDp<State> dp;
+  std::size_t beam_at = 0;  // index in kBeams
   // Resume where the swept flags first differ from the last pass's (a pass that went through, on the same lists).
   std::size_t k0 = 0;
   if (d.last_shortest && d.last_shortest->nodes.size() == n) {
@@ -274,96 +390,54 @@ bool tier_shortest(const SegmentView& v, SegmentCells& d, TierOutcome& out) {
     while (k0 < n && flag(was, k0) == flag(d.swept_layers, k0)) ++k0;
     if (k0 == n) k0 = n - 1;  // nothing changed: the last layer again (cheap)
     dp.nodes = std::move(d.last_shortest->nodes);
+    beam_at = d.last_shortest->beam_at;
   }
   d.last_shortest.reset();
-  const std::size_t built = dp.forward_from(k0, n, [&](std::size_t k, const auto& prev, std::vector<State>& S) {
-    // No swept-free (or skimming) move into a flagged point: it is searched as any other (its collision stays
-    // reported) rather than failing the whole path.
-    if (k > 0 && k < d.swept_layers.size() && d.swept_layers[k] && swept_layer(v, d, prev, k, max_step, S)) return true;
-    Tentative tent;
-    tent.reserve(L[k].cells.size());
-    if (k == 0) {
-      // The segment is entered from where the previous one ended (or from home). Whole turns of a rotary on the way
-      // in are travel for nothing (the windings of an angle cost the same along the segment): they count in full.
-      // The rest of the entry reorientation is a rapid, not a cut: a tie-break only, so it never bends the cut
-      // toward it.
-      const auto rp = v.space.kinematics().rotary_pair();
-      const double p1 = v.prefer ? (*v.prefer)[rp[0]] : 0.0, p2 = v.prefer ? (*v.prefer)[rp[1]] : 0.0;
-      for (Cell& c : L[0].cells) {
-        const double entry = opt.weight_primary * std::abs(c.r1 - p1) + opt.weight_secondary * std::abs(c.r2 - p2);
-        const double whole_turns = opt.weight_primary * whole_turns_rad(v.space, 0, c.i1, p1) +
-                                   opt.weight_secondary * whole_turns_rad(v.space, 1, c.i2, p2);
-        tent.push_back({opt.orientation_weight * c.orient_err + whole_turns + 1e-9 * entry, {&c, -1}});
-      }
-    } else if (prev.size() * L[k].cells.size() <= 200000) {
-      // Each cell's best predecessor on its own (in parallel), then collected in cell order.
-      auto& cells = L[k].cells;
-      std::vector<std::pair<double, int>> best(cells.size(), {kInf, -1});
-      parallel_indices(cells.size(), [&](std::size_t j) {
-        const Cell& c = cells[j];
-        for (std::size_t p = 0; p < prev.size(); ++p) {
-          const Cell* pc = prev[p].cell;
-          const double d1 = std::abs(c.r1 - pc->r1), d2 = std::abs(c.r2 - pc->r2);
-          if (d1 > max_step + 1e-12 || d2 > max_step + 1e-12) continue;
-          const double val = prev[p].cost + opt.weight_primary * d1 + opt.weight_secondary * d2;
-          if (val < best[j].first) best[j] = {val, static_cast<int>(p)};
-        }
-      });
-      for (std::size_t j = 0; j < cells.size(); ++j)
-        if (best[j].second >= 0)
-          tent.push_back({best[j].first + opt.orientation_weight * cells[j].orient_err, {&cells[j], best[j].second}});
-    } else {
-      distance_transform(opt, prev, L[k], max_step, res, tent);
-    }
-    // Cheapest first, ties by grid position (a total order: any sort gives the same sequence). The beam fills from
-    // the front, usually within a few hundred of the thousands of cells near a singular axis: sorted a chunk at a
-    // time, as far as the beam reaches.
-    auto cheaper = [](const auto& x, const auto& y) {
-      if (x.first != y.first) return x.first < y.first;
-      const Cell &a = *x.second.first, &b = *y.second.first;
-      return a.i2 != b.i2 ? a.i2 < b.i2 : a.i1 < b.i1;
-    };
-    std::size_t sorted = 0;
-    auto sort_to = [&](std::size_t e) {
-      if (e <= sorted) return;
-      e = std::max(e, std::min(tent.size(), sorted + 2 * beam));
-      const auto first = tent.begin() + static_cast<std::ptrdiff_t>(sorted), last = tent.end();
-      const auto mid = tent.begin() + static_cast<std::ptrdiff_t>(e);
-      if (mid < last) std::nth_element(first, mid, last, cheaper);
-      std::sort(first, mid, cheaper);
-      sorted = e;
-    };
-    // The beam: the cheapest feasible cells. Evaluated in parallel blocks of exactly as many cells as the beam
-    // still lacks, so the cells evaluated (and the counters) are those of a serial scan, at any thread count.
-    for (std::size_t next = 0; next < tent.size() && S.size() < beam;) {
-      const std::size_t b = next, e = std::min(tent.size(), next + (beam - S.size()));
-      sort_to(e);
-      // The beam revisits the same cells point after point: their clearance certificates spare most queries.
-      d.certs.reserve();
-      parallel_items(e - b, d.counters, [&](std::size_t i, geom::QueryWorkspace& ws, cspace::Counters& cc) {
-        d.certs.evaluate(L[k].cl, *tent[b + i].second.first, ws, cc);
-      });
-      for (std::size_t i = b; i < e; ++i)
-        if (tent[i].second.first->status == Status::Feasible)
-          S.push_back({tent[i].second.first, tent[i].first, tent[i].second.second});
-      next = e;
-    }
-    return !S.empty();
-  });
+  std::size_t built = 0;
+  for (;; ++beam_at, k0 = 0) {
+    const bool widest = beam_at + 1 == kBeams.size();
+    built = dp.forward_from(k0, n, [&](std::size_t k, const auto& prev, std::vector<State>& S) {
+      return beam_layer(v, d, prev, k, max_step, kBeams[beam_at], widest && opt.max_step_rad <= 0, S);
+    });
+    if (built == n || widest) break;
+  }
   if (built < n) {
     out.failure = {
         Tier::Shortest, L[built].move, line_of(v, d, built), FailureCause::Transition,
-        fmt::format("no feasible cell within a rotary step of {:.2f} deg of the previous point", rad2deg(max_step))};
+        fmt::format(
+            "no feasible cell within a rotary step of {:.2f} deg of the previous point (the step bound set in the "
+            "options; the default bound gives way where no cell within it follows the CL axis)",
+            rad2deg(max_step))};
     return false;
   }
   const std::vector<int> idx = dp.backtrack(dp.cheapest_last());
-  d.last_shortest = SegmentCells::ShortestPass{std::move(dp.nodes), d.swept_layers};
+  d.last_shortest = SegmentCells::ShortestPass{std::move(dp.nodes), d.swept_layers, beam_at};
   const auto& nodes = d.last_shortest->nodes;
   out.path.assign(n, nullptr);
   for (std::size_t k = 0; k < n; ++k) out.path[k] = nodes[k][static_cast<size_t>(idx[k])].cell;
   rewind_to_entry(v, d, out.path);
-  out.description = fmt::format("rotary travel {:.3f} deg (steps bounded by {:.2f} deg)",
-                                rad2deg(rotary_travel(out.path)), rad2deg(max_step));
+  // Steps beyond the bound (beam_layer's may_jump): named in the description.
+  std::vector<int> beyond;
+  double largest = 0.0;
+  for (std::size_t k = 1; k < n; ++k) {
+    const double step =
+        std::max(std::abs(out.path[k]->r1 - out.path[k - 1]->r1), std::abs(out.path[k]->r2 - out.path[k - 1]->r2));
+    if (step <= max_step + 1e-12) continue;
+    beyond.push_back(line_of(v, d, k));
+    largest = std::max(largest, step);
+  }
+  if (beyond.empty()) {
+    out.description = fmt::format("rotary travel {:.3f} deg (steps bounded by {:.2f} deg)",
+                                  rad2deg(rotary_travel(out.path)), rad2deg(max_step));
+  } else {
+    const std::size_t shown = std::min<std::size_t>(beyond.size(), 5);
+    out.description = fmt::format(
+        "rotary travel {:.3f} deg (steps bounded by {:.2f} deg except into {} point(s), CL line(s) {}{}, up to {:.2f} "
+        "deg: no cell within the bound follows the CL axis there)",
+        rad2deg(rotary_travel(out.path)), rad2deg(max_step), beyond.size(),
+        fmt::join(beyond.begin(), beyond.begin() + static_cast<std::ptrdiff_t>(shown), ", "),
+        beyond.size() > shown ? ", ..." : "", rad2deg(largest));
+  }
   return true;
 }
 

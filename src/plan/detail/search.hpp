@@ -149,6 +149,7 @@ struct SegmentCells {
   struct ShortestPass {
     std::vector<std::vector<ShortestState>> nodes;  ///< per layer, as LayeredDp leaves them
     std::vector<char> swept_layers;                 ///< the flags the pass ran with
+    std::size_t beam_at = 0;                        ///< the beam it kept (its index in tier 4's beam widths)
   };
   std::optional<ShortestPass> last_shortest;
   SegmentCells(cspace::Counters& c, const cspace::Space& space) : counters(c), certs(space) {}
