@@ -310,7 +310,7 @@ int run_plan(const PlanArgs& a) {
 /// Per segment, for compare --json: CL line range, tier and why earlier tiers failed, the fixed values or ranges,
 /// rotary travel and reversals, linear travel against the conventional program's, and the swept check. Returns
 /// notes for segments whose linear travel a fixed (3+2) orientation made much longer.
-std::vector<std::string> segment_reports(const Setup& s, const plan::Plan& p, const std::vector<kin::Axes>& conv,
+std::vector<std::string> segment_reports(const Setup& s, const plan::Plan& p, const std::vector<kin::Axes>* conv,
                                          nlohmann::json& out) {
   std::vector<std::string> notes;
   for (std::size_t g = 0; g < p.segments.size(); ++g) {
@@ -352,13 +352,14 @@ std::vector<std::string> segment_reports(const Setup& s, const plan::Plan& p, co
       double tp, tc, lo, hi, lo_c, hi_c;
       int rv, rc;
       walk(p.axes, tp, rv, lo, hi);
-      walk(conv, tc, rc, lo_c, hi_c);
       axes[s.m.post.letters[J]] = {{"range", {report::rounded(lo, 4), report::rounded(hi, 4)}},
                                    {"travel", report::rounded(tp, 4)},
                                    {"reversals", rv},
-                                   {"conventional_travel", report::rounded(tc, 4)},
-                                   {"conventional_reversals", rc},
                                    {"unit", rot ? "deg" : "mm"}};
+      if (!conv) continue;  // no conventional axis values to compare with (its IK failed)
+      walk(*conv, tc, rc, lo_c, hi_c);
+      axes[s.m.post.letters[J]]["conventional_travel"] = report::rounded(tc, 4);
+      axes[s.m.post.letters[J]]["conventional_reversals"] = rc;
       // A fixed orientation can turn a short path into long linear strokes (the table no longer follows it).
       if (!rot && tp > 1.25 * tc && tp - tc > 10.0)
         notes.push_back(
@@ -391,9 +392,19 @@ std::vector<std::string> segment_reports(const Setup& s, const plan::Plan& p, co
 int run_compare(const PlanArgs& a) {
   auto s = setup(a);
   const auto t0 = std::chrono::steady_clock::now();
-  const auto conv = post::conventional_axes(s->prog, s->m, *s->kin);
+  // The conventional post may fail where the planner does not (a path through a singular orientation that a blind
+  // choice of rotaries cannot follow): that is a result of the comparison, reported, not the end of it.
+  std::vector<kin::Axes> conv;
   post::Summary sc;
-  const std::string conv_text = post_to_string(*s, s->prog, conv, a, "conventional", sc);
+  std::string conv_text, conv_error;
+  try {
+    conv = post::conventional_axes(s->prog, s->m, *s->kin);
+    conv_text = post_to_string(*s, s->prog, conv, a, "conventional", sc);
+  } catch (const InputError& e) {
+    conv_error = e.what();
+  }
+  const bool has_conv = conv_error.empty();
+  const bool has_conv_axes = conv.size() == s->prog.moves.size();
   const double conv_s = std::chrono::duration<double>(std::chrono::steady_clock::now() - t0).count();
   const plan::Planner planner(s->m, s->kin, &s->scene, s->tool.get(), s->opt, s->planner_head());
   const plan::Plan p = planned(*s, a);
@@ -406,9 +417,9 @@ int run_compare(const PlanArgs& a) {
   for (const auto& x : sc.warnings) s->warn(in(sp.warnings, x) ? "both programs: " + x : "conventional program: " + x);
   for (const auto& x : sp.warnings)
     if (!in(sc.warnings, x)) s->warn("planned program: " + x);
-  const auto vc = verify_text(*s, conv_text, 0.0);
+  const auto vc = has_conv ? verify_text(*s, conv_text, 0.0) : report::VerifyResult{};
   const auto vp = verify_text(*s, plan_text, a.cone_deg, &p);
-  auto stc = stats_of(*s, conv_text, "conventional");
+  const auto stc = has_conv ? stats_of(*s, conv_text, "conventional") : report::Stats{};
   auto stp = stats_of(*s, plan_text, "planner");
   // An independent collision check of both programs against the meshes (even when the planner was told
   // to ignore them): FK of every CL point's axis values, tool vs scene.
@@ -435,7 +446,7 @@ int run_compare(const PlanArgs& a) {
     h.swept = plan::check_program(space_h, s->m, prog, axes, cc);
     return h;
   };
-  const Hits hc = count_collisions(s->prog, conv), hp = count_collisions(p.program, p.axes);
+  const Hits hc = has_conv_axes ? count_collisions(s->prog, conv) : Hits{}, hp = count_collisions(p.program, p.axes);
   const std::size_t conv_collisions = hc.n;
   std::string tiers;
   int counts[5] = {0, 0, 0, 0, 0};
@@ -446,19 +457,28 @@ int run_compare(const PlanArgs& a) {
   if (s->machine_bodies)
     std::cout << fmt::format("machine bodies: {}{}\n", s->machine_bodies,
                              s->planner_ignores_machine ? " (ignored by the planner, still checked below)" : "");
-  std::cout << report::table({stc, stp}, {"conventional", "planner"});
-  std::cout << fmt::format("{:<28}{:>22}{:>22}\n", "NC blocks", sc.blocks, sp.blocks);
-  std::cout << fmt::format("{:<28}{:>22}{:>22}\n", "verify", vc.ok ? "ok" : "FAILED", vp.ok ? "ok" : "FAILED");
+  // Without a conventional program its column shows "-" (the table then has the planner's only).
+  auto conv_cell = [&](const auto& v) { return has_conv ? fmt::format("{}", v) : std::string("-"); };
+  auto conv_axes_cell = [&](const auto& v) { return has_conv_axes ? fmt::format("{}", v) : std::string("-"); };
+  if (has_conv) {
+    std::cout << report::table({stc, stp}, {"conventional", "planner"});
+  } else {
+    std::cout << "conventional program: not posted: " << conv_error << "\n";
+    std::cout << report::table({stp}, {"planner"});
+  }
+  std::cout << fmt::format("{:<28}{:>22}{:>22}\n", "NC blocks", conv_cell(sc.blocks), sp.blocks);
+  std::cout << fmt::format("{:<28}{:>22}{:>22}\n", "verify", has_conv ? (vc.ok ? "ok" : "FAILED") : "-",
+                           vp.ok ? "ok" : "FAILED");
   if (s->has_meshes) {
-    std::cout << fmt::format("{:<28}{:>22}{:>22}\n", "colliding CL points", hc.n, hp.n);
-    std::cout << fmt::format("{:<28}{:>22}{:>22}\n", "colliding moves (swept)", hc.swept.collisions,
+    std::cout << fmt::format("{:<28}{:>22}{:>22}\n", "colliding CL points", conv_axes_cell(hc.n), hp.n);
+    std::cout << fmt::format("{:<28}{:>22}{:>22}\n", "colliding moves (swept)", conv_axes_cell(hc.swept.collisions),
                              hp.swept.collisions);
     if (hc.swept.uncertified || hp.swept.uncertified)
-      std::cout << fmt::format("{:<28}{:>22}{:>22}\n", "uncertified moves (swept)", hc.swept.uncertified,
-                               hp.swept.uncertified);
+      std::cout << fmt::format("{:<28}{:>22}{:>22}\n", "uncertified moves (swept)",
+                               conv_axes_cell(hc.swept.uncertified), hp.swept.uncertified);
   }
   std::cout << fmt::format("{:<28}{:>22}{:>22}\n", "segment tiers 1/2/3/4", "-", tiers);
-  std::cout << fmt::format("{:<28}{:>22.3f}{:>22.3f}\n", "time (s)", conv_s, p.seconds);
+  std::cout << fmt::format("{:<28}{:>22}{:>22.3f}\n", "time (s)", conv_cell(fmt::format("{:.3f}", conv_s)), p.seconds);
   std::cout << fmt::format(
       "planner queries: {} cells, {} IK, {} stroke, {} collision, {} more for {} swept moves; peak memory {:.0f} MB\n",
       p.counters.cells_enumerated, p.counters.ik, p.counters.stroke, p.counters.collision, p.counters.swept_queries,
@@ -486,7 +506,7 @@ int run_compare(const PlanArgs& a) {
   nlohmann::json tier_list = nlohmann::json::array();
   for (const auto& g : p.segments) tier_list.push_back(static_cast<int>(g.tier));
   nlohmann::json segs = nlohmann::json::array();
-  const std::vector<std::string> flags = segment_reports(*s, p, conv, segs);
+  const std::vector<std::string> flags = segment_reports(*s, p, has_conv_axes ? &conv : nullptr, segs);
   for (const auto& f : flags) std::cout << "note: " << f << "\n";
   nlohmann::json jc = {{"cl", a.cl},
                        {"machine", s->m.name},
@@ -495,14 +515,14 @@ int run_compare(const PlanArgs& a) {
                        {"collision", s->opt.cspace.check_collision},
                        {"machine_bodies", s->machine_bodies},
                        {"meshes", mesh_reports_json(*s)},
-                       {"conventional",
-                        {{"stats", stc.json()},
-                         {"blocks", sc.blocks},
-                         {"verify_ok", vc.ok},
-                         {"colliding_points", conv_collisions},
-                         {"colliding_moves_swept", hc.swept.collisions},
-                         {"uncertified_moves_swept", hc.swept.uncertified},
-                         {"seconds", report::rounded(conv_s, 4)}}},
+                       {"conventional", has_conv ? nlohmann::json{{"stats", stc.json()},
+                                                                  {"blocks", sc.blocks},
+                                                                  {"verify_ok", vc.ok},
+                                                                  {"colliding_points", conv_collisions},
+                                                                  {"colliding_moves_swept", hc.swept.collisions},
+                                                                  {"uncertified_moves_swept", hc.swept.uncertified},
+                                                                  {"seconds", report::rounded(conv_s, 4)}}
+                                                 : nlohmann::json{{"error", conv_error}}},
                        {"planner",
                         {{"stats", stp.json()},
                          {"blocks", sp.blocks},
