@@ -13,6 +13,7 @@
 #include <stdexcept>
 #include <string_view>
 
+#include "cscam/core/default_init.hpp"
 #include "cscam/core/error.hpp"
 #include "cscam/core/parallel.hpp"
 #include "cscam/core/rotations.hpp"
@@ -27,20 +28,22 @@ namespace {
 
 using Vec3 = Eigen::Vector3d;
 
+// No default member values: a million-segment array is left unwritten by resize() and filled in parallel.
 struct ClSeg {
   Vec3 p0, p1, u0, u1;
-  int line = 0;
-  bool arc_interior = false;  ///< p1 is a point generated inside a CIRCLE/ (an NC arc passes it between its ends)
-  double th = 0.0;            ///< slerp_angle(u0, u1)
+  int line;
+  bool arc_interior;  ///< p1 is a point generated inside a CIRCLE/ (an NC arc passes it between its ends)
+  double th;          ///< slerp_angle(u0, u1)
+  double sin_th;      ///< sin(th)
 };
 
 /// The angle slerp() turns through from a to b.
 double slerp_angle(const Vec3& a, const Vec3& b) { return std::acos(std::clamp(a.dot(b), -1.0, 1.0)); }
 
-/// slerp with its angle th = slerp_angle(a, b) computed once (per CL segment).
-Vec3 slerp(const Vec3& a, const Vec3& b, double th, double s) {
+/// slerp with its angle th = slerp_angle(a, b) and sin(th) computed once (per CL segment).
+Vec3 slerp(const Vec3& a, const Vec3& b, double th, double sin_th, double s) {
   if (th < 1e-9) return ((1 - s) * a + s * b).normalized();
-  return (std::sin((1 - s) * th) / std::sin(th) * a + std::sin(s * th) / std::sin(th) * b).normalized();
+  return (std::sin((1 - s) * th) / sin_th * a + std::sin(s * th) / sin_th * b).normalized();
 }
 
 /// Distance from p to the segment and the segment parameter of the closest point.
@@ -439,7 +442,7 @@ VerifyResult verify(const nc::Program& nc, const cl::Program& cl, const kin::Kin
       if (t.is_ball()) ball_r = 0.5 * t.diameter_mm;
   auto point = [&](const Vec3& tip, const Vec3& axis) -> Vec3 { return tip + ball_r * axis; };
   // The CL feed segments, in order: counted per fixed chunk of moves, then filled in parallel at their places.
-  std::vector<ClSeg> segs;
+  std::vector<ClSeg, DefaultInitAllocator<ClSeg>> segs;
   {
     constexpr std::size_t kSegChunk = 4096;
     const std::size_t n_moves = cl.moves.size();
@@ -460,8 +463,9 @@ VerifyResult verify(const nc::Program& nc, const cl::Program& cl, const kin::Kin
           const auto& b = cl.moves[i];
           if (b.kind != cl::MotionKind::Feed) continue;
           const Vec3 ua = a.axis_in_part.normalized(), ub = b.axis_in_part.normalized();
-          segs[k++] = {point(a.tip_in_part_mm, ua), point(b.tip_in_part_mm, ub), ua, ub, b.line, b.from_arc,
-                       slerp_angle(ua, ub)};
+          const double th = slerp_angle(ua, ub);
+          segs[k++] = {
+              point(a.tip_in_part_mm, ua), point(b.tip_in_part_mm, ub), ua, ub, b.line, b.from_arc, th, std::sin(th)};
         }
       }
     });
@@ -533,6 +537,9 @@ VerifyResult verify(const nc::Program& nc, const cl::Program& cl, const kin::Kin
 
   std::vector<Vec3> nc_feed_points;
   std::vector<int> nc_feed_lines;
+  // At most two per block (its ends): no regrowth of a million-point array; pages never written stay untouched.
+  nc_feed_points.reserve(2 * nc.blocks.size());
+  nc_feed_lines.reserve(2 * nc.blocks.size());
   size_t cursor = 0;
   bool after_rapid = true;
   const nc::Block* prev = nullptr;
@@ -703,7 +710,8 @@ VerifyResult verify(const nc::Program& nc, const cl::Program& cl, const kin::Kin
                       double t;
                       nearest(p, c, false, t);
                       const ClSeg& sg = segs[c];
-                      return std::pair<Vec3, Vec3>(sg.p0 + t * (sg.p1 - sg.p0), slerp(sg.u0, sg.u1, sg.th, t));
+                      return std::pair<Vec3, Vec3>(sg.p0 + t * (sg.p1 - sg.p0),
+                                                   slerp(sg.u0, sg.u1, sg.th, sg.sin_th, t));
                     })) {
         // A retract or plunge along the fixed tool axis (a post's flip or unwind): off the path by design,
         // like a rapid; the CL points around it must still be reached.
@@ -765,7 +773,7 @@ VerifyResult verify(const nc::Program& nc, const cl::Program& cl, const kin::Kin
       for (std::size_t i = rg.begin(); i != rg.end(); ++i) {
         const AxisSample& a = axis_samples[i];
         const ClSeg& sg = segs[a.seg];
-        const Vec3 u = slerp(sg.u0, sg.u1, sg.th, a.t);
+        const Vec3 u = slerp(sg.u0, sg.u1, sg.th, sg.sin_th, a.t);
         axis_angles[i] = rad2deg(std::acos(std::clamp(u.dot(a.pose->axis), -1.0, 1.0))) + a.slack_deg;
       }
     });
