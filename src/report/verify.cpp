@@ -66,11 +66,16 @@ bool departure(const kin::Posed* poses, int n, double tip_tol, double axis_tol_r
   const kin::Posed &pa = poses[0], &pb = poses[n + 1];
   if ((pb.tip_mm - pa.tip_mm).norm() <= tip_tol) return false;
   const double room_mm = tip_tol - slack_mm;
-  const double cos_axis_tol = std::cos(std::max(0.0, axis_tol_rad - slack_rad));
-  // The geometric tests of every sample first: a cutting block fails them at once, before any CL lookup.
+  // The geometric tests of every sample first: a cutting block fails them at once, before any CL lookup (the tip
+  // off the axis line first: the cosine of the axis test is then only taken for a block along its axis).
   for (int i = 0; i <= n; ++i) {
     const kin::Posed& p = i == n ? pb : poses[i];
-    if ((p.tip_mm - pa.tip_mm).cross(pa.axis).norm() > room_mm || p.axis.dot(pa.axis) < cos_axis_tol) return false;
+    if ((p.tip_mm - pa.tip_mm).cross(pa.axis).norm() > room_mm) return false;
+  }
+  const double cos_axis_tol = std::cos(std::max(0.0, axis_tol_rad - slack_rad));
+  for (int i = 0; i <= n; ++i) {
+    const kin::Posed& p = i == n ? pb : poses[i];
+    if (p.axis.dot(pa.axis) < cos_axis_tol) return false;
   }
   for (int i = 0; i <= n; ++i) {
     const kin::Posed& p = i == n ? pb : poses[i];
