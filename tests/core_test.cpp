@@ -60,6 +60,29 @@ TEST(Core, WrapPiIsRemaindersToTheBit) {
   }
 }
 
+TEST(Core, PendingFileIsInPlaceOnlyAfterCommit) {
+  const fs::path dir = fs::temp_directory_path() / ("cscam_core_pending_" + std::to_string(::getpid()));
+  fs::create_directories(dir);
+  const std::string target = (dir / "out.txt").string();
+  {
+    PendingFile f(target);
+    f.write([](std::ostream& os) { os << "text"; });
+    EXPECT_FALSE(fs::exists(target));
+  }  // not committed: the temporary goes
+  EXPECT_TRUE(fs::is_empty(dir));
+  {
+    PendingFile f(target);
+    f.write([](std::ostream& os) { os << "text"; });
+    f.commit();
+  }
+  std::ifstream in(target);
+  EXPECT_EQ(std::string((std::istreambuf_iterator<char>(in)), {}), "text");
+  std::size_t n = 0;
+  for ([[maybe_unused]] const auto& e : fs::directory_iterator(dir)) ++n;
+  EXPECT_EQ(n, 1u);
+  fs::remove_all(dir);
+}
+
 TEST(Core, AtomicWriteLeavesNothingOnError) {
   const fs::path dir = fs::temp_directory_path() / ("cscam_core_test_" + std::to_string(::getpid()));
   fs::create_directories(dir);
