@@ -453,12 +453,15 @@ VerifyResult verify(const nc::Program& nc, const cl::Program& cl, const kin::Kin
     const std::size_t n_moves = cl.moves.size();
     const std::size_t chunks = n_moves > 1 ? (n_moves - 2) / kSegChunk + 1 : 0;  // moves 1 .. n - 1
     std::vector<std::size_t> first(chunks + 1, 0);
-    for (std::size_t c = 0; c < chunks; ++c) {
-      std::size_t count = 0;
-      for (std::size_t i = 1 + c * kSegChunk; i < std::min(n_moves, 1 + (c + 1) * kSegChunk); ++i)
-        count += cl.moves[i].kind == cl::MotionKind::Feed;
-      first[c + 1] = first[c] + count;
-    }
+    parallel_range(0, chunks, 8, [&](const tbb::blocked_range<std::size_t>& r) {  // counts (a pass over 80 MB)
+      for (std::size_t c = r.begin(); c != r.end(); ++c) {
+        std::size_t count = 0;
+        for (std::size_t i = 1 + c * kSegChunk; i < std::min(n_moves, 1 + (c + 1) * kSegChunk); ++i)
+          count += cl.moves[i].kind == cl::MotionKind::Feed;
+        first[c + 1] = count;
+      }
+    });
+    for (std::size_t c = 0; c < chunks; ++c) first[c + 1] += first[c];  // then their running sums
     segs.resize(first[chunks]);
     parallel_range(0, chunks, 1, [&](const tbb::blocked_range<std::size_t>& r) {
       for (std::size_t c = r.begin(); c != r.end(); ++c) {
