@@ -8,6 +8,7 @@
 #include <filesystem>
 #include <fstream>
 #include <random>
+#include <vector>
 
 #include "cscam/core/atomic_file.hpp"
 #include "cscam/core/error.hpp"
@@ -32,6 +33,54 @@ TEST(Core, WrapPi) {
   EXPECT_NEAR(wrap_pi(-kPi), kPi, 1e-12);
   EXPECT_NEAR(wrap_pi(0.5), 0.5, 1e-15);
   EXPECT_NEAR(rad2deg(deg2rad(123.25)), 123.25, 1e-12);
+}
+
+TEST(Core, WrapPiIsRemaindersToTheBit) {
+  // The fast path for angles already in (-pi, pi] returns what std::remainder does there (the angle itself).
+  auto reference = [](double a) {
+    a = std::remainder(a, 2.0 * kPi);
+    return a <= -kPi ? a + 2.0 * kPi : a;
+  };
+  std::mt19937_64 rng(3);
+  std::uniform_real_distribution<double> U(-20.0, 20.0);
+  std::vector<double> angles = {0.0,
+                                -0.0,
+                                kPi,
+                                -kPi,
+                                std::nextafter(kPi, 0.0),
+                                std::nextafter(kPi, 4.0),
+                                std::nextafter(-kPi, 0.0),
+                                std::nextafter(-kPi, -4.0),
+                                2 * kPi,
+                                -2 * kPi};
+  for (int i = 0; i < 100000; ++i) angles.push_back(U(rng));
+  for (const double a : angles) {
+    const double w = wrap_pi(a), r = reference(a);
+    EXPECT_EQ(std::memcmp(&w, &r, sizeof w), 0) << a;
+  }
+}
+
+TEST(Core, PendingFileIsInPlaceOnlyAfterCommit) {
+  const fs::path dir = fs::temp_directory_path() / ("cscam_core_pending_" + std::to_string(::getpid()));
+  fs::create_directories(dir);
+  const std::string target = (dir / "out.txt").string();
+  {
+    PendingFile f(target);
+    f.write([](std::ostream& os) { os << "text"; });
+    EXPECT_FALSE(fs::exists(target));
+  }  // not committed: the temporary goes
+  EXPECT_TRUE(fs::is_empty(dir));
+  {
+    PendingFile f(target);
+    f.write([](std::ostream& os) { os << "text"; });
+    f.commit();
+  }
+  std::ifstream in(target);
+  EXPECT_EQ(std::string((std::istreambuf_iterator<char>(in)), {}), "text");
+  std::size_t n = 0;
+  for ([[maybe_unused]] const auto& e : fs::directory_iterator(dir)) ++n;
+  EXPECT_EQ(n, 1u);
+  fs::remove_all(dir);
 }
 
 TEST(Core, AtomicWriteLeavesNothingOnError) {

@@ -212,6 +212,17 @@ TEST(Gate, WriteCheckedLeavesNoFileOnFailure) {
   for (const auto& entry : fs::directory_iterator(dir)) ADD_FAILURE() << "left behind: " << entry.path();
   gate::write_checked(out.string(), f.posted.text, f.prog, f.m, *f.k, f.opt, &f.posted.summary.cl_line_of_nc_line);
   EXPECT_TRUE(fs::exists(out));
+  // The text is written while it is checked: the file holds exactly the text checked, and nothing else is left.
+  std::ifstream in(out, std::ios::binary);
+  const std::string written((std::istreambuf_iterator<char>(in)), {});
+  EXPECT_EQ(written, f.posted.text);
+  std::size_t files = 0;
+  for ([[maybe_unused]] const auto& entry : fs::directory_iterator(dir)) ++files;
+  EXPECT_EQ(files, 1u);
+  // A passing program that cannot be written is still an error naming the file.
+  EXPECT_THROW(gate::write_checked((dir / "missing" / "x.ngc").string(), f.posted.text, f.prog, f.m, *f.k, f.opt,
+                                   &f.posted.summary.cl_line_of_nc_line),
+               InputError);
   fs::remove_all(dir);
 }
 

@@ -4,11 +4,14 @@
 
 #include <gtest/gtest.h>
 
+#include <bit>
+#include <cstdint>
 #include <filesystem>
 #include <random>
 
 #include "cscam/core/error.hpp"
 #include "cscam/core/units.hpp"
+#include "cscam/kin/serial.hpp"
 #include "test_support.hpp"
 
 using namespace cscam;
@@ -241,6 +244,86 @@ TEST(MachineBodies, BadBodiesNameTheLineAndTheKey) {
       g + "    - {name: fork, attach: a, source: s, box: {min_mm: [0, 0, 0], max_mm: [1, 1, 1]}}\n", "ok.yaml");
   ASSERT_EQ(ok.geometry.bodies.size(), 1u);
   EXPECT_EQ(ok.geometry.bodies[0].side, machine::BodySide::Table);
+}
+
+namespace {
+
+/// solve_for_rotaries as the generic chain walk it was written as (the oracle of the stepped one).
+bool reference_solve_for_rotaries(const kin::SerialGeometry<double>& g, const kin::Posed& pose, kin::Axes& q) {
+  std::array<int, 3> lin{};
+  int n = 0;
+  for (int i = 0; i < 5; ++i)
+    if (g.joints[static_cast<size_t>(i)].type == kin::AxisType::Linear) lin[static_cast<size_t>(n++)] = i;
+  auto col = [&](int idx) {
+    for (int c = 0; c < 3; ++c)
+      if (lin[static_cast<size_t>(c)] == idx) return c;
+    return -1;
+  };
+  auto R = [&](int idx) {
+    const auto& j = g.joints[static_cast<size_t>(idx)];
+    return kin::detail::axis_angle<double>(j.direction, q[idx] + j.offset);
+  };
+  Vec3 t0 = g.gauge_home_mm - g.tool_length_mm * g.tool_direction_home;
+  Eigen::Matrix3d A = Eigen::Matrix3d::Zero();
+  for (auto it = g.head_chain.rbegin(); it != g.head_chain.rend(); ++it) {
+    const auto& j = g.joints[static_cast<size_t>(*it)];
+    if (j.type == kin::AxisType::Linear) {
+      t0 += j.direction * j.offset;
+      A.col(col(*it)) += j.direction;
+    } else {
+      const Eigen::Matrix3d Rj = R(*it);
+      t0 = Rj * (t0 - j.pivot_mm) + j.pivot_mm;
+      A = Rj * A;
+    }
+  }
+  for (int idx : g.table_chain) {
+    const auto& j = g.joints[static_cast<size_t>(idx)];
+    if (j.type == kin::AxisType::Linear) {
+      t0 -= j.direction * j.offset;
+      A.col(col(idx)) -= j.direction;
+    } else {
+      const Eigen::Matrix3d Rt = R(idx).transpose();
+      t0 = Rt * (t0 - j.pivot_mm) + j.pivot_mm;
+      A = Rt * A;
+    }
+  }
+  t0 -= g.part_origin_home_mm;
+  if (std::abs(A.determinant()) < 1e-12) return false;
+  const Vec3 l = A.inverse() * (pose.tip_mm - t0);
+  for (int c = 0; c < 3; ++c) q[lin[static_cast<size_t>(c)]] = l[c];
+  return true;
+}
+
+}  // namespace
+
+TEST(SerialKinematics, SteppedForwardAndSolveAreTheGenericOnesToTheBit) {
+  // forward() and solve_for_rotaries() run on steps laid out once (faster); every number must stay the generic
+  // chain walk's (serial_forward and the walk above), bit for bit: the post's and the gate's output depend on them.
+  auto rng = test::rng(12);
+  std::uniform_real_distribution<double> U(-1.0, 1.0);
+  for (const auto& path : bundled_machines()) {
+    const machine::Machine m = machine::load(path);
+    if (m.kind != machine::ModelKind::Serial) continue;
+    SCOPED_TRACE(path);
+    for (const double tool_mm : {m.default_tool_length_mm, 123.456}) {
+      const auto kk = m.make_kinematics(tool_mm);
+      const auto* sk = dynamic_cast<const kin::SerialKinematics*>(kk.get());
+      ASSERT_NE(sk, nullptr);
+      for (int trial = 0; trial < 500; ++trial) {
+        kin::Axes q;
+        for (int i = 0; i < 5; ++i) q[i] = m.axes[static_cast<size_t>(i)].rotary() ? 7.0 * U(rng) : 300.0 * U(rng);
+        const kin::Posed fast = sk->forward(q), ref = kin::serial_forward(sk->geometry(), q);
+        for (int c = 0; c < 3; ++c) {
+          EXPECT_EQ(std::bit_cast<std::uint64_t>(fast.tip_mm[c]), std::bit_cast<std::uint64_t>(ref.tip_mm[c]));
+          EXPECT_EQ(std::bit_cast<std::uint64_t>(fast.axis[c]), std::bit_cast<std::uint64_t>(ref.axis[c]));
+        }
+        const kin::Posed target{Vec3(100.0 * U(rng), 100.0 * U(rng), 100.0 * U(rng)), fast.axis};
+        kin::Axes qs = q, qr = q;
+        ASSERT_EQ(sk->solve_for_rotaries(target, qs), reference_solve_for_rotaries(sk->geometry(), target, qr));
+        for (int i = 0; i < 5; ++i) EXPECT_EQ(std::bit_cast<std::uint64_t>(qs[i]), std::bit_cast<std::uint64_t>(qr[i]));
+      }
+    }
+  }
 }
 
 TEST(MachineBodies, LinkPosesAgreeWithForwardKinematics) {

@@ -94,7 +94,15 @@ Summary check(const std::string& nc_text, const std::string& nc_name, const cl::
 
   // Machine (joint) values of every block: the words themselves, or for tool-tip control the IK solution
   // nearest the previous block's (what the control computes), inside every limit.
-  std::vector<kin::Axes> joints(ncp.blocks.size(), kin::Axes::Zero());
+  // Machine words are the joints themselves: only tool-tip control keeps its IK solutions (40 MB fewer to fill for a
+  // million-block machine-word program).
+  std::vector<kin::Axes> tcp_joints(s.tool_tip_control ? ncp.blocks.size() : 0, kin::Axes::Zero());
+  auto joints = [&](std::size_t bi) -> kin::Axes {
+    if (s.tool_tip_control) return tcp_joints[bi];
+    kin::Axes q;
+    for (int i = 0; i < 5; ++i) q[i] = ncp.blocks[bi].axes[static_cast<size_t>(i)];
+    return q;
+  };
   std::vector<char> joints_ok(ncp.blocks.size(), 0);
   // With machine words every block's limits are independent of the others: checked in parallel (fixed slots),
   // then reported in block order below, as the sequential loop did. Tool-tip control needs the previous
@@ -181,7 +189,7 @@ Summary check(const std::string& nc_text, const std::string& nc_name, const cl::
         continue;
       }
     }
-    joints[bi] = q;
+    if (s.tool_tip_control) tcp_joints[bi] = q;
     joints_ok[bi] = 1;
     prev = q;
   }
@@ -193,8 +201,8 @@ Summary check(const std::string& nc_text, const std::string& nc_name, const cl::
   for (size_t bi = 1; bi < ncp.blocks.size(); ++bi) {
     if (!joints_ok[bi] || !joints_ok[bi - 1]) continue;
     const nc::Block& b = ncp.blocks[bi];
-    const kin::Axes& qa = joints[bi - 1];
-    const kin::Axes& qb = joints[bi];
+    const kin::Axes qa = joints(bi - 1);
+    const kin::Axes qb = joints(bi);
     const bool rapid = b.motion == nc::Motion::Rapid;
     double span = 0.0;
     for (int i = 0; i < 5; ++i)
@@ -243,7 +251,7 @@ Summary check(const std::string& nc_text, const std::string& nc_name, const cl::
       wa[i] = ncp.blocks[bi - 1].axes[static_cast<size_t>(i)];
       wb[i] = b.axes[static_cast<size_t>(i)];
     }
-    kin::Axes dq = joints[bi] - joints[bi - 1];
+    kin::Axes dq = joints(bi) - joints(bi - 1);
     if (b.arc && !s.tool_tip_control) {
       // On an arc the plane's axes peak at the path speed in the plane: their "distance" is the arc's length (in a
       // tilted plane each machine axis' share of it).
@@ -327,8 +335,18 @@ Summary check(const std::string& nc_text, const std::string& nc_name, const cl::
 Summary write_checked(const std::string& path, const std::string& nc_text, const cl::Program& cl,
                       const machine::Machine& machine, const kin::Kinematics& kinematics, const Options& options,
                       const std::vector<int>* cl_line_of_nc_line) {
+  // The text goes to a temporary file beside `path` while it is checked (the check reads this same text): a program
+  // that passes is then only renamed into place, and the temporary of one that fails is removed unread. Declared
+  // in this order, the writer is joined before the temporary can go.
+  PendingFile file(path);
+  Background writer;
+  writer.run([&] { file.write([&](std::ostream& os) { os << nc_text; }); });
   Summary s = check(nc_text, path, cl, machine, kinematics, options, cl_line_of_nc_line);
   if (!s.ok) {
+    try {
+      writer.wait();  // its own failure does not matter: the program is refused
+    } catch (...) {
+    }
     const Violation& v = s.violations.front();
     std::string where = v.cl_line ? fmt::format(" (from {})", SourceLoc{cl.file, v.cl_line, 0}.str()) : std::string();
     std::string more;
@@ -341,7 +359,8 @@ Summary write_checked(const std::string& path, const std::string& nc_text, const
     throw InputError(SourceLoc{path, v.nc_line, 0},
                      fmt::format("unsafe program not written: {}{}{}", v.message, where, more));
   }
-  write_file_atomically(path, [&](std::ostream& os) { os << nc_text; });
+  writer.wait();  // rethrows a failed write (no directory, disk full): nothing is in place then
+  file.commit();
   return s;
 }
 

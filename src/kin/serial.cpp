@@ -121,6 +121,95 @@ SerialKinematics::SerialKinematics(SerialGeometry<double> geometry, std::vector<
   Eigen::Matrix3d L;
   for (int k = 0; k < 3; ++k) L.col(k) = geometry_.joints[static_cast<size_t>(lin_[static_cast<size_t>(k)])].direction;
   if (std::abs(L.determinant()) < 1e-6) throw std::invalid_argument("the linear axes do not span space");
+  auto add_step = [&](int idx, bool table) {
+    const auto& j = geometry_.joints[static_cast<size_t>(idx)];
+    Step st;
+    st.axis = idx;
+    st.rotary = j.type == AxisType::Rotary;
+    st.table = table;
+    for (int c = 0; c < 3; ++c)
+      if (lin_[static_cast<size_t>(c)] == idx) st.lin_col = c;
+    st.direction = j.direction;
+    st.pivot_mm = j.pivot_mm;
+    st.offset = j.offset;
+    const Vec3& w = j.direction;
+    st.wxx = w.x() * w.x();
+    st.wxy = w.x() * w.y();
+    st.wxz = w.x() * w.z();
+    st.wyy = w.y() * w.y();
+    st.wyz = w.y() * w.z();
+    st.wzz = w.z() * w.z();
+    steps_.push_back(st);
+  };
+  for (auto it = geometry_.head_chain.rbegin(); it != geometry_.head_chain.rend(); ++it) add_step(*it, false);
+  for (int idx : geometry_.table_chain) add_step(idx, true);
+  const auto& g = geometry_;
+  tip_home_ = g.gauge_home_mm - g.tool_length_mm * g.tool_direction_home;
+  // solve_for_rotaries' leading linear head steps do not depend on q: applied here, as it applies them.
+  solve_t0_ = g.gauge_home_mm - g.tool_length_mm * g.tool_direction_home;
+  solve_A_ = Eigen::Matrix3d::Zero();
+  for (solve_first_ = 0; solve_first_ < steps_.size(); ++solve_first_) {
+    const Step& j = steps_[solve_first_];
+    if (j.rotary || j.table) break;
+    solve_t0_ += j.direction * j.offset;
+    solve_A_.col(j.lin_col) += j.direction;
+  }
+}
+
+Eigen::Matrix3d SerialKinematics::rotation(const Step& j, double angle) {
+  // detail::axis_angle with w.x() * w.y() * v read as (w.x() * w.y()) * v, as C++ groups it.
+  const double c = std::cos(angle), s = std::sin(angle), v = 1.0 - c;
+  const Vec3& w = j.direction;
+  Eigen::Matrix3d R;
+  R << c + j.wxx * v, j.wxy * v - w.z() * s, j.wxz * v + w.y() * s,  //
+      j.wxy * v + w.z() * s, c + j.wyy * v, j.wyz * v - w.x() * s,   //
+      j.wxz * v - w.y() * s, j.wyz * v + w.x() * s, c + j.wzz * v;
+  return R;
+}
+
+Posed SerialKinematics::forward(const Axes& q) const {
+  // serial_forward<double>, step for step, written out in scalars: Eigen's small products, which the compiler left
+  // as calls, sum each coefficient as (m0 x0 + m1 x1) + m2 x2, and so does this (no FMA contraction on this target
+  // either way), so the numbers are serial_forward's to the bit (machine_test compares them).
+  double tx = tip_home_.x(), ty = tip_home_.y(), tz = tip_home_.z();
+  double ax = geometry_.tool_direction_home.x(), ay = geometry_.tool_direction_home.y(),
+         az = geometry_.tool_direction_home.z();
+  for (const Step& j : steps_) {
+    const double v = q[j.axis] + j.offset;
+    const Vec3& w = j.direction;
+    if (!j.rotary) {
+      const double dx = w.x() * v, dy = w.y() * v, dz = w.z() * v;
+      if (j.table) {
+        tx -= dx;
+        ty -= dy;
+        tz -= dz;
+      } else {
+        tx += dx;
+        ty += dy;
+        tz += dz;
+      }
+      continue;
+    }
+    // detail::axis_angle's matrix R (its direction products taken once), or R^T for a table joint (its inverse).
+    const double c = std::cos(v), sn = std::sin(v), u = 1.0 - c;
+    const double r00 = c + j.wxx * u, r01 = j.wxy * u - w.z() * sn, r02 = j.wxz * u + w.y() * sn;
+    const double r10 = j.wxy * u + w.z() * sn, r11 = c + j.wyy * u, r12 = j.wyz * u - w.x() * sn;
+    const double r20 = j.wxz * u - w.y() * sn, r21 = j.wyz * u + w.x() * sn, r22 = c + j.wzz * u;
+    const bool t = j.table;
+    const double m01 = t ? r10 : r01, m02 = t ? r20 : r02, m10 = t ? r01 : r10;
+    const double m12 = t ? r21 : r12, m20 = t ? r02 : r20, m21 = t ? r12 : r21;
+    const Vec3& p = j.pivot_mm;
+    const double dx = tx - p.x(), dy = ty - p.y(), dz = tz - p.z();
+    tx = ((r00 * dx + m01 * dy) + m02 * dz) + p.x();
+    ty = ((m10 * dx + r11 * dy) + m12 * dz) + p.y();
+    tz = ((m20 * dx + m21 * dy) + r22 * dz) + p.z();
+    const double bx = ax, by = ay, bz = az;
+    ax = (r00 * bx + m01 * by) + m02 * bz;
+    ay = (m10 * bx + r11 * by) + m12 * bz;
+    az = (m20 * bx + m21 * by) + r22 * bz;
+  }
+  const Vec3& o = geometry_.part_origin_home_mm;
+  return Posed{Vec3(tx - o.x(), ty - o.y(), tz - o.z()), Vec3(ax, ay, az)};
 }
 
 Eigen::Vector3d SerialKinematics::axis_for_rotaries(double primary, double secondary) const {
@@ -194,43 +283,33 @@ void SerialKinematics::inverse_all(const Posed& pose, const Axes* hint, std::vec
 bool SerialKinematics::solve_for_rotaries(const Posed& pose, Axes& q) const {
   // With the rotaries fixed, the tip in the part frame is affine in the three linear axes:
   // tip(l) = t0 + A l. Build t0 and A in one pass over the chains with the rotations computed once
-  // (this is the hot path of the post: one call per IK branch).
-  std::array<Eigen::Matrix3d, 5> R;
-  for (int i : rot_) {
-    const auto& j = geometry_.joints[static_cast<size_t>(i)];
-    R[static_cast<size_t>(i)] = detail::axis_angle<double>(j.direction, q[i] + j.offset);
-  }
-  const auto& g = geometry_;
-  Vec3 t0 = g.gauge_home_mm - g.tool_length_mm * g.tool_direction_home;
-  Eigen::Matrix3d A = Eigen::Matrix3d::Zero();  // column c: d tip / d l_c
-  auto lin_col = [&](int idx) {
-    for (int c = 0; c < 3; ++c)
-      if (lin_[static_cast<size_t>(c)] == idx) return c;
-    return -1;
-  };
-  for (auto it = g.head_chain.rbegin(); it != g.head_chain.rend(); ++it) {
-    const auto& j = g.joints[static_cast<size_t>(*it)];
-    if (j.type == AxisType::Linear) {
-      t0 += j.direction * j.offset;
-      A.col(lin_col(*it)) += j.direction;
+  // (this is the hot path of the post: one call per IK branch). The leading linear head steps are constants
+  // (solve_t0_, solve_A_, applied in the constructor in this order).
+  Vec3 t0 = solve_t0_;
+  Eigen::Matrix3d A = solve_A_;  // column c: d tip / d l_c
+  for (std::size_t k = solve_first_; k < steps_.size(); ++k) {
+    const Step& j = steps_[k];
+    if (!j.rotary) {
+      if (j.table) {
+        t0 -= j.direction * j.offset;
+        A.col(j.lin_col) -= j.direction;
+      } else {
+        t0 += j.direction * j.offset;
+        A.col(j.lin_col) += j.direction;
+      }
     } else {
-      const Eigen::Matrix3d& Rj = R[static_cast<size_t>(*it)];
-      t0 = Rj * (t0 - j.pivot_mm) + j.pivot_mm;
-      A = Rj * A;
+      // t0 = M (t0 - pivot) + pivot and A = M A with M = R (head) or R^T (table), summed as Eigen's small
+      // products sum each coefficient: (m0 x0 + m1 x1) + m2 x2.
+      const Eigen::Matrix3d R = rotation(j, q[j.axis] + j.offset);
+      const Eigen::Matrix3d M = j.table ? Eigen::Matrix3d(R.transpose()) : R;
+      const Vec3 d = t0 - j.pivot_mm;
+      for (int i = 0; i < 3; ++i) t0[i] = ((M(i, 0) * d[0] + M(i, 1) * d[1]) + M(i, 2) * d[2]) + j.pivot_mm[i];
+      const Eigen::Matrix3d B = A;
+      for (int c = 0; c < 3; ++c)
+        for (int i = 0; i < 3; ++i) A(i, c) = (M(i, 0) * B(0, c) + M(i, 1) * B(1, c)) + M(i, 2) * B(2, c);
     }
   }
-  for (int idx : g.table_chain) {
-    const auto& j = g.joints[static_cast<size_t>(idx)];
-    if (j.type == AxisType::Linear) {
-      t0 -= j.direction * j.offset;
-      A.col(lin_col(idx)) -= j.direction;
-    } else {
-      const Eigen::Matrix3d Rt = R[static_cast<size_t>(idx)].transpose();
-      t0 = Rt * (t0 - j.pivot_mm) + j.pivot_mm;
-      A = Rt * A;
-    }
-  }
-  t0 -= g.part_origin_home_mm;
+  t0 -= geometry_.part_origin_home_mm;
   const double det = A.determinant();
   if (std::abs(det) < 1e-12) return false;
   const Vec3 l = A.inverse() * (pose.tip_mm - t0);

@@ -8,6 +8,7 @@
 #include <charconv>
 #include <cmath>
 #include <cstdint>
+#include <cstring>
 #include <fstream>
 #include <functional>
 #include <optional>
@@ -401,6 +402,12 @@ Program read_text(const std::string& text, const std::string& name, const AxisLe
   std::vector<std::string_view> lines;
   {
     std::string_view all(text);
+    // Counted first (memchr): a million-line program's list is then filled without regrowing.
+    std::size_t newlines = 0;
+    for (const char *p = all.data(), *end = p + all.size();
+         (p = static_cast<const char*>(std::memchr(p, '\n', static_cast<size_t>(end - p)))) != nullptr; ++p)
+      ++newlines;
+    lines.reserve(newlines + 1);
     size_t pos = 0;
     while (pos <= all.size()) {
       size_t nl = all.find('\n', pos);

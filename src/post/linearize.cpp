@@ -3,7 +3,9 @@
 #include <fmt/format.h>
 
 #include <algorithm>
+#include <bit>
 #include <cmath>
+#include <cstdint>
 
 #include "cscam/core/error.hpp"
 #include "cscam/core/tolerances.hpp"
@@ -15,9 +17,8 @@ using Vec3 = Eigen::Vector3d;
 
 namespace {
 
-double point_segment_distance(const Vec3& p, const Vec3& a, const Vec3& b) {
-  const Vec3 ab = b - a;
-  const double L2 = ab.squaredNorm();
+/// Distance from p to the segment a b, with ab = b - a and L2 = |ab|^2 given (once per segment).
+double point_segment_distance(const Vec3& p, const Vec3& a, const Vec3& ab, double L2) {
   const double t = L2 > 0 ? std::clamp((p - a).dot(ab) / L2, 0.0, 1.0) : 0.0;
   return (a + t * ab - p).norm();
 }
@@ -28,9 +29,21 @@ Slerp::Slerp(const Vec3& a, const Vec3& b) : a_(a), b_(b), th_(std::acos(std::cl
   sn_ = std::sin(th_);
 }
 
+double Slerp::sine(double x) const {
+  for (int k = 0; k < memo_size_; ++k)  // the same bits (not -0 for +0)
+    if (std::bit_cast<std::uint64_t>(memo_x_[static_cast<size_t>(k)]) == std::bit_cast<std::uint64_t>(x))
+      return memo_sin_[static_cast<size_t>(k)];
+  const double v = std::sin(x);
+  memo_x_[static_cast<size_t>(memo_next_)] = x;
+  memo_sin_[static_cast<size_t>(memo_next_)] = v;
+  memo_next_ = (memo_next_ + 1) % kMemo;
+  memo_size_ = std::min(memo_size_ + 1, kMemo);
+  return v;
+}
+
 Vec3 Slerp::operator()(double s) const {
   if (th_ < 1e-9) return ((1 - s) * a_ + s * b_).normalized();
-  return (std::sin((1 - s) * th_) / sn_ * a_ + std::sin(s * th_) / sn_ * b_).normalized();
+  return (sine((1 - s) * th_) / sn_ * a_ + sine(s * th_) / sn_ * b_).normalized();
 }
 
 namespace {
@@ -44,9 +57,11 @@ Linearizer::Linearizer(const kin::Kinematics& k, const Settings& s)
 
 bool Linearizer::exceeds(const kin::Axes& qa, const kin::Axes& qb, double sa, double sb, const Vec3& P0, const Vec3& P1,
                          const Slerp& axis, Stats& stats) const {
+  const Vec3 ab = P1 - P0;
+  const double L2 = ab.squaredNorm();
   for (double t : {0.5, 0.25, 0.75}) {
     const kin::Posed p = kin_.forward(qa + t * (qb - qa));
-    const double dtip = point_segment_distance(p.tip_mm + set_.control_offset_mm * p.axis, P0, P1);
+    const double dtip = point_segment_distance(p.tip_mm + set_.control_offset_mm * p.axis, P0, ab, L2);
     stats.max_checked_tip_deviation_mm = std::max(stats.max_checked_tip_deviation_mm, dtip);
     if (dtip > set_.tolerance_mm || p.axis.dot(axis(sa + t * (sb - sa))) < cos_tol_axis_) return true;
   }
@@ -56,10 +71,12 @@ bool Linearizer::exceeds(const kin::Axes& qa, const kin::Axes& qb, double sa, do
 void Linearizer::worst_deviation(const kin::Axes& qa, const kin::Axes& qb, double sa, double sb, const Vec3& P0,
                                  const Vec3& P1, const Slerp& axis, double& tip_mm, double& axis_rad) const {
   tip_mm = axis_rad = 0.0;
+  const Vec3 ab = P1 - P0;
+  const double L2 = ab.squaredNorm();
   for (int i = 1; i < 16; ++i) {
     const double t = i / 16.0;
     const kin::Posed p = kin_.forward(qa + t * (qb - qa));
-    tip_mm = std::max(tip_mm, point_segment_distance(p.tip_mm + set_.control_offset_mm * p.axis, P0, P1));
+    tip_mm = std::max(tip_mm, point_segment_distance(p.tip_mm + set_.control_offset_mm * p.axis, P0, ab, L2));
     axis_rad = std::max(axis_rad, std::acos(std::clamp(p.axis.dot(axis(sa + t * (sb - sa))), -1.0, 1.0)));
   }
 }

@@ -3,6 +3,7 @@
 // path stays within the tolerance of the straight CL segment (tip, or ball centre) and of the interpolated CL
 // axis. Pure maths on the kinematics: no G-code, no I/O.
 #include <Eigen/Core>
+#include <array>
 #include <string>
 #include <vector>
 
@@ -18,8 +19,14 @@ class Slerp {
   Eigen::Vector3d operator()(double s) const;
 
  private:
+  /// std::sin(x), remembered for the last few x: the linearizer's samples at a quarter, half and three quarters
+  /// of a segment need sin(th / 4), sin(th / 2) and sin(3 th / 4) twice each.
+  double sine(double x) const;
+  static constexpr int kMemo = 4;
   Eigen::Vector3d a_, b_;
   double th_, sn_ = 0.0;
+  mutable std::array<double, kMemo> memo_x_{}, memo_sin_{};
+  mutable int memo_size_ = 0, memo_next_ = 0;
 };
 
 class Linearizer {

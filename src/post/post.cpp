@@ -7,6 +7,7 @@
 #include <cstring>
 #include <limits>
 #include <ostream>
+#include <sstream>
 
 #include "cscam/core/error.hpp"
 #include "cscam/core/parallel.hpp"
@@ -188,6 +189,7 @@ class Sequencer {
   void run(const std::vector<kin::Axes>& axes) {
     axes_ = &axes;
     sum_.cl_line_of_nc_line.assign(1, 0);
+    sum_.cl_line_of_nc_line.reserve(prog_.moves.size() + prog_.events.size() + 1024);  // about a line a move
     fmt_->begin(buf_);
     map_lines(0);
     size_t ev = 0;
@@ -1503,10 +1505,26 @@ class Sequencer {
 
 std::vector<std::string> dialects() { return dialect_names(); }
 
+namespace {
+
+/// A std::ostringstream sink that nothing was written to yet (the CLI's, the benchmark's) gets room for the expected
+/// text at once: it would otherwise double its buffer some twenty times for a million-block program, copying the text
+/// and faulting in twice its size. Room never written costs no memory; a longer text regrows as before.
+void reserve_text(std::ostream& out, std::size_t bytes) {
+  auto* s = dynamic_cast<std::ostringstream*>(&out);
+  if (s == nullptr || s->tellp() != std::streampos(0) || !s->view().empty()) return;
+  std::string room;
+  room.reserve(bytes);
+  s->str(std::move(room));
+}
+
+}  // namespace
+
 void write_nc(std::ostream& out, const cl::Program& program, const machine::Machine& machine,
               const kin::Kinematics& kinematics, const std::vector<kin::Axes>& axes, const Options& options,
               Summary& summary) {
   CSCAM_CHECK(axes.size() == program.moves.size(), "one axis vector per CL move");
+  reserve_text(out, 96 * program.moves.size() + (std::size_t{1} << 16));  // ~50-65 bytes a block, a block a move
   {
     Summary probe;
     if (Sequencer(out, program, machine, kinematics, options, probe).planes_only(axes)) {

@@ -13,6 +13,7 @@
 #include <stdexcept>
 #include <string_view>
 
+#include "cscam/core/default_init.hpp"
 #include "cscam/core/error.hpp"
 #include "cscam/core/parallel.hpp"
 #include "cscam/core/rotations.hpp"
@@ -27,20 +28,22 @@ namespace {
 
 using Vec3 = Eigen::Vector3d;
 
+// No default member values: a million-segment array is left unwritten by resize() and filled in parallel.
 struct ClSeg {
   Vec3 p0, p1, u0, u1;
-  int line = 0;
-  bool arc_interior = false;  ///< p1 is a point generated inside a CIRCLE/ (an NC arc passes it between its ends)
-  double th = 0.0;            ///< slerp_angle(u0, u1)
+  int line;
+  bool arc_interior;  ///< p1 is a point generated inside a CIRCLE/ (an NC arc passes it between its ends)
+  double th;          ///< slerp_angle(u0, u1)
+  double sin_th;      ///< sin(th)
 };
 
 /// The angle slerp() turns through from a to b.
 double slerp_angle(const Vec3& a, const Vec3& b) { return std::acos(std::clamp(a.dot(b), -1.0, 1.0)); }
 
-/// slerp with its angle th = slerp_angle(a, b) computed once (per CL segment).
-Vec3 slerp(const Vec3& a, const Vec3& b, double th, double s) {
+/// slerp with its angle th = slerp_angle(a, b) and sin(th) computed once (per CL segment).
+Vec3 slerp(const Vec3& a, const Vec3& b, double th, double sin_th, double s) {
   if (th < 1e-9) return ((1 - s) * a + s * b).normalized();
-  return (std::sin((1 - s) * th) / std::sin(th) * a + std::sin(s * th) / std::sin(th) * b).normalized();
+  return (std::sin((1 - s) * th) / sin_th * a + std::sin(s * th) / sin_th * b).normalized();
 }
 
 /// Distance from p to the segment and the segment parameter of the closest point.
@@ -63,11 +66,16 @@ bool departure(const kin::Posed* poses, int n, double tip_tol, double axis_tol_r
   const kin::Posed &pa = poses[0], &pb = poses[n + 1];
   if ((pb.tip_mm - pa.tip_mm).norm() <= tip_tol) return false;
   const double room_mm = tip_tol - slack_mm;
-  const double cos_axis_tol = std::cos(std::max(0.0, axis_tol_rad - slack_rad));
-  // The geometric tests of every sample first: a cutting block fails them at once, before any CL lookup.
+  // The geometric tests of every sample first: a cutting block fails them at once, before any CL lookup (the tip
+  // off the axis line first: the cosine of the axis test is then only taken for a block along its axis).
   for (int i = 0; i <= n; ++i) {
     const kin::Posed& p = i == n ? pb : poses[i];
-    if ((p.tip_mm - pa.tip_mm).cross(pa.axis).norm() > room_mm || p.axis.dot(pa.axis) < cos_axis_tol) return false;
+    if ((p.tip_mm - pa.tip_mm).cross(pa.axis).norm() > room_mm) return false;
+  }
+  const double cos_axis_tol = std::cos(std::max(0.0, axis_tol_rad - slack_rad));
+  for (int i = 0; i <= n; ++i) {
+    const kin::Posed& p = i == n ? pb : poses[i];
+    if (p.axis.dot(pa.axis) < cos_axis_tol) return false;
   }
   for (int i = 0; i <= n; ++i) {
     const kin::Posed& p = i == n ? pb : poses[i];
@@ -439,18 +447,21 @@ VerifyResult verify(const nc::Program& nc, const cl::Program& cl, const kin::Kin
       if (t.is_ball()) ball_r = 0.5 * t.diameter_mm;
   auto point = [&](const Vec3& tip, const Vec3& axis) -> Vec3 { return tip + ball_r * axis; };
   // The CL feed segments, in order: counted per fixed chunk of moves, then filled in parallel at their places.
-  std::vector<ClSeg> segs;
+  std::vector<ClSeg, DefaultInitAllocator<ClSeg>> segs;
   {
     constexpr std::size_t kSegChunk = 4096;
     const std::size_t n_moves = cl.moves.size();
     const std::size_t chunks = n_moves > 1 ? (n_moves - 2) / kSegChunk + 1 : 0;  // moves 1 .. n - 1
     std::vector<std::size_t> first(chunks + 1, 0);
-    for (std::size_t c = 0; c < chunks; ++c) {
-      std::size_t count = 0;
-      for (std::size_t i = 1 + c * kSegChunk; i < std::min(n_moves, 1 + (c + 1) * kSegChunk); ++i)
-        count += cl.moves[i].kind == cl::MotionKind::Feed;
-      first[c + 1] = first[c] + count;
-    }
+    parallel_range(0, chunks, 8, [&](const tbb::blocked_range<std::size_t>& r) {  // counts (a pass over 80 MB)
+      for (std::size_t c = r.begin(); c != r.end(); ++c) {
+        std::size_t count = 0;
+        for (std::size_t i = 1 + c * kSegChunk; i < std::min(n_moves, 1 + (c + 1) * kSegChunk); ++i)
+          count += cl.moves[i].kind == cl::MotionKind::Feed;
+        first[c + 1] = count;
+      }
+    });
+    for (std::size_t c = 0; c < chunks; ++c) first[c + 1] += first[c];  // then their running sums
     segs.resize(first[chunks]);
     parallel_range(0, chunks, 1, [&](const tbb::blocked_range<std::size_t>& r) {
       for (std::size_t c = r.begin(); c != r.end(); ++c) {
@@ -460,8 +471,9 @@ VerifyResult verify(const nc::Program& nc, const cl::Program& cl, const kin::Kin
           const auto& b = cl.moves[i];
           if (b.kind != cl::MotionKind::Feed) continue;
           const Vec3 ua = a.axis_in_part.normalized(), ub = b.axis_in_part.normalized();
-          segs[k++] = {point(a.tip_in_part_mm, ua), point(b.tip_in_part_mm, ub), ua, ub, b.line, b.from_arc,
-                       slerp_angle(ua, ub)};
+          const double th = slerp_angle(ua, ub);
+          segs[k++] = {
+              point(a.tip_in_part_mm, ua), point(b.tip_in_part_mm, ub), ua, ub, b.line, b.from_arc, th, std::sin(th)};
         }
       }
     });
@@ -533,6 +545,9 @@ VerifyResult verify(const nc::Program& nc, const cl::Program& cl, const kin::Kin
 
   std::vector<Vec3> nc_feed_points;
   std::vector<int> nc_feed_lines;
+  // At most two per block (its ends): no regrowth of a million-point array; pages never written stay untouched.
+  nc_feed_points.reserve(2 * nc.blocks.size());
+  nc_feed_lines.reserve(2 * nc.blocks.size());
   size_t cursor = 0;
   bool after_rapid = true;
   const nc::Block* prev = nullptr;
@@ -703,7 +718,8 @@ VerifyResult verify(const nc::Program& nc, const cl::Program& cl, const kin::Kin
                       double t;
                       nearest(p, c, false, t);
                       const ClSeg& sg = segs[c];
-                      return std::pair<Vec3, Vec3>(sg.p0 + t * (sg.p1 - sg.p0), slerp(sg.u0, sg.u1, sg.th, t));
+                      return std::pair<Vec3, Vec3>(sg.p0 + t * (sg.p1 - sg.p0),
+                                                   slerp(sg.u0, sg.u1, sg.th, sg.sin_th, t));
                     })) {
         // A retract or plunge along the fixed tool axis (a post's flip or unwind): off the path by design,
         // like a rapid; the CL points around it must still be reached.
@@ -765,7 +781,7 @@ VerifyResult verify(const nc::Program& nc, const cl::Program& cl, const kin::Kin
       for (std::size_t i = rg.begin(); i != rg.end(); ++i) {
         const AxisSample& a = axis_samples[i];
         const ClSeg& sg = segs[a.seg];
-        const Vec3 u = slerp(sg.u0, sg.u1, sg.th, a.t);
+        const Vec3 u = slerp(sg.u0, sg.u1, sg.th, sg.sin_th, a.t);
         axis_angles[i] = rad2deg(std::acos(std::clamp(u.dot(a.pose->axis), -1.0, 1.0))) + a.slack_deg;
       }
     });

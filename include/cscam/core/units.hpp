@@ -23,6 +23,9 @@ constexpr double rad2deg(int rad) { return rad * (180.0 / kPi); }
 
 /// Wrap an angle to (-pi, pi].
 inline double wrap_pi(double a) {
+  // Already inside (IK angles from atan2 nearly always are): remainder would return a itself (its quotient rounds
+  // to 0), without its libm call.
+  if (a > -kPi && a <= kPi) return a;
   a = std::remainder(a, 2.0 * kPi);
   return a <= -kPi ? a + 2.0 * kPi : a;
 }

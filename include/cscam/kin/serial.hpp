@@ -118,7 +118,9 @@ class SerialKinematics final : public Kinematics {
 
   [[nodiscard]] const std::vector<AxisInfo>& axes() const override { return axes_; }
   [[nodiscard]] std::array<int, 2> rotary_pair() const override { return rot_; }
-  [[nodiscard]] Posed forward(const Axes& q) const override { return serial_forward(geometry_, q); }
+  /// serial_forward's arithmetic, operation for operation, on steps laid out once (no chain lists, the products
+  /// of each rotary's direction components taken once): FK is most of the post's and the gate's work.
+  [[nodiscard]] Posed forward(const Axes& q) const override;
   void inverse_all(const Posed& pose, const Axes* hint, std::vector<Solution>& out) const override;
   void inverse_branches(const Posed& pose, const Axes* hint, std::vector<Solution>& out) const override;
   bool solve_for_rotaries(const Posed& pose, Axes& q) const override;
@@ -149,8 +151,26 @@ class SerialKinematics final : public Kinematics {
   [[nodiscard]] std::array<Rigid, 5> joint_motions(const Axes& q) const;
   [[nodiscard]] Rigid part_from_base(const std::array<Rigid, 5>& J) const;
   bool chain_link(int axis, const std::array<Rigid, 5>& J, const Rigid& part_from_base, Eigen::Isometry3d& T) const;
+  /// One joint as forward() and solve_for_rotaries() apply it.
+  struct Step {
+    int axis = 0;
+    bool rotary = false;
+    bool table = false;  ///< undone (inverse) from the base outward
+    int lin_col = -1;    ///< a linear joint's column of solve_for_rotaries' A
+    Eigen::Vector3d direction, pivot_mm;
+    double offset = 0.0;
+    double wxx = 0, wxy = 0, wxz = 0, wyy = 0, wyz = 0, wzz = 0;  ///< detail::axis_angle's direction products
+  };
+  /// detail::axis_angle(step.direction, angle), from the step's products.
+  [[nodiscard]] static Eigen::Matrix3d rotation(const Step& j, double angle);
   SerialGeometry<double> geometry_;
   std::vector<AxisInfo> axes_;
+  std::vector<Step> steps_;   ///< head chain from its outermost joint inward, then the table chain outward
+  Eigen::Vector3d tip_home_;  ///< gauge_home_mm - tool_length_mm * tool_direction_home
+  // solve_for_rotaries: t0 and A after the leading linear steps (constants), and where the rest begins.
+  Eigen::Vector3d solve_t0_;
+  Eigen::Matrix3d solve_A_;
+  std::size_t solve_first_ = 0;
   std::array<int, 2> rot_{};      ///< rotary joints in Paden-Kahan order: u = Rot(w1, s1 q1) Rot(w2, s2 q2) d0
   std::array<double, 2> sign_{};  ///< -1 for a table rotary (its inverse enters), +1 for a head rotary
   std::array<int, 3> lin_{};
