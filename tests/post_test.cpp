@@ -1396,7 +1396,7 @@ TEST(PostWorkPlane, CirclesInAPlaneBecomeArcsInItsCoordinatesAndReadBackOnTheClC
       EXPECT_EQ(n_arcs, want);
       // the gate reads the arcs: a centre moved 0.1 mm along the plane's X inside it is refused
       if (want > 0) {
-        const std::regex first_i("(\n[^\n]*G[23] [^\n]* I)(-?[0-9]+\.[0-9]+)");
+        const std::regex first_i(R"((\n[^\n]*G[23] [^\n]* I)(-?[0-9]+\.[0-9]+))");
         std::smatch mt;
         ASSERT_TRUE(std::regex_search(p.text, mt, first_i));
         std::string moved = p.text;
