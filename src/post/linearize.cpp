@@ -52,6 +52,14 @@ namespace {
 constexpr double kBranchChangeRad = 1e-3;
 }  // namespace
 
+std::string Linearizer::remedy() const {
+  // A planned program already chose its orientations within a cone: between two of them the tool axis passes by a
+  // singular orientation (the interpolated axis needs the primary rotary to swing), which another grid or cone avoids.
+  return set_.planned ? "the planned orientations pass beside a singular orientation here: plan again with another "
+                        "--cone or --resolution, or split the segment"
+                      : "split the segment or plan it with a cone";
+}
+
 Linearizer::Linearizer(const kin::Kinematics& k, const Settings& s)
     : kin_(k), set_(s), cos_tol_axis_(std::cos(s.axis_tolerance_rad)) {}
 
@@ -137,8 +145,8 @@ void Linearizer::split(const cl::Move& m0, const kin::Axes& q0, const cl::Move& 
         throw InputError(SourceLoc{cl_file, m1.line, 0},
                          fmt::format("the machine cannot follow the CL segment from line {} to line {} "
                                      "continuously: inside it a limit{} forces the rotaries to flip (the "
-                                     "tool would leave the path); split the segment or plan it with a cone",
-                                     m0.line, m1.line, why.empty() ? "" : " (" + why + ")"));
+                                     "tool would leave the path); {}",
+                                     m0.line, m1.line, why.empty() ? "" : " (" + why + ")", remedy()));
       if (!tracked) {
         stats.warnings.push_back(
             fmt::format("{}: no IK solution while linearising", SourceLoc{cl_file, m1.line, 0}.str()));
@@ -172,12 +180,11 @@ void Linearizer::split(const cl::Move& m0, const kin::Axes& q0, const cl::Move& 
         throw InputError(
             SourceLoc{cl_file, m1.line, 0},
             fmt::format("the machine cannot follow the CL segment from line {} to line {}: {:.1f}% along it {} "
-                        "(one block would leave the path by {:.4f} mm and {:.3f} deg); split the segment or plan it "
-                        "with a cone",
+                        "(one block would leave the path by {:.4f} mm and {:.3f} deg); {}",
                         m0.line, m1.line, 100.0 * pc.sb,
                         branch_change ? "the rotaries must change IK branch" + (why.empty() ? "" : " (" + why + ")")
                                       : std::string("the rotaries turn too fast to stay within the tolerance"),
-                        tip_mm, axis_rad * 180.0 / M_PI));
+                        tip_mm, axis_rad * 180.0 / M_PI, remedy()));
       }
       stats.warnings.push_back(fmt::format("{}: tolerance not reached after {} subdivisions (singular region?)",
                                            SourceLoc{cl_file, m1.line, 0}.str(), set_.max_depth));

@@ -37,6 +37,7 @@ class Linearizer {
     double control_offset_mm = 0.0;  ///< the controlled point is tip + offset * axis (a ball centre)
     int max_depth = 14;
     bool enabled = true;
+    bool planned = false;  ///< the axis values come from the planner (for the advice an error gives)
   };
   /// One piece of the segment: the axis values at its end and the length of the CL path it covers.
   struct Piece {
@@ -73,6 +74,8 @@ class Linearizer {
     kin::Axes qa, qb;
     int depth;
   };
+  /// What an error that refuses a segment advises.
+  [[nodiscard]] std::string remedy() const;
   const kin::Kinematics& kin_;
   Settings set_;
   double cos_tol_axis_ = 1.0;

@@ -253,6 +253,7 @@ class Sequencer {
     s.control_offset_mm = opt.control_offset_mm;
     s.max_depth = opt.max_subdivision_depth;
     s.enabled = opt.linearise;
+    s.planned = opt.strategy != "conventional";
     return s;
   }
 
