@@ -566,7 +566,9 @@ void common_options(CLI::App* c, PlanArgs& a) {
   c->add_option("--resolution", a.resolution_deg, "C-space grid resolution, deg")->check(CLI::PositiveNumber);
   c->add_option("--tilt-step", a.tilt_step_deg,
                 "tilt grid inside the cone for the leg (PKM) re-plan, deg (default: resolution)");
-  c->add_option("--max-step", a.max_step_deg, "shortest-path tier: largest rotary step per point, deg");
+  c->add_option("--max-step", a.max_step_deg,
+                "largest rotary step per point, deg, in tiers 2-4 (0: 20 grid steps, which tier 4 exceeds only where "
+                "no cell within it follows the CL axis; a value given here is never exceeded)");
   c->add_option("--clearance", a.clearance_mm, "collision clearance of shank, holder and spindle, mm");
   c->add_option("--tool-length", a.tool_length, "gauge-to-tip tool length, mm");
   c->add_option("--tolerance", a.tolerance, "post linearisation tolerance, mm");
