@@ -12,11 +12,7 @@ namespace cscam::plan::detail {
 namespace {
 /// Cone 0: the exact IK cells, through the shared DP with a transition rule per pair of directions.
 bool exact_monotonic(const SegmentView& v, SegmentCells& d, TierOutcome& out) {
-  std::size_t worst = 0;
-  Why why;
-  // Every direction pair that has a path, the least travel taken (then the shortest entry).
-  bool found = false;
-  PathCost best;
+  ExactChoice choice;  // every direction pair that has a path: the least travel
   for (int d1 : {+1, -1})
     for (int d2 : {+1, -1}) {
       std::size_t fl = 0;
@@ -25,25 +21,12 @@ bool exact_monotonic(const SegmentView& v, SegmentCells& d, TierOutcome& out) {
         return d1 * (static_cast<long long>(b.i1) - a.i1) >= 0 && d2 * (static_cast<long long>(b.i2) - a.i2) >= 0;
       };
       std::vector<const Cell*> p;
-      if (dp_exact(v, d, allowed, p, fl, w)) {
-        const PathCost cost = path_cost(v, p);
-        if (!found || cost.better_than(best)) {
-          found = true;
-          best = cost;
-          out.path = std::move(p);
-          out.description =
-              fmt::format("{} {}, {} {}", v.n1(), d1 > 0 ? "rising" : "falling", v.n2(), d2 > 0 ? "rising" : "falling");
-        }
-        continue;
-      }
-      if (fl >= worst) {
-        worst = fl;
-        why = w;
-      }
+      const bool ok = dp_exact(v, d, allowed, p, fl, w);
+      if (choice.offer(v, ok, p, fl, w, out))
+        out.description =
+            fmt::format("{} {}, {} {}", v.n1(), d1 > 0 ? "rising" : "falling", v.n2(), d2 > 0 ? "rising" : "falling");
     }
-  if (found) return true;
-  out.failure = {Tier::Monotonic, d.layers[worst].move, line_of(v, d, worst), why.cause, why.detail};
-  return false;
+  return choice.finish(v, d, Tier::Monotonic, out);
 }
 
 /// A state of the staircase DP: a cell, in the directed coordinates a (primary) and b (secondary), reachable

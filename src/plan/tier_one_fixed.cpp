@@ -12,12 +12,7 @@ namespace cscam::plan::detail {
 namespace {
 /// Cone 0: the exact IK cells, through the shared DP with a transition rule per (fixed axis, direction).
 bool exact_one_fixed(const SegmentView& v, SegmentCells& d, TierOutcome& out) {
-  std::size_t worst = 0;
-  Why why;
-  // Every (fixed axis, direction) that has a path, the least travel taken (then the shortest entry: the other branch
-  // of a tilt can need half a turn of the primary to get there).
-  bool found = false;
-  PathCost best;
+  ExactChoice choice;  // every (fixed axis, direction) that has a path: the least travel
   for (int f = 1; f >= 0; --f)
     for (int dir : {+1, -1}) {
       std::size_t fl = 0;
@@ -28,26 +23,13 @@ bool exact_one_fixed(const SegmentView& v, SegmentCells& d, TierOutcome& out) {
         return fa == fb && dir * (mb - ma) >= 0;
       };
       std::vector<const Cell*> p;
-      if (dp_exact(v, d, allowed, p, fl, w)) {
-        const PathCost cost = path_cost(v, p);
-        if (!found || cost.better_than(best)) {
-          found = true;
-          best = cost;
-          out.path = std::move(p);
-          out.description =
-              fmt::format("{} fixed at {:.3f} deg, the other {}", f == 0 ? v.n1() : v.n2(),
-                          rad2deg(f == 0 ? out.path[0]->r1 : out.path[0]->r2), dir > 0 ? "rising" : "falling");
-        }
-        continue;
-      }
-      if (fl >= worst) {
-        worst = fl;
-        why = w;
-      }
+      const bool ok = dp_exact(v, d, allowed, p, fl, w);
+      if (choice.offer(v, ok, p, fl, w, out))
+        out.description =
+            fmt::format("{} fixed at {:.3f} deg, the other {}", f == 0 ? v.n1() : v.n2(),
+                        rad2deg(f == 0 ? out.path[0]->r1 : out.path[0]->r2), dir > 0 ? "rising" : "falling");
     }
-  if (found) return true;
-  out.failure = {Tier::Fixed1, d.layers[worst].move, line_of(v, d, worst), why.cause, why.detail};
-  return false;
+  return choice.finish(v, d, Tier::Fixed1, out);
 }
 }  // namespace
 

@@ -341,6 +341,37 @@ struct TierOutcome {
   TierFailure failure;
 };
 
+/// Cone 0, tiers 2 and 3: dp_exact under each of several transition rules (fixed axis or directions). Keeps the path
+/// of least travel (then the shortest entry: the other branch of a tilt can need half a turn of the primary to get
+/// there) and, while none is found, the failure that got furthest.
+struct ExactChoice {
+  bool found = false;
+  PathCost best;
+  std::size_t worst = 0;
+  Why why;
+  /// One rule's result (`ok`, its path `p`, or where it failed, `fail_layer` and `w`). Returns whether `p` is now
+  /// the best (moved into `out.path`; the caller describes it).
+  bool offer(const SegmentView& v, bool ok, std::vector<const Cell*>& p, std::size_t fail_layer, const Why& w,
+             TierOutcome& out) {
+    if (!ok) {
+      if (fail_layer >= worst) worst = fail_layer, why = w;
+      return false;
+    }
+    const PathCost cost = path_cost(v, p);
+    if (found && !cost.better_than(best)) return false;
+    found = true;
+    best = cost;
+    out.path = std::move(p);
+    return true;
+  }
+  /// After the last rule: true with the best path, or false with the furthest failure in `out`.
+  bool finish(const SegmentView& v, const SegmentCells& d, Tier tier, TierOutcome& out) const {
+    if (found) return true;
+    out.failure = {tier, d.layers[worst].move, line_of(v, d, worst), why.cause, why.detail};
+    return false;
+  }
+};
+
 /// Tier 1 (tier_fixed.cpp): one cell feasible at every point (3+2); ties broken by clearance, then by nearness to
 /// the previous segment's rotaries.
 bool tier_fixed(const SegmentView& v, SegmentCells& d, TierOutcome& out);
