@@ -3,7 +3,9 @@
 #include <fmt/format.h>
 
 #include <algorithm>
+#include <array>
 #include <cmath>
+#include <utility>
 
 #include "cscam/core/error.hpp"
 #include "cscam/core/units.hpp"
@@ -14,6 +16,11 @@ namespace cscam::plan::detail {
 std::string SegmentView::n1() const {
   return space.kinematics().axes()[static_cast<size_t>(space.kinematics().rotary_pair()[0])].name;
 }
+std::array<double, 2> SegmentView::entry_rotaries() const {
+  const auto rp = space.kinematics().rotary_pair();
+  return prefer ? std::array<double, 2>{(*prefer)[rp[0]], (*prefer)[rp[1]]} : std::array<double, 2>{0.0, 0.0};
+}
+
 std::string SegmentView::n2() const {
   return space.kinematics().axes()[static_cast<size_t>(space.kinematics().rotary_pair()[1])].name;
 }
@@ -178,16 +185,23 @@ long cells_per_turn(const cspace::Space& sp) {
   const long per_turn = std::lround(turn_cells);
   return std::abs(turn_cells - static_cast<double>(per_turn)) > 1e-6 ? 0 : per_turn;
 }
+/// The whole turns t (t_lo <= t <= t_hi; none when t_lo > t_hi) that keep grid indices [lo, hi] of rotary j (0:
+/// primary) on the grid when shifted by t turns.
+std::pair<long, long> turns_on_grid(const cspace::Space& sp, int j, int lo, int hi, long per_turn) {
+  const int g_lo = j == 0 ? sp.i1_min() : sp.i2_min(), g_hi = j == 0 ? sp.i1_max() : sp.i2_max();
+  const auto n = static_cast<double>(per_turn);
+  return {static_cast<long>(std::ceil(static_cast<double>(g_lo - lo) / n)),
+          static_cast<long>(std::floor(static_cast<double>(g_hi - hi) / n))};
+}
 }  // namespace
 
 PathCost path_cost(const SegmentView& v, const std::vector<const Cell*>& path) {
   PathCost c;
   if (path.empty()) return c;
-  const auto rp = v.space.kinematics().rotary_pair();
   const double w1 = v.options.weight_primary, w2 = v.options.weight_secondary;
   for (std::size_t k = 1; k < path.size(); ++k)
     c.travel += w1 * std::abs(path[k]->r1 - path[k - 1]->r1) + w2 * std::abs(path[k]->r2 - path[k - 1]->r2);
-  const double p1 = v.prefer ? (*v.prefer)[rp[0]] : 0.0, p2 = v.prefer ? (*v.prefer)[rp[1]] : 0.0;
+  const auto [p1, p2] = v.entry_rotaries();
   c.entry = w1 * std::abs(path.front()->r1 - p1) + w2 * std::abs(path.front()->r2 - p2);
   return c;
 }
@@ -195,38 +209,34 @@ PathCost path_cost(const SegmentView& v, const std::vector<const Cell*>& path) {
 double whole_turns_rad(const cspace::Space& sp, int j, int i, double from_rad) {
   const long per_turn = cells_per_turn(sp);
   if (per_turn <= 0) return 0.0;
-  const int g_lo = j == 0 ? sp.i1_min() : sp.i2_min(), g_hi = j == 0 ? sp.i1_max() : sp.i2_max();
   const double r = j == 0 ? sp.r1_of(i) : sp.r2_of(i);
   double best = std::abs(r - from_rad);
-  // Other windings of the same angle on the grid: i + t per_turn for t != 0 within [g_lo, g_hi].
-  const long t_lo = static_cast<long>(std::ceil(static_cast<double>(g_lo - i) / static_cast<double>(per_turn)));
-  const long t_hi = static_cast<long>(std::floor(static_cast<double>(g_hi - i) / static_cast<double>(per_turn)));
+  // The windings of the same angle on the grid: i + t per_turn.
+  const auto [t_lo, t_hi] = turns_on_grid(sp, j, i, i, per_turn);
   for (long t = t_lo; t <= t_hi; ++t)
     best = std::min(best, std::abs(r + 2.0 * kPi * static_cast<double>(t) - from_rad));
   return std::abs(r - from_rad) - best;
 }
 
-int rewind_to_entry(const SegmentView& v, SegmentCells& d, std::vector<const Cell*>& path) {
-  if (v.exact || path.empty() || d.layers.front().pinned) return 0;
+void rewind_to_entry(const SegmentView& v, SegmentCells& d, std::vector<const Cell*>& path) {
+  if (v.exact || path.empty() || d.layers.front().pinned) return;
   const auto& sp = v.space;
   const auto& kin = sp.kinematics();
   const auto rp = kin.rotary_pair();
   const long per_turn = cells_per_turn(sp);
-  if (per_turn <= 0) return 0;
-  int removed = 0;
+  if (per_turn <= 0) return;
+  const auto entry = v.entry_rotaries();
   // Any rotary whose grid holds more than a turn (a cyclic axis, or limits wider than a turn): a turn is no motion.
   for (int j = 0; j < 2; ++j) {
     const auto axis = static_cast<std::size_t>(rp[static_cast<std::size_t>(j)]);
     auto idx = [j](const Cell* c) { return j == 0 ? c->i1 : c->i2; };
     int lo = idx(path.front()), hi = lo;
     for (const Cell* c : path) lo = std::min(lo, idx(c)), hi = std::max(hi, idx(c));
-    const int g_lo = j == 0 ? sp.i1_min() : sp.i2_min(), g_hi = j == 0 ? sp.i1_max() : sp.i2_max();
-    const auto t_lo = static_cast<long>(std::ceil(static_cast<double>(g_lo - lo) / static_cast<double>(per_turn)));
-    const auto t_hi = static_cast<long>(std::floor(static_cast<double>(g_hi - hi) / static_cast<double>(per_turn)));
-    const double from = v.prefer ? (*v.prefer)[axis] : 0.0;
+    const auto [t_lo, t_hi] = turns_on_grid(sp, j, lo, hi, per_turn);
+    if (t_lo > t_hi) continue;  // t = 0 leaves the grid already (cannot be: the path is on it); no turn fits
     const double r0 = j == 0 ? path.front()->r1 : path.front()->r2;
-    const long t = std::clamp(std::lround((from - r0) / (2.0 * kPi)), t_lo, t_hi);
-    if (t == 0 || t_lo > t_hi) continue;
+    const long t = std::clamp(std::lround((entry[static_cast<std::size_t>(j)] - r0) / (2.0 * kPi)), t_lo, t_hi);
+    if (t == 0) continue;
     // All or nothing: every shifted cell must be on the grid and within the axis limits.
     std::vector<Cell*> moved(path.size(), nullptr);
     bool ok = true;
@@ -257,9 +267,7 @@ int rewind_to_entry(const SegmentView& v, SegmentCells& d, std::vector<const Cel
     }
     if (!ok) continue;
     for (std::size_t k = 0; k < path.size(); ++k) path[k] = moved[k];
-    removed += static_cast<int>(std::abs(t));
   }
-  return removed;
 }
 
 bool feasible(const SegmentView& v, SegmentCells& d, std::size_t k, Cell& c, cspace::Certificate* cert) {

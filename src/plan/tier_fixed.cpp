@@ -23,7 +23,7 @@ std::vector<Candidate> candidates(const SegmentView& v, SegmentCells& d, std::si
   const auto& L = d.layers;
   const std::size_t n = L.size();
   std::vector<Candidate> cands;
-  const auto rp = v.space.kinematics().rotary_pair();
+  const auto entry = v.entry_rotaries();
   // Orientation only (cheap): no cell is materialised until a candidate survives every point. The point
   // that rejected the previous candidate is tested first (move-to-front), so most candidates cost O(1).
   std::vector<std::size_t> oorder;
@@ -49,8 +49,7 @@ std::vector<Candidate> candidates(const SegmentView& v, SegmentCells& d, std::si
     if (ok && !v.exact && oorder.size())
       score = std::max(score, static_cast<double>(static_cast<float>(std::acos(min_dot))));
     // Among equally good orientations prefer the winding nearest the previous segment (or home).
-    const double home = v.prefer ? std::abs(c0.r1 - (*v.prefer)[rp[0]]) + std::abs(c0.r2 - (*v.prefer)[rp[1]])
-                                 : std::abs(c0.r1) + std::abs(c0.r2);
+    const double home = std::abs(c0.r1 - entry[0]) + std::abs(c0.r2 - entry[1]);
     if (ok) cands.push_back({c0.i1, c0.i2, score, home});
   }
   std::stable_sort(cands.begin(), cands.end(), [](const Candidate& a, const Candidate& b) {

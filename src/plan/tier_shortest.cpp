@@ -237,6 +237,26 @@ bool swept_layer(const SegmentView& v, SegmentCells& d, const std::vector<State>
   return !S.empty();
 }
 
+/// Each cell's cheapest predecessor among `prev`, by a scan of every pair (in parallel over the cells), with steps
+/// within `max_step` (infinite: any step); appended to `tent` in cell order.
+void scan_predecessors(const Options& opt, const std::vector<State>& prev, std::vector<Cell>& cells, double max_step,
+                       Tentative& tent) {
+  std::vector<std::pair<double, int>> best(cells.size(), {kInf, -1});
+  parallel_indices(cells.size(), [&](std::size_t j) {
+    const Cell& c = cells[j];
+    for (std::size_t p = 0; p < prev.size(); ++p) {
+      const Cell* pc = prev[p].cell;
+      const double d1 = std::abs(c.r1 - pc->r1), d2 = std::abs(c.r2 - pc->r2);
+      if (d1 > max_step + 1e-12 || d2 > max_step + 1e-12) continue;
+      const double val = prev[p].cost + opt.weight_primary * d1 + opt.weight_secondary * d2;
+      if (val < best[j].first) best[j] = {val, static_cast<int>(p)};
+    }
+  });
+  for (std::size_t j = 0; j < cells.size(); ++j)
+    if (best[j].second >= 0)
+      tent.push_back({best[j].first + opt.orientation_weight * cells[j].orient_err, {&cells[j], best[j].second}});
+}
+
 /// Layer k of the forward pass: its states from the previous layer's (`prev`), at most `beam` of them, the cheapest
 /// feasible cells within the step bound; with `may_jump` (the widest beam, the default bound), where none is within
 /// the bound, the cheapest step however large. Returns whether the layer has a state.
@@ -244,10 +264,44 @@ bool beam_layer(const SegmentView& v, SegmentCells& d, const std::vector<State>&
                 std::size_t beam, bool may_jump, std::vector<State>& S) {
   auto& L = d.layers;
   const Options& opt = v.options;
-  const double res = v.space.options().resolution_rad;
   // No swept-free (or skimming) move into a flagged point: it is searched as any other (its collision stays
   // reported) rather than failing the whole path.
   if (k > 0 && k < d.swept_layers.size() && d.swept_layers[k] && swept_layer(v, d, prev, k, max_step, S)) return true;
+  // The beam from candidates (cost, cell, predecessor): the cheapest feasible ones, cheapest first, ties by grid
+  // position (a total order: any sort gives the same sequence). It fills from the front, usually within a few hundred
+  // of the thousands of cells near a singular axis: sorted a chunk at a time, as far as the beam reaches. Evaluated in
+  // parallel blocks of exactly as many cells as the beam still lacks, so the cells evaluated (and the counters) are
+  // those of a serial scan, at any thread count.
+  auto fill = [&](Tentative& tent) {
+    auto cheaper = [](const auto& x, const auto& y) {
+      if (x.first != y.first) return x.first < y.first;
+      const Cell &a = *x.second.first, &b = *y.second.first;
+      return a.i2 != b.i2 ? a.i2 < b.i2 : a.i1 < b.i1;
+    };
+    std::size_t sorted = 0;
+    auto sort_to = [&](std::size_t e) {
+      if (e <= sorted) return;
+      e = std::max(e, std::min(tent.size(), sorted + 2 * beam));
+      const auto first = tent.begin() + static_cast<std::ptrdiff_t>(sorted), last = tent.end();
+      const auto mid = tent.begin() + static_cast<std::ptrdiff_t>(e);
+      if (mid < last) std::nth_element(first, mid, last, cheaper);
+      std::sort(first, mid, cheaper);
+      sorted = e;
+    };
+    for (std::size_t next = 0; next < tent.size() && S.size() < beam;) {
+      const std::size_t b = next, e = std::min(tent.size(), next + (beam - S.size()));
+      sort_to(e);
+      // The beam revisits the same cells point after point: their clearance certificates spare most queries.
+      d.certs.reserve();
+      parallel_items(e - b, d.counters, [&](std::size_t i, geom::QueryWorkspace& ws, cspace::Counters& cc) {
+        d.certs.evaluate(L[k].cl, *tent[b + i].second.first, ws, cc);
+      });
+      for (std::size_t i = b; i < e; ++i)
+        if (tent[i].second.first->status == Status::Feasible)
+          S.push_back({tent[i].second.first, tent[i].first, tent[i].second.second});
+      next = e;
+    }
+  };
   Tentative tent;
   tent.reserve(L[k].cells.size());
   if (k == 0) {
@@ -255,8 +309,7 @@ bool beam_layer(const SegmentView& v, SegmentCells& d, const std::vector<State>&
     // in are travel for nothing (the windings of an angle cost the same along the segment): they count in full.
     // The rest of the entry reorientation is a rapid, not a cut: a tie-break only, so it never bends the cut
     // toward it.
-    const auto rp = v.space.kinematics().rotary_pair();
-    const double p1 = v.prefer ? (*v.prefer)[rp[0]] : 0.0, p2 = v.prefer ? (*v.prefer)[rp[1]] : 0.0;
+    const auto [p1, p2] = v.entry_rotaries();
     for (Cell& c : L[0].cells) {
       const double entry = opt.weight_primary * std::abs(c.r1 - p1) + opt.weight_secondary * std::abs(c.r2 - p2);
       const double whole_turns = opt.weight_primary * whole_turns_rad(v.space, 0, c.i1, p1) +
@@ -264,86 +317,18 @@ bool beam_layer(const SegmentView& v, SegmentCells& d, const std::vector<State>&
       tent.push_back({opt.orientation_weight * c.orient_err + whole_turns + 1e-9 * entry, {&c, -1}});
     }
   } else if (prev.size() * L[k].cells.size() <= 200000) {
-    // Each cell's best predecessor on its own (in parallel), then collected in cell order.
-    auto& cells = L[k].cells;
-    std::vector<std::pair<double, int>> best(cells.size(), {kInf, -1});
-    parallel_indices(cells.size(), [&](std::size_t j) {
-      const Cell& c = cells[j];
-      for (std::size_t p = 0; p < prev.size(); ++p) {
-        const Cell* pc = prev[p].cell;
-        const double d1 = std::abs(c.r1 - pc->r1), d2 = std::abs(c.r2 - pc->r2);
-        if (d1 > max_step + 1e-12 || d2 > max_step + 1e-12) continue;
-        const double val = prev[p].cost + opt.weight_primary * d1 + opt.weight_secondary * d2;
-        if (val < best[j].first) best[j] = {val, static_cast<int>(p)};
-      }
-    });
-    for (std::size_t j = 0; j < cells.size(); ++j)
-      if (best[j].second >= 0)
-        tent.push_back({best[j].first + opt.orientation_weight * cells[j].orient_err, {&cells[j], best[j].second}});
+    scan_predecessors(opt, prev, L[k].cells, max_step, tent);
   } else {
-    distance_transform(opt, prev, L[k], max_step, res, tent);
+    distance_transform(opt, prev, L[k], max_step, v.space.options().resolution_rad, tent);
   }
-  // Cheapest first, ties by grid position (a total order: any sort gives the same sequence). The beam fills from
-  // the front, usually within a few hundred of the thousands of cells near a singular axis: sorted a chunk at a
-  // time, as far as the beam reaches.
-  auto cheaper = [](const auto& x, const auto& y) {
-    if (x.first != y.first) return x.first < y.first;
-    const Cell &a = *x.second.first, &b = *y.second.first;
-    return a.i2 != b.i2 ? a.i2 < b.i2 : a.i1 < b.i1;
-  };
-  std::size_t sorted = 0;
-  auto sort_to = [&](std::size_t e) {
-    if (e <= sorted) return;
-    e = std::max(e, std::min(tent.size(), sorted + 2 * beam));
-    const auto first = tent.begin() + static_cast<std::ptrdiff_t>(sorted), last = tent.end();
-    const auto mid = tent.begin() + static_cast<std::ptrdiff_t>(e);
-    if (mid < last) std::nth_element(first, mid, last, cheaper);
-    std::sort(first, mid, cheaper);
-    sorted = e;
-  };
-  // The beam: the cheapest feasible cells. Evaluated in parallel blocks of exactly as many cells as the beam
-  // still lacks, so the cells evaluated (and the counters) are those of a serial scan, at any thread count.
-  for (std::size_t next = 0; next < tent.size() && S.size() < beam;) {
-    const std::size_t b = next, e = std::min(tent.size(), next + (beam - S.size()));
-    sort_to(e);
-    // The beam revisits the same cells point after point: their clearance certificates spare most queries.
-    d.certs.reserve();
-    parallel_items(e - b, d.counters, [&](std::size_t i, geom::QueryWorkspace& ws, cspace::Counters& cc) {
-      d.certs.evaluate(L[k].cl, *tent[b + i].second.first, ws, cc);
-    });
-    for (std::size_t i = b; i < e; ++i)
-      if (tent[i].second.first->status == Status::Feasible)
-        S.push_back({tent[i].second.first, tent[i].first, tent[i].second.second});
-    next = e;
-  }
+  fill(tent);
   if (S.empty() && k > 0 && may_jump) {
     // No feasible cell within the default step bound of any state: the CL axis itself turns faster here (every
     // point has a feasible cell, check_points made sure). The bound is a preference, not the machine's limit: the
     // cheapest step, however large, is taken (the description names where). A bound the user set stays hard.
-    auto& cells = L[k].cells;
-    std::vector<std::pair<double, int>> best(cells.size(), {kInf, -1});
-    parallel_indices(cells.size(), [&](std::size_t j) {
-      for (std::size_t p = 0; p < prev.size(); ++p) {
-        const double val = prev[p].cost + opt.weight_primary * std::abs(cells[j].r1 - prev[p].cell->r1) +
-                           opt.weight_secondary * std::abs(cells[j].r2 - prev[p].cell->r2);
-        if (val < best[j].first) best[j] = {val, static_cast<int>(p)};
-      }
-    });
-    std::vector<std::pair<double, std::size_t>> order;
-    for (std::size_t j = 0; j < cells.size(); ++j)
-      if (best[j].second >= 0) order.emplace_back(best[j].first + opt.orientation_weight * cells[j].orient_err, j);
-    std::sort(order.begin(), order.end());
-    for (std::size_t next = 0; next < order.size() && S.size() < beam;) {
-      const std::size_t b = next, e = std::min(order.size(), next + (beam - S.size()));
-      d.certs.reserve();
-      parallel_items(e - b, d.counters, [&](std::size_t i, geom::QueryWorkspace& ws, cspace::Counters& cc) {
-        d.certs.evaluate(L[k].cl, cells[order[b + i].second], ws, cc);
-      });
-      for (std::size_t i = b; i < e; ++i)
-        if (Cell& c = cells[order[i].second]; c.status == Status::Feasible)
-          S.push_back({&c, order[i].first, best[order[i].second].second});
-      next = e;
-    }
+    tent.clear();
+    scan_predecessors(opt, prev, L[k].cells, kInf, tent);
+    fill(tent);
   }
   return !S.empty();
 }

@@ -7,6 +7,7 @@
 // (dp_exact) serves every tier at cone 0.
 #include <fmt/format.h>
 
+#include <array>
 #include <cmath>
 #include <cstdint>
 #include <limits>
@@ -127,6 +128,8 @@ struct SegmentView {
   /// Names of the primary and secondary rotaries, for reports.
   [[nodiscard]] std::string n1() const;
   [[nodiscard]] std::string n2() const;
+  /// The primary and secondary rotary values the segment is entered from: where the previous segment ended, or home.
+  [[nodiscard]] std::array<double, 2> entry_rotaries() const;
 };
 
 /// The cells of a segment's points as the search evaluates them, its counters and its query workspace.
@@ -174,9 +177,8 @@ void check_points(const SegmentView& v, SegmentCells& d, std::size_t& points_bey
 Cell* cell_at(const SegmentView& v, SegmentCells& d, std::size_t k, int i1, int i2);
 /// A grid path of a cyclic rotary can be shifted by whole turns without changing a pose or its travel: the shift
 /// whose first cell lies nearest where the segment is entered from (the previous segment's end, or home), within the
-/// grid and the axis limits. The shifted cells take the originals' collision status (the same physical poses). Returns
-/// the whole turns removed from the entry (0: the path stays).
-int rewind_to_entry(const SegmentView& v, SegmentCells& d, std::vector<const Cell*>& path);
+/// grid and the axis limits. The shifted cells take the originals' collision status (the same physical poses).
+void rewind_to_entry(const SegmentView& v, SegmentCells& d, std::vector<const Cell*>& path);
 /// Weighted rotary travel along a path, and into its first cell from where the segment is entered (the previous
 /// segment's end, or home): how tiers that find several answers of one kind choose between them.
 struct PathCost {
@@ -299,7 +301,7 @@ bool dp_exact(const SegmentView& v, SegmentCells& d, Allowed&& allowed, std::vec
           }
           if (k == 0) {
             // Ties (windings of a cyclic axis) go to the start nearest the previous segment's rotaries (or home).
-            const double r1 = v.prefer ? (*v.prefer)[rp[0]] : 0.0, r2 = v.prefer ? (*v.prefer)[rp[1]] : 0.0;
+            const auto [r1, r2] = v.entry_rotaries();
             cur[j].cost = 1e-9 * (std::abs(cells[j].r1 - r1) + std::abs(cells[j].r2 - r2));
             any = true;
             continue;
