@@ -79,6 +79,19 @@ TEST(Cli, CompareReportsAConventionalPostThatFailsAndStillComparesThePlan) {
   EXPECT_EQ(r.status, 0) << r.output;
 }
 
+TEST(Cli, NxPathPlannedAtCone10PassesBesideTheVerticalOnTheTrunnion) {
+  // NX's path crosses the vertical at CL lines 36-37; planned at cone 10 the trunnion's A goes -2 -> +2 deg there.
+  // The post once judged that segment by the slerp of the two planned axes (which passes 0.31 deg beside the pole,
+  // where C must swing half a turn) and refused it; the plan is within the cone all along.
+  TempDir d;
+  const std::string cl = cscam::test::source_path("examples/nx-haas-umc750/variable_axis.cls");
+  const std::string nc = d.file("va.ngc");
+  auto r = run_command(kCli + " plan " + cl + " --machine trunnion-ac --cone 10 -o " + nc);
+  ASSERT_EQ(r.status, 0) << r.output;
+  r = run_command(kCli + " verify " + nc + " --machine trunnion-ac --cl " + cl + " --cone 10");
+  EXPECT_EQ(r.status, 0) << r.output;
+}
+
 TEST(Cli, VerifySamplesFixedWhenAskedAndBoundedByDefault) {
   TempDir d;
   const std::string cl = cscam::test::source_path("examples/nx-haas-umc750/variable_axis.cls");

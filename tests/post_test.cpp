@@ -8,6 +8,7 @@
 #include <gtest/gtest.h>
 
 #include <algorithm>
+#include <array>
 #include <cstdlib>
 #include <filesystem>
 #include <fstream>
@@ -187,6 +188,74 @@ TEST(Post, PointOutsideTheLimitsNamesTheClLine) {
     EXPECT_NE(msg.find("far.cls:4"), std::string::npos) << msg;
     EXPECT_NE(msg.find("x = "), std::string::npos) << msg;
   }
+}
+
+TEST(Post, APlannedSegmentBesideTheSingularAxisIsJudgedByItsConeNotByTheSlerpOfItsAxes) {
+  // Planned (A, C) = (-2, 96) -> (+2, 78) deg on the trunnion: the machine's joint interpolation passes through the
+  // vertical, while the slerp of the two planned axes (198 deg apart in azimuth) passes 0.31 deg beside it, just
+  // beyond the 0.3 deg axis tolerance, where following it needs C to swing half a turn. Both lie within a 10 deg
+  // cone of the CL's vertical axis. Found on NX's variable_axis path planned at cone 10 (CL lines 36-37).
+  const auto m = load_machine("trunnion-ac");
+  const auto k = m.kinematics();
+  const auto rp = k->rotary_pair();
+  const double ball_mm = 3.0;
+  const std::array<Vec3, 2> centre = {Vec3(30, 10, 5), Vec3(31, 10, 5)};
+  const std::array<std::array<double, 2>, 2> ac = {{{-2.0, 96.0}, {2.0, 78.0}}};
+  cl::Program cl_prog, planned;
+  cl_prog.file = planned.file = "beside_pole.cls";
+  cl::Tool ball;
+  ball.number = 1;
+  ball.diameter_mm = 2 * ball_mm;
+  ball.corner_radius_mm = ball_mm;
+  cl_prog.tools = planned.tools = {ball};
+  std::vector<kin::Axes> axes;
+  for (int i = 0; i < 2; ++i) {
+    kin::Axes q = kin::Axes::Zero();
+    q[rp[0]] = deg2rad(ac[static_cast<size_t>(i)][1]);  // the primary rotary is C
+    q[rp[1]] = deg2rad(ac[static_cast<size_t>(i)][0]);
+    Vec3 u;
+    ASSERT_TRUE(k->tool_axis_at(q[rp[0]], q[rp[1]], centre[static_cast<size_t>(i)], u));
+    const Vec3 tip = centre[static_cast<size_t>(i)] - ball_mm * u;
+    ASSERT_TRUE(k->solve_for_rotaries(kin::Posed{tip, u}, q));
+    ASSERT_LT((k->forward(q).tip_mm - tip).norm(), 1e-9);
+    cl::Move mv;
+    mv.kind = i == 0 ? cl::MotionKind::Rapid : cl::MotionKind::Feed;
+    mv.feed_mm_per_min = i == 0 ? 0.0 : 1000.0;
+    mv.line = 36 + i;
+    mv.tool_index = 0;
+    mv.tip_in_part_mm = tip;
+    mv.axis_in_part = u;
+    planned.moves.push_back(mv);
+    mv.tip_in_part_mm = centre[static_cast<size_t>(i)] - ball_mm * Vec3::UnitZ();
+    mv.axis_in_part = Vec3::UnitZ();
+    cl_prog.moves.push_back(mv);
+    axes.push_back(q);
+  }
+  post::Options o;
+  o.strategy = "cspace-planner";
+  o.control_offset_mm = ball_mm;
+  auto post = [&](const post::Options& opt) {
+    std::ostringstream os;
+    post::Summary sum;
+    post::write_nc(os, planned, m, *k, axes, opt, sum);
+    return os.str();
+  };
+  // The premise: judged by the slerp of the planned axes alone, the segment cannot be followed.
+  try {
+    post(o);
+    FAIL() << "expected the planned axes' slerp to need a branch change";
+  } catch (const InputError& e) {
+    EXPECT_NE(std::string(e.what()).find("beside_pole.cls:37"), std::string::npos) << e.what();
+  }
+  o.cone_deg = 10.0;
+  o.cone_reference = &cl_prog;
+  const std::string text = post(o);
+  // The oracle: the independent back-simulation, against the CL within the cone (ball centre on the path).
+  const nc::Program ncp = nc::read_text(text, "beside_pole.ngc", letters_of(m));
+  const auto v = report::verify(ncp, cl_prog, *k, report::verify_options_for(m, 0.0, 0.0, o.cone_deg));
+  EXPECT_TRUE(v.ok) << v.message << "\n" << text;
+  EXPECT_LE(v.max_axis_deviation_deg, 2.0 + m.post.axis_tolerance_deg) << text;
+  expect_rs274_agrees(text, m, "beside_pole");
 }
 
 // --- LinuxCNC ------------------------------------------------------------------------------------------

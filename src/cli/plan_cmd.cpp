@@ -196,8 +196,11 @@ std::unique_ptr<Setup> setup(const PlanArgs& a, std::vector<std::string>* warnin
   return s;
 }
 
+/// Posts `prog` at `axes`; a planned program with the CL it was planned from (Plan::reference), whose axes the cone
+/// is around.
 std::string post_to_string(const Setup& s, const cl::Program& prog, const std::vector<kin::Axes>& axes,
-                           const PlanArgs& a, const std::string& strategy, post::Summary& sum) {
+                           const PlanArgs& a, const std::string& strategy, post::Summary& sum,
+                           const cl::Program* cone_reference = nullptr) {
   post::Options po;
   po.dialect = a.dialect;
   po.tolerance_mm = a.tolerance;
@@ -209,6 +212,10 @@ std::string post_to_string(const Setup& s, const cl::Program& prog, const std::v
   // A tilted ball mill keeps its centre on the CL path: post (and verify) the centre. At cone 0 the
   // orientation is the CL's and the tip is controlled as usual.
   if (strategy != "conventional" && s.opt.cspace.cone_rad > 0) po.control_offset_mm = s.opt.cspace.ball_radius_mm;
+  if (cone_reference) {
+    po.cone_deg = a.cone_deg;
+    po.cone_reference = cone_reference;
+  }
   std::ostringstream os;
   post::write_nc(os, prog, s.m, *s.kin, axes, po, sum);
   return os.str();
@@ -244,14 +251,10 @@ gate::Options gate_options(const Setup& s, const PlanArgs& a, double cone_deg) {
   return g;
 }
 
-/// Verifies NC text against the CL program, except for the approach/retract moves the planner re-placed along
-/// the chosen tool axis (listed in `replaced`), which are checked against their planned poses.
-report::VerifyResult verify_text(const Setup& s, const std::string& text, double cone_deg,
-                                 const plan::Plan* planned = nullptr) {
+/// Verifies NC text against `ref`: the CL program, or for a planned program Plan::reference (the approach/retract
+/// moves the planner re-placed along the chosen tool axis are checked against their planned poses).
+report::VerifyResult verify_text(const Setup& s, const std::string& text, double cone_deg, const cl::Program& ref) {
   const report::VerifyOptions vo = report::verify_options_for(s.m, 0.0, 0.0, cone_deg);
-  cl::Program ref = s.prog;
-  if (planned)
-    for (std::size_t m : planned->replaced_moves) ref.moves[m] = planned->program.moves[m];
   nc::Program ncp = nc::read_text(text, "planned.ngc", report::axis_letters(s.m));
   if (const std::string why = report::resolve_work_planes(ncp, *s.kin); !why.empty()) throw InputError(why);
   return report::verify(ncp, ref, *s.kin, vo);
@@ -290,11 +293,12 @@ int run_plan(const PlanArgs& a) {
   auto s = setup(a);
   const plan::Planner planner(s->m, s->kin, &s->scene, s->tool.get(), s->opt, s->planner_head());
   const plan::Plan p = planned(*s, a);
+  const cl::Program ref = p.reference(s->prog);
   post::Summary sum;
-  const std::string text = post_to_string(*s, p.program, p.axes, a, "cspace-planner", sum);
+  const std::string text = post_to_string(*s, p.program, p.axes, a, "cspace-planner", sum, &ref);
   const std::string out = a.out.empty() ? fs::path(a.cl).stem().string() + ".planned.ngc" : a.out;
-  const gate::Summary v = gate::write_checked(out, text, p.program, s->m, *s->kin, gate_options(*s, a, a.cone_deg),
-                                              &sum.cl_line_of_nc_line);
+  const gate::Summary v =
+      gate::write_checked(out, text, ref, s->m, *s->kin, gate_options(*s, a, a.cone_deg), &sum.cl_line_of_nc_line);
   if (!a.svg_dir.empty()) write_svgs(*s, planner, p, post::conventional_axes(s->prog, s->m, *s->kin), a.svg_dir);
   for (const auto& x : sum.warnings) s->warn(x);  // the post's (capped feeds, a dialect without planes, ...)
   std::cout << p.summary();
@@ -408,8 +412,9 @@ int run_compare(const PlanArgs& a) {
   const double conv_s = std::chrono::duration<double>(std::chrono::steady_clock::now() - t0).count();
   const plan::Planner planner(s->m, s->kin, &s->scene, s->tool.get(), s->opt, s->planner_head());
   const plan::Plan p = planned(*s, a);
+  const cl::Program ref = p.reference(s->prog);
   post::Summary sp;
-  const std::string plan_text = post_to_string(*s, p.program, p.axes, a, "cspace-planner", sp);
+  const std::string plan_text = post_to_string(*s, p.program, p.axes, a, "cspace-planner", sp, &ref);
   // A warning both programs raise (e.g. the CL's H0) once, as the file's.
   auto in = [](const std::vector<std::string>& v, const std::string& x) {
     return std::find(v.begin(), v.end(), x) != v.end();
@@ -417,8 +422,8 @@ int run_compare(const PlanArgs& a) {
   for (const auto& x : sc.warnings) s->warn(in(sp.warnings, x) ? "both programs: " + x : "conventional program: " + x);
   for (const auto& x : sp.warnings)
     if (!in(sc.warnings, x)) s->warn("planned program: " + x);
-  const auto vc = has_conv ? verify_text(*s, conv_text, 0.0) : report::VerifyResult{};
-  const auto vp = verify_text(*s, plan_text, a.cone_deg, &p);
+  const auto vc = has_conv ? verify_text(*s, conv_text, 0.0, s->prog) : report::VerifyResult{};
+  const auto vp = verify_text(*s, plan_text, a.cone_deg, ref);
   const auto stc = has_conv ? stats_of(*s, conv_text, "conventional") : report::Stats{};
   auto stp = stats_of(*s, plan_text, "planner");
   // An independent collision check of both programs against the meshes (even when the planner was told
@@ -549,8 +554,7 @@ int run_compare(const PlanArgs& a) {
     std::cout << "JSON: " << a.json_out << "\n";
   }
   if (!a.out.empty())
-    gate::write_checked(a.out, plan_text, p.program, s->m, *s->kin, gate_options(*s, a, a.cone_deg),
-                        &sp.cl_line_of_nc_line);
+    gate::write_checked(a.out, plan_text, ref, s->m, *s->kin, gate_options(*s, a, a.cone_deg), &sp.cl_line_of_nc_line);
   if (!a.svg_dir.empty()) write_svgs(*s, planner, p, conv, a.svg_dir);
   return vp.ok ? 0 : 1;
 }
@@ -601,9 +605,10 @@ PlanWritten plan_and_write(const PlanArgs& a, const std::string& out) {
   PlanWritten w;
   auto s = setup(a, &w.warnings);
   const plan::Plan p = planned(*s, a, s->has_head ? &s->head : nullptr);
-  const std::string text = post_to_string(*s, p.program, p.axes, a, "cspace-planner", w.post);
-  w.gate = gate::write_checked(out, text, p.program, s->m, *s->kin, gate_options(*s, a, a.cone_deg),
-                               &w.post.cl_line_of_nc_line);
+  const cl::Program ref = p.reference(s->prog);
+  const std::string text = post_to_string(*s, p.program, p.axes, a, "cspace-planner", w.post, &ref);
+  w.gate =
+      gate::write_checked(out, text, ref, s->m, *s->kin, gate_options(*s, a, a.cone_deg), &w.post.cl_line_of_nc_line);
   for (const auto& x : w.post.warnings) w.warnings.push_back(x);
   w.machine_name = s->m.name;
   w.nc_text = text;

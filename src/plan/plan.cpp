@@ -122,6 +122,13 @@ std::string Plan::summary() const {
   return s;
 }
 
+cl::Program Plan::reference(const cl::Program& cl) const {
+  CSCAM_CHECK(cl.moves.size() == program.moves.size(), "a plan of this CL program");
+  cl::Program ref = cl;
+  for (std::size_t m : replaced_moves) ref.moves[m] = program.moves[m];
+  return ref;
+}
+
 Planner::Planner(const machine::Machine& machine, std::shared_ptr<const kin::Kinematics> kinematics,
                  const geom::Scene* scene, const geom::ToolShape* tool, Options options, const geom::Scene* head)
     : machine_(machine),

@@ -61,23 +61,39 @@ std::string Linearizer::remedy() const {
 }
 
 Linearizer::Linearizer(const kin::Kinematics& k, const Settings& s)
-    : kin_(k), set_(s), cos_tol_axis_(std::cos(s.axis_tolerance_rad)) {}
+    : kin_(k),
+      set_(s),
+      cos_tol_axis_(std::cos(s.axis_tolerance_rad)),
+      cos_cone_tol_(std::cos(std::min(M_PI, s.cone_rad + s.axis_tolerance_rad))) {}
+
+bool Linearizer::axis_ok(const Axis& axis, const Vec3& u, double s) const {
+  // Near a singular orientation the slerp of two planned axes can pass on the other side of the pole from the
+  // machine's joint interpolation (a fraction of a degree away, but with the primary rotary half a turn apart);
+  // both are within the cone the plan was made in.
+  return u.dot(axis.own(s)) >= cos_tol_axis_ || (axis.cl && u.dot((*axis.cl)(s)) >= cos_cone_tol_);
+}
+
+double Linearizer::axis_deviation(const Axis& axis, const Vec3& u, double s) const {
+  const auto angle = [&](const Vec3& v) { return std::acos(std::clamp(u.dot(v), -1.0, 1.0)); };
+  const double own = angle(axis.own(s));
+  return axis.cl ? std::min(own, angle((*axis.cl)(s)) - set_.cone_rad) : own;
+}
 
 bool Linearizer::exceeds(const kin::Axes& qa, const kin::Axes& qb, double sa, double sb, const Vec3& P0, const Vec3& P1,
-                         const Slerp& axis, Stats& stats) const {
+                         const Axis& axis, Stats& stats) const {
   const Vec3 ab = P1 - P0;
   const double L2 = ab.squaredNorm();
   for (double t : {0.5, 0.25, 0.75}) {
     const kin::Posed p = kin_.forward(qa + t * (qb - qa));
     const double dtip = point_segment_distance(p.tip_mm + set_.control_offset_mm * p.axis, P0, ab, L2);
     stats.max_checked_tip_deviation_mm = std::max(stats.max_checked_tip_deviation_mm, dtip);
-    if (dtip > set_.tolerance_mm || p.axis.dot(axis(sa + t * (sb - sa))) < cos_tol_axis_) return true;
+    if (dtip > set_.tolerance_mm || !axis_ok(axis, p.axis, sa + t * (sb - sa))) return true;
   }
   return false;
 }
 
 void Linearizer::worst_deviation(const kin::Axes& qa, const kin::Axes& qb, double sa, double sb, const Vec3& P0,
-                                 const Vec3& P1, const Slerp& axis, double& tip_mm, double& axis_rad) const {
+                                 const Vec3& P1, const Axis& axis, double& tip_mm, double& axis_rad) const {
   tip_mm = axis_rad = 0.0;
   const Vec3 ab = P1 - P0;
   const double L2 = ab.squaredNorm();
@@ -85,12 +101,12 @@ void Linearizer::worst_deviation(const kin::Axes& qa, const kin::Axes& qb, doubl
     const double t = i / 16.0;
     const kin::Posed p = kin_.forward(qa + t * (qb - qa));
     tip_mm = std::max(tip_mm, point_segment_distance(p.tip_mm + set_.control_offset_mm * p.axis, P0, ab, L2));
-    axis_rad = std::max(axis_rad, std::acos(std::clamp(p.axis.dot(axis(sa + t * (sb - sa))), -1.0, 1.0)));
+    axis_rad = std::max(axis_rad, axis_deviation(axis, p.axis, sa + t * (sb - sa)));
   }
 }
 
 void Linearizer::split(const cl::Move& m0, const kin::Axes& q0, const cl::Move& m1, const kin::Axes& q1,
-                       const std::string& cl_file, std::vector<Piece>& out, Stats& stats) {
+                       const std::string& cl_file, std::vector<Piece>& out, Stats& stats, const ClAxes* cl_axes) {
   out.clear();
   auto check_limits = [&](const kin::Axes& q) {
     const std::string v = kin_.check_limits(q);
@@ -102,7 +118,10 @@ void Linearizer::split(const cl::Move& m0, const kin::Axes& q0, const cl::Move& 
   // The controlled points: tips, or ball centres when the plan keeps those on the CL path.
   const Vec3 P0 = m0.tip_in_part_mm + off * m0.axis_in_part.normalized();
   const Vec3 P1 = m1.tip_in_part_mm + off * m1.axis_in_part.normalized();
-  const Slerp axis(m0.axis_in_part.normalized(), m1.axis_in_part.normalized());
+  const Axis axis{Slerp(m0.axis_in_part.normalized(), m1.axis_in_part.normalized()),
+                  cl_axes && set_.cone_rad > 0
+                      ? std::optional<Slerp>(Slerp(cl_axes->from.normalized(), cl_axes->to.normalized()))
+                      : std::nullopt};
   // Explicit stack of spans [sa, sb] with their axis values; emits spans in order.
   stack_.clear();
   stack_.push_back({0.0, 1.0, q0, q1, 0});
@@ -111,7 +130,7 @@ void Linearizer::split(const cl::Move& m0, const kin::Axes& q0, const cl::Move& 
     stack_.pop_back();
     if (set_.enabled && pc.depth < set_.max_depth && exceeds(pc.qa, pc.qb, pc.sa, pc.sb, P0, P1, axis, stats)) {
       const double sm = 0.5 * (pc.sa + pc.sb);
-      const Vec3 axis_m = axis(sm);
+      const Vec3 axis_m = axis.own(sm);
       const kin::Posed target{P0 + sm * (P1 - P0) - off * axis_m, axis_m};
       // First keep the rotaries the machine would pass through anyway and only correct the linear axes:
       // near the singularity a fresh IK of the interpolated axis is ill-conditioned (its azimuth is
@@ -123,9 +142,9 @@ void Linearizer::split(const cl::Move& m0, const kin::Axes& q0, const cl::Move& 
         Vec3 a_int;
         const auto rp = kin_.rotary_pair();
         const Vec3 ctrl = P0 + sm * (P1 - P0);
-        if (kin_.tool_axis_at(qm[rp[0]], qm[rp[1]], target.tip_mm, a_int) && a_int.dot(target.axis) >= cos_tol_axis_ &&
+        if (kin_.tool_axis_at(qm[rp[0]], qm[rp[1]], target.tip_mm, a_int) && axis_ok(axis, a_int, sm) &&
             kin_.solve_for_rotaries(kin::Posed{ctrl - off * a_int, a_int}, qm) &&
-            kin_.forward(qm).axis.dot(target.axis) >= cos_tol_axis_) {
+            axis_ok(axis, kin_.forward(qm).axis, sm)) {
           check_limits(qm);
           ++stats.inserted_points;
           stack_.push_back({sm, pc.sb, qm, pc.qb, pc.depth + 1});
@@ -135,7 +154,7 @@ void Linearizer::split(const cl::Move& m0, const kin::Axes& q0, const cl::Move& 
       }
       // Otherwise continue the solution branch from the span's start (no flips), as the conventional
       // strategy does between CL points.
-      const Vec3 axis_a = axis(pc.sa);
+      const Vec3 axis_a = axis.own(pc.sa);
       const kin::Posed from{P0 + pc.sa * (P1 - P0) - off * axis_a, axis_a};
       ++stats.ik_calls;
       bool jumped = false;
@@ -166,7 +185,7 @@ void Linearizer::split(const cl::Move& m0, const kin::Axes& q0, const cl::Move& 
       worst_deviation(pc.qa, pc.qb, pc.sa, pc.sb, P0, P1, axis, tip_mm, axis_rad);
       if (tip_mm > set_.tolerance_mm + tol::kVerifySlackMm ||
           axis_rad > set_.axis_tolerance_rad + tol::kVerifySlackDeg * M_PI / 180.0) {
-        const Vec3 axis_a = axis(pc.sa), axis_b = axis(pc.sb);
+        const Vec3 axis_a = axis.own(pc.sa), axis_b = axis.own(pc.sb);
         const kin::Posed from{P0 + pc.sa * (P1 - P0) - off * axis_a, axis_a};
         const kin::Posed to{P0 + pc.sb * (P1 - P0) - off * axis_b, axis_b};
         kin::Axes qt;

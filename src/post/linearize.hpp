@@ -4,6 +4,7 @@
 // axis. Pure maths on the kinematics: no G-code, no I/O.
 #include <Eigen/Core>
 #include <array>
+#include <optional>
 #include <string>
 #include <vector>
 
@@ -38,6 +39,14 @@ class Linearizer {
     int max_depth = 14;
     bool enabled = true;
     bool planned = false;  ///< the axis values come from the planner (for the advice an error gives)
+    /// The plan's cone (rad): where the CL's own axes are given, a piece whose axis stays within cone +
+    /// axis_tolerance_rad of the CL axis is also within the tolerance (what the gate accepts of a planned program).
+    double cone_rad = 0.0;
+  };
+
+  /// The CL's own tool axes at the two ends of a planned segment (the plan's axes may tilt within the cone).
+  struct ClAxes {
+    Eigen::Vector3d from, to;
   };
   /// One piece of the segment: the axis values at its end and the length of the CL path it covers.
   struct Piece {
@@ -58,17 +67,28 @@ class Linearizer {
   /// kin.check_limits, else InputError naming the CL line (file `cl_file`). Throws InputError when a limit
   /// forces the rotaries to flip inside the segment.
   void split(const cl::Move& m0, const kin::Axes& q0, const cl::Move& m1, const kin::Axes& q1,
-             const std::string& cl_file, std::vector<Piece>& out, Stats& stats);
-
-  /// Whether the straight joint move qa -> qb leaves the tolerance of the CL segment P0P1 between the
-  /// parameters sa and sb (sampled at a quarter, half and three quarters).
-  /// The largest tip (mm) and axis (rad) deviation of the joint interpolation qa -> qb from the CL segment.
-  void worst_deviation(const kin::Axes& qa, const kin::Axes& qb, double sa, double sb, const Eigen::Vector3d& P0,
-                       const Eigen::Vector3d& P1, const Slerp& axis, double& tip_mm, double& axis_rad) const;
-  bool exceeds(const kin::Axes& qa, const kin::Axes& qb, double sa, double sb, const Eigen::Vector3d& P0,
-               const Eigen::Vector3d& P1, const Slerp& axis, Stats& stats) const;
+             const std::string& cl_file, std::vector<Piece>& out, Stats& stats, const ClAxes* cl_axes = nullptr);
 
  private:
+  /// The axis a piece is judged by: the slerp of the segment's own axes and, for a planned segment whose CL axes
+  /// are given, the slerp of those, widened by the cone.
+  struct Axis {
+    Slerp own;
+    std::optional<Slerp> cl;
+  };
+  /// Whether the tool axis u, at the parameter s along the segment, is within the tolerance.
+  [[nodiscard]] bool axis_ok(const Axis& axis, const Eigen::Vector3d& u, double s) const;
+  /// By how much (rad) u misses the axis at s, beyond what is allowed besides axis_tolerance_rad (the cone).
+  [[nodiscard]] double axis_deviation(const Axis& axis, const Eigen::Vector3d& u, double s) const;
+  /// Whether the straight joint move qa -> qb leaves the tolerance of the CL segment P0P1 between the
+  /// parameters sa and sb (sampled at a quarter, half and three quarters).
+  bool exceeds(const kin::Axes& qa, const kin::Axes& qb, double sa, double sb, const Eigen::Vector3d& P0,
+               const Eigen::Vector3d& P1, const Axis& axis, Stats& stats) const;
+  /// The largest tip (mm) and axis (rad, axis_deviation) deviation of the joint interpolation qa -> qb from the
+  /// CL segment.
+  void worst_deviation(const kin::Axes& qa, const kin::Axes& qb, double sa, double sb, const Eigen::Vector3d& P0,
+                       const Eigen::Vector3d& P1, const Axis& axis, double& tip_mm, double& axis_rad) const;
+
   struct Span {
     double sa, sb;
     kin::Axes qa, qb;
@@ -79,6 +99,7 @@ class Linearizer {
   const kin::Kinematics& kin_;
   Settings set_;
   double cos_tol_axis_ = 1.0;
+  double cos_cone_tol_ = 1.0;  ///< cos(cone + axis tolerance)
   std::vector<Span> stack_;
 };
 

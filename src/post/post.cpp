@@ -254,6 +254,7 @@ class Sequencer {
     s.max_depth = opt.max_subdivision_depth;
     s.enabled = opt.linearise;
     s.planned = opt.strategy != "conventional";
+    s.cone_rad = deg2rad(opt.cone_deg);
     return s;
   }
 
@@ -1050,7 +1051,10 @@ class Sequencer {
       return;
     }
     Linearizer::Stats st;
-    if (!split_ahead(m0, q0, m1, q1, st)) lin_.split(m0, q0, m1, q1, prog_.file, pieces_, st);
+    if (!split_ahead(m0, q0, m1, q1, st)) {
+      Linearizer::ClAxes ends;
+      lin_.split(m0, q0, m1, q1, prog_.file, pieces_, st, cl_axes(m0, m1, ends));
+    }
     sum_.inserted_points += st.inserted_points;
     sum_.ik_calls += st.ik_calls;
     sum_.max_checked_tip_deviation_mm = std::max(sum_.max_checked_tip_deviation_mm, st.max_checked_tip_deviation_mm);
@@ -1061,6 +1065,18 @@ class Sequencer {
       qa = pc.q_end;
     }
     cur_ = q1;
+  }
+
+  /// The CL's own axes at the ends of the program's segment m0 -> m1 (both moves of prog_), in `ends`; null where
+  /// no cone reference was given or the moves are not consecutive moves of the program.
+  const Linearizer::ClAxes* cl_axes(const cl::Move& m0, const cl::Move& m1, Linearizer::ClAxes& ends) const {
+    const cl::Program* ref = opt_.cone_reference;
+    const auto& moves = prog_.moves;
+    if (!ref || &m1 <= moves.data() || &m1 >= moves.data() + moves.size()) return nullptr;
+    const auto i = static_cast<std::size_t>(&m1 - moves.data());
+    if (&m0 != &moves[i - 1] || i >= ref->moves.size()) return nullptr;
+    ends = {ref->moves[i - 1].axis_in_part, ref->moves[i].axis_in_part};
+    return &ends;
   }
 
   /// One segment split ahead (split_ahead).
@@ -1128,7 +1144,9 @@ class Sequencer {
         if (moves[k].kind == cl::MotionKind::Rapid || moves[k - 1].kind == cl::MotionKind::Rapid) continue;
         Ahead& a = window[k - begin];
         try {
-          lin.split(moves[k - 1], axes[k - 1], moves[k], axes[k], prog_.file, a.pieces, a.stats);
+          Linearizer::ClAxes ends;
+          lin.split(moves[k - 1], axes[k - 1], moves[k], axes[k], prog_.file, a.pieces, a.stats,
+                    cl_axes(moves[k - 1], moves[k], ends));
           a.ready = true;
         } catch (...) {  // split again in order, where it throws for the sequential post too
           a = Ahead{};
@@ -1525,6 +1543,8 @@ void write_nc(std::ostream& out, const cl::Program& program, const machine::Mach
               const kin::Kinematics& kinematics, const std::vector<kin::Axes>& axes, const Options& options,
               Summary& summary) {
   CSCAM_CHECK(axes.size() == program.moves.size(), "one axis vector per CL move");
+  CSCAM_CHECK(!options.cone_reference || options.cone_reference->moves.size() == program.moves.size(),
+              "the cone's reference CL has the program's moves");
   reserve_text(out, 96 * program.moves.size() + (std::size_t{1} << 16));  // ~50-65 bytes a block, a block a move
   {
     Summary probe;

@@ -26,9 +26,9 @@ struct Options {
   /// infeasible gets every cell of its cone (never called infeasible on a truncated list); the summary counts
   /// those points.
   std::size_t max_cells_per_point = 4096;
-  double max_step_rad = 0.0;               ///< tier 4 bound on the rotary step per point; 0: 20 x resolution
-  double orientation_weight = 1e-3;        ///< tier 4: cost per rad of orientation error (tie-break only)
-  int max_fixed_candidates = 256;          ///< tier 2: fixed values tried per axis
+  double max_step_rad = 0.0;         ///< tier 4 bound on the rotary step per point; 0: 20 x resolution
+  double orientation_weight = 1e-3;  ///< tier 4: cost per rad of orientation error (tie-break only)
+  int max_fixed_candidates = 256;    ///< tier 2: fixed values tried per axis
   /// Weights of the two rotaries' travel (tier 4 cost), per rad.
   double weight_primary = 1.0, weight_secondary = 1.0;
   /// Further axes whose reversals count (e.g. a PKM's actuated legs: on a parallel machine every Cartesian
@@ -128,13 +128,16 @@ struct Plan {
   cl::Program program;
   std::vector<SegmentReport> segments;
   cspace::Counters counters;
-  SweptSummary swept;                   ///< the swept check of the planned program
-  std::size_t points_beyond_cap = 0;    ///< points whose cells beyond max_cells_per_point had to be searched
+  SweptSummary swept;                       ///< the swept check of the planned program
+  std::size_t points_beyond_cap = 0;        ///< points whose cells beyond max_cells_per_point had to be searched
   std::vector<std::size_t> replaced_moves;  ///< approach/retract moves re-placed along the chosen tool axis
   double seconds = 0.0;
   double peak_memory_mb = 0.0;  ///< the process's peak resident memory when the plan was done
   std::vector<std::string> warnings;
   std::string summary() const;
+  /// What a program posted from this plan is judged against: the CL `cl` it was planned from (whose axes the cone
+  /// is around), with the approach/retract moves re-placed along the chosen axis taken from the plan.
+  [[nodiscard]] cl::Program reference(const cl::Program& cl) const;
 };
 
 class Planner {

@@ -29,6 +29,12 @@ struct Options {
   /// The point whose path must stay within the tolerance: tip + control_offset_mm * axis. A planner that
   /// tilts a ball mill keeps the ball centre on the CL path, so it posts with the ball radius here.
   double control_offset_mm = 0.0;
+  /// A planned program's cone (deg) and the CL its orientations were chosen from (the same moves, in the same
+  /// order; the caller keeps it alive). Between two points the post then accepts any tool axis within the cone
+  /// (plus the axis tolerance) of the CL's interpolated axis, as the gate does, besides one within the axis
+  /// tolerance of the planned axes' interpolation.
+  double cone_deg = 0.0;
+  const cl::Program* cone_reference = nullptr;
 };
 
 /// What the post did.
