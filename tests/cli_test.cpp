@@ -4,6 +4,7 @@
 #include <cmath>
 #include <filesystem>
 #include <fstream>
+#include <iterator>
 #include <map>
 #include <nlohmann/json.hpp>
 #include <regex>
@@ -56,26 +57,33 @@ TEST(Cli, PostVerifyStatsOnRealNxFile) {
 }
 
 TEST(Cli, CompareReportsAConventionalPostThatFailsAndStillComparesThePlan) {
-  // Through the vertical on the 45-degree head, the conventional choice of rotaries cannot be linearised (C would
-  // turn 180 deg between two points); at cone 5 the planner passes beside the singular orientation. compare once
-  // stopped at the conventional post's error; the planner's answer is exactly what the comparison is for.
+  // Through the vertical on the 45-degree head, the conventional choice of rotaries must flip C by half a turn
+  // between two points; on a machine whose post refuses flips (post.singularity.flip: refuse) it cannot be posted,
+  // while at cone 5 the planner passes beside the singular orientation. compare once stopped at the conventional
+  // post's error; the planner's answer is exactly what the comparison is for.
   TempDir d;
   const std::string cl = cscam::test::source_path("tests/data/singular_crossing.cls");
-  auto r = run_command(kCli + " post " + cl + " --machine head-table-bc45 -o " + d.file("conv.ngc"));
+  std::ifstream machine_in(cscam::test::source_path("machines/head-table-bc45.yaml"));
+  std::string machine_text((std::istreambuf_iterator<char>(machine_in)), std::istreambuf_iterator<char>());
+  const std::string auto_flip = "singularity: {flip: auto,";
+  ASSERT_NE(machine_text.find(auto_flip), std::string::npos);
+  machine_text.replace(machine_text.find(auto_flip), auto_flip.size(), "singularity: {flip: refuse,");
+  const std::string machine = d.file("no-flip.yaml", machine_text);
+  auto r = run_command(kCli + " post " + cl + " --machine " + machine + " -o " + d.file("conv.ngc"));
   ASSERT_NE(r.status, 0) << "the premise: the conventional post fails here\n" << r.output;
   const std::string json = d.file("c.json"), nc = d.file("planned.ngc");
-  r = run_command(kCli + " compare " + cl + " --machine head-table-bc45 --cone 5 --json-out " + json + " -o " + nc);
+  r = run_command(kCli + " compare " + cl + " --machine " + machine + " --cone 5 --json-out " + json + " -o " + nc);
   ASSERT_EQ(r.status, 0) << r.output;
   EXPECT_NE(r.output.find("conventional program: not posted: " + cl + ":"), std::string::npos) << r.output;
   EXPECT_TRUE(std::regex_search(r.output, std::regex(R"(verify +- +ok)"))) << r.output;
   std::ifstream in(json);
   const auto j = nlohmann::json::parse(in);
   ASSERT_TRUE(j["conventional"].contains("error")) << j.dump(2);
-  EXPECT_NE(j["conventional"]["error"].get<std::string>().find("cannot follow"), std::string::npos);
+  EXPECT_NE(j["conventional"]["error"].get<std::string>().find("must flip"), std::string::npos);
   EXPECT_TRUE(j["planner"]["verify_ok"].get<bool>());
   EXPECT_TRUE(std::filesystem::exists(nc));
   // The planned program passes an independent verify against the CL.
-  r = run_command(kCli + " verify " + nc + " --machine head-table-bc45 --cl " + cl + " --cone 5");
+  r = run_command(kCli + " verify " + nc + " --machine " + machine + " --cl " + cl + " --cone 5");
   EXPECT_EQ(r.status, 0) << r.output;
 }
 

@@ -6,6 +6,7 @@
 
 #include "cscam/core/units.hpp"
 #include "cscam/kin/serial.hpp"
+#include "cscam/kin/track.hpp"
 #include "test_support.hpp"
 
 using namespace cscam;
@@ -184,4 +185,44 @@ TEST(SerialKinematics, NonOrthogonalHeadRoundTrip) {
   // Beyond the head's cone (tool pointing down-ish) there is no solution.
   k.inverse_branches(Posed{Vec3::Zero(), Vec3(0, 0, -1)}, nullptr, sols);
   EXPECT_TRUE(sols.empty());
+}
+
+TEST(Track, ALimitMetBetweenTwoNearbyPosesIsAJump) {
+  // The trunnion with C limited to +-360 deg. From C 359.6 the tool axis turns 0.6 deg further in azimuth: on this
+  // winding C would pass its limit, and the nearest solution inside the limits is the other branch (A negated, C half
+  // a turn away). Halving the pose step must keep seeing that jump; it once stopped where the two halves' axes were
+  // about 1e-8 rad apart (acos of their dot product is 0 there) and reported a continuous motion.
+  SerialGeometry<double> g = [] {
+    SerialGeometry<double> geo;
+    geo.joints = {J(AxisType::Linear, Side::Head, Vec3::UnitX()), J(AxisType::Linear, Side::Head, Vec3::UnitY()),
+                  J(AxisType::Linear, Side::Head, Vec3::UnitZ()),
+                  J(AxisType::Rotary, Side::Table, Vec3::UnitX(), Vec3(0, 20, 10)),
+                  J(AxisType::Rotary, Side::Table, Vec3::UnitZ())};
+    geo.table_chain = {3, 4};
+    geo.head_chain = {0, 1, 2};
+    return geo;
+  }();
+  const SerialKinematics k(
+      g, {lin("x", -1e4, 1e4), lin("y", -1e4, 1e4), lin("z", -1e4, 1e4), rot("a", -100, 100), rot("c", -360, 360)});
+  auto pose_at = [&](double a_deg, double c_deg) {
+    Axes q = Axes::Zero();
+    q[3] = deg2rad(a_deg);
+    q[4] = deg2rad(c_deg);
+    return std::pair<Axes, Posed>(q, k.forward(q));
+  };
+  const auto [q0, p0] = pose_at(-45.0, 359.6);
+  for (const double c1_deg : {359.9, 360.2}) {
+    SCOPED_TRACE(c1_deg);
+    const Posed p1{p0.tip_mm, pose_at(-45.0, c1_deg).second.axis};
+    Axes out;
+    bool jumped = false;
+    const bool tracked = track_checked(k, q0, p0, p1, out, jumped);
+    if (c1_deg < 360.0) {  // the control: inside the limit the motion is continuous and lands on C1
+      ASSERT_TRUE(tracked);
+      EXPECT_FALSE(jumped);
+      EXPECT_NEAR(rad2deg(out[4]), c1_deg, 1e-6);
+    } else {
+      EXPECT_TRUE(!tracked || jumped) << "C " << rad2deg(out[4]) << " A " << rad2deg(out[3]);
+    }
+  }
 }

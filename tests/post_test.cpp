@@ -258,6 +258,54 @@ TEST(Post, APlannedSegmentBesideTheSingularAxisIsJudgedByItsConeNotByTheSlerpOfI
   expect_rs274_agrees(text, m, "beside_pole");
 }
 
+TEST(Post, AnUnwindNeitherEndOfWhichReachesTheOtherTurnsAtBothPoints) {
+  // The head's C has limits of +-360 deg. Between two points 42 deg of azimuth apart, the axes come at C 341 and at
+  // C -337 (23 deg one turn down): q0's winding would pass +360 on the way to the second point and q1's winding
+  // -360 on the way back to the first, so no single turn at either point can be followed by a continuous cut. The
+  // post once turned to the nearest solution and then refused the cut ("the rotaries must change IK branch").
+  const auto m = load_machine("head-head-ac");
+  const auto k = m.kinematics();
+  const auto rp = k->rotary_pair();
+  const std::array<double, 2> c_deg = {341.0, -337.0};
+  const std::array<Vec3, 2> tip = {Vec3(10, -8, 19), Vec3(11, -8, 19)};
+  cl::Program prog;
+  prog.file = "unwind.cls";
+  std::vector<kin::Axes> axes;
+  std::array<kin::Posed, 2> pose;
+  for (std::size_t i = 0; i < 2; ++i) {
+    kin::Axes q = kin::Axes::Zero();
+    q[rp[0]] = deg2rad(c_deg[i]);
+    q[rp[1]] = deg2rad(15.0);
+    Vec3 u;
+    ASSERT_TRUE(k->tool_axis_at(q[rp[0]], q[rp[1]], tip[i], u));
+    ASSERT_TRUE(k->solve_for_rotaries(kin::Posed{tip[i], u}, q));
+    ASSERT_TRUE(k->check_limits(q).empty()) << k->check_limits(q);
+    pose[i] = kin::Posed{tip[i], u};
+    cl::Move mv;
+    mv.kind = i == 0 ? cl::MotionKind::Rapid : cl::MotionKind::Feed;
+    mv.feed_mm_per_min = 1000.0;
+    mv.line = 10 + static_cast<int>(i);
+    mv.tip_in_part_mm = tip[i];
+    mv.axis_in_part = u;
+    prog.moves.push_back(mv);
+    axes.push_back(q);
+  }
+  // The premise: neither winding runs to the other point inside the limits.
+  kin::Axes tracked;
+  bool jumped = false;
+  EXPECT_TRUE(!kin::track_checked(*k, axes[0], pose[0], pose[1], tracked, jumped) || jumped);
+  jumped = false;
+  EXPECT_TRUE(!kin::track_checked(*k, axes[1], pose[1], pose[0], tracked, jumped) || jumped);
+  std::ostringstream os;
+  post::Summary sum;
+  post::write_nc(os, prog, m, *k, axes, post::Options{}, sum);
+  EXPECT_EQ(sum.retracts + sum.reorientations, 2u) << os.str();
+  // The oracle: the back-simulation reaches both points on the path (the turns are retract, turn, plunge).
+  const auto v = verify_text(os.str(), prog, m, *k);
+  EXPECT_TRUE(v.ok) << v.message << "\n" << os.str();
+  expect_rs274_agrees(os.str(), m, "unwind");
+}
+
 // --- LinuxCNC ------------------------------------------------------------------------------------------
 
 /// LinuxCNC's xyzac-trt-kins forward map (src/emc/kinematics/trtfuncs.c, xyzacKinematicsForward), written out

@@ -25,7 +25,9 @@ bool track_rec(const Kinematics& k, const Axes& prev, const Posed& p0, const Pos
     if (jumped) *jumped = true;
     return true;
   }
-  const double ang = std::acos(std::clamp(p0.axis.dot(p1.axis), -1.0, 1.0));
+  // The angle from the cross product: acos of the dot product is 0 below about 1e-8 rad, which would end the
+  // halving early and hide a jump (a limit met between two poses a fraction of a degree apart).
+  const double ang = std::atan2(p0.axis.cross(p1.axis).norm(), p0.axis.dot(p1.axis));
   if (ang < 1e-12) return true;
   const Eigen::Vector3d mid_axis = (std::sin(0.5 * ang) / std::sin(ang) * (p0.axis + p1.axis)).normalized();
   const Posed mid{0.5 * (p0.tip_mm + p1.tip_mm), mid_axis};

@@ -94,6 +94,8 @@ class Linearizer {
     kin::Axes qa, qb;
     int depth;
   };
+  /// The rotaries of a refused segment, named as in the machine file ("a -2.000 -> 2.000 deg, c ...").
+  [[nodiscard]] std::string rotaries(const kin::Axes& q0, const kin::Axes& q1) const;
   /// What an error that refuses a segment advises.
   [[nodiscard]] std::string remedy() const;
   const kin::Kinematics& kin_;

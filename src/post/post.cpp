@@ -765,99 +765,134 @@ class Sequencer {
     return !jumped && rotary_jump(tracked, q1) < 1e-6;
   }
 
-  /// q0 (at m0) and q1 (at m1) lie on different branches or windings: a rotary limit or the branch rule
-  /// forces a flip or an unwind. Turns to q1's branch at m0, in place when the joint move keeps the tool
-  /// pose within tolerance (at the singular point itself), else by retract along the tool axis, turn,
-  /// plunge. Returns the axis values at m0 on the new branch, from which the feed to q1 continues.
-  kin::Axes reconfigure(const kin::Posed& pose0, const kin::Axes& q0, const kin::Posed& pose1, const kin::Axes& q1,
-                        const cl::Move& m0, const cl::Move& m1, double feed_mm_min) {
-    const auto& pol = m_.post.singularity;
-    const SourceLoc where{prog_.file, m1.line, 0};
+  /// "a -199.000 -> -337.000 deg, c ..." for the rotaries of qa -> qb.
+  std::string describe_turn(const kin::Axes& qa, const kin::Axes& qb) const {
     const auto rp = kin_.rotary_pair();
-    auto describe = [&] {
-      return fmt::format("{} {:.3f} -> {:.3f} deg, {} {:.3f} -> {:.3f} deg", m_.axes[static_cast<size_t>(rp[0])].name,
-                         rad2deg(q0[rp[0]]), rad2deg(q1[rp[0]]), m_.axes[static_cast<size_t>(rp[1])].name,
-                         rad2deg(q0[rp[1]]), rad2deg(q1[rp[1]]));
-    };
-    if (pol.flip == "refuse")
+    return fmt::format("{} {:.3f} -> {:.3f} deg, {} {:.3f} -> {:.3f} deg", m_.axes[static_cast<size_t>(rp[0])].name,
+                       rad2deg(qa[rp[0]]), rad2deg(qb[rp[0]]), m_.axes[static_cast<size_t>(rp[1])].name,
+                       rad2deg(qa[rp[1]]), rad2deg(qb[rp[1]]));
+  }
+
+  /// q0 (at m0) and q1 (at m1) lie on different branches or windings: a rotary limit or the branch rule
+  /// forces a flip or an unwind. Turns to q1's branch at m0 and returns the axis values there, from which the feed to
+  /// q1 continues. Where q1's branch cannot be followed back to m0 inside the limits (the limit that forces the turn
+  /// is on q1's side of it), cuts to m1 on q0's branch and turns there; where neither can (an unwind forced between
+  /// two points, each end's winding beyond a limit at the other), turns at m0 to a branch that runs to m1 inside the
+  /// limits and again at m1. Returns nothing in those two cases (m1 is reached with q1).
+  std::optional<kin::Axes> reconfigure(const kin::Posed& pose0, const kin::Axes& q0, const kin::Posed& pose1,
+                                       const kin::Axes& q1, const cl::Move& m0, const cl::Move& m1,
+                                       double feed_mm_min) {
+    const SourceLoc where{prog_.file, m1.line, 0};
+    if (m_.post.singularity.flip == "refuse")
       throw InputError(where, fmt::format("the rotaries must flip or unwind between CL lines {} and {} ({}): a rotary "
                                           "limit or the branch rule forces it, and post.singularity.flip is 'refuse'",
-                                          m0.line, m1.line, describe()));
+                                          m0.line, m1.line, describe_turn(q0, q1)));
+    // The branch that starts at qa on pose0 and runs continuously to pose1 inside the limits, there.
+    auto runs_through = [&](const kin::Axes& qa, kin::Axes& qb) {
+      bool jumped = false;
+      return kin::track_checked(kin_, qa, pose0, pose1, qb, jumped) && !jumped && kin_.check_limits(qb).empty();
+    };
     // q1's branch at m0's pose: track back from q1 so that the feed m0 -> m1 is continuous on it.
     kin::Axes q0n;
     bool jumped = false;
     if (!kin::track_checked(kin_, q1, pose1, pose0, q0n, jumped) || jumped) {
+      kin::Axes q1p;
+      if (runs_through(q0, q1p) && rotary_jump(q1p, q1) >= kFlipCheckRad) {
+        feed_linear(m0, q0, m1, q1p);
+        turn_at(m1, pose1, q1p, q1, m1, feed_mm_min);
+        return std::nullopt;
+      }
+      std::vector<kin::Solution> sols;
+      kin_.inverse_all(pose0, &q0, sols);
+      std::sort(sols.begin(), sols.end(), [&](const kin::Solution& a, const kin::Solution& b) {
+        return rotary_jump(q0, a.axes) < rotary_jump(q0, b.axes);
+      });
+      for (const kin::Solution& sol : sols) {
+        if (!sol.feasible() || rotary_jump(q0, sol.axes) < kFlipCheckRad || !runs_through(sol.axes, q1p)) continue;
+        turn_at(m0, pose0, q0, sol.axes, m1, feed_mm_min);
+        feed_linear(m0, sol.axes, m1, q1p);
+        if (rotary_jump(q1p, q1) >= kFlipCheckRad) turn_at(m1, pose1, q1p, q1, m1, feed_mm_min);
+        return std::nullopt;
+      }
       std::string why;
       if (!kin::nearest_solution(kin_, pose0, q1, q0n, &why))
-        throw InputError(where, fmt::format("the rotaries must flip or unwind between CL lines {} and {} ({}) but no "
-                                            "axis values inside the limits hold the tool at CL line {}{}",
-                                            m0.line, m1.line, describe(), m0.line, why.empty() ? "" : ": " + why));
+        throw InputError(where,
+                         fmt::format("the rotaries must flip or unwind between CL lines {} and {} ({}) but no "
+                                     "axis values inside the limits hold the tool at CL line {}{}",
+                                     m0.line, m1.line, describe_turn(q0, q1), m0.line, why.empty() ? "" : ": " + why));
     }
     if (rotary_jump(q0, q0n) < 1e-9) return q0;  // tracking stalled near a singularity: same branch after all
-    // In place: the straight joint move q0 -> q0n keeps the tool pose (e.g. the primary turning while the
+    turn_at(m0, pose0, q0, q0n, m1, feed_mm_min);
+    return q0n;
+  }
+
+  /// Turns the rotaries from qa to qb (the same pose, another branch or winding) at the CL point m (pose): in place
+  /// when the joint move keeps the tool pose within tolerance (at the singular point itself), else by retract along
+  /// the tool axis, turn, plunge. `next` is the CL move the turn is made for (its line and feed).
+  void turn_at(const cl::Move& m, const kin::Posed& pose, const kin::Axes& qa, const kin::Axes& qb,
+               const cl::Move& next, double feed_mm_min) {
+    const auto& pol = m_.post.singularity;
+    const SourceLoc where{prog_.file, next.line, 0};
+    // In place: the straight joint move qa -> qb keeps the tool pose (e.g. the primary turning while the
     // tool axis lies along it).
     if (pol.flip == "auto") {
-      const Vec3 ctrl0 = pose0.tip_mm + opt_.control_offset_mm * pose0.axis;
-      const int n = std::clamp(static_cast<int>(std::ceil(rad2deg(rotary_jump(q0, q0n)))), 2, 720);
+      const Vec3 ctrl = pose.tip_mm + opt_.control_offset_mm * pose.axis;
+      const int n = std::clamp(static_cast<int>(std::ceil(rad2deg(rotary_jump(qa, qb)))), 2, 720);
       bool held = true;
       for (int k = 1; k < n && held; ++k) {
-        const kin::Axes q = q0 + (static_cast<double>(k) / n) * (q0n - q0);
+        const kin::Axes q = qa + (static_cast<double>(k) / n) * (qb - qa);
         const kin::Posed p = kin_.forward(q);
-        held = (p.tip_mm + opt_.control_offset_mm * p.axis - ctrl0).norm() <= tol_mm_ &&
-               p.axis.dot(pose0.axis) >= cos_tol_axis_ && kin_.passive_violation(q).empty();
+        held = (p.tip_mm + opt_.control_offset_mm * p.axis - ctrl).norm() <= tol_mm_ &&
+               p.axis.dot(pose.axis) >= cos_tol_axis_ && kin_.passive_violation(q).empty();
       }
       if (held) {
-        check_limits(q0n, m1);
-        emit_feed_to(q0, q0n, 0.0, feed_mm_min);
+        check_limits(qb, next);
+        emit_feed_to(qa, qb, 0.0, feed_mm_min);
         ++sum_.reorientations;
-        sum_.warnings.push_back(fmt::format(
-            "{}: rotaries turned in place at CL line {} ({} {:.3f} -> {:.3f} deg, {} {:.3f} -> {:.3f} deg), the tool "
-            "held",
-            where.str(), m0.line, m_.axes[static_cast<size_t>(rp[0])].name, rad2deg(q0[rp[0]]), rad2deg(q0n[rp[0]]),
-            m_.axes[static_cast<size_t>(rp[1])].name, rad2deg(q0[rp[1]]), rad2deg(q0n[rp[1]])));
-        return q0n;
+        sum_.warnings.push_back(fmt::format("{}: rotaries turned in place at CL line {} ({}), the tool held",
+                                            where.str(), m.line, describe_turn(qa, qb)));
+        return;
       }
     }
     // Retract along the tool axis, turn at the safe position, come back above the point, plunge.
     const double d = pol.retract_mm;
     kin::Axes up0, up1;
-    cl::Move m_up = m0;  // the point d above m0 along the CL tool axis, at m1's feed
-    m_up.tip_in_part_mm = pose0.tip_mm + d * pose0.axis;
-    m_up.axis_in_part = pose0.axis;
+    cl::Move m_up = m;  // the point d above m along the CL tool axis, at next's feed
+    m_up.tip_in_part_mm = pose.tip_mm + d * pose.axis;
+    m_up.axis_in_part = pose.axis;
     m_up.feed_mm_per_min = feed_mm_min;
-    m_up.line = m1.line;
-    const kin::Posed above{m_up.tip_in_part_mm, pose0.axis};
-    if (!kin::nearest_solution(kin_, above, q0, up0) || !kin::nearest_solution(kin_, above, q0n, up1) ||
-        rotary_jump(up0, q0) > kFlipCheckRad || rotary_jump(up1, q0n) > kFlipCheckRad)
-      throw InputError(where, fmt::format("the rotaries must flip or unwind between CL lines {} and {} ({}) but the "
-                                          "tool cannot retract {:.1f} mm along its axis inside the limits "
+    m_up.line = next.line;
+    const kin::Posed above{m_up.tip_in_part_mm, pose.axis};
+    if (!kin::nearest_solution(kin_, above, qa, up0) || !kin::nearest_solution(kin_, above, qb, up1) ||
+        rotary_jump(up0, qa) > kFlipCheckRad || rotary_jump(up1, qb) > kFlipCheckRad)
+      throw InputError(where, fmt::format("the rotaries must flip or unwind at CL line {} ({}) but the tool cannot "
+                                          "retract {:.1f} mm along its axis inside the limits "
                                           "(post.singularity.retract_mm)",
-                                          m0.line, m1.line, describe(), d));
-    feed_linear(m0, q0, m_up, up0);  // straight out along the tool axis (linearised: a PKM's joints are not)
-    at_cut_ = false;                 // already out
-    rapid(up1, m1);
-    cl::Move m_back = m0;
+                                          m.line, describe_turn(qa, qb), d));
+    feed_linear(m, qa, m_up, up0);  // straight out along the tool axis (linearised: a PKM's joints are not)
+    at_cut_ = false;                // already out
+    rapid(up1, next);
+    cl::Move m_back = m;
     m_back.feed_mm_per_min = feed_mm_min;
-    m_back.line = m1.line;
-    feed_linear(m_up, up1, m_back, q0n);  // and straight back in
+    m_back.line = next.line;
+    feed_linear(m_up, up1, m_back, qb);  // and straight back in
     ++sum_.retracts;
     sum_.warnings.push_back(
         fmt::format("{}: rotaries flip or unwind at CL line {} ({}): retract {:.1f} mm along the "
                     "tool axis, turn, plunge",
-                    where.str(), m0.line, describe(), d));
-    return q0n;
+                    where.str(), m.line, describe_turn(qa, qb), d));
   }
 
   void feed(const cl::Move& m0, const kin::Axes& q0_in, const cl::Move& m1, const kin::Axes& q1) {
     cur_line_ = m1.line;
-    kin::Axes q0 = q0_in;
+    std::optional<kin::Axes> q0 = q0_in;
     {
       const double fr = m1.feed_mm_per_min > 0 ? m1.feed_mm_per_min : kFallbackFeedMmMin;
       const kin::Posed pose0{m0.tip_in_part_mm, m0.axis_in_part.normalized()};
       const kin::Posed pose1{m1.tip_in_part_mm, m1.axis_in_part.normalized()};
-      if (!continues_branch(pose0, q0, pose1, q1)) q0 = reconfigure(pose0, q0, pose1, q1, m0, m1, fr);
+      if (!continues_branch(pose0, q0_in, pose1, q1)) q0 = reconfigure(pose0, q0_in, pose1, q1, m0, m1, fr);
     }
-    feed_linear(m0, q0, m1, q1);
+    if (q0) feed_linear(m0, *q0, m1, q1);  // else reconfigure reached m1 itself
     at_cut_ = true;
     cut_move_ = m1;
     if (cut_move_.feed_mm_per_min <= 0) cut_move_.feed_mm_per_min = kFallbackFeedMmMin;
