@@ -100,6 +100,50 @@ TEST(Cli, NxPathPlannedAtCone10PassesBesideTheVerticalOnTheTrunnion) {
   EXPECT_EQ(r.status, 0) << r.output;
 }
 
+TEST(Cli, ARunOfVerticalPointsIsCrossedAtCone0) {
+  // Three consecutive CL points along the vertical (the primary rotary is free there) between points tilted the
+  // same way: at cone 0 every point of the run must be offered the primaries of the regular points on both sides,
+  // else the path cannot hold one primary through the run ("no continuous (flip-free) transition").
+  TempDir d;
+  const std::string cl = cscam::test::source_path("tests/data/vertical_run.cls");
+  for (const char* m : {"trunnion-ac", "head-head-ac"}) {
+    SCOPED_TRACE(m);
+    const std::string nc = d.file(std::string(m) + ".ngc");
+    auto r = run_command(kCli + " plan " + cl + " --machine " + m + " --cone 0 -o " + nc);
+    ASSERT_EQ(r.status, 0) << r.output;
+    r = run_command(kCli + " verify " + nc + " --machine " + m + " --cl " + cl);
+    EXPECT_EQ(r.status, 0) << r.output;
+  }
+}
+
+TEST(Cli, SegmentsShorterThanTheToleranceAndReversalsPassTheGateButAWrongAxisDoesNot) {
+  // A random walk: CL segments of 0.04 mm that turn the axis 1.4 deg, and a reversal over a segment 0.04 mm
+  // beside the previous one. Matched by the nearest tip alone, samples were compared with the orientation of the
+  // wrong segment (or the wrong end of a short one) and the gate refused the post's program (0.93 deg).
+  TempDir d;
+  const std::string cl = cscam::test::source_path("tests/data/short_segments.cls");
+  const std::string nc = d.file("s.ngc");
+  auto r = run_command(kCli + " post " + cl + " --machine trunnion-ac -o " + nc);
+  ASSERT_EQ(r.status, 0) << r.output;
+  r = run_command(kCli + " verify " + nc + " --machine trunnion-ac --cl " + cl);
+  EXPECT_EQ(r.status, 0) << r.output;
+  // The control: the same program with one block's C turned by 1 deg must still be refused.
+  std::ifstream in(nc);
+  std::string text((std::istreambuf_iterator<char>(in)), std::istreambuf_iterator<char>());
+  std::smatch mt;
+  const std::regex c_word(R"(G1 X[-0-9.]+ Y[-0-9.]+ Z[-0-9.]+ A[-0-9.]+ C([-0-9.]+))");
+  auto it = std::sregex_iterator(text.begin(), text.end(), c_word);
+  for (int k = 0; k < 20 && it != std::sregex_iterator(); ++k) ++it;
+  ASSERT_NE(it, std::sregex_iterator());
+  const auto at = static_cast<std::size_t>(it->position(1));
+  const double c = std::stod(it->str(1));
+  text.replace(at, static_cast<std::size_t>(it->length(1)), std::to_string(c + 1.0));
+  const std::string bad = d.file("bad.ngc", text);
+  r = run_command(kCli + " verify " + bad + " --machine trunnion-ac --cl " + cl);
+  EXPECT_NE(r.status, 0) << r.output;
+  EXPECT_NE(r.output.find("axis deviation"), std::string::npos) << r.output;
+}
+
 TEST(Cli, VerifySamplesFixedWhenAskedAndBoundedByDefault) {
   TempDir d;
   const std::string cl = cscam::test::source_path("examples/nx-haas-umc750/variable_axis.cls");

@@ -43,23 +43,32 @@ void enumerate_layer(const SegmentView& v, Layer& l, std::size_t cap, cspace::Co
 
 namespace {
 
-/// At a singular point the primary rotary is free: offer every primary that a neighbouring regular point uses, so
-/// that continuous (flip-free) paths can pass straight through the singularity.
+/// At a singular point the primary rotary is free: offer every primary that the nearest regular point on either side
+/// uses, so that continuous (flip-free) paths can pass straight through the singularity. Every point of a run of
+/// singular points gets the same primaries (those of the regular points around the run), so that the path can hold
+/// one primary across the whole run.
 void expand_singular(std::vector<Layer>& layers) {
+  const auto regular = [&](std::size_t kk) {
+    const auto& cells = layers[kk].cells;
+    return std::any_of(cells.begin(), cells.end(), [](const Cell& c) { return !c.singular; });
+  };
   for (std::size_t k = 0; k < layers.size(); ++k) {
     auto& cells = layers[k].cells;
     if (std::none_of(cells.begin(), cells.end(), [](const Cell& c) { return c.singular; })) continue;
     std::vector<double> primaries;
-    for (long d = 1; d < static_cast<long>(layers.size()) && primaries.size() < 64; ++d)
-      for (long kk : {static_cast<long>(k) - d, static_cast<long>(k) + d}) {
-        if (kk < 0 || kk >= static_cast<long>(layers.size())) continue;
-        bool regular = false;
-        for (const Cell& c : layers[static_cast<size_t>(kk)].cells)
-          if (!c.singular) {
-            primaries.push_back(c.r1);
-            regular = true;
-          }
-        if (regular && d > 1) d = static_cast<long>(layers.size());  // nearest regular layers on each side only
+    const auto take = [&](std::size_t kk) {
+      for (const Cell& c : layers[kk].cells)
+        if (!c.singular) primaries.push_back(c.r1);
+    };
+    for (std::size_t kk = k; kk-- > 0;)
+      if (regular(kk)) {
+        take(kk);
+        break;
+      }
+    for (std::size_t kk = k + 1; kk < layers.size(); ++kk)
+      if (regular(kk)) {
+        take(kk);
+        break;
       }
     std::vector<Cell> out;
     for (const Cell& c : cells) {

@@ -54,6 +54,35 @@ double seg_distance(const ClSeg& s, const Vec3& p, double& t) {
   return (s.p0 + t * ab - p).norm();
 }
 
+/// The best match of the tool axis u along the CL segment s where its tip is within tip_tol of p: the largest
+/// u . slerp(u0, u1, t) over the stretch of t whose CL tip lies within tip_tol of p (-2 when none does). On a segment
+/// shorter than the tolerance the projection of p fixes no parameter: the machine may be anywhere along that stretch
+/// of the orientation, and its axis is judged by the nearest there.
+/// How many CL segments either side of the nearest one a sample's axis may be matched on (best_axis_dot_near).
+constexpr std::size_t kNeighbourSegs = 3;
+
+double best_axis_dot_near(const ClSeg& s, const Vec3& p, const Vec3& u, double tip_tol) {
+  const Vec3 ab = s.p1 - s.p0;
+  const double L2 = ab.squaredNorm();
+  double lo = 0.0, hi = 1.0;
+  if (L2 > 0) {
+    const double t_line = (p - s.p0).dot(ab) / L2;  // on the line, unclamped
+    const double h2 = (s.p0 + t_line * ab - p).squaredNorm();
+    if (h2 > tip_tol * tip_tol) return -2.0;
+    const double half = std::sqrt((tip_tol * tip_tol - h2) / L2);
+    lo = std::max(0.0, t_line - half);
+    hi = std::min(1.0, t_line + half);
+    if (lo > hi) return -2.0;
+  } else if ((s.p0 - p).norm() > tip_tol) {
+    return -2.0;
+  }
+  if (s.sin_th < 1e-9) return std::max(u.dot(s.u0), u.dot(s.u1));
+  // The arc's plane: u0 and the unit vector from it toward u1; u's projection lies at angle phi along the arc.
+  const Vec3 e2 = (s.u1 - std::cos(s.th) * s.u0) / s.sin_th;
+  const double phi = std::atan2(u.dot(e2), u.dot(s.u0));
+  return u.dot(slerp(s.u0, s.u1, s.th, s.sin_th, std::clamp(phi / s.th, lo, hi)));
+}
+
 /// A feed block that moves the tool only along its own axis, away from the CL path (a post's retract
 /// before a flip or unwind, or the plunge back): every sample lies on the line through the block's start
 /// along its axis, the axis stays within tolerance, and no sample is below the CL path (no gouge).
@@ -781,8 +810,17 @@ VerifyResult verify(const nc::Program& nc, const cl::Program& cl, const kin::Kin
       for (std::size_t i = rg.begin(); i != rg.end(); ++i) {
         const AxisSample& a = axis_samples[i];
         const ClSeg& sg = segs[a.seg];
-        const Vec3 u = slerp(sg.u0, sg.u1, sg.th, sg.sin_th, a.t);
-        axis_angles[i] = rad2deg(std::acos(std::clamp(u.dot(a.pose->axis), -1.0, 1.0))) + a.slack_deg;
+        double dot = slerp(sg.u0, sg.u1, sg.th, sg.sin_th, a.t).dot(a.pose->axis);
+        if (rad2deg(std::acos(std::clamp(dot, -1.0, 1.0))) + a.slack_deg > options.axis_tolerance_deg) {
+          // Where the path doubles back on itself, or runs through segments shorter than the tip tolerance, the
+          // nearest CL point need not be where the block is along the orientation: the tool pose passes where some
+          // CL pose near the sample (its tip within the tip tolerance, on this segment or a neighbour) has the axis.
+          const Vec3 pt = point(a.pose->tip_mm, a.pose->axis);
+          for (std::size_t k = a.seg > kNeighbourSegs ? a.seg - kNeighbourSegs : 0;
+               k < std::min(segs.size(), a.seg + kNeighbourSegs + 1); ++k)
+            dot = std::max(dot, best_axis_dot_near(segs[k], pt, a.pose->axis, options.tip_tolerance_mm));
+        }
+        axis_angles[i] = rad2deg(std::acos(std::clamp(dot, -1.0, 1.0))) + a.slack_deg;
       }
     });
     for (std::size_t i = 0; i < axis_samples.size(); ++i)
