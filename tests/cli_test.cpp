@@ -120,9 +120,16 @@ TEST(Cli, SegmentsShorterThanTheToleranceAndReversalsPassTheGateButAWrongAxisDoe
   // A random walk: CL segments of 0.04 mm that turn the axis 1.4 deg, and a reversal over a segment 0.04 mm
   // beside the previous one. Matched by the nearest tip alone, samples were compared with the orientation of the
   // wrong segment (or the wrong end of a short one) and the gate refused the post's program (0.93 deg).
+  // The post judges its pieces as the gate does, by where the tip is: on the 45-degree head the tip runs unevenly
+  // along some segments, and pieces judged by their time along the segment were refused by the gate (0.36 deg).
   TempDir d;
   const std::string cl = cscam::test::source_path("tests/data/short_segments.cls");
   const std::string nc = d.file("s.ngc");
+  for (const char* m : {"head-table-bc45", "head-head-ac"}) {
+    SCOPED_TRACE(m);
+    const auto r = run_command(kCli + " post " + cl + " --machine " + m + " -o " + d.file(std::string(m) + ".ngc"));
+    EXPECT_EQ(r.status, 0) << r.output;
+  }
   auto r = run_command(kCli + " post " + cl + " --machine trunnion-ac -o " + nc);
   ASSERT_EQ(r.status, 0) << r.output;
   r = run_command(kCli + " verify " + nc + " --machine trunnion-ac --cl " + cl);

@@ -20,6 +20,7 @@
 #include <regex>
 #include <sstream>
 
+#include "../src/post/linearize.hpp"
 #include "cscam/cl/program.hpp"
 #include "cscam/core/error.hpp"
 #include "cscam/core/tolerances.hpp"
@@ -304,6 +305,26 @@ TEST(Post, AnUnwindNeitherEndOfWhichReachesTheOtherTurnsAtBothPoints) {
   const auto v = verify_text(os.str(), prog, m, *k);
   EXPECT_TRUE(v.ok) << v.message << "\n" << os.str();
   expect_rs274_agrees(os.str(), m, "unwind");
+}
+
+TEST(Post, SlerpBestDotIsTheNearestPointOfTheStretchOfTheArc) {
+  // Oracle: the largest dot product over 20001 evenly spaced points of the stretch.
+  std::mt19937_64 rng(test::kSeed);
+  std::normal_distribution<double> g;
+  std::uniform_real_distribution<double> uni(0.0, 1.0);
+  auto unit = [&] { return Vec3(g(rng), g(rng), g(rng)).normalized(); };
+  for (int trial = 0; trial < 200; ++trial) {
+    const Vec3 a = unit(), u = unit();
+    // Arcs from a fraction of a degree to nearly half a turn.
+    const Vec3 b = trial % 2 ? (a + 0.01 * unit()).normalized() : unit();
+    const post::Slerp arc(a, b);
+    double lo = uni(rng), hi = uni(rng);
+    if (lo > hi) std::swap(lo, hi);
+    double best = -2.0;
+    for (int i = 0; i <= 20000; ++i) best = std::max(best, u.dot(arc(lo + (hi - lo) * i / 20000.0)));
+    EXPECT_NEAR(arc.best_dot(u, lo, hi), best, 1e-7) << "trial " << trial;
+    EXPECT_GE(arc.best_dot(u, lo, hi), best - 1e-12) << "trial " << trial;
+  }
 }
 
 // --- LinuxCNC ------------------------------------------------------------------------------------------

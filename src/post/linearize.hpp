@@ -18,6 +18,11 @@ class Slerp {
  public:
   Slerp(const Eigen::Vector3d& a, const Eigen::Vector3d& b);
   Eigen::Vector3d operator()(double s) const;
+  /// The angle (rad) the interpolation turns through from a to b.
+  [[nodiscard]] double angle() const { return th_; }
+  /// The largest u . (*this)(t) over t in [lo, hi] (0 <= lo <= hi <= 1): the point of that stretch of the arc
+  /// nearest the unit vector u.
+  [[nodiscard]] double best_dot(const Eigen::Vector3d& u, double lo, double hi) const;
 
  private:
   /// std::sin(x), remembered for the last few x: the linearizer's samples at a quarter, half and three quarters
@@ -76,10 +81,20 @@ class Linearizer {
     Slerp own;
     std::optional<Slerp> cl;
   };
-  /// Whether the tool axis u, at the parameter s along the segment, is within the tolerance.
-  [[nodiscard]] bool axis_ok(const Axis& axis, const Eigen::Vector3d& u, double s) const;
-  /// By how much (rad) u misses the axis at s, beyond what is allowed besides axis_tolerance_rad (the cone).
-  [[nodiscard]] double axis_deviation(const Axis& axis, const Eigen::Vector3d& u, double s) const;
+  /// Where a sample of the machine's move lies along the CL segment: its parameter in time (s), the projection of
+  /// its controlled point (t), and the stretch [lo, hi] of the segment whose CL points lie within the tip tolerance
+  /// of it. The gate places a sample by its tip, so that is where its axis is judged.
+  struct Along {
+    double s, t, lo, hi;
+  };
+  [[nodiscard]] Along along(const Eigen::Vector3d& ctrl, const Eigen::Vector3d& P0, const Eigen::Vector3d& ab,
+                            double L2, double s) const;
+  /// Whether the tool axis u of a sample is within the tolerance: of the segment's own axes at some point of its
+  /// stretch, or (planned, with the CL's axes given) within the cone of the CL's there.
+  [[nodiscard]] bool axis_ok(const Axis& axis, const Eigen::Vector3d& u, const Along& w) const;
+  /// By how much (rad) u misses the axis over the sample's stretch, beyond what is allowed besides
+  /// axis_tolerance_rad (the cone).
+  [[nodiscard]] double axis_deviation(const Axis& axis, const Eigen::Vector3d& u, const Along& w) const;
   /// Whether the straight joint move qa -> qb leaves the tolerance of the CL segment P0P1 between the
   /// parameters sa and sb (sampled at a quarter, half and three quarters).
   bool exceeds(const kin::Axes& qa, const kin::Axes& qb, double sa, double sb, const Eigen::Vector3d& P0,
@@ -101,7 +116,9 @@ class Linearizer {
   const kin::Kinematics& kin_;
   Settings set_;
   double cos_tol_axis_ = 1.0;
-  double cos_cone_tol_ = 1.0;  ///< cos(cone + axis tolerance)
+  double cos_cone_tol_ = 1.0;   ///< cos(cone + axis tolerance)
+  double cos_fast_axis_ = 1.0;  ///< cos(0.9 axis tolerance): the check without trigonometry (axis_ok)
+  double cos_fast_cone_ = 1.0;  ///< cos(cone + 0.9 axis tolerance)
   std::vector<Span> stack_;
 };
 

@@ -76,11 +76,8 @@ double best_axis_dot_near(const ClSeg& s, const Vec3& p, const Vec3& u, double t
   } else if ((s.p0 - p).norm() > tip_tol) {
     return -2.0;
   }
-  if (s.sin_th < 1e-9) return std::max(u.dot(s.u0), u.dot(s.u1));
-  // The arc's plane: u0 and the unit vector from it toward u1; u's projection lies at angle phi along the arc.
-  const Vec3 e2 = (s.u1 - std::cos(s.th) * s.u0) / s.sin_th;
-  const double phi = std::atan2(u.dot(e2), u.dot(s.u0));
-  return u.dot(slerp(s.u0, s.u1, s.th, s.sin_th, std::clamp(phi / s.th, lo, hi)));
+  return s.sin_th < 1e-12 ? std::max(u.dot(s.u0), u.dot(s.u1))
+                          : rot::arc_best_dot(s.u0, s.u1, s.th, s.sin_th, u, lo, hi);
 }
 
 /// A feed block that moves the tool only along its own axis, away from the CL path (a post's retract

@@ -12,6 +12,7 @@
 /// - Axis-by-axis X, Y, Z (Siemens CYCLE800 mode 57): R = Rx(A) Ry(B) Rz(C): X, then the new Y, then the new Z.
 #include <Eigen/Core>
 #include <Eigen/Geometry>
+#include <algorithm>
 #include <array>
 #include <cmath>
 
@@ -82,6 +83,20 @@ inline Vec3 to_plane(const Mat3& R_part_plane, const Vec3& origin_in_part, const
 /// The part point with coordinates p_in_plane in the plane (R_part_plane, origin).
 inline Vec3 from_plane(const Mat3& R_part_plane, const Vec3& origin_in_part, const Vec3& p_in_plane) {
   return origin_in_part + R_part_plane * p_in_plane;
+}
+
+/// The largest u . slerp(a, b, t) over t in [lo, hi] (0 <= lo <= hi <= 1) for unit vectors a, b and u, where th is
+/// the angle from a to b and sin_th = sin(th) > 0: the dot product with the point of that stretch of the arc nearest
+/// u. (In the arc's plane u's projection lies at an angle phi from a; along the arc the dot product is
+/// |projection| cos(psi - phi).)
+inline double arc_best_dot(const Vec3& a, const Vec3& b, double th, double sin_th, const Vec3& u, double lo,
+                           double hi) {
+  const Vec3 e2 = (b - std::cos(th) * a) / sin_th;
+  const double x = u.dot(a), y = u.dot(e2);
+  const double phi = std::atan2(y, x);
+  if (phi >= lo * th && phi <= hi * th) return std::hypot(x, y);
+  // Outside the stretch, the nearer end on the circle (phi is taken in (-pi, pi], not next to the stretch).
+  return std::max(x * std::cos(lo * th) + y * std::sin(lo * th), x * std::cos(hi * th) + y * std::sin(hi * th));
 }
 
 }  // namespace cscam::rot
