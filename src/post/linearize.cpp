@@ -81,35 +81,40 @@ Linearizer::Linearizer(const kin::Kinematics& k, const Settings& s)
       cos_fast_axis_(std::cos(0.9 * s.axis_tolerance_rad)),
       cos_fast_cone_(std::cos(std::min(M_PI, s.cone_rad + 0.9 * s.axis_tolerance_rad))) {}
 
-Linearizer::Along Linearizer::along(const Vec3& ctrl, const Vec3& P0, const Vec3& ab, double L2, double s) const {
-  if (!(L2 > 0)) return {s, s, 0.0, 1.0};  // no tip motion: anywhere along the orientation
-  const double t_line = (ctrl - P0).dot(ab) / L2;
-  const double h2 = (P0 + t_line * ab - ctrl).squaredNorm();
-  const double half = std::sqrt(std::max(0.0, set_.tolerance_mm * set_.tolerance_mm - h2) / L2);
-  const double t = std::clamp(t_line, 0.0, 1.0);
-  return {s, t, std::clamp(t_line - half, 0.0, t), std::clamp(t_line + half, t, 1.0)};
+Linearizer::Along Linearizer::along(const Vec3& ctrl, const Vec3& P0, const Vec3& ab, double L2, double s) {
+  if (!(L2 > 0)) return {s, s, 0.0};  // no tip motion: anywhere along the orientation (stretch)
+  const Vec3 d = ctrl - P0;
+  const double t_line = d.dot(ab) / L2;
+  return {s, t_line, std::max(0.0, d.squaredNorm() - t_line * t_line * L2)};
 }
 
-bool Linearizer::axis_ok(const Axis& axis, const Vec3& u, const Along& w) const {
+std::array<double, 2> Linearizer::stretch(const Along& w, double L2) const {
+  if (!(L2 > 0)) return {0.0, 1.0};
+  const double half = std::sqrt(std::max(0.0, set_.tolerance_mm * set_.tolerance_mm - w.h2) / L2);
+  const double t = std::clamp(w.t_line, 0.0, 1.0);
+  return {std::clamp(w.t_line - half, 0.0, t), std::clamp(w.t_line + half, t, 1.0)};
+}
+
+bool Linearizer::axis_ok(const Axis& axis, const Vec3& u, const Along& w, double L2) const {
   // Without trigonometry where the sample is where its time says (the tip moves evenly): within 0.9 of the
-  // tolerance at s, and the projection at most 0.1 of it further along the arc.
-  const double lag_rad = std::abs(w.t - w.s) * axis.own.angle();
-  if (lag_rad <= 0.1 * set_.axis_tolerance_rad && u.dot(axis.own(w.s)) >= cos_fast_axis_) return true;
-  if (axis.own.best_dot(u, w.lo, w.hi) >= cos_tol_axis_) return true;
+  // tolerance at s, and the tip's projection at most 0.1 of it further along the arc.
+  const double lag = std::abs(std::clamp(w.t_line, 0.0, 1.0) - w.s);
+  if (lag * axis.own.angle() <= 0.1 * set_.axis_tolerance_rad && u.dot(axis.own(w.s)) >= cos_fast_axis_) return true;
+  const auto [lo, hi] = stretch(w, L2);
+  if (axis.own.best_dot(u, lo, hi) >= cos_tol_axis_) return true;
   // Near a singular orientation the slerp of two planned axes can pass on the other side of the pole from the
   // machine's joint interpolation (a fraction of a degree away, but with the primary rotary half a turn apart);
   // both are within the cone the plan was made in.
   if (!axis.cl) return false;
-  if (std::abs(w.t - w.s) * axis.cl->angle() <= 0.1 * set_.axis_tolerance_rad &&
-      u.dot((*axis.cl)(w.s)) >= cos_fast_cone_)
-    return true;
-  return axis.cl->best_dot(u, w.lo, w.hi) >= cos_cone_tol_;
+  if (lag * axis.cl->angle() <= 0.1 * set_.axis_tolerance_rad && u.dot((*axis.cl)(w.s)) >= cos_fast_cone_) return true;
+  return axis.cl->best_dot(u, lo, hi) >= cos_cone_tol_;
 }
 
-double Linearizer::axis_deviation(const Axis& axis, const Vec3& u, const Along& w) const {
+double Linearizer::axis_deviation(const Axis& axis, const Vec3& u, const Along& w, double L2) const {
   const auto angle = [](double dot) { return std::acos(std::clamp(dot, -1.0, 1.0)); };
-  const double own = angle(axis.own.best_dot(u, w.lo, w.hi));
-  return axis.cl ? std::min(own, angle(axis.cl->best_dot(u, w.lo, w.hi)) - set_.cone_rad) : own;
+  const auto [lo, hi] = stretch(w, L2);
+  const double own = angle(axis.own.best_dot(u, lo, hi));
+  return axis.cl ? std::min(own, angle(axis.cl->best_dot(u, lo, hi)) - set_.cone_rad) : own;
 }
 
 bool Linearizer::exceeds(const kin::Axes& qa, const kin::Axes& qb, double sa, double sb, const Vec3& P0, const Vec3& P1,
@@ -121,7 +126,8 @@ bool Linearizer::exceeds(const kin::Axes& qa, const kin::Axes& qb, double sa, do
     const Vec3 ctrl = p.tip_mm + set_.control_offset_mm * p.axis;
     const double dtip = point_segment_distance(ctrl, P0, ab, L2);
     stats.max_checked_tip_deviation_mm = std::max(stats.max_checked_tip_deviation_mm, dtip);
-    if (dtip > set_.tolerance_mm || !axis_ok(axis, p.axis, along(ctrl, P0, ab, L2, sa + t * (sb - sa)))) return true;
+    if (dtip > set_.tolerance_mm || !axis_ok(axis, p.axis, along(ctrl, P0, ab, L2, sa + t * (sb - sa)), L2))
+      return true;
   }
   return false;
 }
@@ -136,7 +142,7 @@ void Linearizer::worst_deviation(const kin::Axes& qa, const kin::Axes& qb, doubl
     const kin::Posed p = kin_.forward(qa + t * (qb - qa));
     const Vec3 ctrl = p.tip_mm + set_.control_offset_mm * p.axis;
     tip_mm = std::max(tip_mm, point_segment_distance(ctrl, P0, ab, L2));
-    axis_rad = std::max(axis_rad, axis_deviation(axis, p.axis, along(ctrl, P0, ab, L2, sa + t * (sb - sa))));
+    axis_rad = std::max(axis_rad, axis_deviation(axis, p.axis, along(ctrl, P0, ab, L2, sa + t * (sb - sa)), L2));
   }
 }
 
@@ -177,10 +183,11 @@ void Linearizer::split(const cl::Move& m0, const kin::Axes& q0, const cl::Move& 
         Vec3 a_int;
         const auto rp = kin_.rotary_pair();
         const Vec3 ctrl = P0 + sm * (P1 - P0);
-        const Along at_sm = along(ctrl, P0, P1 - P0, (P1 - P0).squaredNorm(), sm);
-        if (kin_.tool_axis_at(qm[rp[0]], qm[rp[1]], target.tip_mm, a_int) && axis_ok(axis, a_int, at_sm) &&
+        const double L2 = (P1 - P0).squaredNorm();
+        const Along at_sm{sm, sm, 0.0};  // the controlled point is put on the path at sm
+        if (kin_.tool_axis_at(qm[rp[0]], qm[rp[1]], target.tip_mm, a_int) && axis_ok(axis, a_int, at_sm, L2) &&
             kin_.solve_for_rotaries(kin::Posed{ctrl - off * a_int, a_int}, qm) &&
-            axis_ok(axis, kin_.forward(qm).axis, at_sm)) {
+            axis_ok(axis, kin_.forward(qm).axis, at_sm, L2)) {
           check_limits(qm);
           ++stats.inserted_points;
           stack_.push_back({sm, pc.sb, qm, pc.qb, pc.depth + 1});

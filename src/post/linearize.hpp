@@ -82,19 +82,22 @@ class Linearizer {
     std::optional<Slerp> cl;
   };
   /// Where a sample of the machine's move lies along the CL segment: its parameter in time (s), the projection of
-  /// its controlled point (t), and the stretch [lo, hi] of the segment whose CL points lie within the tip tolerance
-  /// of it. The gate places a sample by its tip, so that is where its axis is judged.
+  /// its controlled point on the segment's line (t_line) and its squared distance from that line (h2). The gate
+  /// places a sample by its tip, so that is where its axis is judged: over the stretch of the segment whose CL points
+  /// lie within the tip tolerance of it (stretch()).
   struct Along {
-    double s, t, lo, hi;
+    double s, t_line, h2;
   };
-  [[nodiscard]] Along along(const Eigen::Vector3d& ctrl, const Eigen::Vector3d& P0, const Eigen::Vector3d& ab,
-                            double L2, double s) const;
+  [[nodiscard]] static Along along(const Eigen::Vector3d& ctrl, const Eigen::Vector3d& P0, const Eigen::Vector3d& ab,
+                                   double L2, double s);
+  /// The stretch [lo, hi] of the segment (of squared length L2) within the tip tolerance of the sample w.
+  [[nodiscard]] std::array<double, 2> stretch(const Along& w, double L2) const;
   /// Whether the tool axis u of a sample is within the tolerance: of the segment's own axes at some point of its
   /// stretch, or (planned, with the CL's axes given) within the cone of the CL's there.
-  [[nodiscard]] bool axis_ok(const Axis& axis, const Eigen::Vector3d& u, const Along& w) const;
+  [[nodiscard]] bool axis_ok(const Axis& axis, const Eigen::Vector3d& u, const Along& w, double L2) const;
   /// By how much (rad) u misses the axis over the sample's stretch, beyond what is allowed besides
   /// axis_tolerance_rad (the cone).
-  [[nodiscard]] double axis_deviation(const Axis& axis, const Eigen::Vector3d& u, const Along& w) const;
+  [[nodiscard]] double axis_deviation(const Axis& axis, const Eigen::Vector3d& u, const Along& w, double L2) const;
   /// Whether the straight joint move qa -> qb leaves the tolerance of the CL segment P0P1 between the
   /// parameters sa and sb (sampled at a quarter, half and three quarters).
   bool exceeds(const kin::Axes& qa, const kin::Axes& qb, double sa, double sb, const Eigen::Vector3d& P0,
