@@ -77,9 +77,11 @@ Linearizer::Linearizer(const kin::Kinematics& k, const Settings& s)
     : kin_(k),
       set_(s),
       cos_tol_axis_(std::cos(s.axis_tolerance_rad)),
-      cos_cone_tol_(std::cos(std::min(M_PI, s.cone_rad + s.axis_tolerance_rad))),
+      // Within the cone itself: the axis tolerance is left for what the gate's denser samples find between the
+      // linearizer's (the joint path may bulge out of the cone there).
+      cos_cone_tol_(std::cos(std::min(M_PI, s.cone_rad))),
       cos_fast_axis_(std::cos(0.9 * s.axis_tolerance_rad)),
-      cos_fast_cone_(std::cos(std::min(M_PI, s.cone_rad + 0.9 * s.axis_tolerance_rad))) {}
+      cos_fast_cone_(std::cos(std::min(M_PI, std::max(0.0, s.cone_rad - 0.1 * s.axis_tolerance_rad)))) {}
 
 Linearizer::Along Linearizer::along(const Vec3& ctrl, const Vec3& P0, const Vec3& ab, double L2, double s) {
   if (!(L2 > 0)) return {s, s, 0.0};  // no tip motion: anywhere along the orientation (stretch)

@@ -44,8 +44,8 @@ class Linearizer {
     int max_depth = 14;
     bool enabled = true;
     bool planned = false;  ///< the axis values come from the planner (for the advice an error gives)
-    /// The plan's cone (rad): where the CL's own axes are given, a piece whose axis stays within cone +
-    /// axis_tolerance_rad of the CL axis is also within the tolerance (what the gate accepts of a planned program).
+    /// The plan's cone (rad): where the CL's own axes are given, a piece whose axis stays within the cone of the
+    /// CL axis is also within the tolerance (the gate accepts cone + axis tolerance of a planned program).
     double cone_rad = 0.0;
   };
 
@@ -119,9 +119,9 @@ class Linearizer {
   const kin::Kinematics& kin_;
   Settings set_;
   double cos_tol_axis_ = 1.0;
-  double cos_cone_tol_ = 1.0;   ///< cos(cone + axis tolerance)
+  double cos_cone_tol_ = 1.0;   ///< cos(cone)
   double cos_fast_axis_ = 1.0;  ///< cos(0.9 axis tolerance): the check without trigonometry (axis_ok)
-  double cos_fast_cone_ = 1.0;  ///< cos(cone + 0.9 axis tolerance)
+  double cos_fast_cone_ = 1.0;  ///< cos(cone - 0.1 axis tolerance)
   std::vector<Span> stack_;
 };
 
