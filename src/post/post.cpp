@@ -1067,7 +1067,16 @@ class Sequencer {
   /// tolerance of the straight CL segment and the axis within its tolerance of the interpolated CL axis.
   void feed_linear(const cl::Move& m0, const kin::Axes& q0, const cl::Move& m1, const kin::Axes& q1) {
     const double feed_mm_min = m1.feed_mm_per_min > 0 ? m1.feed_mm_per_min : kFallbackFeedMmMin;
-    if (!rotaries_differ(q1)) {
+    Linearizer::Stats st;
+    bool split = false;
+    if (!rotaries_differ(q1) && traits_.parallel) {
+      // A parallel machine's legs, moved linearly, move the tip straight only approximately (a 48 mm plunge on the
+      // XMINI bows by 0.03 mm): one block where that is within the tolerance, else the linearizer's pieces.
+      Linearizer::ClAxes ends;
+      lin_.split(m0, q0, m1, q1, prog_.file, pieces_, st, cl_axes(m0, m1, ends));
+      split = pieces_.size() > 1;
+    }
+    if (!rotaries_differ(q1) && !split) {
       // Pure linear motion: the machine moves straight, exactly the CL segment.
       start(BlockSpec::Motion::Linear);
       if (!add_words(q1, {0, 1, 2, 3, 4})) return;  // a repeated point: nothing to do
@@ -1085,8 +1094,7 @@ class Sequencer {
       cur_ = q1;
       return;
     }
-    Linearizer::Stats st;
-    if (!split_ahead(m0, q0, m1, q1, st)) {
+    if (!split && !split_ahead(m0, q0, m1, q1, st)) {
       Linearizer::ClAxes ends;
       lin_.split(m0, q0, m1, q1, prog_.file, pieces_, st, cl_axes(m0, m1, ends));
     }
