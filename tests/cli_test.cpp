@@ -151,6 +151,27 @@ TEST(Cli, SegmentsShorterThanTheToleranceAndReversalsPassTheGateButAWrongAxisDoe
   EXPECT_NE(r.output.find("axis deviation"), std::string::npos) << r.output;
 }
 
+TEST(Cli, ToolTipControlFlipsWhereTheRotariesMust) {
+  // On the head-head machine (C within +-360 deg) the tilted axis turning a full circle from C 0 reaches C's limit:
+  // the rotaries must flip. In machine coordinates the post retracts, turns and plunges; under tool-tip control it
+  // once wrote the flip as one block whose rotary words the control interpolates through the vertical (16.7 deg off
+  // the CL orientation), and the gate refused the program in every dialect.
+  TempDir d;
+  const std::string cl = cscam::test::source_path("tests/data/circle_past_c_limit.cls");
+  auto r = run_command(kCli + " post " + cl + " --machine head-head-ac -o " + d.file("machine.ngc"));
+  ASSERT_EQ(r.status, 0) << r.output;
+  ASSERT_NE(r.output.find("rotaries flip or unwind"), std::string::npos) << "the premise: a flip\n" << r.output;
+  for (const char* dialect : {"linuxcnc", "fanuc", "haas", "siemens", "heidenhain"}) {
+    SCOPED_TRACE(dialect);
+    const std::string nc = d.file(std::string(dialect) + ".nc");
+    r = run_command(kCli + " post " + cl + " --machine head-head-ac --tcp --dialect " + dialect + " -o " + nc);
+    EXPECT_EQ(r.status, 0) << r.output;
+    EXPECT_NE(r.output.find("rotaries flip or unwind before CL line"), std::string::npos) << r.output;
+    r = run_command(kCli + " verify " + nc + " --machine head-head-ac --cl " + cl);
+    EXPECT_EQ(r.status, 0) << r.output;
+  }
+}
+
 TEST(Cli, VerifySamplesFixedWhenAskedAndBoundedByDefault) {
   TempDir d;
   const std::string cl = cscam::test::source_path("examples/nx-haas-umc750/variable_axis.cls");

@@ -1360,6 +1360,10 @@ class Sequencer {
       }
     } else {
       const double feed_mm_min = mv.feed_mm_per_min > 0 ? mv.feed_mm_per_min : kFallbackFeedMmMin;
+      if (!vectors_ && traits_.tcp_rotary_words == kin::Traits::TcpRotaryWords::MachineAngles) {
+        const kin::Posed pose0{cart_tip_, cart_axis_}, pose1{mv.tip_in_part_mm, axis};
+        if (!continues_branch(pose0, cart_q_, pose1, q)) tcp_reconfigure(pose0, pose1, q, mv, feed_mm_min);
+      }
       tcp_pieces(cart_move_, cart_q_, mv, q);
       for (const auto& pc : tcp_pieces_) emit_tcp_feed(pc.tip, pc.axis, pc.q, feed_mm_min);
     }
@@ -1370,6 +1374,59 @@ class Sequencer {
     cart_axis_ = axis;
     cart_move_ = mv;
     have_state_ = true;
+  }
+
+  /// Under tool-tip control with the machine's rotary angles as words: the axis values at the last point (cart_q_,
+  /// pose0) and q1 (at mv) lie on different branches or windings, and the words' linear interpolation would swing
+  /// the tool through other orientations on the path. As reconfigure does in machine coordinates: retract along the
+  /// tool axis, turn the rotary words there (a rapid; the control holds the tip), plunge back; cart_q_ is then q1's
+  /// branch at pose0, from which the cut to mv continues.
+  void tcp_reconfigure(const kin::Posed& pose0, const kin::Posed& pose1, const kin::Axes& q1, const cl::Move& mv,
+                       double feed_mm_min) {
+    const SourceLoc where{prog_.file, mv.line, 0};
+    const kin::Axes q0 = cart_q_;
+    if (m_.post.singularity.flip == "refuse")
+      throw InputError(where, fmt::format("the rotaries must flip or unwind before CL line {} ({}): a rotary limit or "
+                                          "the branch rule forces it, and post.singularity.flip is 'refuse'",
+                                          mv.line, describe_turn(q0, q1)));
+    kin::Axes q0n;
+    bool jumped = false;
+    if (!kin::track_checked(kin_, q1, pose1, pose0, q0n, jumped) || jumped) {
+      std::string why;
+      if (!kin::nearest_solution(kin_, pose0, q1, q0n, &why))
+        throw InputError(where,
+                         fmt::format("the rotaries must flip or unwind before CL line {} ({}) but no axis values "
+                                     "inside the limits hold the tool at the point before it{}",
+                                     mv.line, describe_turn(q0, q1), why.empty() ? "" : ": " + why));
+    }
+    if (rotary_jump(q0, q0n) < 1e-9) return;  // tracking stalled near a singularity: same branch after all
+    const double d = m_.post.singularity.retract_mm;
+    const Vec3 up = pose0.tip_mm + d * pose0.axis;
+    kin::Axes q_up = q0, qn_up = q0n;
+    if (!kin_.solve_for_rotaries(kin::Posed{up, pose0.axis}, q_up) ||
+        !kin_.solve_for_rotaries(kin::Posed{up, pose0.axis}, qn_up) || !kin_.check_limits(q_up).empty() ||
+        !kin_.check_limits(qn_up).empty())
+      throw InputError(where, fmt::format("the rotaries must flip or unwind before CL line {} ({}) but the tool cannot "
+                                          "retract {:.1f} mm along its axis inside the limits "
+                                          "(post.singularity.retract_mm)",
+                                          mv.line, describe_turn(q0, q0n), d));
+    emit_tcp_feed(up, pose0.axis, q_up, feed_mm_min);  // out along the tool axis
+    const kin::Axes v = cartesian_words(up, pose0.axis, qn_up);
+    turn_stepwise(v);
+    start(BlockSpec::Motion::Rapid);
+    if (add_words(v, {0, 1, 2, 3, 4})) {
+      set_mode94();
+      emit();
+    }
+    cur_ = v;
+    track_control(v, pose0.axis);
+    cart_q_ = qn_up;
+    emit_tcp_feed(pose0.tip_mm, pose0.axis, q0n, feed_mm_min);  // and straight back in
+    ++sum_.retracts;
+    sum_.warnings.push_back(
+        fmt::format("{}: rotaries flip or unwind before CL line {} ({}): retract {:.1f} mm along "
+                    "the tool axis, turn, plunge",
+                    where.str(), mv.line, describe_turn(q0, q0n), d));
   }
 
   /// The tool axis that the words v (tip + rotary words) give, as the control interpolates them.
