@@ -1412,13 +1412,7 @@ class Sequencer {
                                           mv.line, describe_turn(q0, q0n), d));
     emit_tcp_feed(up, pose0.axis, q_up, feed_mm_min);  // out along the tool axis
     const kin::Axes v = cartesian_words(up, pose0.axis, qn_up);
-    turn_stepwise(v);
-    start(BlockSpec::Motion::Rapid);
-    if (add_words(v, {0, 1, 2, 3, 4})) {
-      set_mode94();
-      emit();
-    }
-    cur_ = v;
+    emit_g0(v);
     track_control(v, pose0.axis);
     cart_q_ = qn_up;
     emit_tcp_feed(pose0.tip_mm, pose0.axis, q0n, feed_mm_min);  // and straight back in
