@@ -67,8 +67,8 @@ struct Setup {
 
 /// Says what validation repaired in a mesh, and what it warns about, as warnings of the run.
 void warn_mesh_report(const Setup& s, const std::string& path, const geom::MeshCheckReport& r) {
-  for (const auto& line : r.repairs) s.warn(path + ": repaired: " + line);
-  for (const auto& line : r.warnings) s.warn(path + ": " + line);
+  for (const auto& line : r.repairs) s.warn(fmt::format("{}: repaired: {}", path, line));
+  for (const auto& line : r.warnings) s.warn(fmt::format("{}: {}", path, line));
 }
 
 /// A part, fixture or machine mesh file, validated and repaired (what was repaired becomes a warning).

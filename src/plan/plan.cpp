@@ -132,8 +132,8 @@ cl::Program Plan::reference(const cl::Program& cl) const {
 Planner::Planner(const machine::Machine& machine, std::shared_ptr<const kin::Kinematics> kinematics,
                  const geom::Scene* scene, const geom::ToolShape* tool, Options options, const geom::Scene* head)
     : machine_(machine),
-      kin_(kinematics),
-      space_(kinematics, scene, tool, options.cspace, head),
+      kin_(std::move(kinematics)),
+      space_(kin_, scene, tool, options.cspace, head),
       opt_(std::move(options)) {}
 
 namespace {
