@@ -53,6 +53,7 @@ bool tier_one_fixed(const SegmentView& v, SegmentCells& d, TierOutcome& out) {
       if (it == first_err.end() || c.orient_err < it->second) first_err[val] = c.orient_err;
     }
     std::vector<std::pair<double, int>> vals;
+    vals.reserve(first_err.size());
     for (const auto& [val, e] : first_err) vals.emplace_back(e, val);
     std::sort(vals.begin(), vals.end());
     if (vals.size() > static_cast<size_t>(v.options.max_fixed_candidates))
