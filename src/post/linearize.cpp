@@ -57,12 +57,12 @@ namespace {
 constexpr double kBranchChangeRad = 1e-3;
 }  // namespace
 
-std::string Linearizer::rotaries(const kin::Axes& q0, const kin::Axes& q1) const {
-  const auto rp = kin_.rotary_pair();
-  const auto& ax = kin_.axes();
+std::string rotary_change(const kin::Kinematics& k, const kin::Axes& qa, const kin::Axes& qb) {
+  const auto rp = k.rotary_pair();
+  const auto& ax = k.axes();
   return fmt::format("{} {:.3f} -> {:.3f} deg, {} {:.3f} -> {:.3f} deg", ax[static_cast<size_t>(rp[0])].name,
-                     q0[rp[0]] * 180.0 / M_PI, q1[rp[0]] * 180.0 / M_PI, ax[static_cast<size_t>(rp[1])].name,
-                     q0[rp[1]] * 180.0 / M_PI, q1[rp[1]] * 180.0 / M_PI);
+                     qa[rp[0]] * 180.0 / M_PI, qb[rp[0]] * 180.0 / M_PI, ax[static_cast<size_t>(rp[1])].name,
+                     qa[rp[1]] * 180.0 / M_PI, qb[rp[1]] * 180.0 / M_PI);
 }
 
 std::string Linearizer::remedy() const {
@@ -211,7 +211,7 @@ void Linearizer::split(const cl::Move& m0, const kin::Axes& q0, const cl::Move& 
             fmt::format("the machine cannot follow the CL segment from line {} to line {} ({}) "
                         "continuously: inside it a limit{} forces the rotaries to flip (the "
                         "tool would leave the path); {}",
-                        m0.line, m1.line, rotaries(q0, q1), why.empty() ? "" : " (" + why + ")", remedy()));
+                        m0.line, m1.line, rotary_change(kin_, q0, q1), why.empty() ? "" : " (" + why + ")", remedy()));
       if (!tracked) {
         stats.warnings.push_back(
             fmt::format("{}: no IK solution while linearising", SourceLoc{cl_file, m1.line, 0}.str()));
@@ -246,7 +246,7 @@ void Linearizer::split(const cl::Move& m0, const kin::Axes& q0, const cl::Move& 
             SourceLoc{cl_file, m1.line, 0},
             fmt::format("the machine cannot follow the CL segment from line {} to line {} ({}): {:.1f}% along it {} "
                         "(one block would leave the path by {:.4f} mm and {:.3f} deg); {}",
-                        m0.line, m1.line, rotaries(q0, q1), 100.0 * pc.sb,
+                        m0.line, m1.line, rotary_change(kin_, q0, q1), 100.0 * pc.sb,
                         branch_change ? "the rotaries must change IK branch" + (why.empty() ? "" : " (" + why + ")")
                                       : std::string("the rotaries turn too fast to stay within the tolerance"),
                         tip_mm, axis_rad * 180.0 / M_PI, remedy()));

@@ -35,6 +35,10 @@ class Slerp {
   mutable int memo_size_ = 0, memo_next_ = 0;
 };
 
+/// The rotaries' change from qa to qb, named as in the machine file: "c 341.000 -> -337.000 deg, a 15.000 -> 15.000
+/// deg" (for the messages of refused segments and of turns).
+std::string rotary_change(const kin::Kinematics& k, const kin::Axes& qa, const kin::Axes& qb);
+
 class Linearizer {
  public:
   struct Settings {
@@ -112,8 +116,6 @@ class Linearizer {
     kin::Axes qa, qb;
     int depth;
   };
-  /// The rotaries of a refused segment, named as in the machine file ("a -2.000 -> 2.000 deg, c ...").
-  [[nodiscard]] std::string rotaries(const kin::Axes& q0, const kin::Axes& q1) const;
   /// What an error that refuses a segment advises.
   [[nodiscard]] std::string remedy() const;
   const kin::Kinematics& kin_;

@@ -765,14 +765,6 @@ class Sequencer {
     return !jumped && rotary_jump(tracked, q1) < 1e-6;
   }
 
-  /// "a -199.000 -> -337.000 deg, c ..." for the rotaries of qa -> qb.
-  std::string describe_turn(const kin::Axes& qa, const kin::Axes& qb) const {
-    const auto rp = kin_.rotary_pair();
-    return fmt::format("{} {:.3f} -> {:.3f} deg, {} {:.3f} -> {:.3f} deg", m_.axes[static_cast<size_t>(rp[0])].name,
-                       rad2deg(qa[rp[0]]), rad2deg(qb[rp[0]]), m_.axes[static_cast<size_t>(rp[1])].name,
-                       rad2deg(qa[rp[1]]), rad2deg(qb[rp[1]]));
-  }
-
   /// q0 (at m0) and q1 (at m1) lie on different branches or windings: a rotary limit or the branch rule
   /// forces a flip or an unwind. Turns to q1's branch at m0 and returns the axis values there, from which the feed to
   /// q1 continues. Where q1's branch cannot be followed back to m0 inside the limits (the limit that forces the turn
@@ -782,20 +774,14 @@ class Sequencer {
   std::optional<kin::Axes> reconfigure(const kin::Posed& pose0, const kin::Axes& q0, const kin::Posed& pose1,
                                        const kin::Axes& q1, const cl::Move& m0, const cl::Move& m1,
                                        double feed_mm_min) {
-    const SourceLoc where{prog_.file, m1.line, 0};
-    if (m_.post.singularity.flip == "refuse")
-      throw InputError(where, fmt::format("the rotaries must flip or unwind between CL lines {} and {} ({}): a rotary "
-                                          "limit or the branch rule forces it, and post.singularity.flip is 'refuse'",
-                                          m0.line, m1.line, describe_turn(q0, q1)));
+    refuse_if_asked(q0, q1, m0, m1);
     // The branch that starts at qa on pose0 and runs continuously to pose1 inside the limits, there.
     auto runs_through = [&](const kin::Axes& qa, kin::Axes& qb) {
       bool jumped = false;
       return kin::track_checked(kin_, qa, pose0, pose1, qb, jumped) && !jumped && kin_.check_limits(qb).empty();
     };
-    // q1's branch at m0's pose: track back from q1 so that the feed m0 -> m1 is continuous on it.
     kin::Axes q0n;
-    bool jumped = false;
-    if (!kin::track_checked(kin_, q1, pose1, pose0, q0n, jumped) || jumped) {
+    if (!branch_back(pose0, pose1, q1, q0n)) {
       kin::Axes q1p;
       if (runs_through(q0, q1p) && rotary_jump(q1p, q1) >= kFlipCheckRad) {
         feed_linear(m0, q0, m1, q1p);
@@ -814,15 +800,41 @@ class Sequencer {
         if (rotary_jump(q1p, q1) >= kFlipCheckRad) turn_at(m1, pose1, q1p, q1, m1, feed_mm_min);
         return std::nullopt;
       }
-      std::string why;
-      if (!kin::nearest_solution(kin_, pose0, q1, q0n, &why))
-        throw InputError(where,
-                         fmt::format("the rotaries must flip or unwind between CL lines {} and {} ({}) but no "
-                                     "axis values inside the limits hold the tool at CL line {}{}",
-                                     m0.line, m1.line, describe_turn(q0, q1), m0.line, why.empty() ? "" : ": " + why));
+      q0n = nearest_at_start(pose0, q0, q1, m0, m1);
     }
     if (rotary_jump(q0, q0n) < 1e-9) return q0;  // tracking stalled near a singularity: same branch after all
     turn_at(m0, pose0, q0, q0n, m1, feed_mm_min);
+    return q0n;
+  }
+
+  /// An error when the machine file says the post must not flip (post.singularity.flip: refuse).
+  void refuse_if_asked(const kin::Axes& q0, const kin::Axes& q1, const cl::Move& m0, const cl::Move& m1) const {
+    if (m_.post.singularity.flip == "refuse")
+      throw InputError(SourceLoc{prog_.file, m1.line, 0},
+                       fmt::format("the rotaries must flip or unwind between CL lines {} and {} ({}): a rotary limit "
+                                   "or the branch rule forces it, and post.singularity.flip is 'refuse'",
+                                   m0.line, m1.line, rotary_change(kin_, q0, q1)));
+  }
+
+  /// q1's branch at pose0, in q0n: followed back from q1 (at pose1), so that the feed from pose0 to pose1 is
+  /// continuous on it. False when it cannot get there inside the limits.
+  bool branch_back(const kin::Posed& pose0, const kin::Posed& pose1, const kin::Axes& q1, kin::Axes& q0n) const {
+    bool jumped = false;
+    return kin::track_checked(kin_, q1, pose1, pose0, q0n, jumped) && !jumped;
+  }
+
+  /// The solution at pose0 (m0) nearest q1, for a turn made there when q1's branch cannot be followed back; an error
+  /// when none is inside the limits.
+  kin::Axes nearest_at_start(const kin::Posed& pose0, const kin::Axes& q0, const kin::Axes& q1, const cl::Move& m0,
+                             const cl::Move& m1) const {
+    kin::Axes q0n;
+    std::string why;
+    if (!kin::nearest_solution(kin_, pose0, q1, q0n, &why))
+      throw InputError(
+          SourceLoc{prog_.file, m1.line, 0},
+          fmt::format("the rotaries must flip or unwind between CL lines {} and {} ({}) but no axis "
+                      "values inside the limits hold the tool at CL line {}{}",
+                      m0.line, m1.line, rotary_change(kin_, q0, q1), m0.line, why.empty() ? "" : ": " + why));
     return q0n;
   }
 
@@ -850,7 +862,7 @@ class Sequencer {
         emit_feed_to(qa, qb, 0.0, feed_mm_min);
         ++sum_.reorientations;
         sum_.warnings.push_back(fmt::format("{}: rotaries turned in place at CL line {} ({}), the tool held",
-                                            where.str(), m.line, describe_turn(qa, qb)));
+                                            where.str(), m.line, rotary_change(kin_, qa, qb)));
         return;
       }
     }
@@ -868,7 +880,7 @@ class Sequencer {
       throw InputError(where, fmt::format("the rotaries must flip or unwind at CL line {} ({}) but the tool cannot "
                                           "retract {:.1f} mm along its axis inside the limits "
                                           "(post.singularity.retract_mm)",
-                                          m.line, describe_turn(qa, qb), d));
+                                          m.line, rotary_change(kin_, qa, qb), d));
     feed_linear(m, qa, m_up, up0);  // straight out along the tool axis (linearised: a PKM's joints are not)
     at_cut_ = false;                // already out
     rapid(up1, next);
@@ -880,7 +892,7 @@ class Sequencer {
     sum_.warnings.push_back(
         fmt::format("{}: rotaries flip or unwind at CL line {} ({}): retract {:.1f} mm along the "
                     "tool axis, turn, plunge",
-                    where.str(), m.line, describe_turn(qa, qb), d));
+                    where.str(), m.line, rotary_change(kin_, qa, qb), d));
   }
 
   void feed(const cl::Move& m0, const kin::Axes& q0_in, const cl::Move& m1, const kin::Axes& q1) {
@@ -1385,20 +1397,9 @@ class Sequencer {
                        double feed_mm_min) {
     const SourceLoc where{prog_.file, mv.line, 0};
     const kin::Axes q0 = cart_q_;
-    if (m_.post.singularity.flip == "refuse")
-      throw InputError(where, fmt::format("the rotaries must flip or unwind before CL line {} ({}): a rotary limit or "
-                                          "the branch rule forces it, and post.singularity.flip is 'refuse'",
-                                          mv.line, describe_turn(q0, q1)));
+    refuse_if_asked(q0, q1, cart_move_, mv);
     kin::Axes q0n;
-    bool jumped = false;
-    if (!kin::track_checked(kin_, q1, pose1, pose0, q0n, jumped) || jumped) {
-      std::string why;
-      if (!kin::nearest_solution(kin_, pose0, q1, q0n, &why))
-        throw InputError(where,
-                         fmt::format("the rotaries must flip or unwind before CL line {} ({}) but no axis values "
-                                     "inside the limits hold the tool at the point before it{}",
-                                     mv.line, describe_turn(q0, q1), why.empty() ? "" : ": " + why));
-    }
+    if (!branch_back(pose0, pose1, q1, q0n)) q0n = nearest_at_start(pose0, q0, q1, cart_move_, mv);
     if (rotary_jump(q0, q0n) < 1e-9) return;  // tracking stalled near a singularity: same branch after all
     const double d = m_.post.singularity.retract_mm;
     const Vec3 up = pose0.tip_mm + d * pose0.axis;
@@ -1409,7 +1410,7 @@ class Sequencer {
       throw InputError(where, fmt::format("the rotaries must flip or unwind before CL line {} ({}) but the tool cannot "
                                           "retract {:.1f} mm along its axis inside the limits "
                                           "(post.singularity.retract_mm)",
-                                          mv.line, describe_turn(q0, q0n), d));
+                                          mv.line, rotary_change(kin_, q0, q0n), d));
     emit_tcp_feed(up, pose0.axis, q_up, feed_mm_min);  // out along the tool axis
     const kin::Axes v = cartesian_words(up, pose0.axis, qn_up);
     emit_g0(v);
@@ -1420,7 +1421,7 @@ class Sequencer {
     sum_.warnings.push_back(
         fmt::format("{}: rotaries flip or unwind before CL line {} ({}): retract {:.1f} mm along "
                     "the tool axis, turn, plunge",
-                    where.str(), mv.line, describe_turn(q0, q0n), d));
+                    where.str(), mv.line, rotary_change(kin_, q0, q0n), d));
   }
 
   /// The tool axis that the words v (tip + rotary words) give, as the control interpolates them.
