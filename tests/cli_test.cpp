@@ -172,6 +172,34 @@ TEST(Cli, ToolTipControlFlipsWhereTheRotariesMust) {
   }
 }
 
+TEST(Cli, ARetractRisingPastTheNextCutIsADepartureButOneGoingDownIsNot) {
+  // A cut, a rapid, and the next cut 2 mm higher beside it (a path climbing level by level). The post's retract
+  // along the tool axis after the first cut rises past the next cut's points; judged against the nearest CL point
+  // (the next cut's), it looked like a gouge, was compared with the path as a feed (5 mm off) and the gate refused
+  // the planned program. It is judged against the point it leaves from.
+  TempDir d;
+  const std::string cl = cscam::test::source_path("tests/data/climbing_retract.cls");
+  const std::string planned = d.file("planned.ngc");
+  auto r = run_command(kCli + " plan " + cl + " --machine trunnion-ac --cone 3 -o " + planned);
+  ASSERT_EQ(r.status, 0) << r.output;
+  r = run_command(kCli + " verify " + planned + " --machine trunnion-ac --cl " + cl + " --cone 3");
+  EXPECT_EQ(r.status, 0) << r.output;
+  // The control: the conventional program's first retract (a Z-only feed block on the trunnion) sent down instead.
+  const std::string nc = d.file("conv.ngc");
+  r = run_command(kCli + " post " + cl + " --machine trunnion-ac -o " + nc);
+  ASSERT_EQ(r.status, 0) << r.output;
+  std::ifstream in(nc);
+  std::string text((std::istreambuf_iterator<char>(in)), std::istreambuf_iterator<char>());
+  std::smatch m;
+  ASSERT_TRUE(std::regex_search(text, m, std::regex(R"(\n(?:G9[34] )?G1 Z([-0-9.]+)( F[0-9.]+)?\n)"))) << text;
+  const double z_up = std::stod(m.str(1));
+  text.replace(static_cast<std::size_t>(m.position(1)), static_cast<std::size_t>(m.length(1)),
+               std::to_string(z_up - 20.0));
+  const std::string down = d.file("down.ngc", text);
+  r = run_command(kCli + " verify " + down + " --machine trunnion-ac --cl " + cl);
+  EXPECT_NE(r.status, 0) << r.output;
+}
+
 TEST(Cli, VerifySamplesFixedWhenAskedAndBoundedByDefault) {
   TempDir d;
   const std::string cl = cscam::test::source_path("examples/nx-haas-umc750/variable_axis.cls");

@@ -9,6 +9,7 @@
 #include <cmath>
 #include <fstream>
 #include <limits>
+#include <optional>
 #include <sstream>
 #include <stdexcept>
 #include <string_view>
@@ -103,10 +104,22 @@ bool departure(const kin::Posed* poses, int n, double tip_tol, double axis_tol_r
     const kin::Posed& p = i == n ? pb : poses[i];
     if (p.axis.dot(pa.axis) < cos_axis_tol) return false;
   }
+  // Below the path: judged against the CL point the block leaves from or comes down to (the end on the path). A
+  // retract that rises past the next cut, a few millimetres above and beside (a path climbing level by level), is
+  // not below that cut's points; only a block with neither end on the path is judged by the nearest point.
+  const auto ctrl_of = [&](const kin::Posed& p) -> Vec3 { return p.tip_mm + ball_r * p.axis; };
+  std::optional<std::pair<Vec3, Vec3>> anchor;
+  for (const kin::Posed* end : {&pa, &pb}) {
+    const auto [c, u] = cl_point_near(ctrl_of(*end));
+    if ((ctrl_of(*end) - c).norm() <= tip_tol) {
+      anchor = std::pair<Vec3, Vec3>(c, u);
+      break;
+    }
+  }
   for (int i = 0; i <= n; ++i) {
     const kin::Posed& p = i == n ? pb : poses[i];
-    const Vec3 ctrl = p.tip_mm + ball_r * p.axis;  // the compared point: tip, or ball centre
-    const auto [c, u] = cl_point_near(ctrl);
+    const Vec3 ctrl = ctrl_of(p);  // the compared point: tip, or ball centre
+    const auto [c, u] = anchor ? *anchor : cl_point_near(ctrl);
     if ((ctrl - c).dot(u) < -room_mm) return false;
   }
   return true;
