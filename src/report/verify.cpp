@@ -55,13 +55,13 @@ double seg_distance(const ClSeg& s, const Vec3& p, double& t) {
   return (s.p0 + t * ab - p).norm();
 }
 
+/// How many CL segments either side of the nearest one a sample's axis may be matched on (best_axis_dot_near).
+constexpr std::size_t kNeighbourSegs = 3;
+
 /// The best match of the tool axis u along the CL segment s where its tip is within tip_tol of p: the largest
 /// u . slerp(u0, u1, t) over the stretch of t whose CL tip lies within tip_tol of p (-2 when none does). On a segment
 /// shorter than the tolerance the projection of p fixes no parameter: the machine may be anywhere along that stretch
 /// of the orientation, and its axis is judged by the nearest there.
-/// How many CL segments either side of the nearest one a sample's axis may be matched on (best_axis_dot_near).
-constexpr std::size_t kNeighbourSegs = 3;
-
 double best_axis_dot_near(const ClSeg& s, const Vec3& p, const Vec3& u, double tip_tol) {
   const Vec3 ab = s.p1 - s.p0;
   const double L2 = ab.squaredNorm();
@@ -110,8 +110,9 @@ bool departure(const kin::Posed* poses, int n, double tip_tol, double axis_tol_r
   const auto ctrl_of = [&](const kin::Posed& p) -> Vec3 { return p.tip_mm + ball_r * p.axis; };
   std::optional<std::pair<Vec3, Vec3>> anchor;
   for (const kin::Posed* end : {&pa, &pb}) {
-    const auto [c, u] = cl_point_near(ctrl_of(*end));
-    if ((ctrl_of(*end) - c).norm() <= tip_tol) {
+    const Vec3 at_end = ctrl_of(*end);
+    const auto [c, u] = cl_point_near(at_end);
+    if ((at_end - c).norm() <= tip_tol) {
       anchor = std::pair<Vec3, Vec3>(c, u);
       break;
     }
