@@ -768,6 +768,34 @@ std::string dome_cl(unsigned seed, int rows, int per_row) {
 
 }  // namespace
 
+TEST(Cli, PostReportsTheTravelThatStatsReadsFromTheWrittenFile) {
+  // The oracle: `cscam stats` reading the file that reached disk. The post takes its figures from the gate's own
+  // reading of machine words and reads tool-tip words again: both must agree with it.
+  TempDir d;
+  const std::string cl = d.file("dome.cls", dome_cl(3, 8, 60));
+  for (const char* tcp : {"--no-tcp", "--tcp"}) {
+    const std::string out = d.file(std::string("dome") + tcp + ".ngc");
+    auto r = run_command(kCli + " post " + q(cl) + " --machine trunnion-ac " + tcp + " --json -o " + q(out));
+    ASSERT_EQ(r.status, 0) << r.output;
+    const auto post = nlohmann::json::parse(r.output.substr(r.output.find('{')));
+    r = run_command(kCli + " stats " + q(out) + " --machine trunnion-ac --json");
+    ASSERT_EQ(r.status, 0) << r.output;
+    const auto st = nlohmann::json::parse(r.output.substr(r.output.find('[')))[0];
+    double mm = 0, deg = 0;
+    int reversals = 0;
+    for (const auto& a : st["axes"]) {
+      (a["unit"] == "mm" ? mm : deg) += a["travel"].get<double>();
+      reversals += a["reversals"].get<int>();
+    }
+    // stats prints travel to 4 decimals per axis.
+    EXPECT_NEAR(post["travel_mm"].get<double>(), mm, 5 * 0.5e-4) << tcp;
+    EXPECT_NEAR(post["travel_deg"].get<double>(), deg, 5 * 0.5e-4) << tcp;
+    EXPECT_EQ(post["reversals"].get<int>(), reversals) << tcp;
+    EXPECT_GT(mm, 0.0) << tcp;
+    EXPECT_GT(reversals, 0) << tcp;
+  }
+}
+
 TEST(Cli, PostOfSeveralFilesIsByteIdenticalToSingleRunsAtAnyThreadCount) {
   TempDir d;
   std::vector<std::string> cls;

@@ -29,6 +29,7 @@
 #include "cscam/post/post.hpp"
 #include "cscam/report/letters.hpp"
 #include "cscam/report/stats.hpp"
+#include "cscam/report/verify.hpp"
 #include "plan_cmd.hpp"
 
 namespace fs = std::filesystem;
@@ -49,29 +50,34 @@ std::shared_ptr<const machine::Machine> machine_for(const std::string& arg) {
   return cache.emplace(path, std::make_shared<const machine::Machine>(machine::load(path))).first->second;
 }
 
-/// Travel and reversals of the written program, read back from its text as `cscam stats` reads it.
-void add_stats(const std::string& nc_text, const std::string& nc_name, const machine::Machine& m, JobResult& r) {
+/// Travel and reversals of a written program, as `cscam stats` reports them.
+void add_stats(const nc::Program& ncp, const std::string& nc_name, const machine::Machine& m, JobResult& r) {
   std::array<std::string, 5> names;
   std::array<bool, 5> rotary{};
   for (std::size_t i = 0; i < 5; ++i) {
     names[i] = m.post.letters[i];
     rotary[i] = m.axes[i].rotary();
   }
-  report::Stats st;
-  try {
-    nc::Program ncp = nc::read_text(nc_text, nc_name, report::axis_letters(m));
-    report::resolve_work_planes(ncp, m);  // tilted-plane words as the machine axes they move
-    st = report::compute(ncp, names, rotary);
-  } catch (const InputError& e) {  // the gate judges the program; the table just has no figures then
-    r.warnings.push_back("no statistics: " + e.message());
-    return;
-  }
+  report::Stats st = report::compute(ncp, names, rotary);
   st.source = fs::path(nc_name).filename().string();
   for (const auto& a : st.axes) {
     (a.rotary ? r.travel_deg : r.travel_mm) += a.travel;
     r.reversals += a.reversals;
   }
   r.stats = st.json();
+}
+
+/// The same, read back from the program's text as `cscam stats` reads it.
+void add_stats(const std::string& nc_text, const std::string& nc_name, const machine::Machine& m, JobResult& r) {
+  nc::Program ncp;
+  try {
+    ncp = nc::read_text(nc_text, nc_name, report::axis_letters(m));
+    report::resolve_work_planes(ncp, m);  // tilted-plane words as the machine axes they move
+  } catch (const InputError& e) {         // the gate judges the program; the table just has no figures then
+    r.warnings.push_back("no statistics: " + e.message());
+    return;
+  }
+  add_stats(ncp, nc_name, m, r);
 }
 
 std::string status_name(JobStatus s) {
@@ -251,15 +257,25 @@ void run_job(const PostJob& job, JobResult& r) {
     const std::string nc_text = std::move(os).str();
     for (const auto& w : sum.warnings) r.warnings.push_back(w);
     // No program reaches disk without passing the independent back-simulation (limits, feeds, tolerance).
-    // The statistics read the same text meanwhile (they are dropped if the gate refuses the program).
+    // Machine words: the statistics come from the program as the gate read it back (a second reading of a
+    // million-block text cost about an eighth of the post). Tool-tip words are read as `cscam stats` reads them
+    // (the gate reads them as tip coordinates), beside the gate (they are dropped if it refuses the program).
     gate::Summary gs;
+    nc::Program read_back;
+    const bool tip_words = report::uses_tool_tip_control(nc_text);
     auto gate_and_write = [&] {
       gs = gate::write_checked(job.out, nc_text, prog, m, *kin,
                                gate::options_for(m, job.tolerance_mm, job.axis_tolerance_deg, 0.0),
-                               &sum.cl_line_of_nc_line);
+                               &sum.cl_line_of_nc_line, tip_words ? nullptr : &read_back);
     };
     auto stats = [&] { add_stats(nc_text, job.out, m, r); };
-    if (kin->traits().forward_depends_on_call_order) {  // warm-started FK: the gate stays on this thread (see gate.cpp)
+    if (!tip_words) {
+      gate_and_write();
+      if (read_back.tcp || read_back.tcp_vectors)  // not expected (the scan above saw no TCP word): read as stats does
+        stats();
+      else
+        add_stats(read_back, job.out, m, r);
+    } else if (kin->traits().forward_depends_on_call_order) {  // warm-started FK: the gate stays on this thread
       gate_and_write();
       stats();
     } else {

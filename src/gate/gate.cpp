@@ -38,7 +38,7 @@ Options options_for(const machine::Machine& machine, double tolerance_mm, double
 
 Summary check(const std::string& nc_text, const std::string& nc_name, const cl::Program& cl,
               const machine::Machine& machine, const kin::Kinematics& kinematics, const Options& options,
-              const std::vector<int>* cl_line_of_nc_line) {
+              const std::vector<int>* cl_line_of_nc_line, nc::Program* read_back) {
   Summary s;
   auto cl_line_of = [&](int nc_line) {
     if (!cl_line_of_nc_line || nc_line <= 0 || static_cast<size_t>(nc_line) >= cl_line_of_nc_line->size()) return 0;
@@ -329,19 +329,20 @@ Summary check(const std::string& nc_text, const std::string& nc_name, const cl::
                             v.cl_line ? fmt::format(" (CL line {})", v.cl_line) : std::string());
     if (s.violations.size() > 1) s.message += fmt::format("; {} more violation(s)", s.violations.size() - 1);
   }
+  if (read_back) *read_back = std::move(ncp);
   return s;
 }
 
 Summary write_checked(const std::string& path, const std::string& nc_text, const cl::Program& cl,
                       const machine::Machine& machine, const kin::Kinematics& kinematics, const Options& options,
-                      const std::vector<int>* cl_line_of_nc_line) {
+                      const std::vector<int>* cl_line_of_nc_line, nc::Program* read_back) {
   // The text goes to a temporary file beside `path` while it is checked (the check reads this same text): a program
   // that passes is then only renamed into place, and the temporary of one that fails is removed unread. Declared
   // in this order, the writer is joined before the temporary can go.
   PendingFile file(path);
   Background writer;
   writer.run([&] { file.write([&](std::ostream& os) { os << nc_text; }); });
-  Summary s = check(nc_text, path, cl, machine, kinematics, options, cl_line_of_nc_line);
+  Summary s = check(nc_text, path, cl, machine, kinematics, options, cl_line_of_nc_line, read_back);
   if (!s.ok) {
     try {
       writer.wait();  // its own failure does not matter: the program is refused

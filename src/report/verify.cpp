@@ -22,6 +22,7 @@
 #include "cscam/core/units.hpp"
 #include "cscam/kin/track.hpp"
 #include "cscam/report/json.hpp"
+#include "cscam/report/letters.hpp"
 
 namespace cscam::report {
 
@@ -210,12 +211,7 @@ bool uses_tool_tip_control(const std::string& t) {
 }
 
 nc::Program read_for_machine(const std::string& nc_text, const std::string& name, const machine::Machine& m) {
-  nc::AxisLetters letters;
-  for (std::size_t i = 0; i < 5; ++i) {
-    letters.letter[i] = m.post.letters[i][0];
-    letters.rotary[i] = m.axes[i].rotary();
-    letters.modulo[i] = m.axes[i].rotary() && m.axes[i].cyclic && m.post.rotary_output == "shortest";
-  }
+  nc::AxisLetters letters = axis_letters(m);
   const bool tcp = uses_tool_tip_control(nc_text);
   if (tcp) {
     int k = 0;

@@ -18,6 +18,7 @@
 #include "cscam/cl/program.hpp"
 #include "cscam/kin/kinematics.hpp"
 #include "cscam/machine/machine.hpp"
+#include "cscam/nc/reader.hpp"
 #include "cscam/report/verify.hpp"
 
 namespace cscam::gate {
@@ -64,14 +65,17 @@ struct Summary {
 
 /// Checks `nc_text` (named `nc_name` in messages) against the CL program and the machine.
 /// `cl_line_of_nc_line`, when given, maps an NC line number (1-based index) to the CL line it came from.
+/// `read_back`, when given, receives the program as the gate read it back (report::read_for_machine, with tool
+/// vectors resolved), so that a caller wanting its statistics need not read a million blocks again; it is left
+/// as it was when the text cannot be read.
 Summary check(const std::string& nc_text, const std::string& nc_name, const cl::Program& cl,
               const machine::Machine& machine, const kin::Kinematics& kinematics, const Options& options,
-              const std::vector<int>* cl_line_of_nc_line = nullptr);
+              const std::vector<int>* cl_line_of_nc_line = nullptr, nc::Program* read_back = nullptr);
 
 /// Checks, then writes `nc_text` to `path` atomically. Throws InputError naming the NC file, the block
-/// and the CL line when the check fails; nothing is written then.
+/// and the CL line when the check fails; nothing is written then. `read_back` as for check().
 Summary write_checked(const std::string& path, const std::string& nc_text, const cl::Program& cl,
                       const machine::Machine& machine, const kin::Kinematics& kinematics, const Options& options,
-                      const std::vector<int>* cl_line_of_nc_line = nullptr);
+                      const std::vector<int>* cl_line_of_nc_line = nullptr, nc::Program* read_back = nullptr);
 
 }  // namespace cscam::gate
