@@ -36,6 +36,7 @@ struct TempDir {
 };
 
 const std::string kCli = CSCAM_CLI;
+std::string q(const std::string& s) { return "'" + s + "'"; }  // for the shell (our paths have no single quote)
 
 }  // namespace
 
@@ -357,6 +358,23 @@ TEST(Cli, PlanInWindowsWritesAVerifiedProgram) {
   EXPECT_EQ(r.status, 0) << r.output;
 }
 
+// The XMINI's platform tilts as it moves, so a cell's tool axis depends on where the tip is. With a ball mill the
+// planned orientation moves the tip (the ball centre stays on the CL path): judged at the CL tip, cells 0.03 deg past
+// the cone were taken and the gate refused the program (tool axis 10.0308 deg from the CL at line 39, 10.02 allowed).
+// The planner judges each cell where the tool will be; the independent verify agrees.
+TEST(Cli, XminiPlanAtCone10KeepsTheAxisInsideTheConeWhereTheToolIs) {
+  TempDir d;
+  const std::string cl = cscam::test::source_path("tests/data/xmini_zig_cone10.cls");
+  const std::string out = d.file("zig.ngc");
+  auto r = run_command(kCli + " plan " + q(cl) + " --machine xmini --cone 10 -o " + q(out));
+  ASSERT_EQ(r.status, 0) << r.output;
+  std::smatch mt;
+  ASSERT_TRUE(std::regex_search(r.output, mt, std::regex("max axis deviation ([0-9.]+) deg"))) << r.output;
+  EXPECT_LE(std::stod(mt[1].str()), 10.0) << r.output;
+  r = run_command(kCli + " verify " + q(out) + " --machine xmini --cl " + q(cl) + " --cone 10");
+  EXPECT_EQ(r.status, 0) << r.output;
+}
+
 TEST(Cli, PlanRejectsAnOpenMeshNamingTheFile) {
   TempDir d;
   const std::string stl = d.file("open.stl",
@@ -435,7 +453,6 @@ TEST(Cli, PlanWithNoFeasibleCellWritesNothing) {
 // --- Hostile input (issue 7, part 3): non-zero exit, file:line in the message, no output file -------------------
 
 namespace {
-std::string q(const std::string& s) { return "'" + s + "'"; }  // for the shell (our paths have no single quote)
 
 // Tilted 10 deg (A = 10): a vertical tool would sit on the trunnion's singularity.
 const char* kSmallCl =

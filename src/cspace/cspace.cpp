@@ -85,7 +85,8 @@ Space::Space(std::shared_ptr<const kin::Kinematics> kinematics, const geom::Scen
   range(rot2_, i2_min_, i2_max_);
   // A serial machine's axis is R(primary) v(secondary): one factor per grid row and column instead of two rotation
   // matrices per cell (the flood fill of a cone near the singular axis visits thousands of cells per point).
-  if (opt_.cone_rad > 0 && kin_->axis_factors(0.0, 0.0, nullptr, nullptr)) {
+  tip_free_axis_ = kin_->axis_factors(0.0, 0.0, nullptr, nullptr);
+  if (opt_.cone_rad > 0 && tip_free_axis_) {
     R1_grid_.resize(static_cast<std::size_t>(i1_max_ - i1_min_) + 1);
     v2_grid_.resize(static_cast<std::size_t>(i2_max_ - i2_min_) + 1);
     for (int i = i1_min_; i <= i1_max_; ++i)
@@ -108,6 +109,17 @@ bool Space::axis_at(double r1, double r2, const Eigen::Vector3d& tip_mm, Eigen::
   return kin_->tool_axis_at(r1, r2, tip_mm, axis);
 }
 
+bool Space::pose_axis(const kin::Posed& cl, double r1, double r2, Eigen::Vector3d& axis) const {
+  if (!axis_at(r1, r2, cl.tip_mm, axis)) return false;
+  // Where the axis depends on the tip (a parallel machine's platform tilts as it moves), it is judged where the
+  // tool will be: with a ball mill the new orientation moves the tip by up to r |a - a_cl| (0.5 mm at 10 deg for
+  // r = 3), which turned the XMINI's axis 0.03 deg past a 10 deg cone the CL tip's axis was inside.
+  if (tip_free_axis_ || opt_.ball_radius_mm <= 0) return true;
+  const Eigen::Vector3d centre = cl.tip_mm + opt_.ball_radius_mm * cl.axis;
+  const Eigen::Vector3d tip = centre - opt_.ball_radius_mm * axis;
+  return axis_at(r1, r2, tip, axis);
+}
+
 Eigen::Vector3d Space::axis_of(double r1, double r2) const {
   Eigen::Vector3d a;
   axis_at(r1, r2, Eigen::Vector3d::Zero(), a);
@@ -116,7 +128,7 @@ Eigen::Vector3d Space::axis_of(double r1, double r2) const {
 
 bool Space::in_cone(const kin::Posed& cl, double r1, double r2, float* orient_err) const {
   Eigen::Vector3d a;
-  if (!axis_at(r1, r2, cl.tip_mm, a)) return false;
+  if (!pose_axis(cl, r1, r2, a)) return false;
   const double err = std::acos(std::clamp(a.dot(cl.axis), -1.0, 1.0));
   if (orient_err) *orient_err = static_cast<float>(err);
   // A tiny floor on the cone lets exact IK cells (cone 0) pass their own test despite rounding.
@@ -125,7 +137,7 @@ bool Space::in_cone(const kin::Posed& cl, double r1, double r2, float* orient_er
 
 bool Space::in_cone_cos(const kin::Posed& cl, double r1, double r2, double& dot) const {
   Eigen::Vector3d a;
-  if (!axis_at(r1, r2, cl.tip_mm, a)) return false;
+  if (!pose_axis(cl, r1, r2, a)) return false;
   dot = std::clamp(a.dot(cl.axis), -1.0, 1.0);
   // Clear of both bounds by far more than round-off: decided by the cosine; near one: in_cone's own test.
   constexpr double kBand = 1e-9;
@@ -140,12 +152,10 @@ bool Space::in_cone_cos(const kin::Posed& cl, double r1, double r2, double& dot)
 
 kin::Posed Space::tool_pose(const kin::Posed& cl, double r1, double r2) const {
   Eigen::Vector3d a;
-  if (!axis_at(r1, r2, cl.tip_mm, a)) a = cl.axis;
+  if (!pose_axis(cl, r1, r2, a)) a = cl.axis;
   if (opt_.ball_radius_mm > 0) {
     // Ball-end: the ball centre is what the CL path fixes; a new orientation moves the tip.
     const Eigen::Vector3d centre = cl.tip_mm + opt_.ball_radius_mm * cl.axis;
-    const Eigen::Vector3d tip = centre - opt_.ball_radius_mm * a;
-    if (!axis_at(r1, r2, tip, a)) a = cl.axis;
     return {centre - opt_.ball_radius_mm * a, a};
   }
   return {cl.tip_mm, a};
@@ -205,7 +215,7 @@ void Space::enumerate(const kin::Posed& cl, std::vector<Cell>& out, std::size_t 
     touched.push_back(at);
     if (!R1_grid_.empty()) {
       a = grid_axis(i1, i2);
-    } else if (!kin_->tool_axis_at(i1 * res, i2 * res, cl.tip_mm, a)) {
+    } else if (!pose_axis(cl, i1 * res, i2 * res, a)) {
       return;
     }
     const double d = a.dot(cl.axis);

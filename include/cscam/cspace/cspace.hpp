@@ -210,6 +210,9 @@ class Space {
   const geom::CheckOptions& with_links(const kin::Axes& q, LinkPoses& links, geom::CheckOptions& scratch) const;
   /// The tool axis for rotary values, through the grid tables for grid values (the same numbers everywhere).
   bool axis_at(double r1, double r2, const Eigen::Vector3d& tip_mm, Eigen::Vector3d& axis) const;
+  /// The tool axis of tool_pose(cl, r1, r2): axis_at the tip where that pose puts it.
+  bool pose_axis(const kin::Posed& cl, double r1, double r2, Eigen::Vector3d& axis) const;
+  bool tip_free_axis_ = false;  ///< the kinematics' axis does not depend on the tip (Kinematics::axis_factors)
   [[nodiscard]] Eigen::Vector3d grid_axis(int i1, int i2) const {
     return R1_grid_[static_cast<std::size_t>(i1 - i1_min_)] * v2_grid_[static_cast<std::size_t>(i2 - i2_min_)];
   }
