@@ -1026,6 +1026,36 @@ TEST(PlannerIssue11, NoChosenMoveCollidesBetweenPointsWhereTheLipCrowdsTheCone) 
   EXPECT_EQ(s.uncertified, 0u);
 }
 
+namespace {
+struct ConeKey {
+  float err;
+  int i1, i2;
+};
+/// The oracle of Space::enumerate: every grid cell whose axis lies in the cone (enumerate's test: the cosine to the CL
+/// axis against the cone's, with a 1e-15 slack), sorted by angle then by index.
+std::vector<ConeKey> cone_scan(const cspace::Space& sp, const kin::Posed& cl, double cone_rad) {
+  std::vector<ConeKey> scan;
+  for (int i1 = sp.i1_min(); i1 <= sp.i1_max(); ++i1)
+    for (int i2 = sp.i2_min(); i2 <= sp.i2_max(); ++i2) {
+      const double dot = sp.axis_of(sp.r1_of(i1), sp.r2_of(i2)).dot(cl.axis);
+      if (dot >= std::cos(cone_rad) - 1e-15)
+        scan.push_back({static_cast<float>(std::acos(std::clamp(dot, -1.0, 1.0))), i1, i2});
+    }
+  std::sort(scan.begin(), scan.end(), [](const ConeKey& x, const ConeKey& y) {
+    return x.err != y.err ? x.err < y.err : std::tie(x.i2, x.i1) < std::tie(y.i2, y.i1);
+  });
+  return scan;
+}
+void expect_cells_are(const std::vector<cspace::Cell>& cells, const std::vector<ConeKey>& scan) {
+  ASSERT_EQ(cells.size(), scan.size());
+  for (std::size_t j = 0; j < scan.size(); ++j) {
+    ASSERT_EQ(cells[j].i1, scan[j].i1) << j;
+    ASSERT_EQ(cells[j].i2, scan[j].i2) << j;
+    ASSERT_EQ(cells[j].orient_err, scan[j].err) << j;
+  }
+}
+}  // namespace
+
 // The flood fill against a scan of the whole grid: near the singular axis (A ~ 0 on the A/C trunnion) the cone holds
 // every C of the low A rows; the cells listed must be exactly those in the cone, sorted by angle then by index, and
 // the tabulated axes must be the kinematics' own.
@@ -1043,28 +1073,9 @@ TEST(CSpace, EnumerateListsEveryConeCellInOrderNearTheSingularAxis) {
     std::vector<cspace::Cell> cells;
     cspace::Counters c;
     sp.enumerate(cl, cells, std::numeric_limits<std::size_t>::max(), c);
-    struct Key {
-      float err;
-      int i1, i2;
-    };
-    std::vector<Key> scan;
-    for (int i1 = sp.i1_min(); i1 <= sp.i1_max(); ++i1)
-      for (int i2 = sp.i2_min(); i2 <= sp.i2_max(); ++i2) {
-        // enumerate's test: the cosine to the CL axis against the cone's, with a 1e-15 slack
-        const double dot = sp.axis_of(sp.r1_of(i1), sp.r2_of(i2)).dot(cl.axis);
-        if (dot >= std::cos(co.cone_rad) - 1e-15)
-          scan.push_back({static_cast<float>(std::acos(std::clamp(dot, -1.0, 1.0))), i1, i2});
-      }
-    std::sort(scan.begin(), scan.end(), [](const Key& x, const Key& y) {
-      return x.err != y.err ? x.err < y.err : std::tie(x.i2, x.i1) < std::tie(y.i2, y.i1);
-    });
-    ASSERT_EQ(cells.size(), scan.size());
+    const auto scan = cone_scan(sp, cl, co.cone_rad);
     EXPECT_GT(scan.size(), tilt_deg < 5 ? 1000u : 20u);
-    for (std::size_t j = 0; j < scan.size(); ++j) {
-      ASSERT_EQ(cells[j].i1, scan[j].i1) << j;
-      ASSERT_EQ(cells[j].i2, scan[j].i2) << j;
-      ASSERT_EQ(cells[j].orient_err, scan[j].err) << j;
-    }
+    expect_cells_are(cells, scan);
   }
   for (int k = 0; k < 200; ++k) {
     const int i1 = sp.i1_min() + static_cast<int>((sp.i1_max() - sp.i1_min()) * (0.5 + 0.5 * U(rng)));
@@ -1072,6 +1083,35 @@ TEST(CSpace, EnumerateListsEveryConeCellInOrderNearTheSingularAxis) {
     Vec3 a;
     ASSERT_TRUE(m.kinematics()->tool_axis_at(sp.r1_of(i1), sp.r2_of(i2), Vec3::Zero(), a));
     EXPECT_LT((sp.axis_of(sp.r1_of(i1), sp.r2_of(i2)) - a).norm(), 1e-14);
+  }
+}
+
+// An axis whose every IK solution lies past a rotary's limit (A -103 and +103 deg on the trunnion's -100..50) with a
+// cone that reaches back inside it: the cone's cells inside the limits are found, as the scan of the whole grid finds
+// them (seeded from the solutions themselves, every seed was outside the grid and none was found). Past the cone's
+// reach there are none.
+TEST(CSpace, EnumerateFindsConeCellsInsideTheLimitsWhenEverySolutionIsBeyondThem) {
+  const machine::Machine m = trunnion();
+  cspace::Options co;
+  co.cone_rad = deg2rad(5.0);
+  const cspace::Space sp(m.kinematics(), nullptr, nullptr, co);
+  for (const double tilt_deg : {103.0, 104.5, 106.0}) {
+    SCOPED_TRACE(tilt_deg);
+    const double t = deg2rad(tilt_deg), az = 0.4;
+    const kin::Posed cl{Vec3(1, 2, 3), Vec3(std::sin(t) * std::cos(az), std::sin(t) * std::sin(az), std::cos(t))};
+    std::vector<kin::Solution> sols;
+    m.kinematics()->inverse_all(cl, nullptr, sols);
+    ASSERT_FALSE(sols.empty());
+    for (const auto& s : sols) EXPECT_FALSE(m.kinematics()->check_limits(s.axes).empty());
+    std::vector<cspace::Cell> cells;
+    cspace::Counters c;
+    sp.enumerate(cl, cells, std::numeric_limits<std::size_t>::max(), c);
+    const auto scan = cone_scan(sp, cl, co.cone_rad);
+    if (tilt_deg < 105.0)
+      EXPECT_FALSE(scan.empty());
+    else
+      EXPECT_TRUE(scan.empty());
+    expect_cells_are(cells, scan);
   }
 }
 

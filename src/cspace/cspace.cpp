@@ -5,6 +5,7 @@
 #include <algorithm>
 #include <cmath>
 #include <cstring>
+#include <numbers>
 #include <utility>
 
 #include "cscam/core/error.hpp"
@@ -223,12 +224,42 @@ void Space::enumerate(const kin::Posed& cl, std::vector<Cell>& out, std::size_t 
     heap.push_back({d, i1, i2});
     if (push_heap_order) std::push_heap(heap.begin(), heap.end());
   };
+  // Seeds: the grid cells around every solution. A rotary value with no winding on the grid (beyond a limit) seeds
+  // from the grid's nearest edge instead, in every winding of the other rotary on the grid (inverse_all lists only
+  // the solution itself then): the cone may still hold reachable cells inside the limit (the XMINI's A one degree past
+  // its stroke, with a 10 degree cone, had none found before). Inside the limits every winding is a solution of its
+  // own.
+  constexpr double kTurn = 2.0 * std::numbers::pi;
+  thread_local std::vector<double> seeds1, seeds2;
+  // The windings of v on the grid [lo, hi]; none: false, and `edge` gets the grid's end nearest to one of them.
+  auto on_grid = [&](double v, int lo, int hi, std::vector<double>& out, double& edge) {
+    out.clear();
+    const double vlo = lo * res, vhi = hi * res;
+    const double kmin = std::ceil((vlo - v) / kTurn), kmax = std::floor((vhi - v) / kTurn);
+    for (double k = kmin; k <= kmax; ++k) out.push_back(v + k * kTurn);
+    const double below = v + kmax * kTurn, above = v + kmin * kTurn;  // without one: the windings either side
+    edge = vlo - below <= above - vhi ? vlo : vhi;
+    return !out.empty();
+  };
   auto seed = [&] {
     for (const auto& s : sols) {
-      const double f1 = s.axes[rot1_] / res, f2 = s.axes[rot2_] / res;
-      for (int d1 = 0; d1 <= 1; ++d1)
-        for (int d2 = 0; d2 <= 1; ++d2)
-          push(static_cast<int>(std::floor(f1)) + d1, static_cast<int>(std::floor(f2)) + d2);
+      const double v1 = s.axes[rot1_], v2 = s.axes[rot2_];
+      double e1 = 0, e2 = 0;
+      const bool in1 = on_grid(v1, i1_min_, i1_max_, seeds1, e1), in2 = on_grid(v2, i2_min_, i2_max_, seeds2, e2);
+      if (in1 && in2) {
+        seeds1.assign(1, v1);
+        seeds2.assign(1, v2);
+      }
+      if (!in1) seeds1.assign(1, e1);
+      if (!in2) seeds2.assign(1, e2);
+      for (const double a1 : seeds1)
+        for (const double a2 : seeds2)
+          for (int d1 = 0; d1 <= 1; ++d1)
+            for (int d2 = 0; d2 <= 1; ++d2) {
+              const int i1 = static_cast<int>(std::floor(a1 / res)) + d1,
+                        i2 = static_cast<int>(std::floor(a2 / res)) + d2;
+              push(in1 ? i1 : std::clamp(i1, i1_min_, i1_max_), in2 ? i2 : std::clamp(i2, i2_min_, i2_max_));
+            }
     }
   };
   // Small records while filling; the (larger) cells are built once, in their final order.
