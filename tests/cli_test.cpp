@@ -201,6 +201,28 @@ TEST(Cli, ARetractRisingPastTheNextCutIsADepartureButOneGoingDownIsNot) {
   EXPECT_NE(r.status, 0) << r.output;
 }
 
+TEST(Cli, ASampleNearToleranceIsMatchedToTheNearestSegmentNotTheNextOnes) {
+  // A random walk that doubles back: on the 45-degree head the tip of one block stays 0.003 mm from the segment two
+  // back but 0.011 mm from the current and next ones. The gate took those two (within the tolerance, an upper bound)
+  // and added the bound between its samples: 0.0124 mm against 0.012, and refused a program that is 0.003 mm off.
+  // A sample that leaves no room for the bound is matched over the window. The oracle: verify with 1000 fixed samples
+  // per block (no bound added).
+  TempDir d;
+  const std::string cl = cscam::test::source_path("tests/data/doubling_back_walk.cls");
+  const std::string nc = d.file("walk.ngc");
+  auto r = run_command(kCli + " post " + q(cl) + " --machine head-table-bc45 -o " + q(nc));
+  ASSERT_EQ(r.status, 0) << r.output;
+  r = run_command(kCli + " verify " + q(nc) + " --machine head-table-bc45 --cl " + q(cl) + " --samples 1000");
+  EXPECT_EQ(r.status, 0) << r.output;
+  // Against a tolerance the program was not made for, the deviation reported is its own (about 0.009 mm from the
+  // post's 0.01), found over segments behind the cursor too (before: 0.093 mm, matched two segments back at most).
+  r = run_command(kCli + " verify " + q(nc) + " --machine head-table-bc45 --cl " + q(cl) + " --tolerance 0.003");
+  EXPECT_NE(r.status, 0) << r.output;
+  std::smatch m;
+  ASSERT_TRUE(std::regex_search(r.output, m, std::regex("tip deviation ([0-9.]+) mm"))) << r.output;
+  EXPECT_LT(std::stod(m[1].str()), 0.0105) << r.output;
+}
+
 TEST(Cli, VerifySamplesFixedWhenAskedAndBoundedByDefault) {
   TempDir d;
   const std::string cl = cscam::test::source_path("examples/nx-haas-umc750/variable_axis.cls");

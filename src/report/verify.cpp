@@ -536,7 +536,9 @@ VerifyResult verify(const nc::Program& nc, const cl::Program& cl, const kin::Kin
           t_near = tk;
         }
       }
-      if (best_near <= options.tip_tolerance_mm) {
+      // (Within the tolerance less the share the bound between samples may add: past that, the window below may
+      // hold a nearer segment, e.g. where the path doubles back beside itself.)
+      if (best_near <= (1.0 - options.bound_fraction) * options.tip_tolerance_mm) {
         cursor = arg_near;
         t = t_near;
         return best_near;
@@ -560,7 +562,8 @@ VerifyResult verify(const nc::Program& nc, const cl::Program& cl, const kin::Kin
         return best_local;
       }
     }
-    size_t lo = global ? 0 : (cursor > 2 ? cursor - 2 : 0);
+    // As far back as ahead: a path that doubles back passes segments a few CL points behind the cursor.
+    size_t lo = global ? 0 : (cursor > 64 ? cursor - 64 : 0);
     size_t hi = global ? segs.size() : std::min(segs.size(), cursor + 64);
     double best = std::numeric_limits<double>::infinity();
     size_t arg = cursor;
