@@ -223,6 +223,22 @@ TEST(Cli, ASampleNearToleranceIsMatchedToTheNearestSegmentNotTheNextOnes) {
   EXPECT_LT(std::stod(m[1].str()), 0.0105) << r.output;
 }
 
+TEST(Cli, ABlockAtTheAxisToleranceIsSampledAgainBeforeTheBoundRefusesIt) {
+  // A random walk whose axis turns 10 deg in 0.3 mm: the post's block stays within its own 0.30 deg at every sample
+  // and the gate's samples find 0.29, but the bound between them (a sixteenth of 0.31 deg) made it 0.3101 and the
+  // program was refused. Such a block is sampled again, finely enough for the bound to fit. The oracle: 2000 fixed
+  // samples per block; the control: a tolerance the program does break.
+  TempDir d;
+  const std::string cl = cscam::test::source_path("tests/data/axis_at_tolerance_walk.cls");
+  const std::string nc = d.file("walk.ngc");
+  auto r = run_command(kCli + " post " + q(cl) + " --machine trunnion-ac -o " + q(nc));
+  ASSERT_EQ(r.status, 0) << r.output;
+  r = run_command(kCli + " verify " + q(nc) + " --machine trunnion-ac --cl " + q(cl) + " --samples 2000");
+  EXPECT_EQ(r.status, 0) << r.output;
+  r = run_command(kCli + " verify " + q(nc) + " --machine trunnion-ac --cl " + q(cl) + " --axis-tolerance 0.2");
+  EXPECT_NE(r.status, 0) << r.output;
+}
+
 TEST(Cli, VerifySamplesFixedWhenAskedAndBoundedByDefault) {
   TempDir d;
   const std::string cl = cscam::test::source_path("examples/nx-haas-umc750/variable_axis.cls");
