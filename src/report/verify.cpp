@@ -10,6 +10,7 @@
 #include <fstream>
 #include <limits>
 #include <optional>
+#include <span>
 #include <sstream>
 #include <stdexcept>
 #include <string_view>
@@ -54,6 +55,23 @@ double seg_distance(const ClSeg& s, const Vec3& p, double& t) {
   const double L2 = ab.squaredNorm();
   t = L2 > 0 ? std::clamp((p - s.p0).dot(ab) / L2, 0.0, 1.0) : 0.0;
   return (s.p0 + t * ab - p).norm();
+}
+
+/// The nearest of the CL segments [lo, hi) to p: its distance, and its index and parameter in `arg` and `t` (left as
+/// they are, and +inf returned, for an empty range).
+double nearest_in(std::span<const ClSeg> segs, const Vec3& p, std::size_t lo, std::size_t hi, std::size_t& arg,
+                  double& t) {
+  double best = std::numeric_limits<double>::infinity();
+  for (std::size_t k = lo; k < hi; ++k) {
+    double tk;
+    const double d = seg_distance(segs[k], p, tk);
+    if (d < best) {
+      best = d;
+      arg = k;
+      t = tk;
+    }
+  }
+  return best;
 }
 
 /// How many CL segments either side of the nearest one a sample's axis may be matched on (best_axis_dot_near).
@@ -525,17 +543,9 @@ VerifyResult verify(const nc::Program& nc, const cl::Program& cl, const kin::Kin
       // enough to pass (the reported deviation is then an upper bound); only otherwise search the window. The
       // nearer of the two is taken: a sample just past a CL point is near the next segment, and the current one
       // would overstate its deviation by up to the tolerance.
-      double best_near = std::numeric_limits<double>::infinity(), t_near = 0.0;
+      double t_near = 0.0;
       size_t arg_near = cursor;
-      for (size_t k = cursor; k < std::min(segs.size(), cursor + 2); ++k) {
-        double tk;
-        const double d = seg_distance(segs[k], p, tk);
-        if (d < best_near) {
-          best_near = d;
-          arg_near = k;
-          t_near = tk;
-        }
-      }
+      const double best_near = nearest_in(segs, p, cursor, std::min(segs.size(), cursor + 2), arg_near, t_near);
       // (Within the tolerance less the share the bound between samples may add: past that, the window below may
       // hold a nearer segment, e.g. where the path doubles back beside itself.)
       if (best_near <= (1.0 - options.bound_fraction) * options.tip_tolerance_mm) {
@@ -546,17 +556,8 @@ VerifyResult verify(const nc::Program& nc, const cl::Program& cl, const kin::Kin
     }
     if (global) {
       // After a rapid the cut usually resumes at the next CL segments: try them before a full scan.
-      double best_local = std::numeric_limits<double>::infinity();
       size_t arg_local = cursor;
-      for (size_t k = cursor; k < std::min(segs.size(), cursor + 64); ++k) {
-        double tk;
-        const double d = seg_distance(segs[k], p, tk);
-        if (d < best_local) {
-          best_local = d;
-          arg_local = k;
-          t = tk;
-        }
-      }
+      const double best_local = nearest_in(segs, p, cursor, std::min(segs.size(), cursor + 64), arg_local, t);
       if (best_local <= options.tip_tolerance_mm) {
         cursor = arg_local;
         return best_local;
@@ -639,6 +640,22 @@ VerifyResult verify(const nc::Program& nc, const cl::Program& cl, const kin::Kin
   Vec3 walk_pt = Vec3::Zero();
   size_t walk_seg = kNoSeg;
   double walk_d = 0.0;
+  // The tool axis of pose p against the CL orientation at parameter t of segment seg, in degrees, with slack_deg (the
+  // bound between samples) added. Where the path doubles back on itself, or runs through segments shorter than the
+  // tip tolerance, the nearest CL point need not be where the block is along the orientation: a sample that misses
+  // there is judged where some CL pose near it (its tip within the tip tolerance, on this segment or a neighbour)
+  // has the axis.
+  auto axis_angle_deg = [&](std::size_t seg, double t, const kin::Posed& p, double slack_deg) {
+    const ClSeg& sg = segs[seg];
+    double dot = slerp(sg.u0, sg.u1, sg.th, sg.sin_th, t).dot(p.axis);
+    if (rad2deg(std::acos(std::clamp(dot, -1.0, 1.0))) + slack_deg > options.axis_tolerance_deg) {
+      const Vec3 pt = point(p.tip_mm, p.axis);
+      for (std::size_t k = seg > kNeighbourSegs ? seg - kNeighbourSegs : 0;
+           k < std::min(segs.size(), seg + kNeighbourSegs + 1); ++k)
+        dot = std::max(dot, best_axis_dot_near(segs[k], pt, p.axis, options.tip_tolerance_mm));
+    }
+    return rad2deg(std::acos(std::clamp(dot, -1.0, 1.0))) + slack_deg;
+  };
   // The largest axis deviation (deg, the new bound added) of bounded block bi sampled afresh with enough intervals
   // that the bound (slack_deg at n intervals) takes at most half of `room_deg`; its samples are matched, by tip, on
   // the CL segments its first samples [i0, i1) of axis_samples were matched on and their neighbours.
@@ -658,27 +675,12 @@ VerifyResult verify(const nc::Program& nc, const cl::Program& cl, const kin::Kin
     double worst = 0.0;
     for (int k = 0; k <= n2; ++k) {
       const kin::Posed p = kinematics.forward(qa + (static_cast<double>(k) / n2) * (qb - qa));
-      const Vec3 pt = point(p.tip_mm, p.axis);
       std::size_t seg = s_lo;
-      double t = 0.0, best = std::numeric_limits<double>::infinity();
-      for (std::size_t sg = s_lo; sg <= s_hi; ++sg) {
-        double tk;
-        const double d = seg_distance(segs[sg], pt, tk);
-        if (d < best) {
-          best = d;
-          seg = sg;
-          t = tk;
-        }
-      }
-      const ClSeg& c = segs[seg];
-      double dot = slerp(c.u0, c.u1, c.th, c.sin_th, t).dot(p.axis);
-      if (rad2deg(std::acos(std::clamp(dot, -1.0, 1.0))) + slack2_deg > options.axis_tolerance_deg)
-        for (std::size_t sg = seg > kNeighbourSegs ? seg - kNeighbourSegs : 0;
-             sg < std::min(segs.size(), seg + kNeighbourSegs + 1); ++sg)
-          dot = std::max(dot, best_axis_dot_near(segs[sg], pt, p.axis, options.tip_tolerance_mm));
-      worst = std::max(worst, rad2deg(std::acos(std::clamp(dot, -1.0, 1.0))));
+      double t = 0.0;
+      nearest_in(segs, point(p.tip_mm, p.axis), s_lo, s_hi + 1, seg, t);
+      worst = std::max(worst, axis_angle_deg(seg, t, p, slack2_deg));
     }
-    return worst + slack2_deg;
+    return worst;
   };
   auto run = [&](std::size_t b0, std::size_t b1, std::size_t grain, const auto& body) {
     if (fk_in_order)
@@ -862,18 +864,7 @@ VerifyResult verify(const nc::Program& nc, const cl::Program& cl, const kin::Kin
     parallel_range(0, axis_samples.size(), 1024, [&](const tbb::blocked_range<std::size_t>& rg) {
       for (std::size_t i = rg.begin(); i != rg.end(); ++i) {
         const AxisSample& a = axis_samples[i];
-        const ClSeg& sg = segs[a.seg];
-        double dot = slerp(sg.u0, sg.u1, sg.th, sg.sin_th, a.t).dot(a.pose->axis);
-        if (rad2deg(std::acos(std::clamp(dot, -1.0, 1.0))) + a.slack_deg > options.axis_tolerance_deg) {
-          // Where the path doubles back on itself, or runs through segments shorter than the tip tolerance, the
-          // nearest CL point need not be where the block is along the orientation: the tool pose passes where some
-          // CL pose near the sample (its tip within the tip tolerance, on this segment or a neighbour) has the axis.
-          const Vec3 pt = point(a.pose->tip_mm, a.pose->axis);
-          for (std::size_t k = a.seg > kNeighbourSegs ? a.seg - kNeighbourSegs : 0;
-               k < std::min(segs.size(), a.seg + kNeighbourSegs + 1); ++k)
-            dot = std::max(dot, best_axis_dot_near(segs[k], pt, a.pose->axis, options.tip_tolerance_mm));
-        }
-        axis_angles[i] = rad2deg(std::acos(std::clamp(dot, -1.0, 1.0))) + a.slack_deg;
+        axis_angles[i] = axis_angle_deg(a.seg, a.t, *a.pose, a.slack_deg);
       }
     });
     // A bounded block whose axis passes at every sample, but not once the bound between samples is added, is sampled
