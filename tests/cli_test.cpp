@@ -201,26 +201,39 @@ TEST(Cli, ARetractRisingPastTheNextCutIsADepartureButOneGoingDownIsNot) {
   EXPECT_NE(r.status, 0) << r.output;
 }
 
+namespace {
+/// Posts tests/data/`name` on `machine` (the gate must pass it), then verifies the program with every `verify_args`
+/// in turn: the outputs and exit statuses.
+std::vector<cscam::test::CommandResult> post_then_verify(const TempDir& d, const std::string& name,
+                                                         const std::string& machine,
+                                                         const std::vector<std::string>& verify_args) {
+  const std::string cl = cscam::test::source_path("tests/data/" + name);
+  const std::string nc = d.file(name + ".ngc");
+  const auto posted = run_command(kCli + " post " + q(cl) + " --machine " + machine + " -o " + q(nc));
+  EXPECT_EQ(posted.status, 0) << posted.output;
+  std::vector<cscam::test::CommandResult> out;
+  for (const auto& a : verify_args)
+    out.push_back(run_command(kCli + " verify " + q(nc) + " --machine " + machine + " --cl " + q(cl) + " " + a));
+  return out;
+}
+}  // namespace
+
 TEST(Cli, ASampleNearToleranceIsMatchedToTheNearestSegmentNotTheNextOnes) {
   // A random walk that doubles back: on the 45-degree head the tip of one block stays 0.003 mm from the segment two
   // back but 0.011 mm from the current and next ones. The gate took those two (within the tolerance, an upper bound)
   // and added the bound between its samples: 0.0124 mm against 0.012, and refused a program that is 0.003 mm off.
   // A sample that leaves no room for the bound is matched over the window. The oracle: verify with 1000 fixed samples
   // per block (no bound added).
-  TempDir d;
-  const std::string cl = cscam::test::source_path("tests/data/doubling_back_walk.cls");
-  const std::string nc = d.file("walk.ngc");
-  auto r = run_command(kCli + " post " + q(cl) + " --machine head-table-bc45 -o " + q(nc));
-  ASSERT_EQ(r.status, 0) << r.output;
-  r = run_command(kCli + " verify " + q(nc) + " --machine head-table-bc45 --cl " + q(cl) + " --samples 1000");
-  EXPECT_EQ(r.status, 0) << r.output;
   // Against a tolerance the program was not made for, the deviation reported is its own (about 0.009 mm from the
   // post's 0.01), found over segments behind the cursor too (before: 0.093 mm, matched two segments back at most).
-  r = run_command(kCli + " verify " + q(nc) + " --machine head-table-bc45 --cl " + q(cl) + " --tolerance 0.003");
-  EXPECT_NE(r.status, 0) << r.output;
+  TempDir d;
+  const auto r =
+      post_then_verify(d, "doubling_back_walk.cls", "head-table-bc45", {"--samples 1000", "--tolerance 0.003"});
+  EXPECT_EQ(r[0].status, 0) << r[0].output;
+  EXPECT_NE(r[1].status, 0) << r[1].output;
   std::smatch m;
-  ASSERT_TRUE(std::regex_search(r.output, m, std::regex("tip deviation ([0-9.]+) mm"))) << r.output;
-  EXPECT_LT(std::stod(m[1].str()), 0.0105) << r.output;
+  ASSERT_TRUE(std::regex_search(r[1].output, m, std::regex("tip deviation ([0-9.]+) mm"))) << r[1].output;
+  EXPECT_LT(std::stod(m[1].str()), 0.0105) << r[1].output;
 }
 
 TEST(Cli, ABlockAtTheAxisToleranceIsSampledAgainBeforeTheBoundRefusesIt) {
@@ -229,14 +242,10 @@ TEST(Cli, ABlockAtTheAxisToleranceIsSampledAgainBeforeTheBoundRefusesIt) {
   // program was refused. Such a block is sampled again, finely enough for the bound to fit. The oracle: 2000 fixed
   // samples per block; the control: a tolerance the program does break.
   TempDir d;
-  const std::string cl = cscam::test::source_path("tests/data/axis_at_tolerance_walk.cls");
-  const std::string nc = d.file("walk.ngc");
-  auto r = run_command(kCli + " post " + q(cl) + " --machine trunnion-ac -o " + q(nc));
-  ASSERT_EQ(r.status, 0) << r.output;
-  r = run_command(kCli + " verify " + q(nc) + " --machine trunnion-ac --cl " + q(cl) + " --samples 2000");
-  EXPECT_EQ(r.status, 0) << r.output;
-  r = run_command(kCli + " verify " + q(nc) + " --machine trunnion-ac --cl " + q(cl) + " --axis-tolerance 0.2");
-  EXPECT_NE(r.status, 0) << r.output;
+  const auto r =
+      post_then_verify(d, "axis_at_tolerance_walk.cls", "trunnion-ac", {"--samples 2000", "--axis-tolerance 0.2"});
+  EXPECT_EQ(r[0].status, 0) << r[0].output;
+  EXPECT_NE(r[1].status, 0) << r[1].output;
 }
 
 TEST(Cli, VerifySamplesFixedWhenAskedAndBoundedByDefault) {
