@@ -248,6 +248,20 @@ TEST(Cli, ABlockAtTheAxisToleranceIsSampledAgainBeforeTheBoundRefusesIt) {
   EXPECT_NE(r[1].status, 0) << r[1].output;
 }
 
+TEST(Cli, APlannedBlockWhoseRotarySwingsIsSampledBetweenTheLinearizersQuarters) {
+  // A planned random walk at cone 10 where C swings 18 deg in one block: the linearizer's samples at a quarter, half
+  // and three quarters found less than 0.01 mm, but the ball centre left the CL path by 0.0122 mm between them and the
+  // gate refused the plan (0.0130 with its bound). Where the motion bound between its samples leaves too little room,
+  // the linearizer samples as densely as the bound needs. The oracle: 1000 fixed samples per block.
+  TempDir d;
+  const std::string cl = cscam::test::source_path("tests/data/swinging_planned_block.cls");
+  const std::string nc = d.file("walk.ngc");
+  auto r = run_command(kCli + " plan " + q(cl) + " --machine trunnion-ac --cone 10 -o " + q(nc));
+  ASSERT_EQ(r.status, 0) << r.output;
+  r = run_command(kCli + " verify " + q(nc) + " --machine trunnion-ac --cl " + q(cl) + " --cone 10 --samples 1000");
+  EXPECT_EQ(r.status, 0) << r.output;
+}
+
 TEST(Cli, VerifySamplesFixedWhenAskedAndBoundedByDefault) {
   TempDir d;
   const std::string cl = cscam::test::source_path("examples/nx-haas-umc750/variable_axis.cls");

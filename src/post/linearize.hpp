@@ -103,7 +103,8 @@ class Linearizer {
   /// axis_tolerance_rad (the cone).
   [[nodiscard]] double axis_deviation(const Axis& axis, const Eigen::Vector3d& u, const Along& w, double L2) const;
   /// Whether the straight joint move qa -> qb leaves the tolerance of the CL segment P0P1 between the
-  /// parameters sa and sb (sampled at a quarter, half and three quarters).
+  /// parameters sa and sb (sampled at a quarter, half and three quarters; where the kinematics bounds the motion and
+  /// the bound between those leaves too little room, as densely as it needs).
   bool exceeds(const kin::Axes& qa, const kin::Axes& qb, double sa, double sb, const Eigen::Vector3d& P0,
                const Eigen::Vector3d& P1, const Axis& axis, Stats& stats) const;
   /// The largest tip (mm) and axis (rad, axis_deviation) deviation of the joint interpolation qa -> qb from the
@@ -121,9 +122,10 @@ class Linearizer {
   const kin::Kinematics& kin_;
   Settings set_;
   double cos_tol_axis_ = 1.0;
-  double cos_cone_tol_ = 1.0;   ///< cos(cone)
-  double cos_fast_axis_ = 1.0;  ///< cos(0.9 axis tolerance): the check without trigonometry (axis_ok)
-  double cos_fast_cone_ = 1.0;  ///< cos(cone - 0.1 axis tolerance)
+  double cos_cone_tol_ = 1.0;      ///< cos(cone)
+  double cos_fast_axis_ = 1.0;     ///< cos(0.9 axis tolerance): the check without trigonometry (axis_ok)
+  double cos_fast_cone_ = 1.0;     ///< cos(cone - 0.1 axis tolerance)
+  double tip_certified_mm_ = 0.0;  ///< what a piece's whole path must stay within: its samples plus their bound
   std::vector<Span> stack_;
 };
 
