@@ -117,6 +117,20 @@ TEST(Cli, ARunOfVerticalPointsIsCrossedAtCone0) {
   }
 }
 
+TEST(Cli, AVerticalRunOnThe45DegreeHeadIsEnteredAtThePrimaryTheMachineReaches) {
+  // On the 45-degree head the tool axis's azimuth is not C itself: it turns with B. Tracked from a point 4.4 deg off
+  // the vertical into the run of vertical points, C arrives 1.1 deg from that point's own C, which was all the run
+  // was offered, so no path entered it ("no continuous (flip-free) transition"). The run is also offered the C the
+  // machine reaches; the post flips where the path leaves it, as the conventional post does.
+  TempDir d;
+  const std::string cl = cscam::test::source_path("tests/data/vertical_run_45deg_head.cls");
+  const std::string nc = d.file("run.ngc");
+  auto r = run_command(kCli + " plan " + q(cl) + " --machine head-table-bc45 --cone 0 -o " + q(nc));
+  ASSERT_EQ(r.status, 0) << r.output;
+  r = run_command(kCli + " verify " + q(nc) + " --machine head-table-bc45 --cl " + q(cl));
+  EXPECT_EQ(r.status, 0) << r.output;
+}
+
 TEST(Cli, SegmentsShorterThanTheToleranceAndReversalsPassTheGateButAWrongAxisDoesNot) {
   // A random walk: CL segments of 0.04 mm that turn the axis 1.4 deg, and a reversal over a segment 0.04 mm
   // beside the previous one. Matched by the nearest tip alone, samples were compared with the orientation of the
