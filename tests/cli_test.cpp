@@ -131,6 +131,24 @@ TEST(Cli, AVerticalRunOnThe45DegreeHeadIsEnteredAtThePrimaryTheMachineReaches) {
   EXPECT_EQ(r.status, 0) << r.output;
 }
 
+TEST(Cli, AtCone0ThePrimaryTurnsOnTheVerticalWhereThePathsAzimuthChanges) {
+  // A random walk that reaches the vertical from one azimuth and leaves it 22 deg further round. The plan held C
+  // through the vertical points and swung it on leaving them (C 22 deg while A tilts 4.6 deg): the post could not
+  // follow that on the path and refused the plan. Between vertical points, or arriving at one, C now turns where
+  // the tool axis does not (the tool held, the linear axes keep the tip on the path); a swing on leaving the
+  // vertical is a flip.
+  TempDir d;
+  const std::string cl = cscam::test::source_path("tests/data/azimuth_turn_at_vertical.cls");
+  for (const char* m : {"trunnion-ac", "head-head-ac"}) {
+    SCOPED_TRACE(m);
+    const std::string nc = d.file(std::string(m) + ".ngc");
+    auto r = run_command(kCli + " plan " + q(cl) + " --machine " + m + " --cone 0 -o " + q(nc));
+    ASSERT_EQ(r.status, 0) << r.output;
+    r = run_command(kCli + " verify " + q(nc) + " --machine " + m + " --cl " + q(cl));
+    EXPECT_EQ(r.status, 0) << r.output;
+  }
+}
+
 TEST(Cli, SegmentsShorterThanTheToleranceAndReversalsPassTheGateButAWrongAxisDoesNot) {
   // A random walk: CL segments of 0.04 mm that turn the axis 1.4 deg, and a reversal over a segment 0.04 mm
   // beside the previous one. Matched by the nearest tip alone, samples were compared with the orientation of the

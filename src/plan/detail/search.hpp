@@ -226,6 +226,36 @@ struct LayeredDp {
       if (!build(k, k ? nodes[k - 1] : none, nodes[k])) return k;
     return n;
   }
+  /// forward_from, rejoining the pass the layers still hold: once a layer k >= rejoin_from comes out as that pass's
+  /// (the same states by `same`, the same predecessors, every cost shifted by one amount), the layers after it would
+  /// too: they are kept, their costs shifted. (A pass re-run for a detour around a colliding move mostly rejoins the
+  /// old path a few points later.) Layers [k0, n) must hold the earlier pass's states, built the same way.
+  template <typename Build, typename Same>
+  std::size_t forward_rejoin(std::size_t k0, std::size_t rejoin_from, std::size_t n, Build&& build, Same&& same) {
+    static const std::vector<Node> none;
+    nodes.resize(n);
+    std::vector<Node> was;
+    for (std::size_t k = k0; k < n; ++k) {
+      was.swap(nodes[k]);
+      nodes[k].clear();
+      if (!build(k, k ? nodes[k - 1] : none, nodes[k])) {
+        for (std::size_t j = k + 1; j < n; ++j) nodes[j].clear();
+        return k;
+      }
+      const auto& now = nodes[k];
+      if (k < rejoin_from || was.empty() || was.size() != now.size()) continue;
+      const double delta = now[0].cost - was[0].cost;
+      bool joined = true;
+      for (std::size_t i = 0; i < now.size() && joined; ++i)
+        joined = same(was[i], now[i]) && was[i].pred == now[i].pred &&
+                 std::abs(now[i].cost - was[i].cost - delta) <= 1e-9 * (1.0 + std::abs(was[i].cost));
+      if (!joined) continue;
+      for (std::size_t j = k + 1; j < n; ++j)
+        for (Node& s : nodes[j]) s.cost += delta;
+      return n;
+    }
+    return n;
+  }
   /// The cheapest state of the last layer (the first of equals).
   [[nodiscard]] int cheapest_last() const {
     const auto& last = nodes.back();
@@ -314,10 +344,21 @@ bool dp_exact(const SegmentView& v, SegmentCells& d, Allowed&& allowed, std::vec
             const double val = prev[i].cost + v.options.weight_primary * std::abs(b.r1 - a.r1) +
                                v.options.weight_secondary * std::abs(b.r2 - a.r2);
             if (val >= cur[j].cost) continue;
-            kin::Axes out;
-            const kin::Posed pa = sp.tool_pose(L[k - 1].cl, a.r1, a.r2), pb = sp.tool_pose(L[k].cl, b.r1, b.r2);
-            if (!kin::track(sp.kinematics(), a.axes, pa, pb, out)) continue;
-            if (std::abs(out[rp[0]] - b.r1) + std::abs(out[rp[1]] - b.r2) > 1e-6) continue;  // would flip
+            // Between two singular points the tool axis is the same whatever the primary: it may turn there (the
+            // linear axes keep the tip on the path), where the azimuth of the path through the singular axis changes.
+            const bool in_place = a.singular && b.singular && std::abs(a.r2 - b.r2) < 1e-9;
+            if (!in_place) {
+              kin::Axes out;
+              bool jumped = false;
+              const kin::Posed pa = sp.tool_pose(L[k - 1].cl, a.r1, a.r2), pb = sp.tool_pose(L[k].cl, b.r1, b.r2);
+              // A primary that swings on leaving the singular axis (a step that does not shrink with the pose's) is a
+              // flip too: the post could not follow it on the path. (Near the axis, not on it, a fast swing is
+              // continuous and the post follows it.)
+              if (!kin::track_checked(sp.kinematics(), a.axes, pa, pb, out, jumped) || (jumped && a.singular)) continue;
+              // Arriving at a singular point, the primary may turn there in place before the path goes on.
+              const double primary_off = b.singular ? 0.0 : std::abs(out[rp[0]] - b.r1);
+              if (primary_off + std::abs(out[rp[1]] - b.r2) > 1e-6) continue;  // would flip
+            }
             cur[j] = {val, static_cast<int>(i)};
             any = true;
           }
