@@ -1117,6 +1117,53 @@ TEST(CSpace, EnumerateFindsConeCellsInsideTheLimitsWhenEverySolutionIsBeyondThem
 
 // The layers' cell index (open addressing) against std::unordered_map: the same answers over inserts, repeats and
 // misses, through several growths.
+// forward_rejoin against a full pass: a chain of layers of 5 states where each state's cheapest predecessor is
+// taken under a cost that is perturbed at one layer (the detour of a re-run). Once a layer comes out as before up to
+// a constant, the kept layers must equal what a full pass computes; a perturbation that changes the choices downstream
+// must not be rejoined early.
+TEST(PlannerDetail, ForwardRejoinKeepsOnlyLayersAFullPassWouldBuildTheSame) {
+  struct Node {
+    double cost = 0.0;
+    int pred = -1;
+    int cell = 0;
+  };
+  constexpr std::size_t n = 40, width = 5;
+  auto rng = test::rng(7);
+  std::uniform_real_distribution<double> U(0.0, 1.0);
+  std::vector<std::array<double, width * width>> step(n);  // step[k][i * width + j]: from state i to state j
+  for (auto& st : step)
+    for (double& x : st) x = U(rng);
+  auto builder = [&](std::size_t bump_at, double bump) {
+    return [&, bump_at, bump](std::size_t k, const std::vector<Node>& prev, std::vector<Node>& cur) {
+      for (int j = 0; j < static_cast<int>(width); ++j) {
+        Node best{k == 0 ? 0.0 : std::numeric_limits<double>::infinity(), -1, j};
+        for (std::size_t i = 0; i < prev.size(); ++i) {
+          double c = prev[i].cost + step[k][i * width + static_cast<std::size_t>(j)];
+          if (k == bump_at) c += bump * (j == 0 ? 1.0 : 0.3);  // a layer-local change
+          if (c < best.cost) best = {c, static_cast<int>(i), j};
+        }
+        cur.push_back(best);
+      }
+      return true;
+    };
+  };
+  for (const double bump : {0.01, 0.5, 5.0}) {
+    SCOPED_TRACE(bump);
+    plan::detail::LayeredDp<Node> old_pass, rerun, full;
+    ASSERT_EQ(old_pass.forward(n, builder(n, 0.0)), n);
+    ASSERT_EQ(full.forward(n, builder(10, bump)), n);
+    rerun.nodes = old_pass.nodes;
+    ASSERT_EQ(rerun.forward_rejoin(10, 11, n, builder(10, bump),
+                                   [](const Node& a, const Node& b) { return a.cell == b.cell; }),
+              n);
+    for (std::size_t k = 0; k < n; ++k)
+      for (std::size_t j = 0; j < width; ++j) {
+        ASSERT_EQ(rerun.nodes[k][j].pred, full.nodes[k][j].pred) << k << " " << j;
+        ASSERT_NEAR(rerun.nodes[k][j].cost, full.nodes[k][j].cost, 1e-9) << k << " " << j;
+      }
+  }
+}
+
 TEST(PlannerDetail, CellIndexAnswersAsAnUnorderedMap) {
   auto rng = test::rng(32);
   std::uniform_int_distribution<int> I(-800, 800);

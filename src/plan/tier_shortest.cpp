@@ -369,21 +369,31 @@ bool tier_shortest(const SegmentView& v, SegmentCells& d, TierOutcome& out) {
   std::size_t beam_at = 0;  // index in kBeams
   // Resume where the swept flags first differ from the last pass's (a pass that went through, on the same lists).
   std::size_t k0 = 0;
+  std::size_t rejoin_from = n;  // past the last layer whose flag changed, the old pass may be rejoined
   if (d.last_shortest && d.last_shortest->nodes.size() == n) {
     const auto& was = d.last_shortest->swept_layers;
     auto flag = [](const std::vector<char>& f, std::size_t k) { return k < f.size() && f[k]; };
     while (k0 < n && flag(was, k0) == flag(d.swept_layers, k0)) ++k0;
     if (k0 == n) k0 = n - 1;  // nothing changed: the last layer again (cheap)
+    rejoin_from = k0 + 1;
+    for (std::size_t k = n; k-- > k0;)
+      if (flag(was, k) != flag(d.swept_layers, k)) {
+        rejoin_from = k + 1;
+        break;
+      }
     dp.nodes = std::move(d.last_shortest->nodes);
     beam_at = d.last_shortest->beam_at;
   }
   d.last_shortest.reset();
   std::size_t built = 0;
-  for (;; ++beam_at, k0 = 0) {
+  for (;; ++beam_at, k0 = 0, rejoin_from = n) {
     const bool widest = beam_at + 1 == kBeams.size();
-    built = dp.forward_from(k0, n, [&](std::size_t k, const auto& prev, std::vector<State>& S) {
-      return beam_layer(v, d, prev, k, max_step, kBeams[beam_at], widest && opt.max_step_rad <= 0, S);
-    });
+    built = dp.forward_rejoin(
+        k0, rejoin_from, n,
+        [&](std::size_t k, const auto& prev, std::vector<State>& S) {
+          return beam_layer(v, d, prev, k, max_step, kBeams[beam_at], widest && opt.max_step_rad <= 0, S);
+        },
+        [](const State& a, const State& b) { return a.cell == b.cell; });
     if (built == n || widest) break;
   }
   if (built < n) {
