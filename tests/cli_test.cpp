@@ -38,6 +38,23 @@ struct TempDir {
 const std::string kCli = CSCAM_CLI;
 std::string q(const std::string& s) { return "'" + s + "'"; }  // for the shell (our paths have no single quote)
 
+/// Plans `cl` on `machine` at cone `cone` (deg) into `d`, then checks the program with an independent `cscam verify`
+/// against the CL (`verify_extra` added to its arguments): both must pass. Returns the plan's output.
+std::string plan_and_verify(const TempDir& d, const std::string& cl, const std::string& machine,
+                            const std::string& cone, const std::string& verify_extra = "") {
+  const std::string nc = d.file(machine + "_cone" + cone + ".ngc");
+  const auto planned =
+      run_command(kCli + " plan " + q(cl) + " --machine " + machine + " --cone " + cone + " -o " + q(nc));
+  if (planned.status != 0) {
+    ADD_FAILURE() << "plan failed: " << planned.output;
+    return planned.output;
+  }
+  const auto r = run_command(kCli + " verify " + q(nc) + " --machine " + machine + " --cl " + q(cl) + " --cone " +
+                             cone + " " + verify_extra);
+  EXPECT_EQ(r.status, 0) << r.output;
+  return planned.output;
+}
+
 }  // namespace
 
 TEST(Cli, PostVerifyStatsOnRealNxFile) {
@@ -93,12 +110,7 @@ TEST(Cli, NxPathPlannedAtCone10PassesBesideTheVerticalOnTheTrunnion) {
   // The post once judged that segment by the slerp of the two planned axes (which passes 0.31 deg beside the pole,
   // where C must swing half a turn) and refused it; the plan is within the cone all along.
   TempDir d;
-  const std::string cl = cscam::test::source_path("examples/nx-haas-umc750/variable_axis.cls");
-  const std::string nc = d.file("va.ngc");
-  auto r = run_command(kCli + " plan " + cl + " --machine trunnion-ac --cone 10 -o " + nc);
-  ASSERT_EQ(r.status, 0) << r.output;
-  r = run_command(kCli + " verify " + nc + " --machine trunnion-ac --cl " + cl + " --cone 10");
-  EXPECT_EQ(r.status, 0) << r.output;
+  plan_and_verify(d, cscam::test::source_path("examples/nx-haas-umc750/variable_axis.cls"), "trunnion-ac", "10");
 }
 
 TEST(Cli, ARunOfVerticalPointsIsCrossedAtCone0) {
@@ -106,14 +118,9 @@ TEST(Cli, ARunOfVerticalPointsIsCrossedAtCone0) {
   // same way: at cone 0 every point of the run must be offered the primaries of the regular points on both sides,
   // else the path cannot hold one primary through the run ("no continuous (flip-free) transition").
   TempDir d;
-  const std::string cl = cscam::test::source_path("tests/data/vertical_run.cls");
   for (const char* m : {"trunnion-ac", "head-head-ac"}) {
     SCOPED_TRACE(m);
-    const std::string nc = d.file(std::string(m) + ".ngc");
-    auto r = run_command(kCli + " plan " + cl + " --machine " + m + " --cone 0 -o " + nc);
-    ASSERT_EQ(r.status, 0) << r.output;
-    r = run_command(kCli + " verify " + nc + " --machine " + m + " --cl " + cl);
-    EXPECT_EQ(r.status, 0) << r.output;
+    plan_and_verify(d, cscam::test::source_path("tests/data/vertical_run.cls"), m, "0");
   }
 }
 
@@ -123,12 +130,7 @@ TEST(Cli, AVerticalRunOnThe45DegreeHeadIsEnteredAtThePrimaryTheMachineReaches) {
   // was offered, so no path entered it ("no continuous (flip-free) transition"). The run is also offered the C the
   // machine reaches; the post flips where the path leaves it, as the conventional post does.
   TempDir d;
-  const std::string cl = cscam::test::source_path("tests/data/vertical_run_45deg_head.cls");
-  const std::string nc = d.file("run.ngc");
-  auto r = run_command(kCli + " plan " + q(cl) + " --machine head-table-bc45 --cone 0 -o " + q(nc));
-  ASSERT_EQ(r.status, 0) << r.output;
-  r = run_command(kCli + " verify " + q(nc) + " --machine head-table-bc45 --cl " + q(cl));
-  EXPECT_EQ(r.status, 0) << r.output;
+  plan_and_verify(d, cscam::test::source_path("tests/data/vertical_run_45deg_head.cls"), "head-table-bc45", "0");
 }
 
 TEST(Cli, AtCone0ThePrimaryTurnsOnTheVerticalWhereThePathsAzimuthChanges) {
@@ -138,14 +140,9 @@ TEST(Cli, AtCone0ThePrimaryTurnsOnTheVerticalWhereThePathsAzimuthChanges) {
   // the tool axis does not (the tool held, the linear axes keep the tip on the path); a swing on leaving the
   // vertical is a flip.
   TempDir d;
-  const std::string cl = cscam::test::source_path("tests/data/azimuth_turn_at_vertical.cls");
   for (const char* m : {"trunnion-ac", "head-head-ac"}) {
     SCOPED_TRACE(m);
-    const std::string nc = d.file(std::string(m) + ".ngc");
-    auto r = run_command(kCli + " plan " + q(cl) + " --machine " + m + " --cone 0 -o " + q(nc));
-    ASSERT_EQ(r.status, 0) << r.output;
-    r = run_command(kCli + " verify " + q(nc) + " --machine " + m + " --cl " + q(cl));
-    EXPECT_EQ(r.status, 0) << r.output;
+    plan_and_verify(d, cscam::test::source_path("tests/data/azimuth_turn_at_vertical.cls"), m, "0");
   }
 }
 
@@ -286,12 +283,8 @@ TEST(Cli, APlannedBlockWhoseRotarySwingsIsSampledBetweenTheLinearizersQuarters) 
   // gate refused the plan (0.0130 with its bound). Where the motion bound between its samples leaves too little room,
   // the linearizer samples as densely as the bound needs. The oracle: 1000 fixed samples per block.
   TempDir d;
-  const std::string cl = cscam::test::source_path("tests/data/swinging_planned_block.cls");
-  const std::string nc = d.file("walk.ngc");
-  auto r = run_command(kCli + " plan " + q(cl) + " --machine trunnion-ac --cone 10 -o " + q(nc));
-  ASSERT_EQ(r.status, 0) << r.output;
-  r = run_command(kCli + " verify " + q(nc) + " --machine trunnion-ac --cl " + q(cl) + " --cone 10 --samples 1000");
-  EXPECT_EQ(r.status, 0) << r.output;
+  plan_and_verify(d, cscam::test::source_path("tests/data/swinging_planned_block.cls"), "trunnion-ac", "10",
+                  "--samples 1000");
 }
 
 TEST(Cli, VerifySamplesFixedWhenAskedAndBoundedByDefault) {
@@ -457,15 +450,11 @@ TEST(Cli, PlanInWindowsWritesAVerifiedProgram) {
 // The planner judges each cell where the tool will be; the independent verify agrees.
 TEST(Cli, XminiPlanAtCone10KeepsTheAxisInsideTheConeWhereTheToolIs) {
   TempDir d;
-  const std::string cl = cscam::test::source_path("tests/data/xmini_zig_cone10.cls");
-  const std::string out = d.file("zig.ngc");
-  auto r = run_command(kCli + " plan " + q(cl) + " --machine xmini --cone 10 -o " + q(out));
-  ASSERT_EQ(r.status, 0) << r.output;
+  const std::string out =
+      plan_and_verify(d, cscam::test::source_path("tests/data/xmini_zig_cone10.cls"), "xmini", "10");
   std::smatch mt;
-  ASSERT_TRUE(std::regex_search(r.output, mt, std::regex("max axis deviation ([0-9.]+) deg"))) << r.output;
-  EXPECT_LE(std::stod(mt[1].str()), 10.0) << r.output;
-  r = run_command(kCli + " verify " + q(out) + " --machine xmini --cl " + q(cl) + " --cone 10");
-  EXPECT_EQ(r.status, 0) << r.output;
+  ASSERT_TRUE(std::regex_search(out, mt, std::regex("max axis deviation ([0-9.]+) deg"))) << out;
+  EXPECT_LE(std::stod(mt[1].str()), 10.0) << out;
 }
 
 TEST(Cli, PlanRejectsAnOpenMeshNamingTheFile) {
