@@ -13,6 +13,7 @@
 #include "cscam/cl/program.hpp"
 #include "cscam/machine/machine.hpp"
 #include "cscam/post/post.hpp"
+#include "cscam/report/verify.hpp"
 #include "test_support.hpp"
 
 namespace fs = std::filesystem;
@@ -455,6 +456,47 @@ TEST(Cli, XminiPlanAtCone10KeepsTheAxisInsideTheConeWhereTheToolIs) {
   std::smatch mt;
   ASSERT_TRUE(std::regex_search(out, mt, std::regex("max axis deviation ([0-9.]+) deg"))) << out;
   EXPECT_LE(std::stod(mt[1].str()), 10.0) << out;
+}
+
+// The XMINI has no Z axis: at both ends of a segment the post moves the tip along the tool axis to the safe plane
+// z = 50 mm. At cone 10 on a blade (tilt 45 deg) the planner had ended the first segment, and started the second, on
+// cells from which that line leaves the machine's reach, and the post refused the plan. Oracle: the written program's
+// blocks, through the machine's FK: every block on the safe plane either turns the tool there (from a block on the
+// plane) or is the end of a straight move along the tool axis from (or to) a neighbouring block with the same axis;
+// there are three of those (retract, approach, final retract).
+TEST(Cli, XminiPlanEndsSegmentsWhereTheToolCanRetractAlongItsAxis) {
+  TempDir d;
+  const std::string cl = cscam::test::source_path("tests/data/xmini_blades_retract.cls");
+  plan_and_verify(d, cl, "xmini", "10");
+  const auto m = cscam::machine::load(cscam::test::source_path("machines/xmini.yaml"));
+  const auto kin = m.kinematics();
+  std::ifstream in(d.file("xmini_cone10.ngc"));
+  const std::string text((std::istreambuf_iterator<char>(in)), std::istreambuf_iterator<char>());
+  const auto prog = cscam::report::read_for_machine(text, "xmini_cone10.ngc", m);
+  auto pose = [&](std::size_t i) {
+    cscam::kin::Axes q;
+    for (int j = 0; j < 5; ++j) q[j] = prog.blocks[i].axes[static_cast<std::size_t>(j)];
+    return kin->forward(q);
+  };
+  auto on_plane = [&](std::size_t i) { return std::abs(pose(i).tip_mm.z() - m.post.safe_z_mm) < 1e-3; };
+  int retracts = 0;
+  for (std::size_t i = 1; i < prog.blocks.size(); ++i) {
+    if (!on_plane(i)) continue;
+    const auto up = pose(i);
+    bool along_axis = false;
+    for (std::size_t j : {i - 1, i + 1}) {
+      if (j >= prog.blocks.size()) continue;
+      const auto low = pose(j);
+      const Eigen::Vector3d dir = up.tip_mm - low.tip_mm;
+      along_axis = along_axis || (low.tip_mm.z() < up.tip_mm.z() - 1.0 && low.axis.dot(up.axis) > 1.0 - 1e-8 &&
+                                  dir.normalized().dot(up.axis) > 1.0 - 1e-6);
+    }
+    const bool turn = on_plane(i - 1) || (i + 1 < prog.blocks.size() && on_plane(i + 1));
+    EXPECT_TRUE(along_axis || turn) << "block at line " << prog.blocks[i].line
+                                    << " is on the safe plane, but neither a retract nor a turn there";
+    retracts += along_axis ? 1 : 0;
+  }
+  EXPECT_GE(retracts, 3);
 }
 
 TEST(Cli, PlanRejectsAnOpenMeshNamingTheFile) {

@@ -91,4 +91,26 @@ bool track_checked(const Kinematics& k, const Axes& from, const Posed& p0, const
   return track_rec(k, from, p0, p1, 0, out, violation, nullptr, max_step_rad, &jumped);
 }
 
+bool axial_retract_point(const Eigen::Vector3d& tip_mm, const Eigen::Vector3d& axis, double plane_z_mm, double slack_mm,
+                         Eigen::Vector3d& up_mm) {
+  if (tip_mm.z() >= plane_z_mm - slack_mm) return false;
+  const Eigen::Vector3d dir =
+      axis.z() >= kMinRetractAxisZ ? Eigen::Vector3d(axis.normalized()) : Eigen::Vector3d::UnitZ();
+  up_mm = tip_mm + (plane_z_mm - tip_mm.z()) / dir.z() * dir;
+  return true;
+}
+
+bool retract_along_axis(const Kinematics& k, const Axes& q, double plane_z_mm, double slack_mm, Axes& out,
+                        Eigen::Vector3d* up_mm) {
+  const Posed p = k.forward(q);
+  Eigen::Vector3d up;
+  if (!axial_retract_point(p.tip_mm, p.axis, plane_z_mm, slack_mm, up)) {
+    out = q;
+    if (up_mm) *up_mm = p.tip_mm;
+    return true;
+  }
+  if (up_mm) *up_mm = up;
+  return nearest_solution(k, Posed{up, p.axis}, q, out);
+}
+
 }  // namespace cscam::kin

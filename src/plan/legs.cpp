@@ -96,7 +96,7 @@ bool legs_tilt(const SegmentView& v, SegmentCells& d, const std::vector<int>& ax
         const kin::Posed pose{rb > 0 ? Eigen::Vector3d(centre - rb * a) : L[l].cl.tip_mm, a};
         kin::Axes q;
         ++d.counters.ik;
-        if (!kin::nearest_solution(k, pose, current[l]->axes, q)) continue;
+        if (!kin::nearest_solution(k, pose, current[l]->axes, q) || !retracts(v, L[l], q)) continue;
         ++d.counters.stroke;
         Cell c;
         c.r1 = q[rp[0]];

@@ -5,6 +5,7 @@
 
 #include <chrono>
 #include <cmath>
+#include <limits>
 #include <utility>
 
 #include "cscam/core/error.hpp"
@@ -243,9 +244,12 @@ Plan Planner::run(const cl::Program& program) const {
   const bool exact = space_.options().cone_rad <= 0;
   std::vector<char> swept_ok(moves.size(), 0);  // moves certified free by a segment's own swept check
   const auto segs = split_segments(program);
+  // Without a Z axis the post retracts along the tool axis to the safe plane: the segment ends must allow it.
+  const double retract_plane_z =
+      kin_->traits().retract_axis < 0 ? machine_.post.safe_z_mm : std::numeric_limits<double>::quiet_NaN();
   for (const auto& [s, e] : segs) {
     const kin::Axes* prefer = plan.segments.empty() ? nullptr : &plan.axes[segs[plan.segments.size() - 1].second];
-    const detail::SegmentView view{space_, opt_, program, kin_, exact, prefer};
+    const detail::SegmentView view{space_, opt_, program, kin_, exact, prefer, retract_plane_z};
     detail::SegmentCells cells = detail::make_cells(view, s, e, plan.counters);
     detail::Cascade c = detail::run_cascade(view, cells, plan.points_beyond_cap);
     std::vector<cspace::Cell> kept;  // outlives c.path when it points here

@@ -8,6 +8,7 @@
 #include <utility>
 
 #include "cscam/core/error.hpp"
+#include "cscam/core/tolerances.hpp"
 #include "cscam/core/units.hpp"
 #include "detail/search.hpp"
 
@@ -25,8 +26,34 @@ std::string SegmentView::n2() const {
   return space.kinematics().axes()[static_cast<size_t>(space.kinematics().rotary_pair()[1])].name;
 }
 
+bool retracts(const SegmentView& v, const Layer& l, const kin::Axes& q) {
+  kin::Axes up;
+  return !l.retract_end ||
+         kin::retract_along_axis(v.space.kinematics(), q, v.retract_plane_z_mm, tol::kLimitSlackMm, up);
+}
+
+void mark_retract(const SegmentView& v, const Layer& l, Cell& c) {
+  if (!l.retract_end || c.status != Status::Unknown) return;
+  const kin::Kinematics& kin = v.space.kinematics();
+  const auto rp = kin.rotary_pair();
+  kin::Axes q = kin::Axes::Zero();
+  q[rp[0]] = c.r1;
+  q[rp[1]] = c.r2;
+  // A cell out of reach is left to Space::evaluate, which says which limit it breaks.
+  if (!kin.solve_for_rotaries(v.space.tool_pose(l.cl, c.r1, c.r2), q) || !kin.check_limits(q).empty() ||
+      !kin.passive_violation(q).empty() || retracts(v, l, q))
+    return;
+  c.status = Status::Stroke;
+  c.detail = fmt::format(
+      "the tool cannot retract from here along its axis to the safe plane z = {:.3f} mm (post.safe_z_mm) inside the "
+      "limits",
+      v.retract_plane_z_mm);
+}
+
 void enumerate_layer(const SegmentView& v, Layer& l, std::size_t cap, cspace::Counters& counters) {
   v.space.enumerate(l.cl, l.cells, cap, counters);
+  if (l.retract_end)
+    for (Cell& c : l.cells) mark_retract(v, l, c);
   l.grid_order.clear();
   l.row_starts.clear();
   l.truncated = l.cells.size() >= cap;
@@ -97,6 +124,8 @@ void expand_singular(const SegmentView& v, std::vector<Layer>& layers) {
         n.r1 = r1;
         n.i1 = static_cast<int>(std::lround(r1 / kExactKeyRad));
         n.status = Status::Unknown;
+        n.detail.clear();
+        mark_retract(v, layers[k], n);
         if (std::none_of(out.begin(), out.end(), [&](const Cell& o) { return o.i1 == n.i1 && o.i2 == n.i2; }))
           out.push_back(n);
       }
@@ -127,6 +156,24 @@ SegmentCells make_cells(const SegmentView& v, std::size_t first, std::size_t las
   SegmentCells d(counters, v.space);
   d.layers.resize(last - first + 1);
   const auto& moves = v.program.moves;
+  if (std::isfinite(v.retract_plane_z_mm)) {
+    // The post retracts along the tool axis at both ends of a segment, and approaches the first point the same way
+    // (replace_approach_retract's cases: a window that joins or continues has no such end). Where the CL approach
+    // (retract) runs along the axis of the point after (before) it, it is re-placed on that point's chosen axis and
+    // retracts on the same line: that point is marked too.
+    const std::size_t n = last - first + 1;
+    const bool join = first == 0 && v.options.start_rotaries.has_value() && v.options.start_is_join;
+    const bool open_end = v.options.continues && last + 1 == moves.size();
+    if (!join) {
+      d.layers[0].retract_end = true;
+      if (n > 1 && is_axial_approach(v.program, first, first + 1)) d.layers[1].retract_end = true;
+    }
+    if (!open_end) {
+      d.layers[n - 1].retract_end = true;
+      if (n > 2 && moves[last].kind != cl::MotionKind::Rapid && is_axial_approach(v.program, last, last - 1))
+        d.layers[n - 2].retract_end = true;
+    }
+  }
   // Only the first point's cells are needed by tier 1 (the others are tested cell by cell); the rest
   // are enumerated when a later tier needs them, or for the per-point feasibility check in exact mode.
   for (std::size_t k = 0; k < d.layers.size(); ++k) {
@@ -198,6 +245,7 @@ Cell* cell_at(const SegmentView& v, SegmentCells& d, std::size_t k, int i1, int 
   c.r1 = v.space.r1_of(i1);
   c.r2 = v.space.r2_of(i2);
   if (!v.space.in_cone(l.cl, c.r1, c.r2, &c.orient_err)) c.status = Status::Orientation;
+  mark_retract(v, l, c);
   auto& slot = l.extra.emplace(kk, c).first->second;
   return slot.status == Status::Orientation ? nullptr : &slot;
 }

@@ -70,9 +70,6 @@ long long round_half_away(double x) {
 /// Rotary changes between two CL points below this are taken as continuing the branch without a check.
 constexpr double kFlipCheckRad = 0.5235987756;  // 30 deg
 
-/// A retract target counts only if the tool axis points up at least this much (cos of the tilt).
-constexpr double kMinRetractAxisZ = 0.1;
-
 /// Feed for cutting moves without one (the CL reader refuses those unless a default is given).
 constexpr double kFallbackFeedMmMin = 1000.0;
 
@@ -1240,11 +1237,7 @@ class Sequencer {
   /// The point where the tip, leaving along the tool axis (or vertically when the axis is nearly
   /// horizontal), reaches the plane z = safe_z_mm. False when the tip is already at or above it.
   bool retract_point(const Vec3& tip, const Vec3& axis, Vec3& up) const {
-    const double safe = m_.post.safe_z_mm;
-    if (tip.z() >= safe - tol::kLimitSlackMm) return false;
-    const Vec3 dir = axis.z() >= kMinRetractAxisZ ? Vec3(axis.normalized()) : Vec3::UnitZ();
-    up = tip + (safe - tip.z()) / dir.z() * dir;
-    return true;
+    return kin::axial_retract_point(tip, axis, m_.post.safe_z_mm, tol::kLimitSlackMm, up);
   }
 
   /// Under tool-tip control: the point up the tool axis from the tip (machine axes q there) where the machine's
@@ -1256,7 +1249,7 @@ class Sequencer {
     kin::Axes q1 = q;  // the same rotaries, the tip 1 mm up the axis: the linear axes are affine in it
     if (!kin_.solve_for_rotaries(kin::Posed{tip + dir, dir}, q1)) return false;
     const double slope = q1[z_] - q[z_];
-    if (slope < kMinRetractAxisZ) return false;
+    if (slope < kin::kMinRetractAxisZ) return false;
     const double d = (safe_z_ - q[z_]) / slope;
     if (d <= tol::kLimitSlackMm) return false;
     up = tip + d * dir;
@@ -1265,11 +1258,9 @@ class Sequencer {
 
   /// Joint values with the tip of q moved along its tool axis to the safe plane, the axis kept (by IK).
   kin::Axes pkm_retracted(const kin::Axes& q, const SourceLoc& where) {
-    const kin::Posed p = kin_.forward(q);
-    Vec3 up;
-    if (!retract_point(p.tip_mm, p.axis, up)) return q;
     kin::Axes out;
-    if (!kin::nearest_solution(kin_, kin::Posed{up, p.axis}, q, out))
+    Vec3 up;
+    if (!kin::retract_along_axis(kin_, q, m_.post.safe_z_mm, tol::kLimitSlackMm, out, &up))
       throw InputError(where, fmt::format("cannot retract the tool along its axis to the safe plane z = {:.3f} mm "
                                           "(post.safe_z_mm): no axis values inside the limits put the tip at "
                                           "({:.3f}, {:.3f}, {:.3f}) with this tool axis",

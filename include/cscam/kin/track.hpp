@@ -40,4 +40,20 @@ bool track(const Kinematics& k, const Axes& from, const Posed& p0, const Posed& 
            const std::vector<Solution>& p1_branches, Axes& out, std::string* violation = nullptr,
            bool* singular = nullptr, double max_step_rad = 0.0872664626);
 
+/// A retract direction counts as the tool axis only if the axis points up at least this much (cos of the tilt);
+/// a flatter axis retracts straight up.
+inline constexpr double kMinRetractAxisZ = 0.1;
+
+/// Where a machine without a Z axis (a PKM) retracts to: the tip moved along the tool axis (straight up for an axis
+/// flatter than kMinRetractAxisZ) up to the plane z = `plane_z_mm` of the part frame. False when the tip is there
+/// already (within `slack_mm`).
+bool axial_retract_point(const Eigen::Vector3d& tip_mm, const Eigen::Vector3d& axis, double plane_z_mm, double slack_mm,
+                         Eigen::Vector3d& up_mm);
+
+/// The axis values (nearest `q`, inside every limit) that put the tip of q at its axial_retract_point with q's tool
+/// axis: `out` = q when no retract is needed. False when no such values exist. The post retracts and approaches
+/// this way, and the planner keeps the ends of its segments where this succeeds (one rule for both).
+bool retract_along_axis(const Kinematics& k, const Axes& q, double plane_z_mm, double slack_mm, Axes& out,
+                        Eigen::Vector3d* up_mm = nullptr);
+
 }  // namespace cscam::kin

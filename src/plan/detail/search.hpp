@@ -105,6 +105,9 @@ struct Layer {
   std::unordered_map<std::uint64_t, Cell> extra;  ///< evaluated cells outside the cap
   bool truncated = false;                         ///< `cells` stopped at the cap: the cone holds more
   bool pinned = false;                            ///< Options::start_rotaries: `cells` is that one cell, no other
+  /// The post retracts from (approaches) this point along the tool axis to the safe plane (a PKM's segment ends): a
+  /// cell from which that retract leaves the machine's reach is out of stroke here.
+  bool retract_end = false;
   /// Positions in `cells` by (i2, i1), and where each i2 row starts (plus cells.size()): tier 3's walk, built when
   /// first needed, cleared whenever `cells` is rebuilt.
   std::vector<std::uint32_t> grid_order, row_starts;
@@ -125,6 +128,9 @@ struct SegmentView {
   const std::shared_ptr<const kin::Kinematics>& kinematics;
   bool exact = false;                 ///< cone 0: the cells are the exact IK solutions
   const kin::Axes* prefer = nullptr;  ///< rotaries the previous segment ended at (tie-break); null: home
+  /// The plane z (part frame, mm) a machine without a Z axis retracts to along the tool axis at segment ends
+  /// (post.safe_z_mm); NaN when the post retracts along a machine axis instead.
+  double retract_plane_z_mm = std::numeric_limits<double>::quiet_NaN();
   /// Names of the primary and secondary rotaries, for reports.
   [[nodiscard]] std::string n1() const;
   [[nodiscard]] std::string n2() const;
@@ -162,6 +168,12 @@ struct SegmentCells {
 /// candidates there) and, at cone 0, every point's IK cells, singular points offered their neighbours' primaries.
 /// With Options::start_rotaries, the program's first point (first == 0) has that one cell only (pinned).
 SegmentCells make_cells(const SegmentView& v, std::size_t first, std::size_t last, cspace::Counters& counters);
+/// Whether the post can retract from axis values q at layer l along the tool axis to the safe plane (true where
+/// it need not: Layer::retract_end unset).
+bool retracts(const SegmentView& v, const Layer& l, const kin::Axes& q);
+/// For a layer at a segment end (Layer::retract_end): marks an unevaluated cell out of stroke when the tool cannot
+/// retract from its pose along the tool axis to the safe plane (kin::retract_along_axis, as the post does).
+void mark_retract(const SegmentView& v, const Layer& l, Cell& c);
 /// Lists point k's cells afresh, at most `cap` of them.
 void enumerate_layer(const SegmentView& v, Layer& l, std::size_t cap, cspace::Counters& counters);
 /// Replaces a truncated cell list with every cell of the cone, keeping what was evaluated already.
