@@ -499,6 +499,29 @@ TEST(Cli, XminiPlanEndsSegmentsWhereTheToolCanRetractAlongItsAxis) {
   EXPECT_GE(retracts, 3);
 }
 
+// At cone 3 no cell of the blade's first point lets the tool retract along its axis. The refusal says so, and the
+// nearest feasible cell it offers must retract too: it lies outside the cone (it had named a cell 2.9 deg from the
+// CL axis, inside the cone it had just called infeasible), and a cone wide enough to hold it plans that point.
+TEST(Cli, XminiRetractRefusalOffersACellThatCanRetract) {
+  TempDir d;
+  const std::string cl = cscam::test::source_path("tests/data/xmini_blades_retract.cls");
+  const std::string nc = d.file("p.ngc");
+  const auto r = run_command(kCli + " plan " + q(cl) + " --machine xmini --cone 3 -o " + q(nc));
+  ASSERT_EQ(r.status, 2) << r.output;
+  EXPECT_FALSE(fs::exists(nc));
+  std::smatch mt;
+  ASSERT_TRUE(std::regex_search(r.output, mt,
+                                std::regex(R"(xmini_blades_retract.cls:(\d+): .*cannot retract.*)"
+                                           R"(nearest feasible cell: .*, ([0-9.]+) deg from the CL axis)")))
+      << r.output;
+  const std::string line = mt[1].str();
+  const double nearest_deg = std::stod(mt[2].str());
+  EXPECT_GT(nearest_deg, 3.0) << r.output;
+  const auto wider = run_command(kCli + " plan " + q(cl) + " --machine xmini --cone " +
+                                 std::to_string(static_cast<int>(std::ceil(nearest_deg)) + 1) + " -o " + q(nc));
+  EXPECT_EQ(wider.output.find("retract.cls:" + line + ":"), std::string::npos) << wider.output;
+}
+
 TEST(Cli, PlanRejectsAnOpenMeshNamingTheFile) {
   TempDir d;
   const std::string stl = d.file("open.stl",

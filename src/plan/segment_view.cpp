@@ -524,7 +524,8 @@ void check_points(const SegmentView& v, SegmentCells& d, std::size_t& points_bey
       geom::QueryWorkspace ws;
       bool found = false;
       for (Cell& c : cells) {
-        // Re-check with the real space (collision included) on the wider grid.
+        // Re-check with the real space (collision included) on the wider grid, and the retract at a segment end.
+        mark_retract(v, layers[k], c);
         space.evaluate(layers[k].cl, c, ws, d.counters);
         if (c.status == Status::Feasible) {
           nearest = fmt::format("({:.3f}, {:.3f}) deg, {:.2f} deg from the CL axis", rad2deg(c.r1), rad2deg(c.r2),
