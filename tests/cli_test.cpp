@@ -499,6 +499,19 @@ TEST(Cli, XminiPlanEndsSegmentsWhereTheToolCanRetractAlongItsAxis) {
   EXPECT_GE(retracts, 3);
 }
 
+// The XMINI's random walk (robustness seed 33) passes 0.05 deg beside a singular orientation between CL lines 25 and 26
+// of this excerpt. Tracking lands on the other branch there (A changes sign, C turns 13 deg), and the straight rotary
+// move between them leaves the XMINI's axis tolerance of 0.01 deg: the planner had taken that jump and the post refused
+// its plan. A jump is now taken only where the post can bridge it (post::can_follow); here the path runs on the branch
+// that tracks continuously instead, with no retract and turn on the part.
+TEST(Cli, XminiCone0PlanTakesNoJumpThePostCannotBridge) {
+  TempDir d;
+  const std::string cl = cscam::test::source_path("tests/data/xmini_walk_singular.cls");
+  const std::string out = plan_and_verify(d, cl, "xmini", "0");
+  EXPECT_EQ(out.find("flip or unwind"), std::string::npos) << out;
+  EXPECT_EQ(out.find("turned in place"), std::string::npos) << out;
+}
+
 // At cone 3 no cell of the blade's first point lets the tool retract along its axis. The refusal says so, and the
 // nearest feasible cell it offers must retract too: it lies outside the cone (it had named a cell 2.9 deg from the
 // CL axis, inside the cone it had just called infeasible), and a cone wide enough to hold it plans that point.

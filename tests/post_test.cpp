@@ -1555,3 +1555,44 @@ TEST(PostWorkPlane, CirclesInAPlaneBecomeArcsInItsCoordinatesAndReadBackOnTheClC
   std::cout << fmt::format("[ figures  ] arcs in tilted planes read back: max distance to the CL circle {:.6f} mm\n",
                            worst_mm);
 }
+
+// post::can_follow is the post's own rule, asked by the planner before it takes a jump. Beside the XMINI's singular
+// orientation (tests/data/xmini_walk_singular.cls, CL lines 25 -> 26) tracking from the A > 0 branch lands on the A < 0
+// one; the straight rotary move between those two leaves the axis tolerance (checked here in closed form: the tool axis
+// of the interpolated rotaries against the slerp of the CL axes), so the post cannot follow it. The A < 0 branch at
+// line 25 runs there continuously (C swings 166 deg while the tool stays within 0.6 deg of the singular direction).
+TEST(Post, CanFollowRefusesAJumpBesideASingularOrientation) {
+  const auto m = load_machine("xmini");
+  const auto kin = m.kinematics();
+  cl::ReadOptions ro;
+  const auto prog = cl::read_file(test::source_path("tests/data/xmini_walk_singular.cls"), ro);
+  const cl::Move *m25 = nullptr, *m26 = nullptr;
+  for (const auto& mv : prog.moves) {
+    if (mv.line == 25) m25 = &mv;
+    if (mv.line == 26) m26 = &mv;
+  }
+  ASSERT_TRUE(m25 && m26);
+  const kin::Posed p0{m25->tip_in_part_mm, m25->axis_in_part.normalized()};
+  const kin::Posed p1{m26->tip_in_part_mm, m26->axis_in_part.normalized()};
+  const auto rp = kin->rotary_pair();
+  auto branch = [&](const kin::Posed& p, double sign) {
+    std::vector<kin::Solution> sols;
+    kin->inverse_branches(p, nullptr, sols);
+    for (const auto& s : sols)
+      if (sign * s.axes[rp[1]] > 0 && s.feasible()) return s.axes;
+    ADD_FAILURE() << "no branch with the secondary's sign " << sign;
+    return kin::Axes(kin::Axes::Zero());
+  };
+  const kin::Axes a_pos = branch(p0, 1), a_neg = branch(p0, -1), b_neg = branch(p1, -1);
+  post::Options po;
+  po.strategy = "planned";
+  const double tol_rad = deg2rad(m.post.axis_tolerance_deg);
+  // The oracle: the straight rotary move's tool axis half way against the CL's.
+  const kin::Axes mid = 0.5 * (a_pos + b_neg);
+  Vec3 u_mid;
+  ASSERT_TRUE(kin->tool_axis_at(mid[rp[0]], mid[rp[1]], 0.5 * (p0.tip_mm + p1.tip_mm), u_mid));
+  const Vec3 slerp_mid = (p0.axis + p1.axis).normalized();
+  EXPECT_GT(std::acos(std::clamp(u_mid.dot(slerp_mid), -1.0, 1.0)), 2.0 * tol_rad);
+  EXPECT_FALSE(post::can_follow(*kin, m, po, p0, a_pos, p1, b_neg));
+  EXPECT_TRUE(post::can_follow(*kin, m, po, p0, a_neg, p1, b_neg));
+}

@@ -148,6 +148,17 @@ std::unique_ptr<Setup> setup(const PlanArgs& a, std::vector<std::string>* warnin
   o.max_step_rad = deg2rad(a.max_step_deg);
   o.tilt_step_rad = deg2rad(a.tilt_step_deg);
   o.cspace.collision.clearance_mm = a.clearance_mm;
+  {
+    // At cone 0 a jump is planned only where the post can follow it: the post's own rule, with the options the plan is
+    // posted with (the tolerance; the plan's tip is the tip there).
+    post::Options po;
+    po.tolerance_mm = a.tolerance;
+    po.strategy = "planned";
+    o.can_bridge = [setup = s.get(), po](const kin::Axes& q0, const kin::Posed& p0, const kin::Axes& q1,
+                                         const kin::Posed& p1) {
+      return post::can_follow(*setup->kin, setup->m, po, p0, q0, p1, q1);
+    };
+  }
   // On a parallel machine the actuated legs' reversals count too (every Cartesian move moves every leg).
   if (s->kin->traits().parallel)
     for (int i = 0; i < 5; ++i)

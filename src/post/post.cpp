@@ -28,6 +28,19 @@ namespace {
 
 using Vec3 = Eigen::Vector3d;
 
+/// The linearizer's settings for a program posted with `opt` on machine `m`.
+Linearizer::Settings linearizer_settings(const machine::Machine& m, const Options& opt) {
+  Linearizer::Settings s;
+  s.tolerance_mm = opt.tolerance_mm > 0 ? opt.tolerance_mm : m.post.tolerance_mm;
+  s.axis_tolerance_rad = deg2rad(opt.axis_tolerance_deg > 0 ? opt.axis_tolerance_deg : m.post.axis_tolerance_deg);
+  s.control_offset_mm = opt.control_offset_mm;
+  s.max_depth = opt.max_subdivision_depth;
+  s.enabled = opt.linearise;
+  s.planned = opt.strategy != "conventional";
+  s.cone_rad = deg2rad(opt.cone_deg);
+  return s;
+}
+
 // Feeds are printed rounded down. A feed that is a round number in exact arithmetic (the CL's F halved by the
 // linearizer) comes out of FK-based timing a few ulps either side, and the side depends on a PKM's FK warm
 // start, i.e. on which thread evaluated what: without this slack F1200.000 and F1199.999 alternated from run to
@@ -243,18 +256,6 @@ class Sequencer {
   }
 
  private:
-  static Linearizer::Settings linearizer_settings(const machine::Machine& m, const Options& opt) {
-    Linearizer::Settings s;
-    s.tolerance_mm = opt.tolerance_mm > 0 ? opt.tolerance_mm : m.post.tolerance_mm;
-    s.axis_tolerance_rad = deg2rad(opt.axis_tolerance_deg > 0 ? opt.axis_tolerance_deg : m.post.axis_tolerance_deg);
-    s.control_offset_mm = opt.control_offset_mm;
-    s.max_depth = opt.max_subdivision_depth;
-    s.enabled = opt.linearise;
-    s.planned = opt.strategy != "conventional";
-    s.cone_rad = deg2rad(opt.cone_deg);
-    return s;
-  }
-
   void flush() {
     out_.write(buf_.data(), static_cast<std::streamsize>(buf_.size()));
     buf_.clear();
@@ -1609,6 +1610,24 @@ class Sequencer {
 }  // namespace
 
 std::vector<std::string> dialects() { return dialect_names(); }
+
+bool can_follow(const kin::Kinematics& kinematics, const machine::Machine& machine, const Options& options,
+                const kin::Posed& p0, const kin::Axes& q0, const kin::Posed& p1, const kin::Axes& q1) {
+  Linearizer lin(kinematics, linearizer_settings(machine, options));
+  cl::Move m0, m1;
+  m0.tip_in_part_mm = p0.tip_mm;
+  m0.axis_in_part = p0.axis;
+  m1.tip_in_part_mm = p1.tip_mm;
+  m1.axis_in_part = p1.axis;
+  std::vector<Linearizer::Piece> pieces;
+  Linearizer::Stats stats;
+  try {
+    lin.split(m0, q0, m1, q1, std::string(), pieces, stats);
+  } catch (const InputError&) {
+    return false;  // where the post would refuse the segment (a flip, or the rotaries turning too fast)
+  }
+  return true;
+}
 
 namespace {
 

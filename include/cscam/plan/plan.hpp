@@ -5,6 +5,7 @@
 /// finally the shortest path (least weighted rotary travel, bounded step per point).
 #include <array>
 #include <cstdint>
+#include <functional>
 #include <memory>
 #include <optional>
 #include <string>
@@ -37,6 +38,11 @@ struct Options {
   std::vector<int> monotone_axes;
   double leg_step_cells = 4;   ///< largest per-point change of tilt (in tilt steps) of that re-plan
   double tilt_step_rad = 0.0;  ///< tilt grid of that re-plan (a disc of radius cone around the CL axis); 0: resolution
+  /// Cone 0: whether the post can follow a transition that tracking cannot (a jump beside a singular orientation, or a
+  /// limit in the way) from axis values q0 at pose p0 to q1 at p1. The CLI passes the post's own rule
+  /// (post::can_follow), so that a plan never holds a move its post refuses. Unset: a jump is taken where tracking
+  /// lands, and the gate judges the program.
+  std::function<bool(const kin::Axes& q0, const kin::Posed& p0, const kin::Axes& q1, const kin::Posed& p1)> can_bridge;
   /// Windowed planning (plan_windowed): move 0 keeps exactly these rotary values (primary, secondary, rad), where
   /// the previous window ended, so that the windows join without a rotary jump. Move 0 is then never re-placed as
   /// an approach, and the re-plans that could move it (leg re-plan) keep it.

@@ -66,6 +66,13 @@ void write_nc(std::ostream& out, const cl::Program& program, const machine::Mach
               const kin::Kinematics& kinematics, const std::vector<kin::Axes>& axes, const Options& options,
               Summary& summary);
 
+/// Whether the post, writing with `options`, can follow the move from axis values q0 at pose p0 to q1 at p1 (one CL
+/// segment) within its tolerances, by its own linearisation rule: interpolated rotaries where they keep the tool axis
+/// within tolerance, else the IK branch followed without a flip. The planner asks it of a transition that tracking
+/// cannot follow (plan::Options::can_bridge).
+bool can_follow(const kin::Kinematics& kinematics, const machine::Machine& machine, const Options& options,
+                const kin::Posed& p0, const kin::Axes& q0, const kin::Posed& p1, const kin::Axes& q1);
+
 /// The dialects this build knows.
 std::vector<std::string> dialects();
 

@@ -330,53 +330,76 @@ bool dp_exact(const SegmentView& v, SegmentCells& d, Allowed&& allowed, std::vec
   const std::size_t n = L.size();
   const auto& sp = v.space;
   const auto rp = sp.kinematics().rotary_pair();
+  // Arriving at a singular point, the primary may turn there in place before the path goes on.
+  const auto primary_off_of = [&](const kin::Axes& out, const Cell& b) {
+    return b.singular ? 0.0 : std::abs(out[rp[0]] - b.r1);
+  };
   LayeredDp<CostNode> dp;
-  const std::size_t built =
-      dp.forward(n, [&](std::size_t k, const std::vector<CostNode>& prev, std::vector<CostNode>& cur) {
-        auto& cells = L[k].cells;
-        cur.assign(cells.size(), CostNode{});
-        bool any = false;
-        for (std::size_t j = 0; j < cells.size(); ++j) {
-          if (!feasible(v, d, k, cells[j])) {
-            why = {cause_of(cells[j].status), cells[j].detail};
-            continue;
-          }
-          if (k == 0) {
-            // Ties (windings of a cyclic axis) go to the start nearest the previous segment's rotaries (or home).
-            const auto [r1, r2] = v.entry_rotaries();
-            cur[j].cost = 1e-9 * (std::abs(cells[j].r1 - r1) + std::abs(cells[j].r2 - r2));
-            any = true;
-            continue;
-          }
-          for (std::size_t i = 0; i < L[k - 1].cells.size(); ++i) {
-            if (!std::isfinite(prev[i].cost)) continue;
-            const Cell& a = L[k - 1].cells[i];
-            const Cell& b = cells[j];
-            if (!allowed(a, b)) continue;
-            const double val = prev[i].cost + v.options.weight_primary * std::abs(b.r1 - a.r1) +
-                               v.options.weight_secondary * std::abs(b.r2 - a.r2);
-            if (val >= cur[j].cost) continue;
-            // Between two singular points the tool axis is the same whatever the primary: it may turn there (the
-            // linear axes keep the tip on the path), where the azimuth of the path through the singular axis changes.
-            const bool in_place = a.singular && b.singular && std::abs(a.r2 - b.r2) < 1e-9;
-            if (!in_place) {
-              kin::Axes out;
-              bool jumped = false;
-              const kin::Posed pa = sp.tool_pose(L[k - 1].cl, a.r1, a.r2), pb = sp.tool_pose(L[k].cl, b.r1, b.r2);
-              // A primary that swings on leaving the singular axis (a step that does not shrink with the pose's) is a
-              // flip too: the post could not follow it on the path. (Near the axis, not on it, a fast swing is
-              // continuous and the post follows it.)
-              if (!kin::track_checked(sp.kinematics(), a.axes, pa, pb, out, jumped) || (jumped && a.singular)) continue;
-              // Arriving at a singular point, the primary may turn there in place before the path goes on.
-              const double primary_off = b.singular ? 0.0 : std::abs(out[rp[0]] - b.r1);
-              if (primary_off + std::abs(out[rp[1]] - b.r2) > 1e-6) continue;  // would flip
-            }
-            cur[j] = {val, static_cast<int>(i)};
-            any = true;
-          }
+  // First only the jumps the post can bridge (no retract and turn on the part); if that finds no path and refused one,
+  // again with every jump, where the post then turns the rotaries with a retract.
+  bool strict = static_cast<bool>(v.options.can_bridge);
+  std::size_t bridge_refusals = 0;
+  const auto forward = [&] {
+    return dp.forward(n, [&](std::size_t k, const std::vector<CostNode>& prev, std::vector<CostNode>& cur) {
+      auto& cells = L[k].cells;
+      cur.assign(cells.size(), CostNode{});
+      bool any = false;
+      for (std::size_t j = 0; j < cells.size(); ++j) {
+        if (!feasible(v, d, k, cells[j])) {
+          why = {cause_of(cells[j].status), cells[j].detail};
+          continue;
         }
-        return any;
-      });
+        if (k == 0) {
+          // Ties (windings of a cyclic axis) go to the start nearest the previous segment's rotaries (or home).
+          const auto [r1, r2] = v.entry_rotaries();
+          cur[j].cost = 1e-9 * (std::abs(cells[j].r1 - r1) + std::abs(cells[j].r2 - r2));
+          any = true;
+          continue;
+        }
+        for (std::size_t i = 0; i < L[k - 1].cells.size(); ++i) {
+          if (!std::isfinite(prev[i].cost)) continue;
+          const Cell& a = L[k - 1].cells[i];
+          const Cell& b = cells[j];
+          if (!allowed(a, b)) continue;
+          const double val = prev[i].cost + v.options.weight_primary * std::abs(b.r1 - a.r1) +
+                             v.options.weight_secondary * std::abs(b.r2 - a.r2);
+          if (val >= cur[j].cost) continue;
+          // Between two singular points the tool axis is the same whatever the primary: it may turn there (the
+          // linear axes keep the tip on the path), where the azimuth of the path through the singular axis changes.
+          const bool in_place = a.singular && b.singular && std::abs(a.r2 - b.r2) < 1e-9;
+          if (!in_place) {
+            kin::Axes out;
+            bool jumped = false;
+            const kin::Posed pa = sp.tool_pose(L[k - 1].cl, a.r1, a.r2), pb = sp.tool_pose(L[k].cl, b.r1, b.r2);
+            // A primary that swings on leaving the singular axis (a step that does not shrink with the pose's) is a
+            // flip too: the post could not follow it on the path. (Near the axis, not on it, a fast swing is
+            // continuous and the post follows it.)
+            if (!kin::track_checked(sp.kinematics(), a.axes, pa, pb, out, jumped) || (jumped && a.singular)) continue;
+            if (jumped && strict) {
+              // Tracking cannot follow the pose here (beside a singular orientation the primary would have to swing,
+              // or a limit is in the way): without a retract the post follows only where it can bridge the move
+              // within its tolerances (interpolated rotaries), into any cell that allows that, not only where
+              // tracking landed.
+              if (!v.options.can_bridge(a.axes, pa, b.axes, pb)) {
+                ++bridge_refusals;
+                continue;
+              }
+            } else if (primary_off_of(out, b) + std::abs(out[rp[1]] - b.r2) > 1e-6) {
+              continue;  // would flip
+            }
+          }
+          cur[j] = {val, static_cast<int>(i)};
+          any = true;
+        }
+      }
+      return any;
+    });
+  };
+  std::size_t built = forward();
+  if (built < n && strict && bridge_refusals > 0) {
+    strict = false;
+    built = forward();
+  }
   if (built < n) {
     fail_layer = built;
     if (why.cause == FailureCause::Transition && why.detail.empty())
