@@ -512,6 +512,25 @@ TEST(Cli, XminiCone0PlanTakesNoJumpThePostCannotBridge) {
   EXPECT_EQ(out.find("turned in place"), std::string::npos) << out;
 }
 
+// Planned in windows, a segment longer than a window starts at one orientation chosen for the whole of it. On the
+// XMINI that orientation must also let the tool retract along its axis from the segment's first point, as the
+// planner's own end layers require: it had not, and the window refused the plan ("cannot retract the tool along its
+// axis"). The oracle: the windowed plan is the program the unwindowed plan writes, byte for byte.
+TEST(Cli, XminiWindowedPlanStartsWhereTheToolCanRetract) {
+  TempDir d;
+  const std::string cl = cscam::test::source_path("tests/data/xmini_fixed_blade.cls");
+  const std::string whole = d.file("whole.ngc"), windowed = d.file("windowed.ngc");
+  auto r = run_command(kCli + " plan " + q(cl) + " --machine xmini --cone 10 -o " + q(whole));
+  ASSERT_EQ(r.status, 0) << r.output;
+  r = run_command(kCli + " plan " + q(cl) + " --machine xmini --cone 10 --window 30 -o " + q(windowed));
+  ASSERT_EQ(r.status, 0) << r.output;
+  auto read = [](const std::string& p) {
+    std::ifstream in(p);
+    return std::string((std::istreambuf_iterator<char>(in)), std::istreambuf_iterator<char>());
+  };
+  EXPECT_EQ(read(whole), read(windowed));
+}
+
 // At cone 3 no cell of the blade's first point lets the tool retract along its axis. The refusal says so, and the
 // nearest feasible cell it offers must retract too: it lies outside the cone (it had named a cell 2.9 deg from the
 // CL axis, inside the cone it had just called infeasible), and a cone wide enough to hold it plans that point.

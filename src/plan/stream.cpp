@@ -6,12 +6,14 @@
 #include <algorithm>
 #include <chrono>
 #include <cmath>
+#include <limits>
 #include <map>
 #include <optional>
 #include <utility>
 
 #include "cscam/core/error.hpp"
 #include "cscam/core/tolerances.hpp"
+#include "cscam/kin/track.hpp"
 
 namespace cscam::plan {
 
@@ -91,11 +93,12 @@ std::size_t segment_end(const cl::Program& program, std::size_t s) {
 /// A grid cell feasible at every point of moves [s, e] (within the cone, inside the strokes, collision-free), tried
 /// as tier 1 tries them: closest to the CL axis at `s` first, orientation over the whole range before any query, the
 /// point that rejected the previous candidate first; feasibility with a clearance certificate (one query per margin
-/// of travel). At most `tries` candidates get feasibility queries. A window sees only its own points, so a segment
-/// longer than a window is given this orientation as its start.
+/// of travel). With a finite `retract_plane_z_mm` (a machine without a Z axis) the tool must also retract from the
+/// segment's ends along its axis to that plane. At most `tries` candidates get feasibility queries. A window sees only
+/// its own points, so a segment longer than a window is given this orientation as its start.
 std::optional<std::array<double, 2>> fixed_orientation(const cspace::Space& sp, const cl::Program& program,
                                                        std::size_t s, std::size_t e, std::size_t cap, int tries,
-                                                       cspace::Counters& c) {
+                                                       double retract_plane_z_mm, cspace::Counters& c) {
   if (sp.options().cone_rad <= 0) return std::nullopt;  // exact cells: tier 1 decides inside the windows
   auto pose = [&](std::size_t m) {
     return kin::Posed{program.moves[m].tip_in_part_mm, program.moves[m].axis_in_part.normalized()};
@@ -121,6 +124,10 @@ std::optional<std::array<double, 2>> fixed_orientation(const cspace::Space& sp, 
       x.status = cspace::Status::Unknown;
       sp.evaluate(pose(m), x, ws, c, &cert);
       ok = x.status == cspace::Status::Feasible;
+      // At the segment's ends a machine without a Z axis retracts along the tool axis (the planner's own rule there).
+      kin::Axes up;
+      if (ok && (m == s || m == e) && std::isfinite(retract_plane_z_mm))
+        ok = kin::retract_along_axis(sp.kinematics(), x.axes, retract_plane_z_mm, tol::kLimitSlackMm, up);
     }
     if (ok) return std::array<double, 2>{cell.r1, cell.r2};
   }
@@ -173,8 +180,10 @@ Plan plan_windowed(const machine::Machine& machine, std::shared_ptr<const kin::K
       // The first segment runs past this window: if one orientation suits all of it, start there (as one run's
       // tier 1 would find it), so that the windows can keep it.
       if (!space) space = std::make_unique<cspace::Space>(kinematics, scene, tool, options.cspace, head);
-      o.start_rotaries =
-          fixed_orientation(*space, program, a, segment_end(program, a), options.max_cells_per_point, 16, out.counters);
+      o.start_rotaries = fixed_orientation(
+          *space, program, a, segment_end(program, a), options.max_cells_per_point, 16,
+          kinematics->traits().retract_axis < 0 ? machine.post.safe_z_mm : std::numeric_limits<double>::quiet_NaN(),
+          out.counters);
       o.start_is_join = false;
     }
     Plan p = Planner(machine, kinematics, scene, tool, o, head).run(sub);
