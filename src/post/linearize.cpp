@@ -235,7 +235,7 @@ void Linearizer::split(const cl::Move& m0, const kin::Axes& q0, const cl::Move& 
       std::string why;
       const bool tracked = kin::track_checked(kin_, pc.qa, from, target, qm, jumped, &why);
       if (tracked && jumped)
-        throw InputError(
+        throw BranchChangeError(
             SourceLoc{cl_file, m1.line, 0},
             fmt::format("the machine cannot follow the CL segment from line {} to line {} ({}) "
                         "continuously: inside it a limit{} forces the rotaries to flip (the "
@@ -271,14 +271,21 @@ void Linearizer::split(const cl::Move& m0, const kin::Axes& q0, const cl::Move& 
         const bool branch_change =
             !tracked || jumped ||
             std::abs(qt[rp[0]] - pc.qb[rp[0]]) + std::abs(qt[rp[1]] - pc.qb[rp[1]]) > kBranchChangeRad;
+        if (branch_change)
+          throw BranchChangeError(
+              SourceLoc{cl_file, m1.line, 0},
+              fmt::format("the machine cannot follow the CL segment from line {} to line {} ({}): {:.1f}% along it the "
+                          "rotaries must change IK branch{} (one block would leave the path by {:.4f} mm and {:.3f} "
+                          "deg); {}",
+                          m0.line, m1.line, rotary_change(kin_, q0, q1), 100.0 * pc.sb,
+                          why.empty() ? "" : " (" + why + ")", tip_mm, axis_rad * 180.0 / M_PI, remedy()));
         throw InputError(
             SourceLoc{cl_file, m1.line, 0},
-            fmt::format("the machine cannot follow the CL segment from line {} to line {} ({}): {:.1f}% along it {} "
-                        "(one block would leave the path by {:.4f} mm and {:.3f} deg); {}",
-                        m0.line, m1.line, rotary_change(kin_, q0, q1), 100.0 * pc.sb,
-                        branch_change ? "the rotaries must change IK branch" + (why.empty() ? "" : " (" + why + ")")
-                                      : std::string("the rotaries turn too fast to stay within the tolerance"),
-                        tip_mm, axis_rad * 180.0 / M_PI, remedy()));
+            fmt::format("the machine cannot follow the CL segment from line {} to line {} ({}): {:.1f}% along it the "
+                        "rotaries turn too fast to stay within the tolerance (one block would leave the path by {:.4f} "
+                        "mm and {:.3f} deg); {}",
+                        m0.line, m1.line, rotary_change(kin_, q0, q1), 100.0 * pc.sb, tip_mm, axis_rad * 180.0 / M_PI,
+                        remedy()));
       }
       stats.warnings.push_back(fmt::format("{}: tolerance not reached after {} subdivisions (singular region?)",
                                            SourceLoc{cl_file, m1.line, 0}.str(), set_.max_depth));

@@ -9,6 +9,7 @@
 #include <vector>
 
 #include "cscam/cl/program.hpp"
+#include "cscam/core/error.hpp"
 #include "cscam/kin/kinematics.hpp"
 
 namespace cscam::post {
@@ -38,6 +39,13 @@ class Slerp {
 /// The rotaries' change from qa to qb, named as in the machine file: "c 341.000 -> -337.000 deg, a 15.000 -> 15.000
 /// deg" (for the messages of refused segments and of turns).
 std::string rotary_change(const kin::Kinematics& k, const kin::Axes& qa, const kin::Axes& qb);
+
+/// The linearizer's refusal of a segment whose two ends lie on different IK branches (inside it the rotaries would
+/// have to flip): the sequencer then turns the rotaries at an end instead (retract, turn, plunge).
+class BranchChangeError : public InputError {
+ public:
+  using InputError::InputError;
+};
 
 class Linearizer {
  public:

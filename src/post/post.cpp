@@ -896,13 +896,23 @@ class Sequencer {
   void feed(const cl::Move& m0, const kin::Axes& q0_in, const cl::Move& m1, const kin::Axes& q1) {
     cur_line_ = m1.line;
     std::optional<kin::Axes> q0 = q0_in;
-    {
-      const double fr = m1.feed_mm_per_min > 0 ? m1.feed_mm_per_min : kFallbackFeedMmMin;
-      const kin::Posed pose0{m0.tip_in_part_mm, m0.axis_in_part.normalized()};
-      const kin::Posed pose1{m1.tip_in_part_mm, m1.axis_in_part.normalized()};
-      if (!continues_branch(pose0, q0_in, pose1, q1)) q0 = reconfigure(pose0, q0_in, pose1, q1, m0, m1, fr);
+    const double fr = m1.feed_mm_per_min > 0 ? m1.feed_mm_per_min : kFallbackFeedMmMin;
+    const kin::Posed pose0{m0.tip_in_part_mm, m0.axis_in_part.normalized()};
+    const kin::Posed pose1{m1.tip_in_part_mm, m1.axis_in_part.normalized()};
+    const bool turned = !continues_branch(pose0, q0_in, pose1, q1);
+    if (turned) q0 = reconfigure(pose0, q0_in, pose1, q1, m0, m1, fr);
+    if (q0) {  // else reconfigure reached m1 itself
+      try {
+        feed_linear(m0, *q0, m1, q1);
+      } catch (const BranchChangeError&) {
+        // continues_branch takes a small rotary change as continuous unchecked, but beside a singular orientation even
+        // a small one can end on another branch (A changing sign): turned as for any flip. (The linearizer refuses
+        // before it writes a block.)
+        if (turned) throw;
+        q0 = reconfigure(pose0, q0_in, pose1, q1, m0, m1, fr);
+        if (q0) feed_linear(m0, *q0, m1, q1);
+      }
     }
-    if (q0) feed_linear(m0, *q0, m1, q1);  // else reconfigure reached m1 itself
     at_cut_ = true;
     cut_move_ = m1;
     if (cut_move_.feed_mm_per_min <= 0) cut_move_.feed_mm_per_min = kFallbackFeedMmMin;
