@@ -14,6 +14,7 @@
 #include "cscam/cl/program.hpp"
 #include "cscam/core/error.hpp"
 #include "cscam/core/units.hpp"
+#include "cscam/gate/gate.hpp"
 #include "cscam/kin/xmini_kinematics.hpp"
 #include "cscam/machine/machine.hpp"
 #include "cscam/nc/reader.hpp"
@@ -717,4 +718,50 @@ TEST(XminiPost, AVerticalPlungeIsSplitWhereTheLegsWouldBowThePath) {
   EXPECT_GT(sum.inserted_points, 0u);
   const auto v = verify_text(text, prog, m, *k);
   EXPECT_TRUE(v.ok) << v.message << "\n" << text;
+}
+
+// A flip on the XMINI is a retract along the tool axis, a turn and a plunge, each written in pieces (its legs move
+// the tip straight only piece by piece). On this random walk (robustness seed 38) the retract from CL line 15 rises
+// past other CL points whose axes point elsewhere, and the gate judged its later pieces, which have neither end on
+// the path, against those: "below" them, so a cut leaving the path by 2.98 mm, and it refused the program. Every
+// piece is now judged against the CL point the retract left from. The oracle, independent of verify: every feed
+// block that is off the CL path lies on the tool-axis line of a CL point and above it, and the gate passes.
+TEST(XminiPost, APieceWiseRetractIsJudgedFromThePointItLeft) {
+  const auto m = machine::load(test::source_path("machines/xmini.yaml"));
+  const auto k = m.kinematics();
+  cl::ReadOptions ro;
+  const auto prog = cl::read_file(test::source_path("tests/data/xmini_random_flip.cls"), ro);
+  const auto axes = post::conventional_axes(prog, m, *k);
+  std::ostringstream os;
+  post::Summary sum;
+  post::write_nc(os, prog, m, *k, axes, post::Options{}, sum);
+  ASSERT_GE(sum.retracts, 1u);
+  const auto ncp = report::read_for_machine(os.str(), "flip.ngc", m);
+  int off_path = 0;
+  for (std::size_t bi = 1; bi < ncp.blocks.size(); ++bi) {
+    const auto& b = ncp.blocks[bi];
+    if (b.motion == nc::Motion::Rapid) continue;
+    kin::Axes q;
+    for (int i = 0; i < 5; ++i) q[i] = b.axes[static_cast<std::size_t>(i)];
+    const kin::Posed p = k->forward(q);
+    double nearest = 1e9;
+    bool on_an_axis_line = false;
+    for (std::size_t i = 0; i < prog.moves.size(); ++i) {
+      const auto& mv = prog.moves[i];
+      const Vec3 d = p.tip_mm - mv.tip_in_part_mm;
+      const Vec3 u = mv.axis_in_part.normalized();
+      on_an_axis_line = on_an_axis_line || (d.cross(u).norm() < 2e-3 && d.dot(u) > -2e-3 && p.axis.dot(u) > 1 - 1e-8);
+      if (i == 0) continue;
+      const Vec3 a = prog.moves[i - 1].tip_in_part_mm, ab = mv.tip_in_part_mm - a;
+      const double t = ab.squaredNorm() > 0 ? std::clamp((p.tip_mm - a).dot(ab) / ab.squaredNorm(), 0.0, 1.0) : 0.0;
+      nearest = std::min(nearest, (a + t * ab - p.tip_mm).norm());
+    }
+    if (nearest < 0.01) continue;  // on the CL path
+    ++off_path;
+    EXPECT_TRUE(on_an_axis_line) << "NC line " << b.line << " is off the CL path and on no CL point's axis line";
+  }
+  EXPECT_GE(off_path, 4);  // the retract and the plunge, in pieces
+  const auto gs =
+      gate::check(os.str(), "flip.ngc", prog, m, *k, gate::options_for(m, 0, 0, 0), &sum.cl_line_of_nc_line);
+  EXPECT_TRUE(gs.ok) << gs.message;
 }

@@ -106,9 +106,13 @@ double best_axis_dot_near(const ClSeg& s, const Vec3& p, const Vec3& u, double t
 /// `poses` are the FK samples of the block (0..n at qa + i/n (qb - qa)) and FK(qb) at index n + 1;
 /// `cl_point_near(p)` gives the nearest CL path point and its axis.
 /// `slack_mm` / `slack_rad`: how far the move may leave its samples between them (0 for fixed sampling).
+/// `chain` (in/out): the CL point (and its axis) the last departure was judged against. A retract or plunge written
+/// in several blocks (a PKM's, whose joints move the tip straight only piece by piece) has pieces with neither end on
+/// the path: they are judged against that point when it lies on their line. Set to the point this block was judged
+/// against when it is a departure.
 template <typename Near>
 bool departure(const kin::Posed* poses, int n, double tip_tol, double axis_tol_rad, double slack_mm, double slack_rad,
-               double ball_r, Near&& cl_point_near) {
+               double ball_r, Near&& cl_point_near, std::optional<std::pair<Vec3, Vec3>>& chain) {
   const kin::Posed &pa = poses[0], &pb = poses[n + 1];
   if ((pb.tip_mm - pa.tip_mm).norm() <= tip_tol) return false;
   const double room_mm = tip_tol - slack_mm;
@@ -136,12 +140,14 @@ bool departure(const kin::Posed* poses, int n, double tip_tol, double axis_tol_r
       break;
     }
   }
+  if (!anchor && chain && (chain->first - ctrl_of(pa)).cross(pa.axis).norm() <= room_mm) anchor = chain;
   for (int i = 0; i <= n; ++i) {
     const kin::Posed& p = i == n ? pb : poses[i];
     const Vec3 ctrl = ctrl_of(p);  // the compared point: tip, or ball centre
     const auto [c, u] = anchor ? *anchor : cl_point_near(ctrl);
     if ((ctrl - c).dot(u) < -room_mm) return false;
   }
+  chain = anchor;
   return true;
 }
 
@@ -774,6 +780,7 @@ VerifyResult verify(const nc::Program& nc, const cl::Program& cl, const kin::Kin
       }
     });
   };
+  std::optional<std::pair<Vec3, Vec3>> departure_chain;  // see departure()
   std::array<ChunkSamples, 2> chunk_samples;
   if (!nc.blocks.empty()) prepare(0, chunk_samples[0]);
   for (std::size_t c0 = 0, cur = 0; c0 < nc.blocks.size(); c0 += kChunk, cur ^= 1) {
@@ -796,15 +803,16 @@ VerifyResult verify(const nc::Program& nc, const cl::Program& cl, const kin::Kin
       const BlockSampling& bs = sampling[bi - c0];
       const int n = bs.n;
       const kin::Posed* bp = &poses[bs.offset];
-      if (departure(bp, n, options.tip_tolerance_mm, axis_tol_rad, bs.tip_slack_mm, bs.axis_slack_rad, ball_r,
-                    [&](const Vec3& p) {
-                      size_t c = cursor;
-                      double t;
-                      nearest(p, c, false, t);
-                      const ClSeg& sg = segs[c];
-                      return std::pair<Vec3, Vec3>(sg.p0 + t * (sg.p1 - sg.p0),
-                                                   slerp(sg.u0, sg.u1, sg.th, sg.sin_th, t));
-                    })) {
+      if (departure(
+              bp, n, options.tip_tolerance_mm, axis_tol_rad, bs.tip_slack_mm, bs.axis_slack_rad, ball_r,
+              [&](const Vec3& p) {
+                size_t c = cursor;
+                double t;
+                nearest(p, c, false, t);
+                const ClSeg& sg = segs[c];
+                return std::pair<Vec3, Vec3>(sg.p0 + t * (sg.p1 - sg.p0), slerp(sg.u0, sg.u1, sg.th, sg.sin_th, t));
+              },
+              departure_chain)) {
         // A retract or plunge along the fixed tool axis (a post's flip or unwind): off the path by design,
         // like a rapid; the CL points around it must still be reached.
         ++r.axial_blocks;
@@ -817,6 +825,7 @@ VerifyResult verify(const nc::Program& nc, const cl::Program& cl, const kin::Kin
         continue;
       }
       ++r.feed_blocks;
+      departure_chain.reset();  // a cut ends a retract-turn-plunge
       // Bounded blocks: the straight line between consecutive samples stays within the larger of its ends'
       // distances to either end's segment (the distance to a convex set is convex along a line), and the move
       // stays within tip_slack_mm of that line.
