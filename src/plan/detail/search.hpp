@@ -330,10 +330,6 @@ bool dp_exact(const SegmentView& v, SegmentCells& d, Allowed&& allowed, std::vec
   const std::size_t n = L.size();
   const auto& sp = v.space;
   const auto rp = sp.kinematics().rotary_pair();
-  // Arriving at a singular point, the primary may turn there in place before the path goes on.
-  const auto primary_off_of = [&](const kin::Axes& out, const Cell& b) {
-    return b.singular ? 0.0 : std::abs(out[rp[0]] - b.r1);
-  };
   LayeredDp<CostNode> dp;
   // First only the jumps the post can bridge (no retract and turn on the part); if that finds no path and refused one,
   // again with every jump, where the post then turns the rotaries with a retract.
@@ -384,8 +380,10 @@ bool dp_exact(const SegmentView& v, SegmentCells& d, Allowed&& allowed, std::vec
                 ++bridge_refusals;
                 continue;
               }
-            } else if (primary_off_of(out, b) + std::abs(out[rp[1]] - b.r2) > 1e-6) {
-              continue;  // would flip
+            } else {
+              // Arriving at a singular point, the primary may turn there in place before the path goes on.
+              const double primary_off = b.singular ? 0.0 : std::abs(out[rp[0]] - b.r1);
+              if (primary_off + std::abs(out[rp[1]] - b.r2) > 1e-6) continue;  // would flip
             }
           }
           cur[j] = {val, static_cast<int>(i)};
