@@ -189,6 +189,40 @@ TEST(Diagnose, RasterScaleAndSquareness) {
   expect_found(r, "squareness", "x,y", "angle_urad", 60);
 }
 
+// A circle in the XY plane sees Z follow X ("z += g x", the X slide tilted toward Z) but not X follow Z: the
+// candidate list must hold both orders of a pair (it held only "x,z", and this recording gave no finding).
+TEST(Diagnose, SquarenessOfZOnXSeenByACircleInXY) {
+  const auto r = run(circle(100), trunnion(), {"squareness:z,x:95"}, {"tip", "enc"}, 0.0005);
+  expect_found(r, "squareness", "z,x", "angle_urad", 95);
+  EXPECT_EQ(find(r, "squareness", "x,z"), nullptr) << r.text();
+}
+
+// An error outside the library (tip.z grows with the square of X: a sagging slide) must not be called noise: no
+// library effect explains it, and the verdict says that the residual is above the noise. Oracle: the same
+// recording without it.
+TEST(Diagnose, AnErrorOutsideTheLibraryIsNotCalledNoise) {
+  auto diag = [](double sag_per_mm2) {
+    sim::SimulateOptions so;
+    so.channels = {"tip", "enc"};
+    so.noise = {{"tip", 0.0005}, {"enc", 0.0001}};
+    so.seed = 12;
+    so.tool_length_mm = trunnion().default_tool_length_mm;
+    auto rec = sim::simulate(circle(100), trunnion(), {}, so);
+    rec.file = "mem.csv";
+    auto& z = rec.data[static_cast<size_t>(rec.column("tip.z"))];
+    const auto& x = rec.data[static_cast<size_t>(rec.column("cmd.x"))];
+    for (size_t i = 0; i < z.size(); ++i) z[i] += sag_per_mm2 * x[i] * x[i];
+    return diagnose::diagnose(rec, trunnion(), {});
+  };
+  const auto clean = diag(0.0);
+  EXPECT_FALSE(clean.residual_above_noise) << clean.text();
+  EXPECT_NE(clean.verdict.find("no missing physics"), std::string::npos) << clean.text();
+  const auto sag = diag(4e-6);  // 1.25 um amplitude at twice the circle's frequency, noise 0.5 um
+  EXPECT_TRUE(sag.residual_above_noise) << sag.text();
+  EXPECT_EQ(sag.verdict.find("no missing physics"), std::string::npos) << sag.text();
+  EXPECT_NE(sag.verdict.find("above the measurement noise"), std::string::npos) << sag.text();
+}
+
 TEST(Diagnose, WrittenModelExplainsTheRecording) {
   // The identified effects, written into the machine file, are part of the model: nothing is left to find.
   auto b = sim::parse_effect("backlash:x:0.008", trunnion());

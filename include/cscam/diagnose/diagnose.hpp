@@ -54,6 +54,10 @@ struct Report {
   std::vector<Localization> localization;
   std::vector<Finding> findings;
   double heldout_rms_before = 0, heldout_rms_after = 0;  ///< all fitted channels, noise-weighted
+  std::size_t heldout_values = 0;                        ///< held-out values those two are taken over
+  /// The held-out residual left after the findings is clearly above the noise: something the library does not
+  /// model (or models only in part) is in the recording.
+  bool residual_above_noise = false;
   std::string verdict;
   std::vector<std::string> warnings;
   std::vector<std::pair<std::string, double>> seconds;  ///< time per stage
