@@ -223,6 +223,22 @@ TEST(Diagnose, AnErrorOutsideTheLibraryIsNotCalledNoise) {
   EXPECT_NE(sag.verdict.find("above the measurement noise"), std::string::npos) << sag.text();
 }
 
+// Seed 000's out-and-back cut reverses every leg once, half way, in a training block: a reversal spike acts on no
+// held-out sample. It is judged on the training blocks (it was not found at all), and noise alone still gives no
+// finding there.
+TEST(Diagnose, ASpikeAtTheOnlyReversalIsJudgedOnTheTrainingBlocks) {
+  sim::ProfileOptions po;
+  po.rate_hz = 200;
+  const auto tr = sim::profile(
+      sim::blocks_from_cl(std::string(CSCAM_SOURCE_DIR) + "/examples/xmini/seed000_x_outback.cls", xmini(), 50), po);
+  const auto r = run(tr, xmini(), {"friction_spike:q1:0.0137:0.02"}, {"tip", "enc"}, 0.0005);
+  expect_found(r, "friction_spike", "q1", "peak_mm", 0.0137);
+  EXPECT_TRUE(find(r, "friction_spike", "q1")->judged_on_training) << r.text();
+  EXPECT_EQ(r.findings.size(), 1U) << r.text();
+  const auto clean = run(tr, xmini(), {}, {"tip", "enc"}, 0.0005);
+  EXPECT_TRUE(clean.findings.empty()) << clean.text();
+}
+
 TEST(Diagnose, WrittenModelExplainsTheRecording) {
   // The identified effects, written into the machine file, are part of the model: nothing is left to find.
   auto b = sim::parse_effect("backlash:x:0.008", trunnion());

@@ -39,6 +39,9 @@ struct Finding {
   std::string explains;
   double heldout_rms_before = 0, heldout_rms_after = 0;
   double share = 0;  ///< fraction of the explained held-out residual
+  /// A transient that acts only in training blocks (the one reversal of a run): accepted on its training gain, and
+  /// heldout_rms_* are then taken on the training blocks where it acts.
+  bool judged_on_training = false;
 };
 
 struct Series {
