@@ -7,8 +7,10 @@
 #include "cscam/core/units.hpp"
 #include "cscam/kin/track.hpp"
 #include "cscam/machine/machine.hpp"
+#include "cscam/nc/reader.hpp"
 #include "cscam/report/backlash.hpp"
 #include "cscam/report/json.hpp"
+#include "cscam/report/letters.hpp"
 #include "cscam/report/stats.hpp"
 #include "cscam/report/trace.hpp"
 #include "cscam/report/verify.hpp"
@@ -215,6 +217,99 @@ TEST(Trace, TruncatedRunFailsCoverage) {
   EXPECT_LT(r.max_tip_deviation_mm, 1e-9);
   EXPECT_FALSE(r.ok);
   EXPECT_GT(r.max_uncovered_cl_mm, 10.0);
+}
+
+// LinuxCNC labels a sample with the NC line the motion controller has queued, which runs ahead of the motion: a
+// plunge blended into the first cuts was labelled with a cut's line while the tool was still above the CL point.
+// A sample is matched to a retract or plunge by where it is (on its line, with its axis), not by its label. Oracle:
+// the same samples moved 0.05 mm off the plunge line fail.
+TEST(Trace, APlungeLabelledWithTheNextLineIsMatchedByWhereItIs) {
+  TraceFixture f;
+  kin::Axes q_cl, q_up;
+  ASSERT_TRUE(kin::nearest_solution(*f.kin, {f.cl.moves[0].tip_in_part_mm, f.cl.moves[0].axis_in_part.normalized()},
+                                    kin::Axes::Zero(), q_cl));
+  const kin::Posed above{f.cl.moves[0].tip_in_part_mm + 10.0 * f.cl.moves[0].axis_in_part.normalized(),
+                         f.cl.moves[0].axis_in_part.normalized()};
+  ASSERT_TRUE(kin::nearest_solution(*f.kin, above, q_cl, q_up));
+  auto word = [](const kin::Axes& q) {
+    return fmt::format("X{:.6f} Y{:.6f} Z{:.6f} A{:.6f} C{:.6f}", q[0], q[1], q[2], rad2deg(q[3]), rad2deg(q[4]));
+  };
+  const std::string text =
+      "G21 G90 G94\nG0 " + word(q_up) + "\nG1 " + word(q_cl) + " F500\nG1 " + word(q_cl) + "\nM2\n";
+  const nc::Program nc = nc::read_text(text, "plunge.ngc", report::axis_letters(f.m));
+  auto samples_with = [&](double sideways_mm) {
+    std::vector<report::TraceSample> out;
+    for (int k = 0; k <= 50; ++k) {  // the plunge, labelled with line 4 (the next block) as the controller did
+      kin::Posed p = above;
+      p.tip_mm += (k / 50.0) * (f.cl.moves[0].tip_in_part_mm - above.tip_mm);
+      p.tip_mm += sideways_mm * p.axis.unitOrthogonal();
+      report::TraceSample smp;
+      smp.index = static_cast<long>(out.size());
+      EXPECT_TRUE(kin::nearest_solution(*f.kin, p, q_cl, smp.joints));
+      smp.nc_line = 4;
+      smp.motion = report::TraceMotion::Feed;
+      out.push_back(smp);
+    }
+    for (auto s : f.exact()) {
+      s.index = static_cast<long>(out.size());
+      out.push_back(s);
+    }
+    return out;
+  };
+  report::Trace tr;
+  tr.file = "plunge";
+  tr.samples = samples_with(0.0);
+  const auto r = report::check_trace(tr, f.cl, *f.kin, report::TraceCheckOptions{}, &nc);
+  EXPECT_TRUE(r.ok) << r.message;
+  EXPECT_EQ(r.departure_blocks, 1U);
+  EXPECT_GE(r.departure_samples, 45U) << r.message;
+  tr.samples = samples_with(0.05);
+  const auto off = report::check_trace(tr, f.cl, *f.kin, report::TraceCheckOptions{}, &nc);
+  EXPECT_FALSE(off.ok) << off.message;
+  EXPECT_EQ(off.departure_samples, 0U) << off.message;
+}
+
+// A path that doubles back along itself with another orientation: a sample on the way back is as near the way out,
+// whose axis differs by up to 20 deg there. It is judged at the pose of the path it can be at, as the gate does; a
+// sample whose axis matches neither still fails.
+TEST(Trace, OnAPathThatDoublesBackTheAxisIsJudgedWhereTheSampleCanBe) {
+  TraceFixture f;
+  const cl::Program cl = cl::read_text(
+      "UNITS/MM\nMULTAX/ON\nRAPID\nGOTO/0,0,5,0,0,1\nFEDRAT/MMPM,500\nGOTO/0,0,0,0,0,1\n"
+      "GOTO/10,0,0,0.342020143,0,0.939692621\nGOTO/0,0,0,0,-0.342020143,0.939692621\n",
+      "back.cls");
+  auto run_with = [&](double extra_deg) {
+    report::Trace tr;
+    tr.file = "back";
+    kin::Axes near = kin::Axes::Zero();
+    for (size_t i = 1; i < cl.moves.size(); ++i)
+      for (int k = 0; k <= 40; ++k) {
+        const double s = k / 40.0;
+        const auto& a = cl.moves[i - 1];
+        const auto& b = cl.moves[i];
+        kin::Posed p;
+        p.tip_mm = (1 - s) * a.tip_in_part_mm + s * b.tip_in_part_mm;
+        const Eigen::Vector3d ua = a.axis_in_part.normalized(), ub = b.axis_in_part.normalized();
+        const double th = std::acos(std::clamp(ua.dot(ub), -1.0, 1.0));
+        p.axis = th < 1e-12 ? ua : ((std::sin((1 - s) * th) * ua + std::sin(s * th) * ub) / std::sin(th)).normalized();
+        p.axis = (Eigen::AngleAxisd(deg2rad(extra_deg), Eigen::Vector3d::UnitY()) * p.axis).normalized();
+        report::TraceSample smp;
+        smp.index = static_cast<long>(tr.samples.size());
+        EXPECT_TRUE(kin::nearest_solution(*f.kin, p, near, smp.joints));
+        near = smp.joints;
+        smp.nc_line = static_cast<int>(i);
+        smp.motion = i == 1 ? report::TraceMotion::Rapid : report::TraceMotion::Feed;
+        smp.world_mm = Eigen::Vector3d(smp.joints[0], smp.joints[1], smp.joints[2]);
+        tr.samples.push_back(smp);
+      }
+    return report::check_trace(tr, cl, *f.kin, report::TraceCheckOptions{});
+  };
+  const auto r = run_with(0.0);
+  EXPECT_TRUE(r.ok) << r.message;
+  EXPECT_LT(r.max_axis_deviation_deg, 0.01) << r.message;
+  const auto bad = run_with(1.0);
+  EXPECT_FALSE(bad.ok) << bad.message;
+  EXPECT_NEAR(bad.max_axis_deviation_deg, 1.0, 0.05) << bad.message;
 }
 
 TEST(Trace, ReaderRejectsLostSamplesAndBadLines) {

@@ -70,6 +70,9 @@ struct TraceCheckResult {
   int max_uncovered_cl_line = 0;
   std::vector<TraceBlock> worst_blocks;  ///< up to 5
   size_t departure_blocks = 0;
+  /// Feed samples off the CL path on one of those retracts or plunges (matched by position and axis, whatever NC
+  /// line the controller labelled them with): not compared with the path.
+  size_t departure_samples = 0;
   /// The controller's own world X Y Z against ours: in joint mode the joints, in TCP mode the FK tip (LinuxCNC's
   /// kinematics module against the machine file). The world position leads the joints by a few servo cycles
   /// (interpolation); the lag that fits best is used. Reported, not part of ok (work offsets would move it).
