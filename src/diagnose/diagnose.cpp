@@ -918,9 +918,11 @@ Report diagnose(sim::Recording& rec, const machine::Machine& m, const std::vecto
       const auto off_save = F.off;
       const double train_ms = weighted_ms(F, view(model), false);
       std::vector<std::unique_ptr<Effect>> trial;
+      trial.reserve(model.size() + 1);
       for (const auto& e : model) trial.push_back(e->clone());
       trial.push_back(std::move(res[ei].event));
       std::vector<Effect*> fxp;
+      fxp.reserve(trial.size());
       for (auto& e : trial) fxp.push_back(e.get());
       joint_fit(F, fxp);
       const double new_train = weighted_ms(F, view(trial), false), new_held = weighted_ms(F, view(trial), true);
