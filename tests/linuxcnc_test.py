@@ -6,7 +6,8 @@ Posts a CL file for trunnion-ac with cscam, runs the program in LinuxCNC's own m
 against the CL path with `cscam trace` (FK of the sampled joints, the post's tolerance).
 
   linuxcnc_test.py --cscam BIN --cl FILE [--feed MMPM] [--tcp] [--mdi 'G64 P0.01']
-                   [--drop-g64p] --expect pass|fail [--min-deviation MM] [--worst-at-plunge]
+                   [--drop-g64p] [--drop-g61] [--tolerance MM] --expect pass|fail [--min-deviation MM]
+                   [--worst-at-plunge]
 
 --expect fail is the demonstration that the check can fail: the deviation must then exceed
 --min-deviation and, with --worst-at-plunge, lie where the plunge blends into the first cut.
@@ -81,6 +82,10 @@ def main():
                     help="run a TCP (M428) program built from the CL tips and the joint program's angles")
     ap.add_argument("--drop-g64p", action="store_true",
                     help="remove a G64 P word the post wrote (the controller then blends without a tolerance)")
+    ap.add_argument("--drop-g61", action="store_true",
+                    help="remove the G61 (exact path) words the post wrote around retracts and plunges")
+    ap.add_argument("--tolerance", type=float, default=0.0,
+                    help="tip tolerance for cscam trace, mm (default: the post's tolerance plus slack)")
     ap.add_argument("--expect", choices=["pass", "fail"], required=True)
     ap.add_argument("--min-deviation", type=float, default=0.0)
     ap.add_argument("--worst-at-plunge", action="store_true")
@@ -125,6 +130,13 @@ def main():
             with open(nc, "w") as f:
                 f.write(program)
             args.tcp = True
+        if args.drop_g61:
+            program, n = re.subn(r"\bG61 ", "", program)
+            if n == 0:
+                print("FAIL: --drop-g61 but the program has no G61")
+                return 1
+            with open(nc, "w") as f:
+                f.write(program)
         if args.drop_g64p:
             program = re.sub(r"G64\s*P[0-9.]+(\s*Q[0-9.]+)?", "", program)
             with open(nc, "w") as f:
@@ -141,6 +153,8 @@ def main():
             return 1
 
         trace = [args.cscam, "trace", samples, "--machine", args.machine, "--cl", cl, "--json"]
+        if args.tolerance > 0:
+            trace += ["--tolerance", str(args.tolerance)]
         if not args.tcp_stand_in:  # ours has no cscam header (machine, tool length)
             trace += ["--nc", nc]
         p = run(trace)

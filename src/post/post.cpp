@@ -247,7 +247,7 @@ class Sequencer {
     }
     footer();
     map_lines(0);
-    flush();
+    flush(true);
     if (capped_blocks_ > 0)
       sum_.warnings.push_back(
           fmt::format("{}: {} feed block(s) slowed so that no axis exceeds its max_feed (first at NC line {})",
@@ -256,10 +256,17 @@ class Sequencer {
   }
 
  private:
-  void flush() {
-    out_.write(buf_.data(), static_cast<std::streamsize>(buf_.size()));
-    buf_.clear();
-    scanned_ = 0;
+  /// Writes the buffer out, but keeps the last feed block (stop_exactly_at_last_feed may still change it) unless
+  /// `all`.
+  void flush(bool all = false) {
+    const std::size_t keep_from =
+        all || last_feed_at_ == std::string::npos ? buf_.size() : std::min(last_feed_at_, buf_.size());
+    out_.write(buf_.data(), static_cast<std::streamsize>(keep_from));
+    buf_.erase(0, keep_from);
+    scanned_ -= std::min(scanned_, keep_from);
+    if (last_feed_at_ != std::string::npos) last_feed_at_ = all ? std::string::npos : last_feed_at_ - keep_from;
+    resumed_at_ = resumed_at_ != std::string::npos && resumed_at_ >= keep_from && !all ? resumed_at_ - keep_from
+                                                                                       : std::string::npos;
   }
 
   /// Attributes the NC lines written since the last call to `cl_line` (for the gate's messages).
@@ -611,9 +618,55 @@ class Sequencer {
       const double p = kPow10[blk_.feed_decimals];
       blk_.feed = std::max(std::floor(*feed * p * (1.0 + kFeedFloorSlack)) / p, 1.0 / p);
     }
+    const std::size_t at = buf_.size();
     fmt_->block(buf_, blk_);
     ++sum_.blocks;
+    if (blk_.motion == BlockSpec::Motion::Rapid) {
+      resume_blend_ = exact_;  // away from the part: the next cut blends again (a turn's plunge resets this)
+    } else {
+      last_feed_at_ = at;
+      if (resume_blend_ && exact_) {  // the first cut after a plunge: blending again from here on
+        insert_words(at, fmt_->blend_words());
+        exact_ = resume_blend_ = false;
+        resumed_at_ = at;
+      }
+    }
   }
+
+  /// Makes the control stop exactly at the end of the last feed block written (the cut before a retract, whose
+  /// blend mode was fixed when the control queued it) and at every block's after it, until resume_blend_.
+  void stop_exactly_at_last_feed() {
+    const std::string w = fmt_->exact_path_words();
+    if (w.empty() || exact_ || last_feed_at_ == std::string::npos) return;
+    exact_ = true;
+    resume_blend_ = false;
+    if (resumed_at_ == last_feed_at_) {
+      // The last feed block is the one that resumed blending (a cut of one block between two retracts): it stays
+      // in exact path instead (two words of one modal group in a block are an error).
+      const std::string b = fmt_->blend_words() + " ";
+      const std::size_t p = words_at(last_feed_at_);
+      CSCAM_CHECK(buf_.compare(p, b.size(), b) == 0, "the block that resumed blending starts with its words");
+      buf_.erase(p, b.size());
+      resumed_at_ = std::string::npos;
+      return;
+    }
+    insert_words(last_feed_at_, w);
+  }
+
+  /// Where the words of the block that begins at buf_[at] start (after its N number).
+  [[nodiscard]] std::size_t words_at(std::size_t at) const {
+    CSCAM_CHECK(at <= buf_.size(), "words_at: the block is still in the buffer");
+    std::size_t p = at;
+    if (p < buf_.size() && buf_[p] == 'N') {
+      ++p;
+      while (p < buf_.size() && std::isdigit(static_cast<unsigned char>(buf_[p])) != 0) ++p;
+      if (p < buf_.size() && buf_[p] == ' ') ++p;
+    }
+    return p;
+  }
+
+  /// Inserts words at the start of the block that begins at buf_[at].
+  void insert_words(std::size_t at, const std::string& w) { buf_.insert(words_at(at), w + " "); }
 
   bool rotaries_differ(const kin::Axes& q) const {
     for (int i : kin_.rotary_pair())
@@ -730,6 +783,7 @@ class Sequencer {
   void exit_along_axis() {
     if (!at_cut_ || cart_ || axis_retract_) return;
     at_cut_ = false;
+    stop_exactly_at_last_feed();
     // Along the machine's actual tool axis (a planned program may tilt away from the CL axis).
     const kin::Posed here = kin_.forward(cur_);
     cl::Move from = cut_move_, up = cut_move_;
@@ -879,13 +933,16 @@ class Sequencer {
                                           "retract {:.1f} mm along its axis inside the limits "
                                           "(post.singularity.retract_mm)",
                                           m.line, rotary_change(kin_, qa, qb), d));
+    stop_exactly_at_last_feed();    // no blend of the cut into the retract, nor of the plunge into the cut
     feed_linear(m, qa, m_up, up0);  // straight out along the tool axis (linearised: a PKM's joints are not)
     at_cut_ = false;                // already out
     rapid(up1, next);
+    resume_blend_ = false;
     cl::Move m_back = m;
     m_back.feed_mm_per_min = feed_mm_min;
     m_back.line = next.line;
     feed_linear(m_up, up1, m_back, qb);  // and straight back in
+    resume_blend_ = true;
     ++sum_.retracts;
     sum_.warnings.push_back(
         fmt::format("{}: rotaries flip or unwind at CL line {} ({}): retract {:.1f} mm along the "
@@ -1413,12 +1470,15 @@ class Sequencer {
                                           "retract {:.1f} mm along its axis inside the limits "
                                           "(post.singularity.retract_mm)",
                                           mv.line, rotary_change(kin_, q0, q0n), d));
+    stop_exactly_at_last_feed();
     emit_tcp_feed(up, pose0.axis, q_up, feed_mm_min);  // out along the tool axis
     const kin::Axes v = cartesian_words(up, pose0.axis, qn_up);
     emit_g0(v);
     track_control(v, pose0.axis);
     cart_q_ = qn_up;
+    resume_blend_ = false;
     emit_tcp_feed(pose0.tip_mm, pose0.axis, q0n, feed_mm_min);  // and straight back in
+    resume_blend_ = true;
     ++sum_.retracts;
     sum_.warnings.push_back(
         fmt::format("{}: rotaries flip or unwind before CL line {} ({}): retract {:.1f} mm along "
@@ -1605,8 +1665,12 @@ class Sequencer {
   cl::Move cart_move_;                    ///< the last CL point posted in Cartesian mode
   std::vector<TcpPiece> tcp_pieces_;
   bool have_state_ = false;
-  bool at_cut_ = false;  ///< the last motion was a feed: the tool may be in the material
-  cl::Move cut_move_;    ///< the CL point that feed ended at
+  bool at_cut_ = false;                           ///< the last motion was a feed: the tool may be in the material
+  std::size_t last_feed_at_ = std::string::npos;  ///< where in buf_ the last feed block starts
+  bool exact_ = false;         ///< exact path (Formatter::exact_path_words) is on: around a retract, turn and plunge
+  bool resume_blend_ = false;  ///< the plunge is written: the next feed block resumes blending
+  std::size_t resumed_at_ = std::string::npos;  ///< where in buf_ the block that resumed blending starts
+  cl::Move cut_move_;                           ///< the CL point that feed ended at
   bool mode93_ = false;
   double last_feed_ = -1.0;
   kin::Axes cur_ = kin::Axes::Zero();

@@ -132,7 +132,8 @@ TraceCheckResult check_trace(const Trace& trace, const cl::Program& cl, const ki
   std::vector<kin::Posed> pose(trace.samples.size());
   for (size_t i = 0; i < trace.samples.size(); ++i) pose[i] = kinematics.forward(trace.samples[i].joints);
 
-  // Nearest CL segment: the neighbourhood of the previous one first (the path advances segment by segment);
+  // Nearest CL segment: the neighbourhood of the previous one first (64 segments either way: the path advances,
+  // but may double back beside itself);
   // a sample within tolerance there passes (its deviation is then an upper bound), else the whole path is
   // searched and the true distance to the nearest point of the path is taken.
   size_t cursor = 0;
@@ -151,7 +152,7 @@ TraceCheckResult check_trace(const Trace& trace, const cl::Program& cl, const ki
       return best;
     };
     const size_t c0 = cursor;
-    const double local = scan(c0 > 2 ? c0 - 2 : 0, std::min(segs.size(), c0 + 64));
+    const double local = scan(c0 > 64 ? c0 - 64 : 0, std::min(segs.size(), c0 + 64));
     if (local <= options.tip_tolerance_mm) return local;
     return scan(0, segs.size());
   };
@@ -270,7 +271,7 @@ TraceCheckResult check_trace(const Trace& trace, const cl::Program& cl, const ki
     if (s.motion != TraceMotion::Feed && s.motion != TraceMotion::Arc) continue;
     double t = 0;
     const double d = nearest(pose[i].tip_mm, t);
-    if (d > options.tip_tolerance_mm && on_departure(pose[i])) {
+    if (on_departure(pose[i])) {  // near its CL end a departure sample is also within tolerance of the path
       ++r.departure_samples;
       continue;
     }

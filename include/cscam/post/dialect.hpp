@@ -69,6 +69,12 @@ class Formatter {
   [[nodiscard]] virtual bool has_inverse_time() const { return true; }
   /// Circular blocks (G2/G3 with an incremental centre I J K in the G17/G18/G19 planes) exist.
   [[nodiscard]] virtual bool has_arcs() const { return true; }
+  /// Words that make the control reach the end of the block they start exactly, and every block's after them: so
+  /// that it cannot start a retract while the rotaries still finish the cut before it. Empty where the dialect's
+  /// blending has not been measured (LinuxCNC's was: docs/linuxcnc.md).
+  [[nodiscard]] virtual std::string exact_path_words() const { return {}; }
+  /// Words that resume blending within the post's tolerance after exact_path_words().
+  [[nodiscard]] virtual std::string blend_words() const { return {}; }
 
   /// Tilted work planes for 3+2 stretches (rotaries fixed; docs/posts.md): none (machine coordinates: linuxcnc),
   /// a rotated frame whose Z is the tool axis (G68.2, CYCLE800, PLANE SPATIAL; origin: the part's), or a work
