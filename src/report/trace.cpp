@@ -137,6 +137,12 @@ TraceCheckResult check_trace(const Trace& trace, const cl::Program& cl, const ki
   // a sample within tolerance there passes (its deviation is then an upper bound), else the whole path is
   // searched and the true distance to the nearest point of the path is taken.
   size_t cursor = 0;
+  // The nearest segment in the neighbourhood of the previous one, even where a far one (a path that crosses itself)
+  // is nearer: the sample's axis is judged around both.
+  size_t local_cursor = 0;
+  double local_t = 0.0;
+  std::map<int, size_t> segment_of_line;  // NC line -> the CL segment its block ends on (with --nc)
+  int anchor_line = -1;                   // the NC line of the sample being placed
   auto nearest = [&](const Vec3& p, double& t) {
     auto scan = [&](size_t lo, size_t hi) {
       double best = std::numeric_limits<double>::infinity();
@@ -151,8 +157,13 @@ TraceCheckResult check_trace(const Trace& trace, const cl::Program& cl, const ki
       }
       return best;
     };
-    const size_t c0 = cursor;
+    // Anchored on the sample's NC line where the program is known (the label runs a block or two ahead of the motion,
+    // well inside the window): a random walk that crosses itself must not pull the cursor to another pass.
+    const auto anchor = segment_of_line.find(anchor_line);
+    const size_t c0 = anchor != segment_of_line.end() ? anchor->second : cursor;
     const double local = scan(c0 > 64 ? c0 - 64 : 0, std::min(segs.size(), c0 + 64));
+    local_cursor = cursor;
+    local_t = t;
     if (local <= options.tip_tolerance_mm) return local;
     return scan(0, segs.size());
   };
@@ -213,6 +224,33 @@ TraceCheckResult check_trace(const Trace& trace, const cl::Program& cl, const ki
       return best;
     };
     const double cos_axis_tol = std::cos(deg2rad(options.axis_tolerance_deg));
+    // Each block matched to the CL segment nearest its end, searching forward from the previous block's (the program
+    // follows the CL path in order); a block far off the path (a rapid, a retract) keeps the previous one.
+    {
+      // Of the segments as near as the nearest (within half the tolerance: printed decimals, a walk that passes
+      // through the same point twice), the one closest ahead of the previous block's.
+      size_t k_seg = 0;
+      std::vector<double> dist;
+      for (const nc::Block& b : nc->blocks) {
+        const Vec3 tip = pose_of(b).tip_mm;
+        const size_t lo = k_seg > 16 ? k_seg - 16 : 0, hi = std::min(segs.size(), k_seg + 256);
+        dist.assign(hi - lo, 0.0);
+        double best = std::numeric_limits<double>::infinity(), t;
+        for (size_t k = lo; k < hi; ++k)
+          best = std::min(best, dist[k - lo] = seg_distance(segs[k].p0, segs[k].p1, tip, t));
+        if (best <= 10.0 * options.tip_tolerance_mm) {
+          size_t at = k_seg;
+          double cost = std::numeric_limits<double>::infinity();
+          for (size_t k = lo; k < hi; ++k) {
+            if (dist[k - lo] > best + 0.5 * options.tip_tolerance_mm) continue;
+            const double c = k >= k_seg ? static_cast<double>(k - k_seg) : 4.0 * static_cast<double>(k_seg - k);
+            if (c < cost) cost = c, at = k;
+          }
+          k_seg = at;
+        }
+        segment_of_line[b.line] = k_seg;
+      }
+    }
     for (size_t k = 1; k < nc->blocks.size(); ++k) {
       const nc::Block& b = nc->blocks[k];
       if (b.motion != nc::Motion::Linear) continue;
@@ -241,9 +279,11 @@ TraceCheckResult check_trace(const Trace& trace, const cl::Program& cl, const ki
   // with another orientation (as the gate judges a block, docs/safety.md).
   auto best_axis_deg = [&](const Vec3& tip, const Vec3& axis) {
     double best_dot = -1.0;
-    const size_t lo = cursor > 64 ? cursor - 64 : 0, hi = std::min(segs.size(), cursor + 65);
     const double tol2 = options.tip_tolerance_mm * options.tip_tolerance_mm;
-    for (size_t k = lo; k < hi; ++k) {
+    std::vector<size_t> around;
+    for (const size_t c : {cursor, local_cursor})
+      for (size_t k = c > 64 ? c - 64 : 0; k < std::min(segs.size(), c + 65); ++k) around.push_back(k);
+    for (const size_t k : around) {
       const Vec3 d = segs[k].p1 - segs[k].p0, e = segs[k].p0 - tip;
       const double a = d.squaredNorm(), b = 2.0 * d.dot(e), c = e.squaredNorm() - tol2;
       double t0 = 0.0, t1 = 1.0;  // where |p0 + t d - tip| <= tol
@@ -270,6 +310,7 @@ TraceCheckResult check_trace(const Trace& trace, const cl::Program& cl, const ki
     const TraceSample& s = trace.samples[i];
     if (s.motion != TraceMotion::Feed && s.motion != TraceMotion::Arc) continue;
     double t = 0;
+    anchor_line = s.nc_line;
     const double d = nearest(pose[i].tip_mm, t);
     if (on_departure(pose[i])) {  // near its CL end a departure sample is also within tolerance of the path
       ++r.departure_samples;
@@ -289,7 +330,13 @@ TraceCheckResult check_trace(const Trace& trace, const cl::Program& cl, const ki
     }
     const Vec3 u = slerp(segs[cursor].u0, segs[cursor].u1, t);
     double ang = rad2deg(std::acos(std::clamp(u.dot(pose[i].axis), -1.0, 1.0)));
-    if (ang > options.axis_tolerance_deg) ang = std::min(ang, best_axis_deg(pose[i].tip_mm, pose[i].axis));
+    if (ang > options.axis_tolerance_deg) {
+      // A far segment nearer than the neighbourhood (a walk crossing itself, the controller a little off here): the
+      // axis is judged at the neighbourhood's nearest point too.
+      const Vec3 ul = slerp(segs[local_cursor].u0, segs[local_cursor].u1, local_t);
+      ang = std::min({ang, rad2deg(std::acos(std::clamp(ul.dot(pose[i].axis), -1.0, 1.0))),
+                      best_axis_deg(pose[i].tip_mm, pose[i].axis)});
+    }
     if (ang > r.max_axis_deviation_deg) {
       r.max_axis_deviation_deg = ang;
       r.max_axis_nc_line = s.nc_line;
