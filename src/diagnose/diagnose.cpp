@@ -863,6 +863,20 @@ Report diagnose(sim::Recording& rec, const machine::Machine& m, const std::vecto
     for (const auto& e : v) r.push_back(e.get());
     return r;
   };
+  auto fit_view = [](std::vector<std::unique_ptr<Effect>>& v) {  // what joint_fit adjusts
+    std::vector<Effect*> r;
+    r.reserve(v.size());
+    for (auto& e : v) r.push_back(e.get());
+    return r;
+  };
+  // A copy of the accepted model with one candidate more.
+  auto model_with = [&](std::unique_ptr<Effect> extra) {
+    std::vector<std::unique_ptr<Effect>> t;
+    t.reserve(model.size() + 1);
+    for (const auto& e : model) t.push_back(e->clone());
+    t.push_back(std::move(extra));
+    return t;
+  };
   double held_ms = weighted_ms(F, {}, true);
   const double held_ms_start = held_ms;
   std::vector<char> event_only;  // per accepted effect: judged on the training blocks (try_event)
@@ -917,14 +931,8 @@ Report diagnose(sim::Recording& rec, const machine::Machine& m, const std::vecto
       if (ei == res.size()) return false;
       const auto off_save = F.off;
       const double train_ms = weighted_ms(F, view(model), false);
-      std::vector<std::unique_ptr<Effect>> trial;
-      trial.reserve(model.size() + 1);
-      for (const auto& e : model) trial.push_back(e->clone());
-      trial.push_back(std::move(res[ei].event));
-      std::vector<Effect*> fxp;
-      fxp.reserve(trial.size());
-      for (auto& e : trial) fxp.push_back(e.get());
-      joint_fit(F, fxp);
+      auto trial = model_with(std::move(res[ei].event));
+      joint_fit(F, fit_view(trial));
       const double new_train = weighted_ms(F, view(trial), false), new_held = weighted_ms(F, view(trial), true);
       const bool ok = std::all_of(trial.begin(), trial.end(), [](const auto& e) { return plausible(*e); });
       if (!ok || (train_ms - new_train) * static_cast<double>(n_train_values) <= 2.0 * o.min_gain_sum ||
@@ -948,24 +956,16 @@ Report diagnose(sim::Recording& rec, const machine::Machine& m, const std::vecto
     if (order.size() > 1) {
       double best_ms = std::numeric_limits<double>::infinity();
       for (size_t pi : order) {
-        std::vector<std::unique_ptr<Effect>> tr;
-        for (const auto& e : model) tr.push_back(e->clone());
-        tr.push_back(res[pi].e->clone());
-        std::vector<Effect*> tp;
-        for (auto& e : tr) tp.push_back(e.get());
-        joint_fit(F, tp, sstride);
+        auto tr = model_with(res[pi].e->clone());
+        joint_fit(F, fit_view(tr), sstride);
         const bool ok = std::all_of(tr.begin(), tr.end(), [](const auto& e) { return plausible(*e); });
         const double ms = weighted_ms(F, view(tr), true) * (res[pi].e->scope() == Scope::Geometric ? 1.03 : 1.0);
         F.off = off_save;
         if (ok && ms < best_ms) best_ms = ms, bi = pi;
       }
     }
-    std::vector<std::unique_ptr<Effect>> trial;
-    for (const auto& e : model) trial.push_back(e->clone());
-    trial.push_back(std::move(res[bi].e));
-    std::vector<Effect*> fxp;
-    for (auto& e : trial) fxp.push_back(e.get());
-    joint_fit(F, fxp);
+    auto trial = model_with(std::move(res[bi].e));
+    joint_fit(F, fit_view(trial));
     const double new_ms = weighted_ms(F, view(trial), true);
     const bool ok = std::all_of(trial.begin(), trial.end(), [](const auto& e) { return plausible(*e); });
     if (!ok || held_ms - new_ms <= thr) {

@@ -281,8 +281,11 @@ TraceCheckResult check_trace(const Trace& trace, const cl::Program& cl, const ki
     double best_dot = -1.0;
     const double tol2 = options.tip_tolerance_mm * options.tip_tolerance_mm;
     std::vector<size_t> around;
-    for (const size_t c : {cursor, local_cursor})
+    auto add = [&](size_t c) {
       for (size_t k = c > 64 ? c - 64 : 0; k < std::min(segs.size(), c + 65); ++k) around.push_back(k);
+    };
+    add(cursor);
+    if (local_cursor != cursor) add(local_cursor);
     for (const size_t k : around) {
       const Vec3 d = segs[k].p1 - segs[k].p0, e = segs[k].p0 - tip;
       const double a = d.squaredNorm(), b = 2.0 * d.dot(e), c = e.squaredNorm() - tol2;
