@@ -6,7 +6,7 @@ Posts a CL file for trunnion-ac with cscam, runs the program in LinuxCNC's own m
 against the CL path with `cscam trace` (FK of the sampled joints, the post's tolerance).
 
   linuxcnc_test.py --cscam BIN --cl FILE [--feed MMPM] [--tcp] [--mdi 'G64 P0.01']
-                   [--drop-g64p] [--drop-g61] [--tolerance MM] --expect pass|fail [--min-deviation MM]
+                   [--drop-g64p] [--drop-g61] [--uniform-blend] [--tolerance MM] --expect pass|fail [--min-deviation MM]
                    [--worst-at-plunge]
 
 --expect fail is the demonstration that the check can fail: the deviation must then exceed
@@ -83,7 +83,10 @@ def main():
     ap.add_argument("--drop-g64p", action="store_true",
                     help="remove a G64 P word the post wrote (the controller then blends without a tolerance)")
     ap.add_argument("--drop-g61", action="store_true",
-                    help="remove the G61 (exact path) words the post wrote around retracts and plunges")
+                    help="replace the G61 (exact path) words the post wrote around retracts and plunges by the "
+                         "program's own G64 P")
+    ap.add_argument("--uniform-blend", action="store_true",
+                    help="give every block the program's first G64 P (undo the post's narrowed corners)")
     ap.add_argument("--tolerance", type=float, default=0.0,
                     help="tip tolerance for cscam trace, mm (default: the post's tolerance plus slack)")
     ap.add_argument("--expect", choices=["pass", "fail"], required=True)
@@ -131,10 +134,22 @@ def main():
                 f.write(program)
             args.tcp = True
         if args.drop_g61:
-            program, n = re.subn(r"\bG61 ", "", program)
+            # The cut blends into the retract as any corner would: at the program's own P (the header's), not at a
+            # narrowed P that an earlier corner left in force.
+            first = re.search(r"G64 P[0-9.]+", program)
+            program, n = re.subn(r"\bG61 ", first.group(0) + " " if first else "", program)
             if n == 0:
                 print("FAIL: --drop-g61 but the program has no G61")
                 return 1
+            with open(nc, "w") as f:
+                f.write(program)
+        if args.uniform_blend:
+            first = re.search(r"G64 P[0-9.]+", program)
+            narrowed = [w for w in re.findall(r"G64 P[0-9.]+", program) if w != first.group(0)] if first else []
+            if not narrowed:
+                print("FAIL: --uniform-blend but the program narrows no corner")
+                return 1
+            program = re.sub(r"G64 P[0-9.]+", first.group(0), program)
             with open(nc, "w") as f:
                 f.write(program)
         if args.drop_g64p:

@@ -168,6 +168,8 @@ TEST(Machine, HostileFilesNameTheFileTheLineAndTheKey) {
   expect_error(good + "post:\n  axis_tolerance_deg: 0\n", {"bad.yaml:10:", "post.axis_tolerance_deg", "positive"});
   expect_error(with("limits: [-90, 90]}", "limits: [-90, 90], max_feed: -5}"),
                {"bad.yaml:6:", "axes[3].max_feed", "must be positive"});
+  expect_error(with("limits: [-90, 90]}", "limits: [-90, 90], max_accel: 0}"),
+               {"bad.yaml:6:", "axes[3].max_accel", "must be positive"});
   // The XMINI file too (its own loader).
   expect_error("name: x\nkinematics: xmini\nxmini:\n  tool_length_mm: 50\n  tool_length_mm: 60\n",
                {"bad.yaml:5:3", "xmini.tool_length_mm", "duplicate key"});
@@ -447,4 +449,14 @@ TEST(Machines, MotionBoundHoldsAgainstDenseFk) {
     }
     EXPECT_GT(tight, 10) << name << ": the bound is not vacuous (within 20x of the dense deviation)";
   }
+}
+
+TEST(Machine, AccelerationsInModelUnits) {
+  const auto m = machine::load(test::source_path("machines/trunnion-ac.yaml"));
+  // 300 mm/s^2 on X, 300 deg/s^2 on A (the LinuxCNC sim's MAX_ACCELERATION), stored in mm and rad.
+  EXPECT_DOUBLE_EQ(m.axes[0].max_accel, 300.0);
+  EXPECT_NEAR(m.axes[3].max_accel, 300.0 * kPi / 180.0, 1e-12);
+  // Absent: unknown (0), which the post takes as every axis alike.
+  const auto h = machine::load(test::source_path("machines/haas-umc750.yaml"));
+  for (const auto& a : h.axes) EXPECT_EQ(a.max_accel, 0.0) << a.name;
 }

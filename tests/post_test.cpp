@@ -562,6 +562,8 @@ TEST(PostProgram, SequenceNumbersInchWorkOffsetAndRotaryHome) {
   const Posted p = post_program(prog, m, *k);
   EXPECT_NE(p.text.find("N5 G20 G90 G94"), std::string::npos) << p.text.substr(0, 600);
   EXPECT_NE(p.text.find("N10 G55\n"), std::string::npos);
+  // G64 P is a length in the program's units: 0.01 mm is 0.0004 inch.
+  EXPECT_NE(p.text.find("G64 P0.0004\n"), std::string::npos) << p.text.substr(0, 600);
   // every block numbered, in steps of 5
   std::regex nword("^N([0-9]+) ");
   long long prev = 0;
@@ -1577,7 +1579,10 @@ TEST(Post, LinuxcncStopsExactlyAroundARetractAndResumesBlendingAfterThePlunge) {
   for (size_t i = 0; i < lines.size(); ++i) {
     EXPECT_FALSE(lines[i].find("G61") != std::string::npos && lines[i].find("G64") != std::string::npos) << lines[i];
     if (lines[i].find("G61") != std::string::npos) g61.push_back(i);
-    if (lines[i].find("G64 P") != std::string::npos) g64.push_back(i);
+    // The post's own P; not where it follows a corner the post narrowed (Post.LinuxcncNarrows... checks those).
+    if (lines[i].find(fmt::format("G64 P{:.4f}", m.post.tolerance_mm)) != std::string::npos &&
+        (i == 0 || lines[i - 1].find("G64 P") == std::string::npos))
+      g64.push_back(i);
   }
   // The flip's retract and the final one; the header's G64 P and the one after the plunge.
   ASSERT_EQ(g61.size(), 2u) << p.text;
@@ -1650,4 +1655,124 @@ TEST(Post, CanFollowRefusesAJumpBesideASingularOrientation) {
   EXPECT_EQ(sum.retracts, 1u);
   const auto gs = gate::check(os.str(), "jump.ngc", two, m, *kin, gate::options_for(m, 0, 0, 0));
   EXPECT_TRUE(gs.ok) << gs.message;
+}
+
+namespace {
+
+/// The oracle of the corner tests: LinuxCNC's parabolic blend integrated in time (docs/linuxcnc.md), not sampled
+/// from the post's closed form. At each corner between two straight G1 blocks the first decelerates to a stop at its
+/// end at the acceleration its slowest axis allows, while the second accelerates from its start at its own; the blend
+/// speed is the smaller of 2 sqrt(a P / sin(turn / 2)) (P: the first block's G64 P; none under G61, which stops) and
+/// the speed that lets the first block use half its length. Returns the largest distance of the tip from the CL
+/// polyline over all blends.
+double worst_blend_deviation_mm(const std::string& text, const cl::Program& prog, const machine::Machine& m,
+                                const kin::Kinematics& k, std::optional<double> force_p = std::nullopt) {
+  const nc::Program ncp = nc::read_text(text, "blend.ngc", letters_of(m));
+  std::vector<std::string> lines;
+  std::istringstream in(text);
+  for (std::string l; std::getline(in, l);) lines.push_back(l);
+  std::vector<Vec3> cl_pts;
+  for (const auto& mv : prog.moves) cl_pts.push_back(mv.tip_in_part_mm);
+  auto cl_distance = [&](const Vec3& p) {
+    double best = std::numeric_limits<double>::infinity();
+    for (size_t i = 1; i < cl_pts.size(); ++i) {
+      const Vec3 ab = cl_pts[i] - cl_pts[i - 1];
+      const double t = std::clamp((p - cl_pts[i - 1]).dot(ab) / ab.squaredNorm(), 0.0, 1.0);
+      best = std::min(best, (cl_pts[i - 1] + t * ab - p).norm());
+    }
+    return best;
+  };
+  // The blend mode each block was queued with.
+  std::optional<double> p_mode;  // nullopt: G61
+  std::vector<std::optional<double>> p_of(ncp.blocks.size());
+  for (size_t b = 0, l = 0; b < ncp.blocks.size(); ++b) {
+    for (; l < lines.size() && static_cast<int>(l) + 1 <= ncp.blocks[b].line; ++l) {
+      if (lines[l].find("G61") != std::string::npos) p_mode.reset();
+      if (const auto at = lines[l].find("G64 P"); at != std::string::npos) p_mode = std::stod(lines[l].substr(at + 5));
+    }
+    p_of[b] = force_p && p_mode ? force_p : p_mode;
+  }
+  auto q_of = [](const nc::Block& b) {
+    kin::Axes q;
+    for (int i = 0; i < 5; ++i) q[i] = b.axes[static_cast<size_t>(i)];
+    return q;
+  };
+  // A segment's acceleration along its X Y Z length, as LinuxCNC's canon takes it from the axes' MAX_ACCELERATION
+  // (the machine file's max_accel).
+  auto accel_of = [&](const kin::Axes& w) {  // w: the move per mm of X Y Z, model units
+    double slowest = 0.0;
+    for (size_t i = 0; i < 5; ++i) slowest = std::max(slowest, std::abs(w[static_cast<int>(i)]) / m.axes[i].max_accel);
+    return 1.0 / slowest;
+  };
+  double worst = 0.0;
+  for (size_t b = 1; b + 1 < ncp.blocks.size(); ++b) {
+    const auto &b0 = ncp.blocks[b - 1], &b1 = ncp.blocks[b], &b2 = ncp.blocks[b + 1];
+    if (b1.motion != nc::Motion::Linear || b2.motion != nc::Motion::Linear || b1.arc || b2.arc || !p_of[b]) continue;
+    const kin::Axes q0 = q_of(b0), q1 = q_of(b1), q2 = q_of(b2);
+    const Vec3 d1 = (q1 - q0).head<3>(), d2 = (q2 - q1).head<3>();
+    if (d1.norm() < 1e-9 || d2.norm() < 1e-9) continue;
+    const kin::Axes w1 = (q1 - q0) / d1.norm(), w2 = (q2 - q1) / d2.norm();
+    const double a1 = accel_of(w1), a2 = accel_of(w2);
+    const double turn = std::acos(std::clamp(d1.normalized().dot(d2.normalized()), -1.0, 1.0));
+    double v = std::sqrt(a1 * std::min(d1.norm(), d2.norm()));  // stops within half the shorter block
+    if (turn > 2e-3) v = std::min(v, 2.0 * std::sqrt(a1 * *p_of[b] / std::sin(0.5 * turn)));
+    const double T = v / a1;
+    for (int s = 0; s <= 400; ++s) {
+      const double t = T * s / 400.0;
+      const double into_next = std::min(0.5 * a2 * t * t, d2.norm());
+      const kin::Axes q = q1 - w1 * (0.5 * a1 * (T - t) * (T - t)) + w2 * into_next;
+      worst = std::max(worst, cl_distance(k.forward(q).tip_mm));
+    }
+  }
+  return worst;
+}
+
+// Ten points of a random walk (scripts/generate_cl.py seed 46) where C turns 8.6 deg per mm into a corner and 2.2 deg
+// per mm out of it: LinuxCNC took the tip 0.064 mm off the path there (docs/linuxcnc.md).
+constexpr const char* kRotaryRateJump =
+    "UNITS/MM\nMULTAX/ON\nCUTTER/6,3\nLOADTL/1\nFEDRAT/MMPM,1500\n"
+    "GOTO/8.3611,12.9081,0.0000,0.056679,0.192065,0.979744\n"
+    "GOTO/8.4921,12.9934,0.0000,0.043465,0.195181,0.979804\n"
+    "GOTO/8.4098,13.4683,0.0000,0.025003,0.200467,0.979381\n"
+    "GOTO/8.7048,12.9524,0.0000,0.031392,0.188502,0.981571\n"
+    "GOTO/8.2676,12.9359,0.0000,0.045166,0.188597,0.981015\n"
+    "GOTO/8.7321,13.0664,0.0000,0.047454,0.206299,0.977338\n"
+    "GOTO/8.1770,12.2077,0.0000,0.042328,0.199878,0.978906\n"
+    "GOTO/8.6356,11.4962,0.0000,0.057184,0.190861,0.979950\n"
+    "GOTO/8.0368,11.0023,0.0000,0.064907,0.187245,0.980166\n"
+    "GOTO/8.8415,10.9874,0.0000,0.070063,0.176710,0.981766\n"
+    "GOTO/10.0304,11.1023,0.0000,0.072205,0.184255,0.980223\n";
+
+}  // namespace
+
+TEST(Post, LinuxcncNarrowsTheBlendWhereTheRotaryRateJumps) {
+  const auto m = load_machine("trunnion-ac");
+  const auto k = m.kinematics();
+  const cl::Program prog = cl::read_text(kRotaryRateJump, "rate_jump.cls");
+  for (const auto& a : m.axes) ASSERT_GT(a.max_accel, 0.0) << a.name;  // the oracle's segment accelerations
+  const Posted p = post_program(prog, m, *k);
+  const double tol = m.post.tolerance_mm;
+  EXPECT_GT(p.summary.narrowed_corners + p.summary.exact_corners, 0u) << p.text;
+  // The negative control: every corner at the post's own P leaves the tolerance (the oracle can fail).
+  EXPECT_GT(worst_blend_deviation_mm(p.text, prog, m, *k, tol), 1.5 * tol);
+  // As posted, every blend stays within it (the post checks the middle; the oracle the whole blend).
+  EXPECT_LE(worst_blend_deviation_mm(p.text, prog, m, *k), tol * (1.0 + 1e-3)) << p.text;
+  // No block has two blend words, and the narrowed P holds for the narrowed corners only: as many feed blocks are
+  // queued with a P below the post's as there are narrowed corners.
+  std::istringstream in(p.text);
+  std::optional<double> mode;
+  size_t narrowed_blocks = 0;
+  for (std::string l; std::getline(in, l);) {
+    EXPECT_FALSE(l.find("G61") != std::string::npos && l.find("G64") != std::string::npos) << l;
+    if (l.find("G61") != std::string::npos) mode.reset();
+    if (const auto at = l.find("G64 P"); at != std::string::npos) mode = std::stod(l.substr(at + 5));
+    if (l.find("G1 ") != std::string::npos && mode && *mode < tol - 1e-9) ++narrowed_blocks;
+  }
+  EXPECT_EQ(narrowed_blocks, p.summary.narrowed_corners);
+  expect_rs274_agrees(p.text, m, "rate-jump");
+  const auto v = verify_text(p.text, prog, m, *k);
+  EXPECT_TRUE(v.ok) << v.message;
+  // Under tool-tip control the tip is the X Y Z words, which P bounds: nothing to narrow.
+  const Posted tcp = post_program(prog, m, *k, true, true);
+  EXPECT_EQ(tcp.summary.narrowed_corners + tcp.summary.exact_corners, 0u);
 }

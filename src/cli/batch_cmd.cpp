@@ -100,6 +100,8 @@ void add_written_json(nlohmann::json& j, const JobResult& r) {
   j["inserted_points"] = r.inserted_points;
   j["reorientations"] = r.reorientations;
   j["retracts"] = r.retracts;
+  j["narrowed_corners"] = r.narrowed_corners;
+  j["exact_corners"] = r.exact_corners;
   j["travel_mm"] = r.travel_mm;
   j["travel_deg"] = r.travel_deg;
   j["reversals"] = r.reversals;
@@ -190,6 +192,8 @@ void take_summaries(JobResult& r, const post::Summary& sum, const gate::Summary&
   r.inserted_points = sum.inserted_points;
   r.reorientations = sum.reorientations;
   r.retracts = sum.retracts;
+  r.narrowed_corners = sum.narrowed_corners;
+  r.exact_corners = sum.exact_corners;
   r.message = gs.message;
   r.max_tip_deviation_mm = gs.deviation.max_tip_deviation_mm;
   r.max_axis_deviation_deg = gs.deviation.max_axis_deviation_deg;

@@ -41,6 +41,7 @@ struct JobResult {
   std::string message;  ///< the gate's verdict when Ok, else the error (file:line: what)
   std::string machine_name;
   std::size_t cl_points = 0, blocks = 0, inserted_points = 0, reorientations = 0, retracts = 0;
+  std::size_t narrowed_corners = 0, exact_corners = 0;  ///< corners whose control blend the post bounded
   double travel_mm = 0, travel_deg = 0;  ///< summed over the linear / rotary axes of the written program
   int reversals = 0;                     ///< direction changes, all axes
   double seconds = 0;

@@ -135,11 +135,16 @@ int cmd_post(const PostArgs& a) {
   } else {
     for (const auto& w : r.warnings) std::cerr << "warning: " << w << "\n";
     std::cout << fmt::format(
-        "wrote {} ({} CL points -> {} blocks, {} points inserted by linearisation{}) for machine {} in {:.3f} s\n"
+        "wrote {} ({} CL points -> {} blocks, {} points inserted by linearisation{}{}) for machine {} in {:.3f} s\n"
         "gate {}\n",
         out, r.cl_points, r.blocks, r.inserted_points,
         r.reorientations + r.retracts
             ? fmt::format(", {} reorientations in place, {} retracts", r.reorientations, r.retracts)
+            : std::string(),
+        r.narrowed_corners + r.exact_corners
+            ? fmt::format(", {} corners given a smaller blend tolerance and {} exact stops so that the control's "
+                          "blending keeps the tolerance",
+                          r.narrowed_corners, r.exact_corners)
             : std::string(),
         r.machine_name, r.seconds, r.message);
   }

@@ -390,7 +390,8 @@ void load_serial(const Reader& r, const YAML::Node& root, Machine& m) {
     const YAML::Node a = axes[i];
     const std::string path = fmt::format("axes[{}]", i);
     r.only_keys(a, path,
-                {"name", "type", "side", "direction", "pivot_mm", "limits", "max_feed", "cyclic", "prefer", "offset"});
+                {"name", "type", "side", "direction", "pivot_mm", "limits", "max_feed", "max_accel", "cyclic", "prefer",
+                 "offset"});
     kin::AxisInfo info;
     info.name = r.string(r.required(a, "name", path), path + ".name");
     for (auto& ch : info.name) ch = static_cast<char>(std::tolower(static_cast<unsigned char>(ch)));
@@ -412,6 +413,11 @@ void load_serial(const Reader& r, const YAML::Node& root, Machine& m) {
       info.max_feed = r.number(a["max_feed"], path + ".max_feed") * scale;
       if (!(info.max_feed > 0))
         r.fail(a["max_feed"], path + ".max_feed", fmt::format("must be positive (got {})", a["max_feed"].Scalar()));
+    }
+    if (a["max_accel"]) {
+      info.max_accel = r.number(a["max_accel"], path + ".max_accel") * scale;
+      if (!(info.max_accel > 0))
+        r.fail(a["max_accel"], path + ".max_accel", fmt::format("must be positive (got {})", a["max_accel"].Scalar()));
     }
     if (a["cyclic"]) info.cyclic = r.boolean(a["cyclic"], path + ".cyclic");
     if (info.cyclic && !info.rotary()) r.fail(a["cyclic"], path + ".cyclic", "only a rotary axis can be cyclic");

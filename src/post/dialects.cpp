@@ -265,7 +265,9 @@ class Linuxcnc : public Formatter {
   // G64 P bounds the joint X Y Z of a blend only: LinuxCNC lifted Z into a retract while C was still 1.3 deg short of
   // the end of the cut (the tip 0.084 mm off the path). G61 (exact path) is set when a segment is queued.
   [[nodiscard]] std::string exact_path_words() const override { return "G61"; }
-  [[nodiscard]] std::string blend_words() const override { return fmt::format("G64 P{:.4f}", info_.tolerance_mm); }
+  [[nodiscard]] std::string blend_within_words(double p) const override { return fmt::format("G64 P{:.4f}", p); }
+  // With A B C (or U V W) in a segment LinuxCNC blends parabolically, P bounding X Y Z only (docs/linuxcnc.md).
+  [[nodiscard]] bool blends_parabolically() const override { return true; }
   // The switchable trunnion kinematics (xyzac-trt, xyzbc-trt sample configs): M428 selects the TCP (world)
   // kinematics, in which X Y Z are the tip in the table frame and the tool offset of G43 is taken into
   // account by the kinematics; M429 returns to identity (joint) kinematics.

@@ -8,7 +8,9 @@
 #include <limits>
 #include <ostream>
 #include <sstream>
+#include <string_view>
 
+#include "blend.hpp"
 #include "cscam/core/error.hpp"
 #include "cscam/core/parallel.hpp"
 #include "cscam/core/rotations.hpp"
@@ -89,6 +91,14 @@ constexpr double kFallbackFeedMmMin = 1000.0;
 /// The motion sequencer: turns CL moves and their axis values into motion blocks for a formatter, with modal
 /// suppression of unchanged axis words.
 class Sequencer {
+  /// A feed block still in buf_ whose blend mode may change: where it starts and ends, the mode in force before it
+  /// and the one it asks for; its inserted words are the latter where the two differ.
+  struct FeedBlock {
+    std::size_t at = std::string::npos, end = std::string::npos;
+    std::string before, mode, words;
+    [[nodiscard]] bool tracked() const { return at != std::string::npos; }
+  };
+
  public:
   Sequencer(std::ostream& out, const cl::Program& program, const machine::Machine& machine, const kin::Kinematics& kin,
             const Options& opt, Summary& summary)
@@ -150,6 +160,20 @@ class Sequencer {
       throw InputError(machine.where("post.dialect"), e.message());  // the machine file's value
     }
     fmt_->number_lines(m_.post.sequence_numbers, m_.post.sequence_step);
+    mode_ = fmt_->blend_words();  // the header's (empty where the dialect writes none)
+    for (auto& memo : fk_memo_) memo.first.setConstant(std::numeric_limits<double>::quiet_NaN());  // matches no q
+    bound_corners_ = fmt_->blends_parabolically() && !cart_ && !fmt_->exact_path_words().empty();
+    for (std::size_t i = 0; i < 5; ++i) {
+      const char letter = info_.letters[i].empty() ? 'X' : info_.letters[i][0];
+      control_axes_.group[i] = std::string_view("UVW").find(letter) != std::string_view::npos   ? AxisGroup::Uvw
+                               : std::string_view("ABC").find(letter) != std::string_view::npos ? AxisGroup::Abc
+                                                                                                : AxisGroup::Xyz;
+      control_axes_.to_program[i] = to_file_[i];
+      control_axes_.accel[i] = m_.axes[i].max_accel * to_file_[i];
+    }
+    // Without max_accel in the machine file: every axis alike in program units (as LinuxCNC's sample configs).
+    if (std::all_of(control_axes_.accel.begin(), control_axes_.accel.end(), [](double a) { return a <= 0; }))
+      control_axes_.accel.fill(1.0);
     inverse_time_ = fmt_->has_inverse_time();
     for (const auto& [axis, codes] : m_.post.clamp) {
       const int i = m_.axis_index(axis);
@@ -259,14 +283,17 @@ class Sequencer {
   /// Writes the buffer out, but keeps the last feed block (stop_exactly_at_last_feed may still change it) unless
   /// `all`.
   void flush(bool all = false) {
-    const std::size_t keep_from =
-        all || last_feed_at_ == std::string::npos ? buf_.size() : std::min(last_feed_at_, buf_.size());
+    const std::size_t keep_from = all || !last_blk_.tracked() ? buf_.size() : std::min(last_blk_.at, buf_.size());
     out_.write(buf_.data(), static_cast<std::streamsize>(keep_from));
     buf_.erase(0, keep_from);
     scanned_ -= std::min(scanned_, keep_from);
-    if (last_feed_at_ != std::string::npos) last_feed_at_ = all ? std::string::npos : last_feed_at_ - keep_from;
-    resumed_at_ = resumed_at_ != std::string::npos && resumed_at_ >= keep_from && !all ? resumed_at_ - keep_from
-                                                                                       : std::string::npos;
+    prev_blk_ = FeedBlock{};  // its corner was bounded when the last block was written
+    if (all) {
+      last_blk_ = FeedBlock{};
+    } else if (last_blk_.tracked()) {
+      last_blk_.at -= keep_from;
+      last_blk_.end -= keep_from;
+    }
   }
 
   /// Attributes the NC lines written since the last call to `cl_line` (for the gate's messages).
@@ -619,16 +646,19 @@ class Sequencer {
       blk_.feed = std::max(std::floor(*feed * p * (1.0 + kFeedFloorSlack)) / p, 1.0 / p);
     }
     const std::size_t at = buf_.size();
+    const bool follows_feed = last_blk_.tracked() && at == last_blk_.end;
     fmt_->block(buf_, blk_);
     ++sum_.blocks;
+    corner_open_ = false;  // emit_timed opens it again for its own blocks
     if (blk_.motion == BlockSpec::Motion::Rapid) {
       resume_blend_ = exact_;  // away from the part: the next cut blends again (a turn's plunge resets this)
+      prev_blk_ = FeedBlock{};
     } else {
-      last_feed_at_ = at;
+      prev_blk_ = follows_feed ? std::move(last_blk_) : FeedBlock{};
+      last_blk_ = FeedBlock{at, buf_.size(), mode_, mode_, {}};
       if (resume_blend_ && exact_) {  // the first cut after a plunge: blending again from here on
-        insert_words(at, fmt_->blend_words());
+        set_mode(last_blk_, fmt_->blend_words());
         exact_ = resume_blend_ = false;
-        resumed_at_ = at;
       }
     }
   }
@@ -637,20 +667,86 @@ class Sequencer {
   /// blend mode was fixed when the control queued it) and at every block's after it, until resume_blend_.
   void stop_exactly_at_last_feed() {
     const std::string w = fmt_->exact_path_words();
-    if (w.empty() || exact_ || last_feed_at_ == std::string::npos) return;
+    if (w.empty() || exact_ || !last_blk_.tracked()) return;
     exact_ = true;
     resume_blend_ = false;
-    if (resumed_at_ == last_feed_at_) {
-      // The last feed block is the one that resumed blending (a cut of one block between two retracts): it stays
-      // in exact path instead (two words of one modal group in a block are an error).
-      const std::string b = fmt_->blend_words() + " ";
-      const std::size_t p = words_at(last_feed_at_);
-      CSCAM_CHECK(buf_.compare(p, b.size(), b) == 0, "the block that resumed blending starts with its words");
-      buf_.erase(p, b.size());
-      resumed_at_ = std::string::npos;
-      return;
+    set_mode(last_blk_, w);
+  }
+
+  /// Gives a tracked feed block the blend mode `mode` (its words, when the mode in force before it differs). The
+  /// block after the previous one is rewritten too: the mode before it changed. One word of the group per block: a
+  /// block that asked for another mode is rewritten, never given a second word.
+  void set_mode(FeedBlock& b, const std::string& mode) {
+    CSCAM_CHECK(b.tracked() && (&b == &last_blk_ || &b == &prev_blk_), "set_mode: a tracked feed block");
+    b.mode = mode;
+    rewrite_words(b, b.mode == b.before ? std::string() : b.mode);
+    if (&b == &prev_blk_ && last_blk_.tracked()) {
+      last_blk_.before = mode;
+      rewrite_words(last_blk_, last_blk_.mode == last_blk_.before ? std::string() : last_blk_.mode);
+    } else if (&b == &last_blk_) {
+      mode_ = mode;
     }
-    insert_words(last_feed_at_, w);
+  }
+
+  /// Replaces the words inserted at the start of a tracked block, and moves the offsets after them.
+  void rewrite_words(FeedBlock& b, const std::string& words) {
+    if (words == b.words) return;
+    const std::size_t p = words_at(b.at);
+    const std::string old = b.words.empty() ? std::string() : b.words + " ";
+    const std::string now = words.empty() ? std::string() : words + " ";
+    CSCAM_CHECK(buf_.compare(p, old.size(), old) == 0, "a tracked block starts with the words inserted there");
+    buf_.replace(p, old.size(), now);
+    auto move = [&](std::size_t& at) {
+      if (at != std::string::npos && at > p) at = at + now.size() - old.size();
+    };
+    move(b.end);
+    if (&b == &prev_blk_) {
+      move(last_blk_.at);
+      move(last_blk_.end);
+    }
+    if (scanned_ > p) scanned_ = scanned_ + now.size() - old.size();  // the words hold no newline
+    b.words = words;
+  }
+
+  /// The tool at q, remembered for the last few q: neighbouring corners share two of their three points.
+  kin::Posed pose_at(const kin::Axes& q) {
+    for (const auto& [at, pose] : fk_memo_)
+      if (at == q) return pose;
+    auto& slot = fk_memo_[fk_memo_next_];
+    fk_memo_next_ = (fk_memo_next_ + 1) % fk_memo_.size();
+    slot = {q, kin_.forward(q)};
+    return slot.second;
+  }
+
+  /// After the feed block q1 -> q2 that follows the feed block q0 -> q1 (both still in buf_): where the control
+  /// blends their corner as parabolic_corner() models, the blend's middle must stay within the tolerance of the
+  /// path (tip) and of the tool axis at the corner. If it would not, the first block gets a smaller blend tolerance
+  /// (the reach shrinks with P where the turn lets P bound it) or exact path, and the second the post's own again.
+  void bound_corner_blend(const kin::Axes& q0, const kin::Axes& q1, const kin::Axes& q2) {
+    const double p = fmt_->tolerance_in_program_units();
+    const auto c = parabolic_corner(q0, q1, q2, control_axes_, p);
+    if (!c) return;
+    const kin::Posed A = pose_at(q0), B = pose_at(q1), C = pose_at(q2);
+    const CornerBlendCheck check(kin_, *c, q1, A, B, C, tol_mm_, tol_axis_rad_);
+    const double worst = check.excess(c->reach);
+    if (worst <= 1.0 + 1e-9) return;
+    std::string words;
+    if (std::isfinite(c->reach_per_p)) {
+      // The deviation grows with the reach about linearly: aim at 90 % of the tolerance, then check.
+      const double step = fmt_->blend_tolerance_resolution();
+      double p_new = std::floor(0.9 * c->reach / worst / c->reach_per_p / step) * step;
+      while (p_new >= step && check.excess(p_new * c->reach_per_p) > 1.0) p_new = std::floor(0.5 * p_new / step) * step;
+      if (p_new >= step) words = fmt_->blend_within_words(p_new);
+    }
+    if (words.empty()) {
+      words = fmt_->exact_path_words();
+      if (words.empty()) return;
+      ++sum_.exact_corners;
+    } else {
+      ++sum_.narrowed_corners;
+    }
+    set_mode(prev_blk_, words);
+    set_mode(last_blk_, fmt_->blend_words());
   }
 
   /// Where the words of the block that begins at buf_[at] start (after its N number).
@@ -664,9 +760,6 @@ class Sequencer {
     }
     return p;
   }
-
-  /// Inserts words at the start of the block that begins at buf_[at].
-  void insert_words(std::size_t at, const std::string& w) { buf_.insert(words_at(at), w + " "); }
 
   bool rotaries_differ(const kin::Axes& q) const {
     for (int i : kin_.rotary_pair())
@@ -1281,6 +1374,7 @@ class Sequencer {
     const double minutes = block_minutes(qa, qb, tip_len_mm / feed_mm_min);
     start(BlockSpec::Motion::Linear);
     if (!add_words(qb, {0, 1, 2, 3, 4})) return;
+    const bool after_straight_feed = corner_open_;  // emit() closes it
     if (inverse_time_) {
       if (!mode93_) {
         blk_.feed_mode = BlockSpec::FeedMode::InverseTime;
@@ -1293,6 +1387,14 @@ class Sequencer {
       last_feed_ = f;
       emit(f);
     }
+    // The corner with the block before, when that one was a straight feed block ending here and the control
+    // blends it (not in exact path around a retract).
+    if (bound_corners_ && after_straight_feed && prev_blk_.tracked() && !exact_ &&
+        prev_blk_.mode != fmt_->exact_path_words() && qa == corner_q1_ && !(plane_active_ && plane_words_))
+      bound_corner_blend(corner_q0_, qa, qb);
+    corner_q0_ = qa;
+    corner_q1_ = qb;
+    corner_open_ = true;
   }
 
   void emit_feed_to(const kin::Axes& from, const kin::Axes& q, double tip_len_mm, double feed_mm_min) {
@@ -1665,12 +1767,19 @@ class Sequencer {
   cl::Move cart_move_;                    ///< the last CL point posted in Cartesian mode
   std::vector<TcpPiece> tcp_pieces_;
   bool have_state_ = false;
-  bool at_cut_ = false;                           ///< the last motion was a feed: the tool may be in the material
-  std::size_t last_feed_at_ = std::string::npos;  ///< where in buf_ the last feed block starts
-  bool exact_ = false;         ///< exact path (Formatter::exact_path_words) is on: around a retract, turn and plunge
-  bool resume_blend_ = false;  ///< the plunge is written: the next feed block resumes blending
-  std::size_t resumed_at_ = std::string::npos;  ///< where in buf_ the block that resumed blending starts
-  cl::Move cut_move_;                           ///< the CL point that feed ended at
+  bool at_cut_ = false;  ///< the last motion was a feed: the tool may be in the material
+  FeedBlock prev_blk_;   ///< the feed block right before last_blk_ (nothing between them), while its corner is open
+  FeedBlock last_blk_;   ///< the last feed block written
+  std::string mode_;     ///< the blend mode in force after the last block (its words; the header sets the first)
+  bool exact_ = false;   ///< exact path (Formatter::exact_path_words) is on: around a retract, turn and plunge
+  bool resume_blend_ = false;   ///< the plunge is written: the next feed block resumes blending
+  bool bound_corners_ = false;  ///< the control blends rotaries past its tolerance: bound_corner_blend at each corner
+  ControlAxes control_axes_;    ///< the axis slots as the control's planner sees them
+  bool corner_open_ = false;    ///< the last block written is a straight feed block corner_q0_ -> corner_q1_
+  kin::Axes corner_q0_ = kin::Axes::Zero(), corner_q1_ = kin::Axes::Zero();
+  std::array<std::pair<kin::Axes, kin::Posed>, 3> fk_memo_{};  ///< pose_at's memory (NaN axes: empty)
+  std::size_t fk_memo_next_ = 0;
+  cl::Move cut_move_;  ///< the CL point that feed ended at
   bool mode93_ = false;
   double last_feed_ = -1.0;
   kin::Axes cur_ = kin::Axes::Zero();

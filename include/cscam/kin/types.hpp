@@ -18,8 +18,9 @@ struct AxisInfo {
   AxisType type = AxisType::Linear;
   double min = 0.0;  ///< mm or rad
   double max = 0.0;
-  bool cyclic = false;    ///< a rotary that may turn without end (limits then only bound the output)
-  double max_feed = 0.0;  ///< mm/min or rad/min; 0 = unknown
+  bool cyclic = false;     ///< a rotary that may turn without end (limits then only bound the output)
+  double max_feed = 0.0;   ///< mm/min or rad/min; 0 = unknown
+  double max_accel = 0.0;  ///< mm/s^2 or rad/s^2 (the control's, e.g. LinuxCNC's MAX_ACCELERATION); 0 = unknown
   [[nodiscard]] bool rotary() const { return type == AxisType::Rotary; }
 };
 

@@ -74,7 +74,20 @@ class Formatter {
   /// blending has not been measured (LinuxCNC's was: docs/linuxcnc.md).
   [[nodiscard]] virtual std::string exact_path_words() const { return {}; }
   /// Words that resume blending within the post's tolerance after exact_path_words().
-  [[nodiscard]] virtual std::string blend_words() const { return {}; }
+  [[nodiscard]] std::string blend_words() const { return blend_within_words(tolerance_in_program_units()); }
+  /// Words that make the control blend corners within `p` (program units: mm, or inch under G20); empty where the
+  /// dialect has none.
+  [[nodiscard]] virtual std::string blend_within_words(double /*p*/) const { return {}; }
+  /// The smallest step of the P that blend_within_words() prints.
+  [[nodiscard]] virtual double blend_tolerance_resolution() const { return 1e-4; }
+  /// The control blends straight blocks that turn a rotary as post/blend.hpp's parabolic_corner() models, with its
+  /// blend tolerance bounding the linear axes only: the sequencer then bounds each corner's blend itself
+  /// (blend_within_words() with a smaller P, or exact_path_words()).
+  [[nodiscard]] virtual bool blends_parabolically() const { return false; }
+  /// The post's tolerance in program units.
+  [[nodiscard]] double tolerance_in_program_units() const {
+    return info_.inch ? info_.tolerance_mm / 25.4 : info_.tolerance_mm;
+  }
 
   /// Tilted work planes for 3+2 stretches (rotaries fixed; docs/posts.md): none (machine coordinates: linuxcnc),
   /// a rotated frame whose Z is the tool axis (G68.2, CYCLE800, PLANE SPATIAL; origin: the part's), or a work

@@ -47,8 +47,12 @@ struct Summary {
   std::size_t reorientations = 0;  ///< branch flips or unwinds done with the tip held in place
   std::size_t retracts = 0;        ///< branch flips or unwinds done by retract, rotate and plunge
   std::size_t capped_blocks = 0;   ///< feed blocks slowed so that no axis exceeds its max_feed
-  std::size_t arc_blocks = 0;      ///< CL arcs written as one G2/G3 block
-  std::size_t work_planes = 0;     ///< 3+2 stretches written in a tilted work plane (post.work_plane: tilted)
+  /// Corners where the control's blend would take the rotaries (and so the tip) past the tolerance: given a smaller
+  /// blend tolerance, or exact path (LinuxCNC: docs/linuxcnc.md).
+  std::size_t narrowed_corners = 0;
+  std::size_t exact_corners = 0;
+  std::size_t arc_blocks = 0;   ///< CL arcs written as one G2/G3 block
+  std::size_t work_planes = 0;  ///< 3+2 stretches written in a tilted work plane (post.work_plane: tilted)
   std::vector<std::string> warnings;
   /// For every NC line (1-based index; index 0 unused) the CL line it came from (0: header, footer).
   std::vector<int> cl_line_of_nc_line;
