@@ -1776,3 +1776,22 @@ TEST(Post, LinuxcncNarrowsTheBlendWhereTheRotaryRateJumps) {
   const Posted tcp = post_program(prog, m, *k, true, true);
   EXPECT_EQ(tcp.summary.narrowed_corners + tcp.summary.exact_corners, 0u);
 }
+
+TEST(Post, EveryNcLineIsAttributedOnceWhenBlendWordsAreInserted) {
+  // The words of a corner or a retract are inserted into blocks already written: the CL line of each NC line (the
+  // gate's messages; 1-based, entry 0 unused) must still count every line once.
+  const auto m = load_machine("trunnion-ac");
+  const auto k = m.kinematics();
+  for (const char* text : {kRotaryRateJump}) {
+    const cl::Program prog = cl::read_text(text, "rate_jump.cls");
+    const Posted p = post_program(prog, m, *k);
+    ASSERT_GT(p.summary.narrowed_corners, 0u);
+    EXPECT_EQ(p.summary.cl_line_of_nc_line.size(),
+              static_cast<size_t>(std::count(p.text.begin(), p.text.end(), '\n')) + 1);
+  }
+  const cl::Program flip = cl::read_file(test::source_path("tests/data/azimuth_turn_at_vertical.cls"));
+  const Posted p = post_program(flip, m, *k);
+  ASSERT_EQ(p.summary.retracts, 1u);
+  EXPECT_EQ(p.summary.cl_line_of_nc_line.size(),
+            static_cast<size_t>(std::count(p.text.begin(), p.text.end(), '\n')) + 1);
+}
