@@ -123,6 +123,13 @@ TEST(SimEffects, ParsingFollowsTheSpecKeysAndRejectsBadInput) {
   EXPECT_NE(error_of([&] { sim::parse_effect("backlash:q7:1", m); }).find("no axis 'q7'"), std::string::npos);
   EXPECT_NE(error_of([&] { sim::parse_effect("vibration:tip.w:1:1", m); }).find("not a channel"), std::string::npos);
   EXPECT_NE(error_of([&] { sim::parse_effect("servo_lag:x:lag=1", m); }).find("no parameter 'lag'"), std::string::npos);
+  // Squareness is an angle between two linear slides: not between a slide and a rotary, nor between the legs of a
+  // parallel machine.
+  EXPECT_NE(error_of([&] { sim::parse_effect("squareness:x,c:100", m); }).find("both axes must be linear slides"),
+            std::string::npos);
+  const auto xmini = machine::load(std::string(CSCAM_SOURCE_DIR) + "/machines/xmini.yaml");
+  EXPECT_NE(error_of([&] { sim::parse_effect("squareness:q1,q2:100", xmini); }).find("parallel-link machine"),
+            std::string::npos);
   // Sign conventions of recording.md: scale actual = cmd (1 + ppm 1e-6); squareness first += gamma * second.
   const auto tr = square_path(m);
   const auto ctx = sim::make_context(tr.t, tr.cmd, {false, false, false, true, true});

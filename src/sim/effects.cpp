@@ -437,6 +437,15 @@ std::unique_ptr<Effect> make_effect(const std::string& name, const std::string& 
       e->axis2 = m.axis_index(target.substr(comma + 1));
       if (e->axis < 0 || e->axis2 < 0 || e->axis == e->axis2)
         throw InputError(fmt::format("effect squareness: '{}' is not a pair of axes of machine {}", target, m.name));
+      // A property of Cartesian slides: between a parallel machine's legs, or with a rotary, it means nothing.
+      if (m.kind != machine::ModelKind::Serial)
+        throw InputError(
+            fmt::format("effect squareness: machine {} is a parallel-link machine; squareness is an "
+                        "angle between two linear slides, which its legs are not",
+                        m.name));
+      if (m.axes[static_cast<size_t>(e->axis)].rotary() || m.axes[static_cast<size_t>(e->axis2)].rotary())
+        throw InputError(
+            fmt::format("effect squareness: '{}' of machine {}: both axes must be linear slides", target, m.name));
       e->enc_visible = false;
     } else {
       e->axis = m.axis_index(target);
