@@ -719,9 +719,10 @@ class Sequencer {
   }
 
   /// After the feed block q1 -> q2 that follows the feed block q0 -> q1 (both still in buf_): where the control
-  /// blends their corner as parabolic_corner() models, the blend's middle must stay within the tolerance of the
-  /// path (tip) and of the tool axis at the corner. If it would not, the first block gets a smaller blend tolerance
-  /// (the reach shrinks with P where the turn lets P bound it) or exact path, and the second the post's own again.
+  /// blends their corner as parabolic_corner() models, the whole blend must keep the tip within the tolerance of the
+  /// path, pass the corner's point within it, and keep the tool axis within the axis tolerance of the blocks' axes
+  /// (CornerBlendCheck). If it would not, the first block gets a smaller blend tolerance (the reach shrinks with P
+  /// where the turn lets P bound it) or exact path, and the second the post's own again.
   void bound_corner_blend(const kin::Axes& q0, const kin::Axes& q1, const kin::Axes& q2) {
     const double p = fmt_->tolerance_in_program_units();
     const auto c = parabolic_corner(q0, q1, q2, control_axes_, p);
