@@ -162,7 +162,8 @@ class Sequencer {
     fmt_->number_lines(m_.post.sequence_numbers, m_.post.sequence_step);
     mode_ = fmt_->blend_words();  // the header's (empty where the dialect writes none)
     for (auto& memo : fk_memo_) memo.first.setConstant(std::numeric_limits<double>::quiet_NaN());  // matches no q
-    bound_corners_ = fmt_->blends_parabolically() && !cart_ && !fmt_->exact_path_words().empty();
+    exact_words_ = fmt_->exact_path_words();
+    bound_corners_ = fmt_->blends_parabolically() && !cart_ && !exact_words_.empty();
     for (std::size_t i = 0; i < 5; ++i) {
       const char letter = info_.letters[i].empty() ? 'X' : info_.letters[i][0];
       control_axes_.group[i] = std::string_view("UVW").find(letter) != std::string_view::npos   ? AxisGroup::Uvw
@@ -666,11 +667,10 @@ class Sequencer {
   /// Makes the control stop exactly at the end of the last feed block written (the cut before a retract, whose
   /// blend mode was fixed when the control queued it) and at every block's after it, until resume_blend_.
   void stop_exactly_at_last_feed() {
-    const std::string w = fmt_->exact_path_words();
-    if (w.empty() || exact_ || !last_blk_.tracked()) return;
+    if (exact_words_.empty() || exact_ || !last_blk_.tracked()) return;
     exact_ = true;
     resume_blend_ = false;
-    set_mode(last_blk_, w);
+    set_mode(last_blk_, exact_words_);
   }
 
   /// Gives a tracked feed block the blend mode `mode` (its words, when the mode in force before it differs). The
@@ -740,7 +740,7 @@ class Sequencer {
       if (p_new >= step) words = fmt_->blend_within_words(p_new);
     }
     if (words.empty()) {
-      words = fmt_->exact_path_words();
+      words = exact_words_;
       if (words.empty()) return;
       ++sum_.exact_corners;
     } else {
@@ -1390,8 +1390,8 @@ class Sequencer {
     }
     // The corner with the block before, when that one was a straight feed block ending here and the control
     // blends it (not in exact path around a retract).
-    if (bound_corners_ && after_straight_feed && prev_blk_.tracked() && !exact_ &&
-        prev_blk_.mode != fmt_->exact_path_words() && qa == corner_q1_ && !(plane_active_ && plane_words_))
+    if (bound_corners_ && after_straight_feed && prev_blk_.tracked() && !exact_ && prev_blk_.mode != exact_words_ &&
+        qa == corner_q1_ && !(plane_active_ && plane_words_))
       bound_corner_blend(corner_q0_, qa, qb);
     corner_q0_ = qa;
     corner_q1_ = qb;
@@ -1768,11 +1768,12 @@ class Sequencer {
   cl::Move cart_move_;                    ///< the last CL point posted in Cartesian mode
   std::vector<TcpPiece> tcp_pieces_;
   bool have_state_ = false;
-  bool at_cut_ = false;  ///< the last motion was a feed: the tool may be in the material
-  FeedBlock prev_blk_;   ///< the feed block right before last_blk_ (nothing between them), while its corner is open
-  FeedBlock last_blk_;   ///< the last feed block written
-  std::string mode_;     ///< the blend mode in force after the last block (its words; the header sets the first)
-  bool exact_ = false;   ///< exact path (Formatter::exact_path_words) is on: around a retract, turn and plunge
+  bool at_cut_ = false;      ///< the last motion was a feed: the tool may be in the material
+  FeedBlock prev_blk_;       ///< the feed block right before last_blk_ (nothing between them), while its corner is open
+  FeedBlock last_blk_;       ///< the last feed block written
+  std::string mode_;         ///< the blend mode in force after the last block (its words; the header sets the first)
+  bool exact_ = false;       ///< exact path (Formatter::exact_path_words) is on: around a retract, turn and plunge
+  std::string exact_words_;  ///< Formatter::exact_path_words(), once (the corner check asks at every block)
   bool resume_blend_ = false;   ///< the plunge is written: the next feed block resumes blending
   bool bound_corners_ = false;  ///< the control blends rotaries past its tolerance: bound_corner_blend at each corner
   ControlAxes control_axes_;    ///< the axis slots as the control's planner sees them
