@@ -312,6 +312,60 @@ TEST(Trace, OnAPathThatDoublesBackTheAxisIsJudgedWhereTheSampleCanBe) {
   EXPECT_NEAR(bad.max_axis_deviation_deg, 1.0, 0.05) << bad.message;
 }
 
+// A path that crosses itself: a sample that leaves its own pass right at the crossing is within the tolerance of the
+// other pass. With the program known, each sample is judged against the CL segments its block runs along, so it fails
+// by its distance from its own pass. Oracle: the 0.05 mm shift put into that one sample.
+TEST(Trace, ASampleOffItsOwnPassFailsWhereAnotherPassCrossesIt) {
+  TraceFixture f;
+  std::string cls = "UNITS/MM\nMULTAX/ON\nRAPID\nGOTO/-10,0,0,0,0,1\nFEDRAT/MMPM,500\n";
+  for (int x = -8; x <= 10; x += 2) cls += fmt::format("GOTO/{},0,0,0,0,1\n", x);   // pass 1 along X
+  for (int y = -10; y <= 10; y += 2) cls += fmt::format("GOTO/0,{},0,0,0,1\n", y);  // pass 2 along Y, over pass 1
+  const cl::Program cl = cl::read_text(cls, "cross.cls");
+  // One block per CL move (move i on NC line i + 2), at the IK of its point.
+  std::vector<kin::Axes> q(cl.moves.size());
+  kin::Axes near = kin::Axes::Zero();
+  for (size_t i = 0; i < cl.moves.size(); ++i) {
+    ASSERT_TRUE(
+        kin::nearest_solution(*f.kin, {cl.moves[i].tip_in_part_mm, cl.moves[i].axis_in_part.normalized()}, near, q[i]));
+    near = q[i];
+  }
+  auto word = [](const kin::Axes& a) {
+    return fmt::format("X{:.6f} Y{:.6f} Z{:.6f} A{:.6f} C{:.6f}", a[0], a[1], a[2], rad2deg(a[3]), rad2deg(a[4]));
+  };
+  std::string ngc = "G21 G90 G94\nG0 " + word(q[0]) + "\n";
+  for (size_t i = 1; i < q.size(); ++i) ngc += "G1 " + word(q[i]) + (i == 1 ? " F500\n" : "\n");
+  ngc += "M2\n";
+  const nc::Program nc = nc::read_text(ngc, "cross.ngc", report::axis_letters(f.m));
+  const size_t crossing = 10 + 1 + 5;  // pass 2's point (0, 0): pass 1 runs through it too
+  ASSERT_LT((cl.moves[crossing].tip_in_part_mm - Eigen::Vector3d::Zero()).norm(), 1e-12);
+  auto run_with = [&](double shift_mm) {
+    report::Trace tr;
+    tr.file = "cross";
+    for (size_t i = 1; i < cl.moves.size(); ++i)
+      for (int k = 0; k < (i + 1 == cl.moves.size() ? 41 : 40); ++k) {  // the last segment up to its end point
+        kin::Posed p{
+            cl.moves[i - 1].tip_in_part_mm + (k / 40.0) * (cl.moves[i].tip_in_part_mm - cl.moves[i - 1].tip_in_part_mm),
+            Eigen::Vector3d::UnitZ()};
+        if (i == crossing + 1 && k == 0) p.tip_mm.x() += shift_mm;  // the sample at the crossing, off pass 2
+        report::TraceSample smp;
+        smp.index = static_cast<long>(tr.samples.size());
+        EXPECT_TRUE(kin::nearest_solution(*f.kin, p, q[i], smp.joints));
+        smp.nc_line = static_cast<int>(i) + 2;
+        smp.motion = report::TraceMotion::Feed;
+        smp.world_mm = Eigen::Vector3d(smp.joints[0], smp.joints[1], smp.joints[2]);
+        tr.samples.push_back(smp);
+      }
+    return report::check_trace(tr, cl, *f.kin, report::TraceCheckOptions{}, &nc);
+  };
+  const auto r = run_with(0.0);
+  EXPECT_TRUE(r.ok) << r.message;
+  EXPECT_LT(r.max_tip_deviation_mm, 1e-5) << r.message;
+  const auto bad = run_with(0.05);
+  EXPECT_FALSE(bad.ok) << bad.message;
+  EXPECT_NEAR(bad.max_tip_deviation_mm, 0.05, 1e-5) << bad.message;
+  EXPECT_EQ(bad.max_tip_nc_line, static_cast<int>(crossing) + 3) << bad.message;
+}
+
 TEST(Trace, ReaderRejectsLostSamplesAndBadLines) {
   const std::array<bool, 5> rot{false, false, false, true, true};
   const std::string ok = "0 1 2 3 4 5 6 7 8 9 10 7 2 1.5 0\n1 1 2 3 4 5 6 7 8 9 10 7 2 1.5 1\n";

@@ -132,17 +132,19 @@ TraceCheckResult check_trace(const Trace& trace, const cl::Program& cl, const ki
   std::vector<kin::Posed> pose(trace.samples.size());
   for (size_t i = 0; i < trace.samples.size(); ++i) pose[i] = kinematics.forward(trace.samples[i].joints);
 
-  // Nearest CL segment: the neighbourhood of the previous one first (64 segments either way: the path advances,
-  // but may double back beside itself);
-  // a sample within tolerance there passes (its deviation is then an upper bound), else the whole path is
-  // searched and the true distance to the nearest point of the path is taken.
+  // The CL segment a sample is judged against. With the program (--nc): the nearest of the segments its block runs
+  // along (below). Without it: the nearest within 64 segments of the previous sample's, and where none of those is
+  // within the tolerance, the nearest of the whole path.
   size_t cursor = 0;
-  // The nearest segment in the neighbourhood of the previous one, even where a far one (a path that crosses itself)
-  // is nearer: the sample's axis is judged around both.
+  // Without the program, the nearest segment in the neighbourhood of the previous one, even where a far one (a path
+  // that crosses itself) is nearer: the sample's axis is judged around both.
   size_t local_cursor = 0;
   double local_t = 0.0;
-  std::map<int, size_t> segment_of_line;  // NC line -> the CL segment its block ends on (with --nc)
-  int anchor_line = -1;                   // the NC line of the sample being placed
+  // NC line -> the CL segments its block and the two before it run along (with --nc): from where the block two
+  // before starts to where this one ends.
+  std::map<int, std::pair<size_t, size_t>> segment_of_line;
+  int anchor_line = -1;           // the NC line of the sample being placed
+  size_t own_lo = 0, own_hi = 0;  // the segments of its block (none: not anchored)
   auto nearest = [&](const Vec3& p, double& t) {
     auto scan = [&](size_t lo, size_t hi) {
       double best = std::numeric_limits<double>::infinity();
@@ -157,11 +159,21 @@ TraceCheckResult check_trace(const Trace& trace, const cl::Program& cl, const ki
       }
       return best;
     };
-    // Anchored on the sample's NC line where the program is known (the label runs a block or two ahead of the motion,
-    // well inside the window): a random walk that crosses itself must not pull the cursor to another pass.
-    const auto anchor = segment_of_line.find(anchor_line);
-    const size_t c0 = anchor != segment_of_line.end() ? anchor->second : cursor;
-    const double local = scan(c0 > 64 ? c0 - 64 : 0, std::min(segs.size(), c0 + 64));
+    // Anchored on the sample's NC block where the program is known: the sample is judged against the CL segments that
+    // block and the two before it run along (the controller's line label runs a block or two ahead of the motion),
+    // with a margin. Its own pass, not the nearest one: a walk that crosses itself must not pass a sample that left
+    // its pass within the tolerance of another one, nor judge its axis against that other pass.
+    if (const auto anchor = segment_of_line.find(anchor_line); anchor != segment_of_line.end()) {
+      // A block ending on a CL point may be matched to either segment at that point: one segment of margin each way.
+      own_lo = anchor->second.first > 0 ? anchor->second.first - 1 : 0;
+      own_hi = std::min(segs.size(), anchor->second.second + 2);
+      const double own = scan(own_lo, own_hi);
+      local_cursor = cursor;
+      local_t = t;
+      return own;
+    }
+    own_lo = own_hi = 0;
+    const double local = scan(cursor > 64 ? cursor - 64 : 0, std::min(segs.size(), cursor + 64));
     local_cursor = cursor;
     local_t = t;
     if (local <= options.tip_tolerance_mm) return local;
@@ -231,6 +243,7 @@ TraceCheckResult check_trace(const Trace& trace, const cl::Program& cl, const ki
       // through the same point twice), the one closest ahead of the previous block's.
       size_t k_seg = 0;
       std::vector<double> dist;
+      std::vector<size_t> ends;  // the segment each block so far ends on
       for (const nc::Block& b : nc->blocks) {
         const Vec3 tip = pose_of(b).tip_mm;
         const size_t lo = k_seg > 16 ? k_seg - 16 : 0, hi = std::min(segs.size(), k_seg + 256);
@@ -248,7 +261,9 @@ TraceCheckResult check_trace(const Trace& trace, const cl::Program& cl, const ki
           }
           k_seg = at;
         }
-        segment_of_line[b.line] = k_seg;
+        ends.push_back(k_seg);
+        const size_t from = ends[ends.size() > 3 ? ends.size() - 4 : 0];
+        segment_of_line[b.line] = {std::min(from, k_seg), std::max(from, k_seg)};
       }
     }
     for (size_t k = 1; k < nc->blocks.size(); ++k) {
@@ -284,8 +299,12 @@ TraceCheckResult check_trace(const Trace& trace, const cl::Program& cl, const ki
     auto add = [&](size_t c) {
       for (size_t k = c > 64 ? c - 64 : 0; k < std::min(segs.size(), c + 65); ++k) around.push_back(k);
     };
-    add(cursor);
-    if (local_cursor != cursor) add(local_cursor);
+    if (own_hi > own_lo) {  // anchored: its own block's segments only
+      for (size_t k = own_lo; k < own_hi; ++k) around.push_back(k);
+    } else {
+      add(cursor);
+      if (local_cursor != cursor) add(local_cursor);
+    }
     for (const size_t k : around) {
       const Vec3 d = segs[k].p1 - segs[k].p0, e = segs[k].p0 - tip;
       const double a = d.squaredNorm(), b = 2.0 * d.dot(e), c = e.squaredNorm() - tol2;
