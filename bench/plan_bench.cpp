@@ -6,6 +6,7 @@
 #include <sys/resource.h>
 #include <unistd.h>
 
+#include <array>
 #include <cmath>
 #include <cstdio>
 #include <sstream>
@@ -156,7 +157,7 @@ double rss_now_mb() {
 }
 
 /// The planner's work and memory as benchmark counters (what issue 11 asks to report).
-void report_plan(benchmark::State& state, const cscam::plan::Plan& p) {
+void report_plan(benchmark::State& state, const cscam::plan::Plan& p, std::array<int, 2> rotaries) {
   state.counters["cells_enumerated"] = static_cast<double>(p.counters.cells_enumerated);
   state.counters["cells_evaluated"] = static_cast<double>(p.counters.ik);
   state.counters["collision_queries"] = static_cast<double>(p.counters.collision);
@@ -166,6 +167,11 @@ void report_plan(benchmark::State& state, const cscam::plan::Plan& p) {
   state.counters["swept_collisions"] = static_cast<double>(p.swept.collisions);
   state.counters["planner_s"] = p.seconds;
   state.counters["peak_rss_mb"] = peak_rss_mb();
+  // The answer's quality beside its cost: a faster search must not buy its speed with a longer rotary path.
+  double travel_rad = 0.0;
+  for (std::size_t k = 1; k < p.axes.size(); ++k)
+    for (const int j : rotaries) travel_rad += std::abs(p.axes[k][j] - p.axes[k - 1][j]);
+  state.counters["rotary_travel_deg"] = cscam::rad2deg(travel_rad);
 }
 
 void BM_PlanHard(benchmark::State& state) {
@@ -203,7 +209,7 @@ void BM_PlanHard(benchmark::State& state) {
   state.counters["tier"] = tier;
   state.counters["window"] = static_cast<double>(cscam::plan::effective_window(prog.moves.size(), w));
   state.counters["cone_cells_colliding_pct"] = 100.0 * colliding / std::max(1.0, cells);
-  report_plan(state, p);
+  report_plan(state, p, f.m.kinematics()->rotary_pair());
 }
 // 10,000 points is the issue's target; 1,000 for a quick look.
 BENCHMARK(BM_PlanHard)->Arg(1000)->Arg(10000)->Unit(benchmark::kMillisecond)->Iterations(1);
@@ -229,7 +235,7 @@ void BM_Plan1M(benchmark::State& state) {
   state.counters["rss_before_plan_mb"] = rss_before;
   state.counters["window"] = static_cast<double>(cscam::plan::effective_window(prog.moves.size(), w));
   state.counters["tier"] = tier;
-  report_plan(state, p);
+  report_plan(state, p, f.m.kinematics()->rotary_pair());
 }
 BENCHMARK(BM_Plan1M)->Arg(0)->Unit(benchmark::kMillisecond)->Iterations(1);
 
@@ -267,7 +273,7 @@ void BM_PlanNxCone5(benchmark::State& state) {
   for (const auto& g : p.segments) tier = std::max(tier, static_cast<int>(g.tier));
   state.counters["points"] = static_cast<double>(prog.moves.size());
   state.counters["tier"] = tier;
-  report_plan(state, p);
+  report_plan(state, p, kin->rotary_pair());
 }
 BENCHMARK(BM_PlanNxCone5)->Arg(5)->Unit(benchmark::kMillisecond)->Iterations(1);
 

@@ -1086,6 +1086,32 @@ TEST(CSpace, EnumerateListsEveryConeCellInOrderNearTheSingularAxis) {
   }
 }
 
+// Where the cone runs off the end of the grid's C range (+-360 deg): with C near -3 deg, the winding at -363 is off
+// the grid, but its cone reaches back onto it at C -360..-356. No IK solution lies there to start a search from; the
+// cells are in the cone all the same and must be listed (the flood fill missed them). And with a cap, the closest
+// cells of the whole cone, in the scan's order.
+TEST(CSpace, EnumerateListsTheConeCellsWhereTheConeRunsOffTheGridsEnd) {
+  const machine::Machine m = trunnion();
+  cspace::Options co;
+  co.cone_rad = deg2rad(5.0);
+  const cspace::Space sp(m.kinematics(), nullptr, nullptr, co);
+  ASSERT_EQ(sp.i1_min(), -360);  // the primary is C, one whole turn either way at 1 deg
+  const kin::Posed cl{Vec3(1, 2, 3), sp.axis_of(deg2rad(-3.4), deg2rad(30.0))};
+  std::vector<cspace::Cell> cells;
+  cspace::Counters c;
+  sp.enumerate(cl, cells, std::numeric_limits<std::size_t>::max(), c);
+  const auto scan = cone_scan(sp, cl, co.cone_rad);
+  EXPECT_TRUE(std::any_of(scan.begin(), scan.end(), [](const ConeKey& k) { return k.i1 <= -358; }));
+  expect_cells_are(cells, scan);
+  // Capped near the singular axis (thousands of cells in the cone): the first 300 of the scan.
+  const kin::Posed near_pole{Vec3(1, 2, 3), sp.axis_of(deg2rad(20.0), deg2rad(1.5))};
+  sp.enumerate(near_pole, cells, 300, c);
+  auto capped = cone_scan(sp, near_pole, co.cone_rad);
+  ASSERT_GT(capped.size(), 3000u);
+  capped.resize(300);
+  expect_cells_are(cells, capped);
+}
+
 // An axis whose every IK solution lies past a rotary's limit (A -103 and +103 deg on the trunnion's -100..50) with a
 // cone that reaches back inside it: the cone's cells inside the limits are found, as the scan of the whole grid finds
 // them (seeded from the solutions themselves, every seed was outside the grid and none was found). Past the cone's

@@ -94,6 +94,57 @@ Space::Space(std::shared_ptr<const kin::Kinematics> kinematics, const geom::Scen
       kin_->axis_factors(r1_of(i), 0.0, &R1_grid_[static_cast<std::size_t>(i - i1_min_)], nullptr);
     for (int i = i2_min_; i <= i2_max_; ++i)
       kin_->axis_factors(0.0, r2_of(i), nullptr, &v2_grid_[static_cast<std::size_t>(i - i2_min_)]);
+    // Fit v2 = p + q cos + r sin to the table (least squares) and keep it only if it reproduces every entry: the
+    // closed-form rows then find exactly the cells a test of every grid cell would.
+    const auto n2 = static_cast<Eigen::Index>(v2_grid_.size());
+    if (n2 >= 3) {
+      Eigen::MatrixXd X(n2, 3), Y(n2, 3);
+      for (Eigen::Index j = 0; j < n2; ++j) {
+        const double a = r2_of(i2_min_ + static_cast<int>(j));
+        X.row(j) << 1.0, std::cos(a), std::sin(a);
+        Y.row(j) = v2_grid_[static_cast<std::size_t>(j)].transpose();
+      }
+      const Eigen::MatrixXd coef = X.colPivHouseholderQr().solve(Y);
+      v2_p_ = coef.row(0).transpose();
+      v2_q_ = coef.row(1).transpose();
+      v2_r_ = coef.row(2).transpose();
+      rows_in_closed_form_ = (X * coef - Y).cwiseAbs().maxCoeff() < 1e-9;
+    }
+  }
+}
+
+void Space::scan_rows(const Eigen::Vector3d& u, double cos_min,
+                      const std::function<void(double, int, int)>& take) const {
+  constexpr double kTurn = 2.0 * std::numbers::pi;
+  // The closed form only brackets the columns (one column of margin, a band for round-off); each is then decided
+  // by the same test as any other grid cell, on the tabulated axis.
+  constexpr double kBand = 1e-9;
+  const double res = opt_.resolution_rad;
+  for (int i1 = i1_min_; i1 <= i1_max_; ++i1) {
+    const Eigen::Vector3d w = R1_grid_[static_cast<std::size_t>(i1 - i1_min_)].transpose() * u;
+    // cos to the CL axis along the row: alpha + beta cos(r2) + gamma sin(r2) = alpha + rho cos(r2 - phi)
+    const double alpha = w.dot(v2_p_), beta = w.dot(v2_q_), gamma = w.dot(v2_r_);
+    const double rho = std::hypot(beta, gamma);
+    if (alpha + rho < cos_min - kBand) continue;
+    auto test = [&](int i2) {
+      const double d = grid_axis(i1, i2).dot(u);
+      if (d >= cos_min) take(d, i1, i2);
+    };
+    if (alpha - rho >= cos_min + kBand || rho < kBand) {
+      for (int i2 = i2_min_; i2 <= i2_max_; ++i2) test(i2);
+      continue;
+    }
+    const double phi = std::atan2(gamma, beta);
+    const double half = std::acos(std::clamp((cos_min - alpha) / rho, -1.0, 1.0)) + kBand;
+    // Every winding of [phi - half, phi + half] that meets the grid's columns, in column order.
+    const double lo_rad = r2_of(i2_min_), hi_rad = r2_of(i2_max_);
+    int next = i2_min_;  // columns below this one are done (windings may overlap when half is near pi)
+    for (double k = std::floor((lo_rad - phi - half) / kTurn); phi - half + k * kTurn <= hi_rad; k += 1.0) {
+      const int a = std::max(next, static_cast<int>(std::floor((phi - half + k * kTurn) / res)) - 1);
+      const int b = std::min(i2_max_, static_cast<int>(std::ceil((phi + half + k * kTurn) / res)) + 1);
+      for (int i2 = a; i2 <= b; ++i2) test(i2);
+      next = std::max(next, b + 1);
+    }
   }
 }
 
@@ -164,8 +215,8 @@ kin::Posed Space::tool_pose(const kin::Posed& cl, double r1, double r2) const {
 
 void Space::enumerate(const kin::Posed& cl, std::vector<Cell>& out, std::size_t cap, Counters& c) const {
   out.clear();
-  std::vector<kin::Solution> sols;
-  kin_->inverse_all(cl, nullptr, sols);
+  std::vector<kin::Solution> sols;  // (the row scan needs none)
+  if (opt_.cone_rad <= 0 || !rows_in_closed_form_) kin_->inverse_all(cl, nullptr, sols);
   const double res = opt_.resolution_rad;
   const double lo1 = i1_min_ * res - 1e-9, hi1 = i1_max_ * res + 1e-9, lo2 = i2_min_ * res - 1e-9,
                hi2 = i2_max_ * res + 1e-9;
@@ -186,7 +237,8 @@ void Space::enumerate(const kin::Posed& cl, std::vector<Cell>& out, std::size_t 
     c.cells_enumerated += out.size();
     return;
   }
-  // Best-first flood fill over the grid cells inside the cone, seeded at the grid cells around every IK solution:
+  // Serial machines: a scan of the rows in closed form (scan_rows, below). Others: a best-first flood fill over the
+  // grid cells inside the cone, seeded at the grid cells around every IK solution:
   // cells come out closest to the CL axis first, so the cap bounds the work as well as the output (near the
   // singularity the cone covers every primary angle: far too many cells to visit all). The min-tilt annulus is
   // crossed (cells inside min tilt are traversed but not output).
@@ -283,7 +335,27 @@ void Space::enumerate(const kin::Posed& cl, std::vector<Cell>& out, std::size_t 
   // goes best-first at once. Only the work depends on that, never the cells.)
   thread_local bool overflowed_before = false;
   bool whole = !overflowed_before;
-  if (whole) {
+  if (rows_in_closed_form_) {
+    // Every in-cone grid cell, row by row (no flood fill, no heap), also where the cone runs off the grid's end
+    // (cells there that no solution seeds). The cap keeps the closest after the sort below.
+    thread_local std::vector<Item> in_cone;
+    in_cone.clear();
+    scan_rows(cl.axis, cos_cone - 1e-15, [&](double d, int i1, int i2) { in_cone.push_back({d, i1, i2}); });
+    // Past the cap, angles (an arc cosine each) only for the cells that can make it: those within a hair of the
+    // cap-th largest cosine (the float angles the sort uses may tie across less than that).
+    double least_dot = -2.0;
+    if (opt_.min_tilt_rad <= 0 && cap > 0 && in_cone.size() > cap) {
+      const auto kth = in_cone.begin() + static_cast<std::ptrdiff_t>(cap - 1);
+      std::nth_element(in_cone.begin(), kth, in_cone.end(), [](const Item& x, const Item& y) { return y < x; });
+      least_dot = kth->dot - 1e-6;
+    }
+    for (const Item& it : in_cone) {
+      if (it.dot < least_dot) continue;
+      const double err = std::acos(std::clamp(it.dot, -1.0, 1.0));
+      if (err >= opt_.min_tilt_rad) found.push_back({static_cast<float>(err), it.i1, it.i2});
+    }
+    whole = true;
+  } else if (whole) {
     seed();
     while (!heap.empty()) {
       const Item it = heap.back();
@@ -297,7 +369,7 @@ void Space::enumerate(const kin::Posed& cl, std::vector<Cell>& out, std::size_t 
     for (std::size_t at : touched) seen[at] = 0;
     overflowed_before = !whole;
   }
-  if (!whole) {
+  if (!whole && !rows_in_closed_form_) {
     touched.clear();
     heap.clear();
     found.clear();
@@ -351,15 +423,16 @@ void Space::enumerate(const kin::Posed& cl, std::vector<Cell>& out, std::size_t 
   } else {
     std::sort(found.begin(), found.end(), before);
   }
-  out.reserve(found.size());
-  for (const Found& f : found) {
-    Cell cell;
+  if (found.size() > cap) found.resize(cap);  // (the row scan lists the whole cone)
+  out.resize(found.size());                   // built in place: a copy per cell was a visible share of the listing
+  for (std::size_t j = 0; j < found.size(); ++j) {
+    Cell& cell = out[j];
+    const Found& f = found[j];
     cell.r1 = f.i1 * res;
     cell.r2 = f.i2 * res;
     cell.i1 = f.i1;
     cell.i2 = f.i2;
     cell.orient_err = f.err;
-    out.push_back(cell);
   }
   c.cells_enumerated += out.size();
 }

@@ -6,6 +6,7 @@
 /// collide with the part or fixture. Cells are evaluated lazily and cached: collision queries dominate.
 #include <array>
 #include <cstdint>
+#include <functional>
 #include <limits>
 #include <memory>
 #include <string>
@@ -218,7 +219,14 @@ class Space {
   }
   std::vector<Eigen::Matrix3d> R1_grid_;  ///< Kinematics::axis_factors per grid row (empty: no such factors)
   std::vector<Eigen::Vector3d> v2_grid_;  ///< ... per grid column
-  geom::ToolShape tip_tool_;              ///< the lowest part of the cutter as a flat cylinder (Rapid-mode sweeps)
+  /// v2 = p + q cos(r2) + r sin(r2) over the whole grid (a rotation of a fixed vector about a fixed axis, as on every
+  /// serial machine): each grid row's cone cells are then one interval of r2 per winding, found in closed form.
+  bool rows_in_closed_form_ = false;
+  Eigen::Vector3d v2_p_ = Eigen::Vector3d::Zero(), v2_q_ = Eigen::Vector3d::Zero(), v2_r_ = Eigen::Vector3d::Zero();
+  /// The in-cone grid cells of a CL axis, row by row (rows_in_closed_form_): (cosine to the axis, i1, i2).
+  void scan_rows(const Eigen::Vector3d& cl_axis, double cos_min,
+                 const std::function<void(double, int, int)>& take) const;
+  geom::ToolShape tip_tool_;      ///< the lowest part of the cutter as a flat cylinder (Rapid-mode sweeps)
   double reach_mm_ = 0.0;         ///< tool length plus largest checked radius: lever arm of a tool-axis rotation
   double cutter_reach_mm_ = 0.0;  ///< the same for the cutter body alone (its top plus its checked radius)
   int rot1_ = 0, rot2_ = 0;
