@@ -4,6 +4,8 @@
 #include <algorithm>
 #include <cmath>
 
+#include "cscam/core/segment.hpp"
+
 namespace cscam::post {
 
 namespace {
@@ -131,13 +133,6 @@ double CornerBlendCheck::excess(double reach) const {
   worst = refine_max([&](double s) { return sample(reach, s, ends).deviation; }, at, 1.0 / 16.0, worst);
   closest = -refine_max([&](double s) { return -sample(reach, s, ends).miss; }, closest_at, 1.0 / 16.0, -closest);
   return std::max(worst, closest);
-}
-
-double point_segment_distance(const Eigen::Vector3d& p, const Eigen::Vector3d& a, const Eigen::Vector3d& b) {
-  const Eigen::Vector3d ab = b - a;
-  const double L2 = ab.squaredNorm();
-  const double t = L2 > 0 ? std::clamp((p - a).dot(ab) / L2, 0.0, 1.0) : 0.0;
-  return (a + t * ab - p).norm();
 }
 
 }  // namespace cscam::post

@@ -85,7 +85,4 @@ struct ControlAxes {
 std::optional<ParabolicCorner> parabolic_corner(const kin::Axes& q0, const kin::Axes& q1, const kin::Axes& q2,
                                                 const ControlAxes& axes, double p);
 
-/// Distance from p to the segment a b.
-double point_segment_distance(const Eigen::Vector3d& p, const Eigen::Vector3d& a, const Eigen::Vector3d& b);
-
 }  // namespace cscam::post

@@ -9,22 +9,13 @@
 
 #include "cscam/core/error.hpp"
 #include "cscam/core/rotations.hpp"
+#include "cscam/core/segment.hpp"
 #include "cscam/core/tolerances.hpp"
 #include "cscam/kin/track.hpp"
 
 namespace cscam::post {
 
 using Vec3 = Eigen::Vector3d;
-
-namespace {
-
-/// Distance from p to the segment a b, with ab = b - a and L2 = |ab|^2 given (once per segment).
-double point_segment_distance(const Vec3& p, const Vec3& a, const Vec3& ab, double L2) {
-  const double t = L2 > 0 ? std::clamp((p - a).dot(ab) / L2, 0.0, 1.0) : 0.0;
-  return (a + t * ab - p).norm();
-}
-
-}  // namespace
 
 Slerp::Slerp(const Vec3& a, const Vec3& b) : a_(a), b_(b), th_(std::acos(std::clamp(a.dot(b), -1.0, 1.0))) {
   sn_ = std::sin(th_);

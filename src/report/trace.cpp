@@ -13,6 +13,7 @@
 
 #include "cscam/core/error.hpp"
 #include "cscam/core/rotations.hpp"
+#include "cscam/core/segment.hpp"
 #include "cscam/core/units.hpp"
 #include "cscam/report/json.hpp"
 
@@ -35,9 +36,7 @@ Vec3 slerp(const Vec3& a, const Vec3& b, double s) {
 
 double seg_distance(const Vec3& p0, const Vec3& p1, const Vec3& p, double& t) {
   const Vec3 ab = p1 - p0;
-  const double L2 = ab.squaredNorm();
-  t = L2 > 0 ? std::clamp((p - p0).dot(ab) / L2, 0.0, 1.0) : 0.0;
-  return (p0 + t * ab - p).norm();
+  return point_segment_distance(p, p0, ab, ab.squaredNorm(), &t);
 }
 
 // halsampler's columns (trunnion-ac.hal): sample number, 5 joints, 5 world axes, line, motion type, velocity,

@@ -19,6 +19,7 @@
 #include "cscam/core/error.hpp"
 #include "cscam/core/parallel.hpp"
 #include "cscam/core/rotations.hpp"
+#include "cscam/core/segment.hpp"
 #include "cscam/core/tolerances.hpp"
 #include "cscam/core/units.hpp"
 #include "cscam/kin/track.hpp"
@@ -52,9 +53,7 @@ Vec3 slerp(const Vec3& a, const Vec3& b, double th, double sin_th, double s) {
 /// Distance from p to the segment and the segment parameter of the closest point.
 double seg_distance(const ClSeg& s, const Vec3& p, double& t) {
   const Vec3 ab = s.p1 - s.p0;
-  const double L2 = ab.squaredNorm();
-  t = L2 > 0 ? std::clamp((p - s.p0).dot(ab) / L2, 0.0, 1.0) : 0.0;
-  return (s.p0 + t * ab - p).norm();
+  return point_segment_distance(p, s.p0, ab, ab.squaredNorm(), &t);
 }
 
 /// The nearest of the CL segments [lo, hi) to p: its distance, and its index and parameter in `arg` and `t` (left as

@@ -11,6 +11,7 @@
 #include <string>
 #include <vector>
 
+#include "cscam/core/units.hpp"
 #include "cscam/machine/machine.hpp"
 
 namespace cscam::post {
@@ -86,7 +87,7 @@ class Formatter {
   [[nodiscard]] virtual bool blends_parabolically() const { return false; }
   /// The post's tolerance in program units.
   [[nodiscard]] double tolerance_in_program_units() const {
-    return info_.inch ? info_.tolerance_mm / 25.4 : info_.tolerance_mm;
+    return info_.inch ? info_.tolerance_mm / kMmPerInch : info_.tolerance_mm;
   }
 
   /// Tilted work planes for 3+2 stretches (rotaries fixed; docs/posts.md): none (machine coordinates: linuxcnc),
