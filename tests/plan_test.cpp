@@ -997,6 +997,57 @@ cl::Program swinging_groove_path(int n, int periods_across, int periods_along) {
 }
 }  // namespace
 
+// A machine without a Z axis (the XMINI) turns its tool at the safe plane: retract along the tool axis, turn, move
+// above the next point, plunge (kin::reposition_at_plane, which the post writes). The swept check sweeps those moves,
+// not a straight joint move between the two points. A block above the point, on the retract's line but out of reach
+// of the tool as it turns about its tip, is hit by the retract (the straight move misses it: the in-test control).
+TEST(PlannerIssue11, AMachineWithoutZIsCheckedAlongTheRepositioningThePostWrites) {
+  const machine::Machine m = machine::load(test::source_path("machines/xmini.yaml"));
+  const auto k = m.kinematics();
+  const auto tool = geom::ToolShape::from_cutter(6, 0, 20);
+  double top = 0.0, radius = 0.0;
+  for (const auto& sg : tool.segments()) top = std::max(top, sg.z1_mm), radius = std::max(radius, sg.radius_mm);
+  const double t = deg2rad(8.0);
+  const Vec3 tip(5, 0, 0), a1(std::sin(t), 0, std::cos(t)), a2(-std::sin(t), 0, std::cos(t));
+  const cl::Program prog = cl::read_text(fmt::format("UNITS/MM\nMULTAX/ON\nFEDRAT/MMPM,100\nGOTO/5,0,0,{0},0,{1}\n"
+                                                     "RAPID\nGOTO/5,0,0,{2},0,{1}\n",
+                                                     a1.x(), a1.z(), a2.x()),
+                                         "turn.cls");
+  std::vector<kin::Axes> axes(2);
+  ASSERT_TRUE(kin::nearest_solution(*k, {tip, a1}, kin::Axes::Zero(), axes[0]));
+  ASSERT_TRUE(kin::nearest_solution(*k, {tip, a2}, axes[0], axes[1]));
+  // The retract runs (safe_z - z) / cos t along a1: the block sits on that line, past the tool's reach from the tip.
+  const double along = (m.post.safe_z_mm - tip.z()) / std::cos(t), at = std::max(top + 25.0, along - 2.0);
+  ASSERT_LT(at, along + top - 6.0) << "the retracted tool must reach the block";
+  const Vec3 centre = tip + at * a1;
+  ASSERT_GT(at - 5.0 * std::sqrt(3.0), std::hypot(top, radius))
+      << "the block must be out of reach of a turn at the tip";
+  geom::Scene scene;
+  scene.add("block", geom::ObstacleRole::Fixture,
+            geom::box_mesh(centre - Vec3::Constant(5.0), centre + Vec3::Constant(5.0)));
+  scene.build(false);
+  cspace::Options o;
+  o.check_collision = true;
+  o.cone_rad = deg2rad(1.0);
+  const cspace::Space sp(k, &scene, &tool, o);
+  geom::QueryWorkspace ws;
+  cspace::Counters c;
+  EXPECT_EQ(sp.swept(axes[0], axes[1], cspace::SweepMode::Rapid, ws, c).status, cspace::SweepStatus::Free);
+  const plan::SweptSummary s = plan::check_program(sp, m, prog, axes, c);
+  EXPECT_EQ(s.moves, 4u) << "retract, turn, move above, plunge";
+  ASSERT_GE(s.collisions, 1u);
+  EXPECT_TRUE(s.hits.front().reorientation);
+  EXPECT_EQ(s.hits.front().line, prog.moves[1].line);
+  // Without the block the same four moves are free.
+  geom::Scene empty;
+  empty.add("far", geom::ObstacleRole::Fixture, geom::box_mesh(Vec3(500, 500, 500), Vec3(501, 501, 501)));
+  empty.build(false);
+  const cspace::Space sp_empty(k, &empty, &tool, o);
+  const plan::SweptSummary free = plan::check_program(sp_empty, m, prog, axes, c);
+  EXPECT_EQ(free.moves, 4u);
+  EXPECT_EQ(free.collisions + free.uncertified, 0u);
+}
+
 TEST(PlannerIssue11, NoChosenMoveCollidesBetweenPointsWhereTheLipCrowdsTheCone) {
   // Tiers 1-3 fail on the swings; near each swing's extreme the lip removes most of the cone and moves between
   // neighbouring free cells sweep through it (before tier 4 searched those points with swept transitions, this

@@ -113,4 +113,14 @@ bool retract_along_axis(const Kinematics& k, const Axes& q, double plane_z_mm, d
   return nearest_solution(k, Posed{up, p.axis}, q, out);
 }
 
+bool reposition_at_plane(const Kinematics& k, const Axes& q_from, const Axes& q_to, double plane_z_mm, double slack_mm,
+                         Axes& up, Axes& turned, Axes& above) {
+  if (!retract_along_axis(k, q_to, plane_z_mm, slack_mm, above) ||
+      !retract_along_axis(k, q_from, plane_z_mm, slack_mm, up))
+    return false;
+  turned = up;
+  if (!nearest_solution(k, Posed{k.forward(up).tip_mm, k.forward(q_to).axis}, above, turned)) turned = up;
+  return true;
+}
+
 }  // namespace cscam::kin

@@ -1463,12 +1463,12 @@ class Sequencer {
   /// axis at the safe plane, go above q (along its axis); the caller then plunges to q.
   void pkm_reposition(const kin::Axes& q, const cl::Move& mv) {
     const SourceLoc where{prog_.file, mv.line, 0};
-    const kin::Axes above = pkm_retracted(q, where);
+    const kin::Axes above = pkm_retracted(q, where);  // (each retract first, for its own error message)
     if (have_state_) {
-      const kin::Axes up = pkm_retracted(cur_, where);
-      const kin::Posed at_up = kin_.forward(up), target = kin_.forward(q);
-      kin::Axes turned = up;  // if the new axis cannot be had there, turn on the way to the point above q
-      if (!kin::nearest_solution(kin_, kin::Posed{at_up.tip_mm, target.axis}, above, turned)) turned = up;
+      (void)pkm_retracted(cur_, where);
+      kin::Axes up, turned, at_above;  // the planner's swept check sweeps the same moves
+      CSCAM_CHECK(kin::reposition_at_plane(kin_, cur_, q, m_.post.safe_z_mm, tol::kLimitSlackMm, up, turned, at_above),
+                  "both retracts were possible a moment ago");
       emit_g0(up);
       emit_g0(turned);
     }

@@ -56,4 +56,12 @@ bool axial_retract_point(const Eigen::Vector3d& tip_mm, const Eigen::Vector3d& a
 bool retract_along_axis(const Kinematics& k, const Axes& q, double plane_z_mm, double slack_mm, Axes& out,
                         Eigen::Vector3d* up_mm = nullptr);
 
+/// How a machine without a Z axis (the XMINI) turns its tool between two poses whose rotaries differ: retract along
+/// the tool axis to the plane (`up` = retract_along_axis of q_from), turn there to the tool axis of q_to with the
+/// tip kept (`turned`, nearest `above`; `up` itself where that axis cannot be had there: the turn then happens on
+/// the way), move to above the target (`above` = retract_along_axis of q_to) and plunge. The post writes these
+/// moves and the planner's swept check sweeps them. False when a retract leaves the limits.
+bool reposition_at_plane(const Kinematics& k, const Axes& q_from, const Axes& q_to, double plane_z_mm, double slack_mm,
+                         Axes& up, Axes& turned, Axes& above);
+
 }  // namespace cscam::kin
