@@ -42,39 +42,35 @@ SweptSummary check_program(const cspace::Space& space, const machine::Machine& m
     const bool from_cut = mv[i - 1].kind != cl::MotionKind::Rapid, to_cut = mv[i].kind != cl::MotionKind::Rapid;
     const auto direct = from_cut || to_cut ? cspace::SweepMode::Cutting : cspace::SweepMode::Rapid;
     const bool turns = std::abs(from[rp[0]] - to[rp[0]]) > 1e-9 || std::abs(from[rp[1]] - to[rp[1]]) > 1e-9;
+    // The post's reorientation between points whose rotaries differ: up, turn, across, down. With a Z axis:
+    // retract Z to the safe plane, rotate there, position above, plunge. Without one (the XMINI): retract along the
+    // tool axis to the safe plane, turn there, move above the next point, plunge along its axis
+    // (kin::reposition_at_plane, as the post writes it).
+    kin::Axes up = from, turned = from, above = to;
+    bool reorients = false;
+    std::uint64_t cut_budget = 0;  // queries for a leg out of or into a cut (0: the default)
     if (mv[i].kind == cl::MotionKind::Rapid && turns && z >= 0 && !std::isnan(safe_z)) {
-      // The post's reorientation: retract to the safe plane, rotate there, position above, plunge.
-      kin::Axes up = from, turned = from, above = to;
       up[z] = turned[z] = above[z] = safe_z;
       turned[rp[0]] = to[rp[0]];
       turned[rp[1]] = to[rp[1]];
+      reorients = true;
+    } else if (mv[i].kind == cl::MotionKind::Rapid && turns && z < 0 && std::isfinite(machine.post.safe_z_mm)) {
+      // (No retract inside the limits: the post refuses the program; the direct move is checked meanwhile.)
+      reorients = kin::reposition_at_plane(space.kinematics(), from, to, machine.post.safe_z_mm, tol::kLimitSlackMm, up,
+                                           turned, above);
+      // A retract out of a cut keeps its cutting end excluded (Cutting mode, small margins): through the XMINI's
+      // joint motion that takes about 2,000 queries per 50 mm, so it gets a larger budget.
+      cut_budget = 8192;
+    }
+    if (reorients) {
       const std::array<std::pair<kin::Axes, kin::Axes>, 4> legs = {
           {{from, up}, {up, turned}, {turned, above}, {above, to}}};
       for (std::size_t l = 0; l < legs.size(); ++l) {
         const bool cut = (l == 0 && from_cut) || (l == 3 && to_cut);
-        check(i, legs[l].first, legs[l].second, cut ? cspace::SweepMode::Cutting : cspace::SweepMode::Rapid, true);
+        check(i, legs[l].first, legs[l].second, cut ? cspace::SweepMode::Cutting : cspace::SweepMode::Rapid, true,
+              cut ? cut_budget : 0);
       }
       continue;
-    }
-    if (mv[i].kind == cl::MotionKind::Rapid && turns && z < 0 && std::isfinite(machine.post.safe_z_mm)) {
-      // Without a Z axis the post retracts along the tool axis to the safe plane, turns there, moves above the
-      // next point and plunges along its axis (kin::reposition_at_plane, as the post writes it).
-      kin::Axes up, turned, above;
-      if (kin::reposition_at_plane(space.kinematics(), from, to, machine.post.safe_z_mm, tol::kLimitSlackMm, up, turned,
-                                   above)) {
-        const std::array<std::pair<kin::Axes, kin::Axes>, 4> legs = {
-            {{from, up}, {up, turned}, {turned, above}, {above, to}}};
-        // A retract out of a cut keeps its cutting end excluded (Cutting mode, small margins): through the legs'
-        // joint motion that takes about 2,000 queries per 50 mm on the XMINI, so it gets a larger budget.
-        constexpr std::uint64_t kCuttingRetractQueries = 8192;
-        for (std::size_t l = 0; l < legs.size(); ++l) {
-          const bool cut = (l == 0 && from_cut) || (l == 3 && to_cut);
-          check(i, legs[l].first, legs[l].second, cut ? cspace::SweepMode::Cutting : cspace::SweepMode::Rapid, true,
-                cut ? kCuttingRetractQueries : 0);
-        }
-        continue;
-      }
-      // (No retract inside the limits: the post refuses the program; the direct move is checked meanwhile.)
     }
     if (certified && (*certified)[i]) {
       ++out.moves;

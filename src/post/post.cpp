@@ -1463,15 +1463,19 @@ class Sequencer {
   /// axis at the safe plane, go above q (along its axis); the caller then plunges to q.
   void pkm_reposition(const kin::Axes& q, const cl::Move& mv) {
     const SourceLoc where{prog_.file, mv.line, 0};
-    const kin::Axes above = pkm_retracted(q, where);  // (each retract first, for its own error message)
-    if (have_state_) {
-      (void)pkm_retracted(cur_, where);
-      kin::Axes up, turned, at_above;  // the planner's swept check sweeps the same moves
-      CSCAM_CHECK(kin::reposition_at_plane(kin_, cur_, q, m_.post.safe_z_mm, tol::kLimitSlackMm, up, turned, at_above),
-                  "both retracts were possible a moment ago");
-      emit_g0(up);
-      emit_g0(turned);
+    if (!have_state_) {
+      emit_g0(pkm_retracted(q, where));
+      return;
     }
+    kin::Axes up, turned, above;  // the planner's swept check sweeps the same moves
+    if (!kin::reposition_at_plane(kin_, cur_, q, m_.post.safe_z_mm, tol::kLimitSlackMm, up, turned, above)) {
+      // The retract that leaves the limits says so (the one above q first).
+      (void)pkm_retracted(q, where);
+      (void)pkm_retracted(cur_, where);
+      CSCAM_CHECK(false, "reposition_at_plane failed where both retracts succeed");
+    }
+    emit_g0(up);
+    emit_g0(turned);
     emit_g0(above);
   }
 
