@@ -86,9 +86,10 @@ TEST(SimEffects, EveryEffectsAutodiffGradientMatchesFiniteDifferences) {
   const auto tr = square_path(m);
   const auto ctx = sim::make_context(tr.t, tr.cmd, {false, false, false, true, true});
   const std::vector<std::string> specs = {
-      "backlash:x:0.01",    "servo_lag:y:0.004",           "scale:x:30",
-      "squareness:x,y:50",  "cyclic:x:5:0.002:30",         "friction_spike:y:0.005:0.05",
-      "compliance:x:0.001", "thermal_drift:tip.z:0.02:40", "vibration:tip.z:37.5:0.003:20"};
+      "backlash:x:0.01",       "servo_lag:y:0.004",           "scale:x:30",
+      "squareness:x,y:50",     "cyclic:x:5:0.002:30",         "friction_spike:y:0.005:0.05",
+      "compliance:x:0.001",    "thermal_drift:tip.z:0.02:40", "vibration:tip.z:37.5:0.003:20",
+      "straightness:z,x:0.8:7"};
   std::mt19937 rng(7);
   for (const auto& s : specs) {
     auto e = sim::parse_effect(s, m);
@@ -135,10 +136,28 @@ TEST(SimEffects, ParsingFollowsTheSpecKeysAndRejectsBadInput) {
   const auto ctx = sim::make_context(tr.t, tr.cmd, {false, false, false, true, true});
   auto sc = sim::parse_effect("scale:x:100", m);
   auto sq = sim::parse_effect("squareness:x,y:100", m);
+  // Straightness: first axis += k ((second - apex) / 1000)^2, k in mm/m^2.
+  auto st = sim::parse_effect("straightness:z,x:mm_per_m2=2.5,apex_mm=12", m);
+  EXPECT_EQ(st->axis, 2);
+  EXPECT_EQ(st->axis2, 0);
+  EXPECT_FALSE(st->enc_visible);
   for (size_t i = 0; i < ctx.size(); i += 97) {
     EXPECT_NEAR(sc->value(ctx, i, sc->p.data()), ctx.q[0][i] * 100e-6, 1e-15);
     EXPECT_NEAR(sq->value(ctx, i, sq->p.data()), ctx.q[1][i] * 100e-6, 1e-15);
+    EXPECT_NEAR(st->value(ctx, i, st->p.data()), 2.5 * std::pow((ctx.q[0][i] - 12.0) / 1000.0, 2), 1e-15);
   }
+}
+
+TEST(SimEffects, StraightnessTakesTwoLinearSlidesOfASerialMachine) {
+  const auto m = trunnion();
+  EXPECT_EQ(sim::parse_effect("straightness:x,x:1", m)->axis2, 0);  // a lead error of X along itself
+  EXPECT_NE(error_of([&] { sim::parse_effect("straightness:z:1", m); }).find("axis pair like z,x"), std::string::npos);
+  EXPECT_NE(error_of([&] { sim::parse_effect("straightness:z,c:1", m); }).find("both axes must be linear slides"),
+            std::string::npos);
+  EXPECT_NE(error_of([&] { sim::parse_effect("squareness:x,x:1", m); }).find("not a pair of axes"), std::string::npos);
+  const auto xmini = machine::load(std::string(CSCAM_SOURCE_DIR) + "/machines/xmini.yaml");
+  EXPECT_NE(error_of([&] { sim::parse_effect("straightness:q1,q2:1", xmini); }).find("parallel-link machine"),
+            std::string::npos);
 }
 
 TEST(SimProfile, TrapezoidReachesEveryBlockEndAtTheFeed) {

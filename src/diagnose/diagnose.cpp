@@ -3,6 +3,7 @@
 #include <ceres/ceres.h>
 #include <fftw3.h>
 #include <fmt/format.h>
+#include <fmt/ranges.h>
 
 #include <Eigen/Dense>
 #include <algorithm>
@@ -308,13 +309,23 @@ void joint_fit(Fit& f, const std::vector<Effect*>& fx, size_t stride = 1) {
     if (e->name() == "vibration") {  // the frequency comes from the spectrum (the fit subsamples in time)
       prob.SetManifold(e->p.data(), new ceres::SubsetManifold(3, {0}));
     }
-    for (size_t q = 0; q < names.size(); ++q)
+    for (size_t q = 0; q < names.size(); ++q) {
+      if (names[q] == "apex") {
+        // Within a travel of the second axis's recorded range: an apex far beyond it is a tilted line (squareness or
+        // scale), which the curvature would then fit only as a large, meaningless product.
+        double lo = std::numeric_limits<double>::infinity(), hi = -lo;
+        for (double v : f.ctx->q[static_cast<size_t>(e->axis2)]) lo = std::min(lo, v), hi = std::max(hi, v);
+        const double span = std::max(hi - lo, 1.0);
+        prob.SetParameterLowerBound(e->p.data(), static_cast<int>(q), std::min(e->p[q], lo - span));
+        prob.SetParameterUpperBound(e->p.data(), static_cast<int>(q), std::max(e->p[q], hi + span));
+      }
       if (names[q] == "tau_s" || names[q] == "decay_s" || names[q] == "period") {
         prob.SetParameterLowerBound(e->p.data(), static_cast<int>(q), e->p[q] * 0.05);
         prob.SetParameterUpperBound(
             e->p.data(), static_cast<int>(q),
             names[q] == "decay_s" ? std::max(e->p[q], std::min(e->p[q] * 20, 1.0)) : e->p[q] * 20);
       }
+    }
   }
   ceres::Solver::Options so;
   so.linear_solver_type = ceres::DENSE_QR;
@@ -332,6 +343,7 @@ bool plausible(const Effect& e) {
   const double a = std::abs(e.p[0]);
   if (n == "scale") return a <= 1000;                             // ppm
   if (n == "squareness") return a <= 5000;                        // urad
+  if (n == "straightness") return a <= 100;                       // mm/m^2: 1 mm at 100 mm from the apex
   if (n == "servo_lag") return a <= 0.5;                          // s
   if (n == "backlash") return a <= 1.0;                           // mm or deg
   if (n == "friction_spike") return e.p[1] > 0 && e.p[1] <= 1.0;  // decay, s
@@ -490,6 +502,11 @@ std::string explain(const Effect& e, const std::string& dom) {
   if (n == "squareness")
     return fmt::format("error in {} proportional to the position of the second axis of {} ({:.1f} urad)", dom, e.target,
                        rep[0].second);
+  if (n == "straightness")
+    return fmt::format(
+        "error in {} growing with the square of the position of the second axis of {} ({:.4g} mm/m^2, apex at {:.1f} "
+        "mm)",
+        dom, e.target, rep[0].second, rep[1].second);
   if (n == "cyclic")
     return fmt::format("error in {} periodic in the position of {} (period {:.3f} {}, amplitude {})", dom, e.target,
                        rep[0].second, u, fmt_value(u, rep[1].second));
@@ -518,6 +535,13 @@ std::string describe(const Effect& e) {
                        e.note.empty() ? "" : " (" + e.note + ")");
   if (n == "scale") return fmt::format("scale error of {:.1f} ppm on {}", rep[0].second, e.target);
   if (n == "squareness") return fmt::format("squareness error of {:.1f} urad between {}", rep[0].second, e.target);
+  if (n == "straightness") {
+    // The bow over 100 mm either side of the apex says more to a machinist than the curvature.
+    const auto comma = e.target.find(',');
+    return fmt::format("straightness error of {} along {}: {} at 100 mm from the apex ({} = {:.1f} mm)",
+                       e.target.substr(0, comma), e.target.substr(comma + 1), fmt_um(rep[0].second * 0.01),
+                       e.target.substr(comma + 1), rep[1].second);
+  }
   if (n == "cyclic")
     return fmt::format("cyclic error of {} (period {:.3f} {}) on {}", fmt_value(u, rep[1].second), rep[0].second, u,
                        e.target);
@@ -776,12 +800,15 @@ Report diagnose(sim::Recording& rec, const machine::Machine& m, const std::vecto
   // Squareness is a property of Cartesian slides; between the legs of a parallel machine it means nothing. Both
   // orders: "z += g x" (X tilted toward Z) and "x += g z" (Z tilted toward X) differ in the machine frame; a circle
   // in the XY plane sees only the first.
+  // Straightness: each linear axis bowing along each (itself included: a lead error that grows quadratically).
   if (has_geom_channel && m.kind == machine::ModelKind::Serial)
     for (int i = 0; i < 5; ++i)
-      for (int j = 0; j < 5; ++j)
-        if (i != j && !rot[i] && !rot[j])
-          protos.push_back(sim::make_effect(
-              "squareness", m.axes[static_cast<size_t>(i)].name + "," + m.axes[static_cast<size_t>(j)].name, m));
+      for (int j = 0; j < 5; ++j) {
+        if (rot[i] || rot[j]) continue;
+        const std::string pair = m.axes[static_cast<size_t>(i)].name + "," + m.axes[static_cast<size_t>(j)].name;
+        if (i != j) protos.push_back(sim::make_effect("squareness", pair, m));
+        protos.push_back(sim::make_effect("straightness", pair, m));
+      }
   std::vector<sim::GridHints> hints(comps.size());
   for (int ci : F.fitc) {
     protos.push_back(sim::make_effect("thermal_drift", comps[static_cast<size_t>(ci)].name, m));
@@ -879,7 +906,8 @@ Report diagnose(sim::Recording& rec, const machine::Machine& m, const std::vecto
   };
   double held_ms = weighted_ms(F, {}, true);
   const double held_ms_start = held_ms;
-  std::vector<char> event_only;  // per accepted effect: judged on the training blocks (try_event)
+  std::vector<char> event_only;                        // per accepted effect: judged on the training blocks (try_event)
+  std::vector<std::vector<std::string>> alternatives;  // per accepted effect: others that explain as well
   std::vector<std::vector<double>> cur(comps.size());
   for (int step = 0; step < o.max_effects; ++step) {
     const auto fx = view(model);
@@ -953,17 +981,29 @@ Report diagnose(sim::Recording& rec, const machine::Machine& m, const std::vecto
     if (order.size() > 4) order.resize(4);
     const auto off_save = F.off;
     size_t bi = order.front();
+    // Each of the best few refitted jointly: (candidate, its held-out mean square, what it says).
+    std::vector<std::tuple<size_t, double, std::string>> refits;
     if (order.size() > 1) {
       double best_ms = std::numeric_limits<double>::infinity();
       for (size_t pi : order) {
         auto tr = model_with(res[pi].e->clone());
         joint_fit(F, fit_view(tr), sstride);
         const bool ok = std::all_of(tr.begin(), tr.end(), [](const auto& e) { return plausible(*e); });
-        const double ms = weighted_ms(F, view(tr), true) * (res[pi].e->scope() == Scope::Geometric ? 1.03 : 1.0);
+        const double raw_ms = weighted_ms(F, view(tr), true);
+        const double ms = raw_ms * (res[pi].e->scope() == Scope::Geometric ? 1.03 : 1.0);
         F.off = off_save;
+        if (ok) refits.emplace_back(pi, raw_ms, describe(*tr.back()));
         if (ok && ms < best_ms) best_ms = ms, bi = pi;
       }
     }
+    // The others that leave a held-out residual larger by less than an effect must explain to count: the recording
+    // cannot tell them from the one chosen.
+    std::vector<std::string> same;
+    double chosen_ms = 0.0;
+    for (const auto& [pi, ms, what] : refits)
+      if (pi == bi) chosen_ms = ms;
+    for (const auto& [pi, ms, what] : refits)
+      if (pi != bi && ms - chosen_ms <= thr && held_ms - chosen_ms > thr) same.push_back(what);
     auto trial = model_with(std::move(res[bi].e));
     joint_fit(F, fit_view(trial));
     const double new_ms = weighted_ms(F, view(trial), true);
@@ -976,6 +1016,8 @@ Report diagnose(sim::Recording& rec, const machine::Machine& m, const std::vecto
     held_ms = new_ms;
     model = std::move(trial);
     event_only.push_back(0);
+    alternatives.resize(model.size());
+    alternatives.back() = std::move(same);
   }
   R.seconds.emplace_back("explain", secs(tstage));
   tstage = Clock::now();
@@ -991,6 +1033,7 @@ Report diagnose(sim::Recording& rec, const machine::Machine& m, const std::vecto
     fd.effect = model[i]->clone();
     // An effect the held-out blocks do not reach is judged, and its figures taken, on the training blocks.
     fd.judged_on_training = event_only[i] != 0;
+    if (i < alternatives.size()) fd.alternatives = alternatives[i];
     const bool on_held = !fd.judged_on_training;
     if (fd.effect->name() == "vibration") fd.effect->note = source_of(fd.effect->p[0], rpm, flutes);
     // The group where it matters most, and its dominant component. Before/after are judged where the effect
@@ -1204,7 +1247,12 @@ Report diagnose(sim::Recording& rec, const machine::Machine& m, const std::vecto
         fmt::format("no missing physics found: the residual is consistent with measurement noise alone ({})", parts);
   } else {
     std::string parts;
-    for (const auto& fd : R.findings) parts += (parts.empty() ? "" : "; ") + describe(*fd.effect);
+    for (const auto& fd : R.findings) {
+      parts += (parts.empty() ? "" : "; ") + describe(*fd.effect);
+      if (!fd.alternatives.empty())
+        parts += fmt::format(" (or as well: {}; this recording cannot tell them apart)",
+                             fmt::join(fd.alternatives, "; or "));
+    }
     const auto& top = R.findings.front();
     R.verdict = fmt::format("missing physics: {}; modelled, the {} RMS of {} falls from {} to {}", parts,
                             top.judged_on_training ? "training-block" : "held-out", top.group,
@@ -1334,6 +1382,7 @@ std::string Report::to_json() const {
     fj["heldout_rms_before"] = f.heldout_rms_before;
     fj["heldout_rms_after"] = f.heldout_rms_after;
     if (f.judged_on_training) fj["judged_on"] = "training blocks (no held-out block holds the samples where it acts)";
+    if (!f.alternatives.empty()) fj["equally_explained_by"] = f.alternatives;
     j["findings"].push_back(fj);
   }
   j["heldout_residual"] = {{"values", heldout_values},
@@ -1364,6 +1413,8 @@ std::string Report::text() const {
     os << fmt::format("  {:>3.0f}%  {} {}:{}\n        {}; {} {:.4f} -> {:.4f}{}\n", 100 * f.share, f.effect->name(),
                       f.effect->target, ps, f.explains, f.group, f.heldout_rms_before, f.heldout_rms_after,
                       f.judged_on_training ? " (training blocks: it acts where no held-out block is)" : "");
+    for (const auto& a : f.alternatives)
+      os << fmt::format("        as well explained by: {} (this recording cannot tell them apart)\n", a);
   }
   os << "verdict: " << verdict << "\n";
   return os.str();
@@ -1395,9 +1446,10 @@ std::string linuxcnc_ini(const machine::Machine& m, const std::vector<const sim:
     double backlash = 0;
     std::vector<const sim::Effect*> table;
     for (const auto* e : effects) {
-      if (e->scope() != sim::Scope::Axis || e->axis != j || e->axis2 >= 0) continue;
+      // (Errors that follow another axis's position cannot go into this axis's table.)
+      if (e->scope() != sim::Scope::Axis || e->axis != j || (e->axis2 >= 0 && e->axis2 != j)) continue;
       if (e->name() == "backlash") backlash += e->p[0];
-      if (e->name() == "scale" || e->name() == "cyclic") table.push_back(e);
+      if (e->name() == "scale" || e->name() == "cyclic" || e->name() == "straightness") table.push_back(e);
     }
     if (backlash == 0 && table.empty()) continue;
     const auto& ax = m.axes[static_cast<size_t>(j)];
@@ -1421,6 +1473,7 @@ std::string linuxcnc_ini(const machine::Machine& m, const std::vector<const sim:
       double dev = 0;
       for (const auto* e : table) {
         if (e->name() == "scale") dev += x * 1e-6 * e->p[0];
+        if (e->name() == "straightness") dev += e->p[0] * std::pow((x - e->p[1]) * 1e-3, 2);
         if (e->name() == "cyclic") {
           const double ph = 2 * 3.14159265358979323846 * x / e->p[0];
           dev += e->p[1] * std::sin(ph) + e->p[2] * std::cos(ph);

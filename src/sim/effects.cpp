@@ -191,6 +191,42 @@ class Squareness : public EffectImpl<Squareness, 1> {
   }
 };
 
+/// Straightness: the first axis bows with the position of the second (a sagging or curved guideway; the same axis
+/// twice is a lead error that grows with the square of the distance from a point). A parabola k ((q - apex) / 1 m)^2
+/// with its apex free: the constant it adds is a channel offset, and the slope is part of the bow (a tilted line alone
+/// is squareness or scale).
+class Straightness : public EffectImpl<Straightness, 2> {
+ public:
+  std::string name() const override { return "straightness"; }
+  Scope scope() const override { return Scope::Axis; }
+  std::vector<std::string> internal_names() const override { return {"mm_per_m2", "apex"}; }
+  std::vector<bool> linear() const override { return {true, false}; }
+  std::string signature() const override {
+    return fmt::format("error of the first axis growing with the square of the position of the second ({})", target);
+  }
+  template <class T>
+  T eval(const Context& c, size_t i, const T* pp) const {
+    const T u = (c.q[axis2][i] - pp[1]) * 1e-3;  // m from the apex
+    return pp[0] * u * u;
+  }
+  std::vector<std::pair<std::string, double>> reported() const override {
+    return {{"mm_per_m2", p[0]}, {"apex_mm", p[1]}};
+  }
+  void set_reported(const std::vector<std::pair<std::string, double>>& kv) override {
+    p[0] = get(kv, "mm_per_m2", name());
+    p[1] = get(kv, "apex_mm", name(), 0.0);
+  }
+  /// The apex at five places along the second axis's travel (and a little beyond its ends).
+  std::vector<std::vector<double>> grid(const Context& c, const GridHints&) const override {
+    double lo = kInf, hi = -kInf;
+    for (double q : c.q[axis2]) lo = std::min(lo, q), hi = std::max(hi, q);
+    if (!(hi > lo)) return {{0, lo}};
+    std::vector<std::vector<double>> g;
+    for (double f : {-0.25, 0.0, 0.25, 0.5, 0.75, 1.0, 1.25}) g.push_back({0, lo + f * (hi - lo)});
+    return g;
+  }
+};
+
 class Cyclic : public EffectImpl<Cyclic, 3> {
  public:
   std::string name() const override { return "cyclic"; }
@@ -380,6 +416,7 @@ const std::vector<std::pair<std::string, Factory>>& library() {
       {"vibration", [] { return std::make_unique<Vibration>(); }},
       {"scale", [] { return std::make_unique<Scale>(); }},
       {"squareness", [] { return std::make_unique<Squareness>(); }},
+      {"straightness", [] { return std::make_unique<Straightness>(); }},
       {"cyclic", [] { return std::make_unique<Cyclic>(); }},
       {"friction_spike", [] { return std::make_unique<FrictionSpike>(); }},
       {"compliance", [] { return std::make_unique<Compliance>(); }},
@@ -429,23 +466,25 @@ std::unique_ptr<Effect> make_effect(const std::string& name, const std::string& 
       e->channel = target;
       return e;
     }
-    if (name == "squareness") {
+    if (name == "squareness" || name == "straightness") {
       const auto comma = target.find(',');
       if (comma == std::string::npos)
-        throw InputError(fmt::format("effect squareness: target must be an axis pair like x,y, got '{}'", target));
+        throw InputError(fmt::format("effect {}: target must be an axis pair like {}, got '{}'", name,
+                                     name == "squareness" ? "x,y" : "z,x", target));
       e->axis = m.axis_index(target.substr(0, comma));
       e->axis2 = m.axis_index(target.substr(comma + 1));
-      if (e->axis < 0 || e->axis2 < 0 || e->axis == e->axis2)
-        throw InputError(fmt::format("effect squareness: '{}' is not a pair of axes of machine {}", target, m.name));
+      // Straightness of an axis along itself is a lead error that bows with the position.
+      if (e->axis < 0 || e->axis2 < 0 || (e->axis == e->axis2 && name == "squareness"))
+        throw InputError(fmt::format("effect {}: '{}' is not a pair of axes of machine {}", name, target, m.name));
       // A property of Cartesian slides: between a parallel machine's legs, or with a rotary, it means nothing.
       if (m.kind != machine::ModelKind::Serial)
         throw InputError(
-            fmt::format("effect squareness: machine {} is a parallel-link machine; squareness is an "
-                        "angle between two linear slides, which its legs are not",
-                        m.name));
+            fmt::format("effect {}: machine {} is a parallel-link machine; {} is a property of linear slides, which "
+                        "its legs are not",
+                        name, m.name, name));
       if (m.axes[static_cast<size_t>(e->axis)].rotary() || m.axes[static_cast<size_t>(e->axis2)].rotary())
         throw InputError(
-            fmt::format("effect squareness: '{}' of machine {}: both axes must be linear slides", target, m.name));
+            fmt::format("effect {}: '{}' of machine {}: both axes must be linear slides", name, target, m.name));
       e->enc_visible = false;
     } else {
       e->axis = m.axis_index(target);

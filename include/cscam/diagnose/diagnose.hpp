@@ -42,6 +42,10 @@ struct Finding {
   /// A transient that acts only in training blocks (the one reversal of a run): accepted on its training gain, and
   /// heldout_rms_* are then taken on the training blocks where it acts.
   bool judged_on_training = false;
+  /// Other effects that explain this recording as well, refitted jointly with the effects found before it: their
+  /// held-out residual is larger by less than an effect must explain to be accepted. The recording cannot tell them
+  /// apart (on a circle, Z bowing along X is Z bowing along Y); another motion may.
+  std::vector<std::string> alternatives;
 };
 
 struct Series {
