@@ -248,6 +248,47 @@ TEST(Diagnose, ACircleCannotTellABowAlongXFromOneAlongY) {
   EXPECT_NE(r.text().find("cannot tell them apart"), std::string::npos) << r.text();
 }
 
+/// The table turned through `turn_deg` and back twice, the tool 50 and 60 mm off the C axis (X only moves between
+/// the turns).
+sim::Trajectory table_turns(double turn_deg) {
+  const std::string c = std::to_string(turn_deg);
+  const std::string nc = "G21 G90 G94\nG0 X50 Y0 Z0 A0 C0\nG1 C" + c + " F2000\nG1 X60\nG1 C0\nG1 X50\nG1 C" + c + "\n";
+  sim::ProfileOptions po;
+  po.rate_hz = 50;
+  return sim::profile(sim::blocks_from_nc(nc::read_text(nc, "turns.ngc", report::axis_letters(trunnion())), trunnion()),
+                      po);
+}
+
+// An eccentric rotary table: C errs once per revolution. Measured from the part (ptip), whole turns of C show it; the
+// cyclic grid stopped at 90 deg periods (and asked for one and a half periods seen), and the diagnosis fitted the
+// part origin to kilometres instead.
+TEST(Diagnose, ATableErrorOncePerRevolution) {
+  const auto r =
+      run(table_turns(360), trunnion(), {"cyclic:c:period_deg=360,amplitude_deg=0.005"}, {"ptip", "enc"}, 0.0005);
+  expect_found(r, "cyclic", "c", "amplitude_deg", 0.005);
+  const auto* f = find(r, "cyclic", "c");
+  ASSERT_NE(f, nullptr);
+  EXPECT_NEAR(param(*f, "period_deg"), 360.0, 0.03 * 360.0) << r.text();
+}
+
+// A table error the recording cannot resolve (once per revolution, the table turned through 300 deg only): whatever
+// is reported must be physical. Before, a parameter the channel offsets already hold (the part origin, seen from the
+// part as a constant) was fitted to -2.3e6 mm, and lost motion was reported on axes that never move.
+TEST(Diagnose, NoFindingIsFittedToKilometresOrToAnAxisThatNeverMoves) {
+  const auto r =
+      run(table_turns(300), trunnion(), {"cyclic:c:period_deg=360,amplitude_deg=0.005"}, {"ptip", "enc"}, 0.0005);
+  EXPECT_FALSE(r.findings.empty()) << r.text();
+  for (const auto& f : r.findings) {
+    EXPECT_LT(f.heldout_rms_before, 0.1) << r.text();
+    if (f.effect->name() == "geometric") EXPECT_LT(std::abs(f.effect->p[0]), 1.0) << r.text();
+    // Y, Z and A never move here.
+    if (f.effect->scope() == sim::Scope::Axis) {
+      EXPECT_TRUE(f.effect->axis == 0 || f.effect->axis == 4) << r.text();
+      if (f.effect->axis2 >= 0) EXPECT_TRUE(f.effect->axis2 == 0 || f.effect->axis2 == 4) << r.text();
+    }
+  }
+}
+
 // A circle in the XY plane sees Z follow X ("z += g x", the X slide tilted toward Z) but not X follow Z: the
 // candidate list must hold both orders of a pair (it held only "x,z", and this recording gave no finding).
 TEST(Diagnose, SquarenessOfZOnXSeenByACircleInXY) {

@@ -341,12 +341,12 @@ void joint_fit(Fit& f, const std::vector<Effect*>& fx, size_t stride = 1) {
 bool plausible(const Effect& e) {
   const std::string n = e.name();
   const double a = std::abs(e.p[0]);
-  if (n == "scale") return a <= 1000;                             // ppm
-  if (n == "squareness") return a <= 5000;                        // urad
-  if (n == "straightness") return a <= 100;                       // mm/m^2: 1 mm at 100 mm from the apex
-  if (n == "servo_lag") return a <= 0.5;                          // s
-  if (n == "backlash") return a <= 1.0;                           // mm or deg
-  if (n == "friction_spike") return e.p[1] > 0 && e.p[1] <= 1.0;  // decay, s
+  if (n == "scale") return a <= 1000;                                         // ppm
+  if (n == "squareness") return a <= 5000;                                    // urad
+  if (n == "straightness") return a <= 100;                                   // mm/m^2: 1 mm at 100 mm from the apex
+  if (n == "servo_lag") return a <= 0.5;                                      // s
+  if (n == "backlash") return a <= 1.0;                                       // mm or deg
+  if (n == "friction_spike") return e.p[1] > 0 && e.p[1] <= 1.0 && a <= 1.0;  // decay, s; peak, mm or deg
   if (n == "thermal_drift") return e.p[1] > 0;
   return true;
 }
@@ -779,9 +779,25 @@ Report diagnose(sim::Recording& rec, const machine::Machine& m, const std::vecto
   const bool has_geom_channel = std::any_of(comps.begin(), comps.end(), [](const Comp& c) {
     return c.kind == Kind::Tip || c.kind == Kind::PTip || c.kind == Kind::Dir;
   });
+  // An axis that never moves (or never reverses) in the recording holds no effect that depends on its motion (or
+  // its reversals): there such an effect is a constant shift of the axis, which the channel offsets and the
+  // geometric zero offsets describe, and its fit to the noise would be reported as lost motion that nothing shows.
+  std::array<bool, 5> moves{}, reverses{};
+  for (int j = 0; j < 5; ++j) {
+    const auto& q = ctx.q[static_cast<size_t>(j)];
+    const auto [lo, hi] = std::minmax_element(q.begin(), q.end());
+    moves[static_cast<size_t>(j)] = !q.empty() && *hi - *lo > 1e-9;
+    const auto& since = ctx.since_rev[static_cast<size_t>(j)];
+    reverses[static_cast<size_t>(j)] =
+        moves[static_cast<size_t>(j)] &&
+        std::any_of(since.begin(), since.end(), [](double s) { return std::isfinite(s); });
+  }
   for (int j = 0; j < 5; ++j) {
     const std::string ax = m.axes[static_cast<size_t>(j)].name;
     for (const char* name : {"backlash", "servo_lag", "scale", "cyclic", "friction_spike", "compliance"}) {
+      if (!moves[static_cast<size_t>(j)]) break;
+      const std::string n = name;
+      if ((n == "backlash" || n == "friction_spike") && !reverses[static_cast<size_t>(j)]) continue;
       auto e = sim::make_effect(name, ax, m);
       if (has_enc(j)) {
         if (has_geom_channel) {
@@ -804,7 +820,7 @@ Report diagnose(sim::Recording& rec, const machine::Machine& m, const std::vecto
   if (has_geom_channel && m.kind == machine::ModelKind::Serial)
     for (int i = 0; i < 5; ++i)
       for (int j = 0; j < 5; ++j) {
-        if (rot[i] || rot[j]) continue;
+        if (rot[i] || rot[j] || !moves[static_cast<size_t>(j)]) continue;
         const std::string pair = m.axes[static_cast<size_t>(i)].name + "," + m.axes[static_cast<size_t>(j)].name;
         if (i != j) protos.push_back(sim::make_effect("squareness", pair, m));
         protos.push_back(sim::make_effect("straightness", pair, m));
@@ -876,6 +892,20 @@ Report diagnose(sim::Recording& rec, const machine::Machine& m, const std::vecto
           }
         }
         if (!(mag > 1e-9) || !std::isfinite(mag)) continue;  // the channels do not see this parameter
+        // Seen only as a constant shift of every fitted channel (the part origin, measured from the part): the
+        // channel offsets hold that already, and the fit would blow the parameter up to kilometres to follow the
+        // round-off of its sensitivity.
+        double varying = 0.0;
+        for (int ci : F.fitc) {
+          const Comp& c = comps[static_cast<size_t>(ci)];
+          if (c.kind != Kind::Tip && c.kind != Kind::PTip && c.kind != Kind::Dir) continue;
+          const size_t r = static_cast<size_t>(c.idx) + (c.kind == Kind::Tip ? 0 : c.kind == Kind::PTip ? 3 : 6);
+          double sum = 0.0, sq = 0.0;
+          for (size_t k = 0; k < ma; ++k) sum += (*tab)[k][r], sq += (*tab)[k][r] * (*tab)[k][r];
+          varying = std::max(varying, std::sqrt(std::max(0.0, sq / static_cast<double>(ma) -
+                                                                  std::pow(sum / static_cast<double>(ma), 2))));
+        }
+        if (!(varying > 1e-6 * mag)) continue;
         const auto& pi = cm->params()[j];
         auto e = sim::make_geometric(pi.name, pi.unit, pi.nominal, 0.0);
         e->geo_sens = tab;
@@ -1002,8 +1032,12 @@ Report diagnose(sim::Recording& rec, const machine::Machine& m, const std::vecto
     double chosen_ms = 0.0;
     for (const auto& [pi, ms, what] : refits)
       if (pi == bi) chosen_ms = ms;
+    // (Not the chosen effect's own twin, seen or not by the encoder; one line per explanation.)
     for (const auto& [pi, ms, what] : refits)
-      if (pi != bi && ms - chosen_ms <= thr && held_ms - chosen_ms > thr) same.push_back(what);
+      if (pi != bi && ms - chosen_ms <= thr && held_ms - chosen_ms > thr &&
+          (res[pi].e->name() != res[bi].e->name() || res[pi].e->target != res[bi].e->target) &&
+          std::find(same.begin(), same.end(), what) == same.end())
+        same.push_back(what);
     auto trial = model_with(std::move(res[bi].e));
     joint_fit(F, fit_view(trial));
     const double new_ms = weighted_ms(F, view(trial), true);

@@ -261,11 +261,13 @@ class Cyclic : public EffectImpl<Cyclic, 3> {
     double lo = kInf, hi = -kInf;
     for (double q : c.q[axis]) lo = std::min(lo, q), hi = std::max(hi, q);
     const double span = hi - lo;
+    // A rotary's errors once, twice and three times per revolution (eccentricity, an oval bearing, a worm gear's
+    // tooth count) need only one period seen: a whole turn shows them apart from an offset.
     const std::vector<double> periods =
-        rotary ? std::vector<double>{1, 2, 3, 4, 5, 6, 8, 10, 12, 15, 20, 30, 45, 60, 90}
+        rotary ? std::vector<double>{1, 2, 3, 4, 5, 6, 8, 10, 12, 15, 20, 30, 45, 60, 90, 120, 180, 360}
                : std::vector<double>{0.5, 1, 2, 2.5, 3, 4, 5, 6, 8, 10, 12, 16, 20, 25, 32, 40};
     for (double per : periods)
-      if (span >= 1.5 * per) g.push_back({per, 0, 0});  // at least one and a half periods seen
+      if (span >= (rotary && per >= 120 ? 1.0 : 1.5) * per - 1e-9) g.push_back({per, 0, 0});  // 1.5 periods seen
     return g;
   }
 };
