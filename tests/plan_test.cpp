@@ -593,6 +593,52 @@ TEST(PlannerIssue11, ConeZeroOnAVerticalAxisWorksOnEveryBundledMachine) {
   }
 }
 
+// NX's 3-axis zigzag (vertical tool, x up to 165 mm) on the small A/C trunnion, cone 0: at C = 0 the cutter runs into
+// the cradle's support at +x, the only primary the IK offered (the tool axis is the primary's own, so the primary is
+// free). The planner answered "collision: all cells collide; nearest feasible cell 0.00 deg from the CL axis". Every
+// point along the primary axis is now offered the primary's whole turn: a 3+2 answer with the table turned, the axis
+// still exactly the CL's, and an independent check of every point against the machine's bodies finds it free where C
+// = 0 hits.
+TEST(PlannerIssue11, AVerticalToolTurnsTheTableAwayFromTheMachine) {
+  const auto m = machine::load(test::source_path("machines/trunnion-ac.yaml"));
+  const auto k = m.kinematics();
+  const cl::Program prog = cl::read_file(test::source_path("examples/nx-haas-umc750/zigzag_smoothed.cls"));
+  ASSERT_GT(prog.tools.size(), 0u);
+  const auto& t = prog.tools.front();
+  const auto tool = geom::ToolShape::from_cutter(t.diameter_mm, t.corner_radius_mm, 3.0 * t.diameter_mm);
+  geom::Scene scene, head;
+  cspace::add_machine_bodies(m, tool.gauge_length_mm(), scene, head);
+  scene.build(false);
+  head.build(false);
+  plan::Options o;  // cone 0
+  o.cspace.check_collision = true;
+  const plan::Plan p = plan::Planner(m, k, &scene, &tool, o, &head).run(prog);
+  cspace::Options co = o.cspace;
+  co.collision.roles = geom::kAllRoles;
+  const cspace::Space space(k, &scene, &tool, co, &head);
+  geom::QueryWorkspace ws;
+  cspace::Counters c;
+  std::size_t hits_at_c0 = 0, cut = 0;
+  for (std::size_t i = 0; i < prog.moves.size(); ++i) {
+    if (prog.moves[i].kind == cl::MotionKind::Rapid) continue;
+    SCOPED_TRACE(prog.moves[i].line);
+    ++cut;
+    EXPECT_GT(k->forward(p.axes[i]).axis.dot(prog.moves[i].axis_in_part.normalized()), 1 - 1e-12);
+    EXPECT_TRUE(space.collision_at_axes(p.axes[i], ws, c).empty());
+    kin::Axes q0 = kin::Axes::Zero();  // A = C = 0: the vertical tool
+    if (k->solve_for_rotaries({prog.moves[i].tip_in_part_mm, prog.moves[i].axis_in_part.normalized()}, q0) &&
+        !space.collision_at_axes(q0, ws, c).empty())
+      ++hits_at_c0;
+  }
+  EXPECT_GT(hits_at_c0, 0u) << "the table at C = 0 must hit the machine somewhere, or this test shows nothing";
+  EXPECT_GT(cut, 100u);
+  const int c_axis = k->rotary_pair()[0];
+  bool turned = false;
+  for (const auto& seg : p.segments)
+    turned |= seg.tier == plan::Tier::Fixed2 && std::abs(p.axes[seg.first_move][c_axis]) > 1e-6;
+  EXPECT_TRUE(turned) << "a 3+2 segment with the table turned";
+}
+
 TEST(PlannerIssue11, SameAnswerAtAnyThreadCount) {
   // The parallel cell evaluation (per-point pre-pass and whole-cone extension) must not change a bit of the plan.
   geom::Scene scene;

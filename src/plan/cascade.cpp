@@ -20,7 +20,8 @@ Cascade run_cascade(const SegmentView& v, SegmentCells& d, std::size_t& points_b
     c.failures.push_back(t.failure);
     if (!v.exact && !d.listed) list_layers(v, d);
     d.listed = true;
-    check_points(v, d, points_beyond_cap);
+    // (Points along the primary axis offered the primary's whole turn: the tiers start again, 3+2 first.)
+    if (check_points(v, d, points_beyond_cap)) return run_cascade(v, d, points_beyond_cap);
     if (t = {}; tier_one_fixed(v, d, t)) {
       c.tier = Tier::Fixed1;
     } else {

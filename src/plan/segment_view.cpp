@@ -5,6 +5,7 @@
 #include <algorithm>
 #include <array>
 #include <cmath>
+#include <numbers>
 #include <utility>
 
 #include "cscam/core/error.hpp"
@@ -380,7 +381,47 @@ double room(const SegmentView& v, SegmentCells& d, const std::vector<const Cell*
   return r;
 }
 
-void check_points(const SegmentView& v, SegmentCells& d, std::size_t& points_beyond_cap) {
+namespace {
+
+/// The primary is free at a singular point: the IK offers one value (and its neighbours' primaries), but a table or
+/// head body may stand in the way of that one while another turn of the primary is clear (a vertical tool over a part
+/// beside the trunnion's support). Offers every singular point of the segment the primary on a grid over a whole turn
+/// about its own value, inside the primary's limits; returns whether any cell was added.
+bool turn_singular_primaries(const SegmentView& v, SegmentCells& d) {
+  const kin::Kinematics& kin = v.space.kinematics();
+  const int p = kin.rotary_pair()[0];
+  const auto& axis = kin.axes()[static_cast<std::size_t>(p)];
+  // 5 degrees: 72 cells per point where the IK offered one (a body's edge moves by millimetres per step at most).
+  const double step = std::max(v.space.options().resolution_rad, deg2rad(5.0));
+  const int n = static_cast<int>(std::lround(std::numbers::pi / step));
+  bool added = false;
+  for (Layer& l : d.layers) {
+    if (l.pinned || l.cells.empty() ||
+        !std::all_of(l.cells.begin(), l.cells.end(), [](const Cell& c) { return c.singular; }))
+      continue;
+    const std::vector<Cell> own = l.cells;
+    for (const Cell& c : own)
+      for (int j = -n; j < n; ++j) {
+        if (j == 0) continue;
+        Cell t = c;
+        t.r1 = c.r1 + j * step;
+        if (t.r1 < axis.min - 1e-9 || t.r1 > axis.max + 1e-9) continue;
+        t.i1 = static_cast<int>(std::lround(t.r1 / kExactKeyRad));
+        if (l.index.find(key(t.i1, t.i2)) >= 0) continue;
+        t.status = Status::Unknown;
+        t.detail.clear();
+        mark_retract(v, l, t);
+        l.index.emplace(key(t.i1, t.i2), static_cast<int>(l.cells.size()));
+        l.cells.push_back(std::move(t));
+        added = true;
+      }
+  }
+  return added;
+}
+
+}  // namespace
+
+bool check_points(const SegmentView& v, SegmentCells& d, std::size_t& points_beyond_cap) {
   auto& layers = d.layers;
   const auto& space = v.space;
   // Every point needs at least one feasible cell; otherwise say which constraint emptied it. A point is
@@ -498,6 +539,14 @@ void check_points(const SegmentView& v, SegmentCells& d, std::size_t& points_bey
       }
     }
     if (any) continue;
+    if (v.exact && !d.singular_turned && !layers[k].cells.empty() &&
+        std::all_of(layers[k].cells.begin(), layers[k].cells.end(), [](const Cell& c) { return c.singular; })) {
+      d.singular_turned = true;
+      if (turn_singular_primaries(v, d)) {
+        d.last_shortest.reset();
+        return true;
+      }
+    }
     const cl::Move& mv = v.program.moves[layers[k].move];
     std::string why;
     if (layers[k].cells.empty())
@@ -542,6 +591,7 @@ void check_points(const SegmentView& v, SegmentCells& d, std::size_t& points_bey
                                  mv.tip_in_part_mm.x(), mv.tip_in_part_mm.y(), mv.tip_in_part_mm.z(),
                                  mv.axis_in_part.x(), mv.axis_in_part.y(), mv.axis_in_part.z(), why, nearest));
   }
+  return false;
 }
 
 }  // namespace cscam::plan::detail

@@ -161,6 +161,8 @@ struct SegmentCells {
     std::size_t beam_at = 0;                        ///< the beam it kept (its index in tier 4's beam widths)
   };
   std::optional<ShortestPass> last_shortest;
+  /// At cone 0, the points along the primary axis were offered the whole turn of the primary (check_points).
+  bool singular_turned = false;
   SegmentCells(cspace::Counters& c, const cspace::Space& space) : counters(c), certs(space) {}
 };
 
@@ -181,9 +183,11 @@ void extend_layer(const SegmentView& v, SegmentCells& d, std::size_t k);
 /// The capped cell lists of every point after the first (in parallel), keeping what tier 1 evaluated.
 void list_layers(const SegmentView& v, SegmentCells& d);
 /// Every point needs at least one feasible cell: a truncated list whose cells all fail is first extended to the
-/// whole cone (counted in `points_beyond_cap`). Throws InputError naming the CL line, the constraint that emptied
-/// the cone and the nearest feasible cell beyond it.
-void check_points(const SegmentView& v, SegmentCells& d, std::size_t& points_beyond_cap);
+/// whole cone (counted in `points_beyond_cap`). At cone 0, a point along the primary axis whose cells all fail first
+/// gets the whole turn of the primary (every singular point of the segment does, so that one primary can hold across
+/// them): returns true then, and the tiers must start again. Throws InputError naming the CL line, the constraint that
+/// emptied the cone and the nearest feasible cell beyond it.
+bool check_points(const SegmentView& v, SegmentCells& d, std::size_t& points_beyond_cap);
 
 /// The cell (i1, i2) at layer k, created (with its orientation test) if needed; null if outside the cone.
 Cell* cell_at(const SegmentView& v, SegmentCells& d, std::size_t k, int i1, int i2);
