@@ -352,6 +352,44 @@ TEST(Cli, BadClInputExitsNonZeroWithLocationAndWritesNothing) {
   for (const auto& e : fs::directory_iterator(d.path)) EXPECT_EQ(e.path().string().find(".tmp"), std::string::npos);
 }
 
+// The conventional post is checked against the machine's own bodies, as a plan is. NX's zigzag (x up to 165 mm) on the
+// small A/C trunnion runs the cutter into the cradle's support at +x: `plan` refused it, `post` wrote it. Now the post
+// refuses it, names the body and the CL line, and writes nothing; on the UMC-750 (a 630 mm table) it passes, checked.
+TEST(Cli, TheConventionalPostIsCheckedAgainstTheMachinesBodies) {
+  TempDir d;
+  const std::string cl = cscam::test::source_path("examples/nx-haas-umc750/zigzag_smoothed.cls");
+  const std::string out = d.file("z.ngc");
+  auto r = run_command(kCli + " post " + q(cl) + " --machine trunnion-ac -o " + q(out));
+  EXPECT_EQ(r.status, 2) << r.output;
+  EXPECT_NE(r.output.find("unsafe program not written"), std::string::npos) << r.output;
+  EXPECT_NE(r.output.find("hits machine "), std::string::npos) << r.output;  // the cradle or its support
+  EXPECT_NE(r.output.find("zigzag_smoothed.cls:"), std::string::npos) << r.output;
+  EXPECT_FALSE(fs::exists(out));
+  r = run_command(kCli + " post " + q(cl) + " --machine haas-umc750 -o " + q(out));
+  EXPECT_EQ(r.status, 0) << r.output;
+  EXPECT_NE(r.output.find("collision checks inside the moves"), std::string::npos) << r.output;
+  // A batch job is gated the same way: the bad file fails, the good one is written.
+  const std::string jobs =
+      d.file("jobs.yaml",
+             "jobs:\n  - cl: " + cl + "\n    machine: trunnion-ac\n    output: " + (d.path / "t.ngc").string() +
+                 "\n  - cl: " + cl + "\n    machine: haas-umc750\n    output: " + (d.path / "h.ngc").string() + "\n");
+  r = run_command(kCli + " batch " + q(jobs));
+  EXPECT_NE(r.status, 0) << r.output;
+  EXPECT_FALSE(fs::exists(d.path / "t.ngc")) << r.output;
+  EXPECT_TRUE(fs::exists(d.path / "h.ngc")) << r.output;
+  // With --part the moves are checked against the part too: the groove's conventional orientation cuts into the lip
+  // with the cutter's body (the planner tilts away from it), which the post alone cannot see.
+  const std::string groove = cscam::test::source_path("examples/groove/groove.cls");
+  const std::string g = d.file("g.ngc");
+  r = run_command(kCli + " post " + q(groove) + " --machine trunnion-ac -o " + q(g));
+  EXPECT_EQ(r.status, 0) << r.output;
+  r = run_command(kCli + " post " + q(groove) + " --machine trunnion-ac --part " +
+                  q(cscam::test::source_path("examples/groove/groove.stl")) + " -o " + q(d.file("g2.ngc")));
+  EXPECT_EQ(r.status, 2) << r.output;
+  EXPECT_NE(r.output.find("hits groove.stl"), std::string::npos) << r.output;
+  EXPECT_FALSE(fs::exists(d.path / "g2.ngc"));
+}
+
 TEST(Cli, UnreachablePointKeepsThePreviousOutputIntact) {
   TempDir d;
   const std::string cl = d.file("far.cls", "UNITS/MM\nFEDRAT/MMPM,1000\nGOTO/0,0,0,0,0,1\nGOTO/5000,0,0,0,0,1\n");
@@ -1193,7 +1231,7 @@ TEST(Cli, JobsFileErrorsNameTheLineAndRunNothing) {
        "jobs.yaml:7:14: 'machine': machine file not found"},
       {head + "  - cl: a.cls\n    output: b.ngc\n    strategy: fastest\n",
        "jobs.yaml:7:15: 'strategy': unknown strategy"},
-      {head + "  - cl: a.cls\n    output: b.ngc\n    cone: 5\n", "jobs.yaml:5:5: 'strategy': cone, part and fixture"},
+      {head + "  - cl: a.cls\n    output: b.ngc\n    cone: 5\n", "jobs.yaml:5:5: 'strategy': cone needs 'strategy: planner'"},
       {head + "  - a.cls\n", "jobs.yaml:5:5: output"},
       {"jobs:\n  - a.cls\n", "jobs.yaml:2:5: 'machine': missing"},
       {"defaults:\n  machine: trunnion-ac\n", "'jobs': missing"},

@@ -334,10 +334,12 @@ TEST(Gate, RefusesARapidThroughThePart) {
   post::Summary sum;
   post::write_nc(os, planned.program, m, *k, planned.axes, o, sum);
   const cspace::Space space(k, &scene, &tool, po.cspace, nullptr);
-  geom::QueryWorkspace ws;
-  cspace::Counters cc;
   gate::Options opt = gate::options_for(m, 0, 0, 25.0);
-  opt.collision = [&](const kin::Axes& q) { return space.collision_at_axes(q, ws, cc); };
+  opt.make_collision = [&]() -> gate::Options::CollisionCheck {  // one workspace and counters per worker
+    auto w = std::make_shared<geom::QueryWorkspace>();
+    auto c = std::make_shared<cspace::Counters>();
+    return [&space, c, w](const kin::Axes& q) { return space.collision_at_axes(q, *w, *c); };
+  };
   const auto ok = gate::check(os.str(), "g.ngc", planned.program, m, *k, opt, &sum.cl_line_of_nc_line);
   EXPECT_TRUE(ok.ok) << ok.message;
   EXPECT_GT(ok.collision_checks, 10u);
@@ -367,6 +369,52 @@ TEST(Gate, RefusesARapidThroughThePart) {
   ASSERT_FALSE(feed.ok);
   EXPECT_TRUE(has_kind(feed, gate::Violation::Kind::Collision, mid_g1 + 1)) << feed.message;
   EXPECT_NE(feed.message.find("feed move collides"), std::string::npos) << feed.message;
+}
+
+// Collisions are sampled along the path at most collision_step (0.5 mm) of joint motion apart, across blocks: the same
+// 40 mm cut in blocks of 0.1 mm takes about as many checks as in blocks of 0.2 mm (one per block end took 200 more),
+// and a wall 1 mm thick that the shank crosses is still found, in the block where the shank first meets it.
+TEST(Gate, CollisionsAreSampledAlongThePathAcrossShortBlocks) {
+  const auto m = load_machine("trunnion-ac");
+  const auto k = m.make_kinematics(post::tool_length_for(m, 0));
+  const auto tool = geom::ToolShape::from_cutter(10, 5, 30);  // flutes to z + 30, shank (r 5) to z + 50, holder above
+  auto gate_with_wall = [&](double block_mm, double wall_x) {
+    std::string text = "UNITS/MM\nMULTAX/ON\nCUTTER/10,5\nFEDRAT/MMPM,1000\n";
+    const int n = static_cast<int>(std::lround(40.0 / block_mm));
+    for (int i = 0; i <= n; ++i) text += fmt::format("GOTO/{:.4f},0,5,0,0,1\n", -20.0 + block_mm * i);
+    const cl::Program prog = cl::read_text(text, "line.cls");
+    const Posted p = post_program(prog, m, *k);
+    geom::Scene scene;
+    // Beside the shank only (tip at z 5: shank z 35..55): z 38..52.
+    scene.add("wall", geom::ObstacleRole::Part, geom::box_mesh({wall_x, -50, 38}, {wall_x + 1.0, 50, 52}, "the wall"));
+    scene.build(false);
+    cspace::Options co;
+    co.check_collision = true;
+    co.collision.clearance_mm = 0.5;
+    const cspace::Space space(k, &scene, &tool, co, nullptr);
+    gate::Options opt = gate::options_for(m, 0, 0, 0);
+    opt.make_collision = [&]() -> gate::Options::CollisionCheck {
+      auto w = std::make_shared<geom::QueryWorkspace>();
+      auto c = std::make_shared<cspace::Counters>();
+      return [&space, c, w](const kin::Axes& q) { return space.collision_at_axes(q, *w, *c); };
+    };
+    return gate::check(p.text, "line.ngc", prog, m, *k, opt, &p.summary.cl_line_of_nc_line);
+  };
+  const auto coarse = gate_with_wall(0.2, 200.0), fine = gate_with_wall(0.1, 200.0);
+  EXPECT_TRUE(coarse.ok) << coarse.message;
+  EXPECT_TRUE(fine.ok) << fine.message;
+  EXPECT_GT(fine.blocks, coarse.blocks + 190);
+  EXPECT_LE(fine.collision_checks, coarse.collision_checks + 5) << coarse.collision_checks;
+  // The shank (r 5, clearance 0.5) meets the wall's face at x 7 with the tip at x 1.5: between CL points 107 and 108
+  // (x 1.4, 1.6; CL lines 112 and 113). The block named holds a pose at most a sample step (0.5 mm) further, x 2.0:
+  // it ends by CL point 110 (line 115).
+  const auto hit = gate_with_wall(0.2, 7.0);
+  ASSERT_FALSE(hit.ok);
+  ASSERT_EQ(hit.violations.front().kind, gate::Violation::Kind::Collision) << hit.message;
+  EXPECT_NE(hit.message.find("hits wall"), std::string::npos) << hit.message;
+  const int cl_line = hit.violations.front().cl_line;
+  EXPECT_GE(cl_line, 113) << hit.message;
+  EXPECT_LE(cl_line, 115) << hit.message;
 }
 
 TEST(PostFlips, SameInputGivesByteIdenticalOutput) {

@@ -244,7 +244,7 @@ void run_job(const PostJob& job, JobResult& r) {
     std::string tool_note;  // head-side rotaries: where the tool length came from
     const double L = post::tool_length_for(m, job.tool_length_mm, prog, tool_note);
     if (!tool_note.empty()) r.warnings.push_back(tool_note);
-    const auto kin = m.make_kinematics(L);
+    const std::shared_ptr<const kin::Kinematics> kin = m.make_kinematics(L);
     const auto axes = post::conventional_axes(prog, m, *kin);
     post::Options po;
     po.dialect = job.dialect;
@@ -267,10 +267,18 @@ void run_job(const PostJob& job, JobResult& r) {
     gate::Summary gs;
     nc::Program read_back;
     const bool tip_words = report::uses_tool_tip_control(nc_text);
+    // The moves are checked against the machine's own bodies (and the job's meshes), as a planned program's are.
+    gate::Options go = gate::options_for(m, job.tolerance_mm, job.axis_tolerance_deg, 0.0);
+    {
+      PlanArgs scene_args;
+      scene_args.cl = job.cl;
+      scene_args.parts = job.parts;
+      scene_args.fixtures = job.fixtures;
+      go.make_collision = collision_for_post(m, kin, L, prog.tools, scene_args, r.warnings);
+    }
     auto gate_and_write = [&] {
-      gs = gate::write_checked(job.out, nc_text, prog, m, *kin,
-                               gate::options_for(m, job.tolerance_mm, job.axis_tolerance_deg, 0.0),
-                               &sum.cl_line_of_nc_line, tip_words ? nullptr : &read_back);
+      gs = gate::write_checked(job.out, nc_text, prog, m, *kin, go, &sum.cl_line_of_nc_line,
+                               tip_words ? nullptr : &read_back);
     };
     auto stats = [&] { add_stats(nc_text, job.out, m, r); };
     if (!tip_words) {
@@ -565,8 +573,7 @@ std::vector<PostJob> read_jobs_file(const std::string& path) {
       r.fail(e, "jobs", "each job is a CL path or a mapping with 'cl:'");
     }
     if (j.machine.empty()) r.fail(e, "machine", "missing: give it in the job or under 'defaults:'");
-    if (j.strategy == Strategy::Conventional && (j.cone_deg > 0 || !j.parts.empty() || !j.fixtures.empty()))
-      r.fail(e, "strategy", "cone, part and fixture need 'strategy: planner'");
+    if (j.strategy == Strategy::Conventional && j.cone_deg > 0) r.fail(e, "strategy", "cone needs 'strategy: planner'");
     if (j.strategy == Strategy::Planner && (j.axis_tolerance_deg > 0 || !j.linearise))
       r.fail(e, "strategy", "axis_tolerance and linearise: false are settings of the conventional post only");
     const fs::path stem_out = out_dir / (fs::path(j.cl).stem().string() + ".ngc");

@@ -26,7 +26,7 @@ struct PostJob {
   Strategy strategy = Strategy::Conventional;
   double tolerance_mm = 0, axis_tolerance_deg = 0, tool_length_mm = 0, default_feed_mm_per_min = 0;
   double cone_deg = 0;                       ///< planner only
-  std::vector<std::string> parts, fixtures;  ///< planner only: meshes for collision checking
+  std::vector<std::string> parts, fixtures;  ///< meshes for collision checking (the planner's scene; the gate's)
   bool linearise = true;
   std::optional<bool> tcp;  ///< tool-tip control on/off; unset: the machine's post.tcp
   std::string work_plane;   ///< tilted | machine for 3+2 stretches; empty: the machine's post.work_plane

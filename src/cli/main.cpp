@@ -78,6 +78,7 @@ std::array<bool, 5> rotary_of(const machine::Machine& m) {
 struct PostArgs {
   std::vector<std::string> cl;
   std::string machine, out, dialect, units, work_plane;
+  std::vector<std::string> parts, fixtures;  ///< meshes the gate checks every move against
   double tolerance = 0, axis_tolerance = 0, tool_length = 0;
   double default_feed = 0;  ///< mm/min for feed moves without a feed rate; 0: such a CL file is an error
   bool json = false, no_linearise = false, tcp = false, no_tcp = false;
@@ -97,6 +98,8 @@ cli::PostJob job_of(const PostArgs& a, const std::string& cl, const std::string&
   j.linearise = !a.no_linearise;
   if (a.tcp || a.no_tcp) j.tcp = a.tcp;
   j.work_plane = a.work_plane;
+  j.parts = a.parts;
+  j.fixtures = a.fixtures;
   return j;
 }
 
@@ -321,6 +324,10 @@ int main(int argc, char** argv) {
                    "feed, mm/min, for cutting moves the CL gives no feed rate for (default: such a CL is an error)")
       ->check(CLI::PositiveNumber);
   post_cmd->add_flag("--no-linearise", pa.no_linearise, "do not insert points between CL points");
+  post_cmd->add_option("--part", pa.parts,
+                       "part mesh(es) (STL, OBJ, PLY, ...): the safety gate checks every move against them, as it "
+                       "checks the machine file's bodies");
+  post_cmd->add_option("--fixture", pa.fixtures, "fixture mesh(es), checked as --part");
   auto* tcp_flag = post_cmd->add_flag("--tcp", pa.tcp, "tool-tip control on (default: the machine's post.tcp)");
   post_cmd->add_flag("--no-tcp", pa.no_tcp, "tool-tip control off: machine coordinates")->excludes(tcp_flag);
   post_cmd

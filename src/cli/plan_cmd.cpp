@@ -101,6 +101,11 @@ nlohmann::json mesh_reports_json(const Setup& s) {
   return out;
 }
 
+/// The collision scene of a run: the part and fixture meshes, the machine file's table and head meshes and bodies, and
+/// the checked tool from the CL's first cutter with the machine's holder; the planner's options from `a`. Without a
+/// cutter size: an error with `require_tool`, else a warning and no collision checks.
+void add_scene(Setup& s, const PlanArgs& a, const std::vector<cl::Tool>& tools, bool require_tool);
+
 std::unique_ptr<Setup> setup(const PlanArgs& a, std::vector<std::string>* warnings = nullptr) {
   auto s = std::make_unique<Setup>();
   s->warnings = warnings;
@@ -117,6 +122,12 @@ std::unique_ptr<Setup> setup(const PlanArgs& a, std::vector<std::string>* warnin
   s->tool_length = post::tool_length_for(s->m, a.tool_length, s->prog, tool_note);
   if (!tool_note.empty()) s->warn(tool_note);
   s->kin = s->m.make_kinematics(s->tool_length);
+  add_scene(*s, a, s->prog.tools, true);
+  return s;
+}
+
+void add_scene(Setup& setup, const PlanArgs& a, const std::vector<cl::Tool>& tools, bool require_tool) {
+  Setup* s = &setup;
   for (const auto& p : a.parts)
     s->scene.add(fs::path(p).filename().string(), geom::ObstacleRole::Part, checked_mesh(*s, p, a.mesh_scale));
   for (const auto& p : a.fixtures)
@@ -136,7 +147,7 @@ std::unique_ptr<Setup> setup(const PlanArgs& a, std::vector<std::string>* warnin
   }
   // The tool: from the CL (first tool), the rest from the machine file's holder settings.
   const cl::Tool* t = nullptr;
-  for (const auto& tt : s->prog.tools)
+  for (const auto& tt : tools)
     if (tt.diameter_mm > 0) {
       t = &tt;
       break;
@@ -154,9 +165,8 @@ std::unique_ptr<Setup> setup(const PlanArgs& a, std::vector<std::string>* warnin
     post::Options po;
     po.tolerance_mm = a.tolerance;
     po.strategy = "planned";
-    o.can_bridge = [setup = s.get(), po](const kin::Axes& q0, const kin::Posed& p0, const kin::Axes& q1,
-                                         const kin::Posed& p1) {
-      return post::can_follow(*setup->kin, setup->m, po, p0, q0, p1, q1);
+    o.can_bridge = [s, po](const kin::Axes& q0, const kin::Posed& p0, const kin::Axes& q1, const kin::Posed& p1) {
+      return post::can_follow(*s->kin, s->m, po, p0, q0, p1, q1);
     };
   }
   // On a parallel machine the actuated legs' reversals count too (every Cartesian move moves every leg).
@@ -164,14 +174,9 @@ std::unique_ptr<Setup> setup(const PlanArgs& a, std::vector<std::string>* warnin
     for (int i = 0; i < 5; ++i)
       if (!s->m.axes[static_cast<size_t>(i)].rotary()) o.monotone_axes.push_back(i);
   if (t) {
-    geom::ToolDefaults d;
-    if (s->m.geometry.holder_diameter_mm > 0) d.holder_diameter_mm = s->m.geometry.holder_diameter_mm;
-    if (s->m.geometry.holder_length_mm > 0) d.holder_length_mm = s->m.geometry.holder_length_mm;
-    if (s->m.geometry.spindle_diameter_mm > 0)
-      d.spindle = {s->m.geometry.spindle_diameter_mm, s->m.geometry.spindle_length_mm};
     const double flute = t->length_mm > 0 ? t->length_mm : 3.0 * t->diameter_mm;
     s->tool =
-        std::make_unique<geom::ToolShape>(geom::ToolShape::from_cutter(t->diameter_mm, t->corner_radius_mm, flute, d));
+        std::make_unique<geom::ToolShape>(cspace::tool_on_machine(s->m, t->diameter_mm, t->corner_radius_mm, flute));
     if (t->is_ball()) o.cspace.ball_radius_mm = 0.5 * t->diameter_mm;
   }
   // Machine bodies (geometry.bodies). The head is lifted to where the checked tool shape's holder ends when
@@ -201,10 +206,13 @@ std::unique_ptr<Setup> setup(const PlanArgs& a, std::vector<std::string>* warnin
         static_cast<unsigned>(geom::ObstacleRole::Part) | static_cast<unsigned>(geom::ObstacleRole::Fixture);
     s->planner_ignores_machine = true;
   }
-  if (meshes && !t)
-    throw InputError(SourceLoc{a.cl},
-                     "collision checking needs the cutter size: the CL file has no CUTTER/ or TLDATA/");
-  return s;
+  if (meshes && !t) {
+    if (require_tool)
+      throw InputError(SourceLoc{a.cl},
+                       "collision checking needs the cutter size: the CL file has no CUTTER/ or TLDATA/");
+    s->warn(a.cl + ": no CUTTER/ or TLDATA/: the moves are not checked against the machine's meshes");
+    s->has_meshes = false;
+  }
 }
 
 /// Posts `prog` at `axes`; a planned program with the CL it was planned from (Plan::reference), whose axes the cone
@@ -255,9 +263,11 @@ gate::Options gate_options(const Setup& s, const PlanArgs& a, double cone_deg) {
     co.collision.roles = geom::kAllRoles;
     auto space =
         std::make_shared<const cspace::Space>(s.kin, &s.scene, s.tool.get(), co, s.has_head ? &s.head : nullptr);
-    auto ws = std::make_shared<geom::QueryWorkspace>();
-    auto cc = std::make_shared<cspace::Counters>();
-    g.collision = [space, ws, cc](const kin::Axes& q) { return space->collision_at_axes(q, *ws, *cc); };
+    g.make_collision = [space]() -> gate::Options::CollisionCheck {
+      auto ws = std::make_shared<geom::QueryWorkspace>();
+      auto cc = std::make_shared<cspace::Counters>();
+      return [space, ws, cc](const kin::Axes& q) { return space->collision_at_axes(q, *ws, *cc); };
+    };
   }
   return g;
 }
@@ -611,6 +621,24 @@ void common_options(CLI::App* c, PlanArgs& a) {
 }
 
 }  // namespace
+
+std::function<gate::Options::CollisionCheck()> collision_for_post(const machine::Machine& m,
+                                                                  std::shared_ptr<const kin::Kinematics> kin,
+                                                                  double tool_length,
+                                                                  const std::vector<cl::Tool>& tools, const PlanArgs& a,
+                                                                  std::vector<std::string>& warnings) {
+  auto s = std::make_shared<Setup>();
+  s->warnings = &warnings;
+  s->m = m;
+  s->tool_length = tool_length;
+  s->kin = std::move(kin);
+  add_scene(*s, a, tools, false);
+  s->warnings = nullptr;  // (the setup outlives this call: nothing may point at the caller's list)
+  auto make = gate_options(*s, a, 0.0).make_collision;
+  if (!make) return {};
+  // The scene lives as long as the checks that use it.
+  return [s, make = std::move(make)]() { return make(); };
+}
 
 PlanWritten plan_and_write(const PlanArgs& a, const std::string& out) {
   PlanWritten w;

@@ -6,6 +6,7 @@
 #include <string>
 #include <vector>
 
+#include "cscam/cl/program.hpp"
 #include "cscam/core/units.hpp"
 #include "cscam/gate/gate.hpp"
 #include "cscam/post/post.hpp"
@@ -38,6 +39,16 @@ struct PlanWritten {
 /// Plans `a.cl`, posts it and writes `out` through the safety gate, printing nothing (the batch form of
 /// `cscam plan`: the same program byte for byte). Throws InputError on bad input or a refused program.
 PlanWritten plan_and_write(const PlanArgs& a, const std::string& out);
+
+/// The safety gate's collision check for a conventional post (gate::Options::make_collision): the moves against the
+/// machine file's bodies and meshes, and `a.parts` / `a.fixtures`, with the cutter of `tools` and the machine's holder,
+/// as the planner's programs are checked. Empty when there is nothing to check against, or no cutter size (then a
+/// warning).
+std::function<gate::Options::CollisionCheck()> collision_for_post(const machine::Machine& m,
+                                                                  std::shared_ptr<const kin::Kinematics> kin,
+                                                                  double tool_length,
+                                                                  const std::vector<cl::Tool>& tools, const PlanArgs& a,
+                                                                  std::vector<std::string>& warnings);
 
 /// Adds `plan` and `compare` to the app; returns a runner that executes whichever was chosen (or null).
 std::function<int()> add_plan_commands(CLI::App& app);

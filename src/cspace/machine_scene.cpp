@@ -6,6 +6,16 @@
 
 namespace cscam::cspace {
 
+geom::ToolShape tool_on_machine(const machine::Machine& machine, double diameter_mm, double corner_radius_mm,
+                                double flute_length_mm) {
+  geom::ToolDefaults d;
+  const auto& g = machine.geometry;
+  if (g.holder_diameter_mm > 0) d.holder_diameter_mm = g.holder_diameter_mm;
+  if (g.holder_length_mm > 0) d.holder_length_mm = g.holder_length_mm;
+  if (g.spindle_diameter_mm > 0) d.spindle = {g.spindle_diameter_mm, g.spindle_length_mm};
+  return geom::ToolShape::from_cutter(diameter_mm, corner_radius_mm, flute_length_mm, d);
+}
+
 int link_of(const machine::MachineBody& body) { return body.axis < 0 ? 0 : 1 + body.axis; }
 
 geom::Mesh body_mesh(const machine::MachineBody& body, geom::MeshCheckReport* report) {

@@ -198,16 +198,87 @@ Summary check(const std::string& nc_text, const std::string& nc_name, const cl::
   // as rapids: the planner certifies the motion between CL points, but the machine moves between NC blocks,
   // and the points the post inserted (linearisation, retracts, arcs) are only checked here. The collision
   // test excludes the cutting end of the tool (see geom::CheckOptions::relief_mm), so cutting is not a hit.
+  auto move_span = [&](size_t bi) {
+    const nc::Block& b = ncp.blocks[bi];
+    const kin::Axes qa = joints(bi - 1), qb = joints(bi);
+    double span = 0.0;
+    for (int i = 0; i < 5; ++i)
+      span = std::max(span, std::abs(qb[i] - qa[i]) / (ax[static_cast<size_t>(i)].rotary() ? deg2rad(1.0) : 1.0));
+    if (b.arc) span = std::max(span, nc::linear_path_mm(ncp.blocks[bi - 1].axes, b, letters_rotary));
+    return span;
+  };
+  // Collisions first, in parallel over fixed chunks of moves (one check, with its own workspace, per chunk): each
+  // move's first hit, taken below in block order as the serial loop found them.
+  constexpr std::size_t kCollisionChunk = 1024;
+  std::vector<std::vector<std::pair<std::size_t, std::string>>> hits;
+  std::vector<std::size_t> chunk_checks;
+  if (options.make_collision && ncp.blocks.size() > 1) {
+    const std::size_t chunks = (ncp.blocks.size() - 1 + kCollisionChunk - 1) / kCollisionChunk;
+    hits.resize(chunks);
+    chunk_checks.assign(chunks, 0);
+    // Samples at most `step` of joint motion apart along the path, across blocks (a million blocks of 0.2 mm need not
+    // be checked at every block end), and at the end of every run of checked blocks (a chunk's end included: the next
+    // chunk goes on from there). An arc is sampled on its own points from its start.
+    const double step = std::max(options.collision_step, 1e-6);
+    auto body = [&](const tbb::blocked_range<std::size_t>& r) {
+      const Options::CollisionCheck collides = options.make_collision();
+      std::vector<double> at;  // fractions of a block to check
+      for (std::size_t c = r.begin(); c != r.end(); ++c) {
+        const std::size_t b0 = 1 + c * kCollisionChunk, b1 = std::min(ncp.blocks.size(), 1 + (c + 1) * kCollisionChunk);
+        double carried = 0.0;  // joint motion since the last pose checked
+        for (std::size_t bi = b0; bi < b1; ++bi) {
+          if (!joints_ok[bi] || !joints_ok[bi - 1]) {
+            carried = step;  // the next run starts with its first pose
+            continue;
+          }
+          const nc::Block& b = ncp.blocks[bi];
+          const kin::Axes qa = joints(bi - 1), qb = joints(bi);
+          const double span = move_span(bi);
+          const bool run_ends = bi + 1 >= b1 || !joints_ok[bi + 1];
+          const bool arc = b.arc && !s.tool_tip_control;
+          at.clear();
+          if (arc) {
+            const int n = std::clamp(static_cast<int>(std::ceil(span / step)), 1, 20000);
+            for (int k = 1; k <= n; ++k) at.push_back(static_cast<double>(k) / n);
+            carried = 0.0;
+          } else {
+            const double h = std::max(step, span / 20000.0);
+            double d = std::max(0.0, h - carried);
+            for (; d <= span; d += h) at.push_back(span > 0 ? d / span : 1.0);
+            if (run_ends && (at.empty() || at.back() < 1.0)) at.push_back(1.0);
+            carried = at.empty() ? carried + span : span * (1.0 - at.back());
+          }
+          for (const double t : at) {
+            kin::Axes q = qa + t * (qb - qa);
+            if (arc) {
+              const auto p = nc::point_on(ncp.blocks[bi - 1].axes, b, t);
+              for (int i = 0; i < 5; ++i) q[i] = p[static_cast<size_t>(i)];
+            }
+            ++chunk_checks[c];
+            if (std::string hit = collides(q); !hit.empty()) {
+              hits[c].emplace_back(bi, std::move(hit));
+              break;
+            }
+          }
+        }
+      }
+    };
+    // (The XMINI's FK is warm-started from the thread's previous solve: there the moves go in order on this thread,
+    // so that a hit at the edge does not depend on the thread count.)
+    if (kinematics.traits().forward_depends_on_call_order)
+      body(tbb::blocked_range<std::size_t>(0, chunks));
+    else
+      parallel_range(0, chunks, 1, body);
+    for (const std::size_t n : chunk_checks) s.collision_checks += n;
+  }
+  std::size_t hit_chunk = 0, next_hit = 0;  // the first entry of hits[hit_chunk] not yet taken
   for (size_t bi = 1; bi < ncp.blocks.size(); ++bi) {
     if (!joints_ok[bi] || !joints_ok[bi - 1]) continue;
     const nc::Block& b = ncp.blocks[bi];
     const kin::Axes qa = joints(bi - 1);
     const kin::Axes qb = joints(bi);
     const bool rapid = b.motion == nc::Motion::Rapid;
-    double span = 0.0;
-    for (int i = 0; i < 5; ++i)
-      span = std::max(span, std::abs(qb[i] - qa[i]) / (ax[static_cast<size_t>(i)].rotary() ? deg2rad(1.0) : 1.0));
-    if (b.arc) span = std::max(span, nc::linear_path_mm(ncp.blocks[bi - 1].axes, b, letters_rotary));
+    const double span = move_span(bi);
     const int n = std::clamp(static_cast<int>(std::ceil(span / std::max(options.collision_step, 1e-6))), 1, 4000);
     for (int k = 1; k < n; ++k) {
       kin::Axes q = qa + (static_cast<double>(k) / n) * (qb - qa);
@@ -224,20 +295,14 @@ Summary check(const std::string& nc_text, const std::string& nc_name, const cl::
         break;
       }
     }
-    if (options.collision) {
-      const int nc = std::clamp(static_cast<int>(std::ceil(span / std::max(options.collision_step, 1e-6))), 1, 20000);
-      for (int k = 1; k <= nc; ++k) {
-        kin::Axes q = qa + (static_cast<double>(k) / nc) * (qb - qa);
-        if (b.arc && !s.tool_tip_control) {
-          const auto p = nc::point_on(ncp.blocks[bi - 1].axes, b, static_cast<double>(k) / nc);
-          for (int i = 0; i < 5; ++i) q[i] = p[static_cast<size_t>(i)];
-        }
-        ++s.collision_checks;
-        if (const std::string c = options.collision(q); !c.empty()) {
-          add(Violation::Kind::Collision, b.line, 0, fmt::format("{} move collides: {}", rapid ? "rapid" : "feed", c));
-          break;
-        }
-      }
+    if (!hits.empty()) {
+      const std::size_t c = (bi - 1) / kCollisionChunk;
+      if (c != hit_chunk) hit_chunk = c, next_hit = 0;
+      auto& found = hits[c];
+      while (next_hit < found.size() && found[next_hit].first < bi) ++next_hit;
+      if (next_hit < found.size() && found[next_hit].first == bi)
+        add(Violation::Kind::Collision, b.line, 0,
+            fmt::format("{} move collides: {}", rapid ? "rapid" : "feed", found[next_hit].second));
     }
   }
 
@@ -322,7 +387,8 @@ Summary check(const std::string& nc_text, const std::string& nc_name, const cl::
         "passed: {} blocks inside the limits, axis velocities up to {:.0f}% of max_feed, max tip deviation {:.5f} mm, "
         "max axis deviation {:.4f} deg{}",
         s.blocks, 100.0 * s.max_velocity_ratio, d.max_tip_deviation_mm, d.max_axis_deviation_deg,
-        options.collision ? fmt::format(", {} collision checks inside the moves", s.collision_checks) : std::string());
+        options.make_collision ? fmt::format(", {} collision checks inside the moves", s.collision_checks)
+                               : std::string());
   } else {
     const Violation& v = s.violations.front();
     s.message = fmt::format("{}{}{}", v.message, v.nc_line ? fmt::format(" at NC line {}", v.nc_line) : std::string(),

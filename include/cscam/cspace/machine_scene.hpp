@@ -36,6 +36,11 @@ struct MachineBodiesSummary {
 /// to `fixed`, head side to `head`, named "machine <name>". Head-side bodies are lifted by `head_lift_mm`
 /// along the home tool direction: the holder of the checked tool shape ends that far above the kinematic
 /// gauge point (see docs/machine-geometry.md).
+/// The checked tool of a cutter (diameter, corner radius, flute length, mm) on this machine: shank by default, holder
+/// and spindle nose from the machine file's geometry where it gives them.
+[[nodiscard]] geom::ToolShape tool_on_machine(const machine::Machine& machine, double diameter_mm,
+                                              double corner_radius_mm, double flute_length_mm);
+
 MachineBodiesSummary add_machine_bodies(const machine::Machine& machine, double head_lift_mm, geom::Scene& fixed,
                                         geom::Scene& head);
 

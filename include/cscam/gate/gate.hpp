@@ -32,9 +32,12 @@ struct Options {
   double feed_slack = 1e-3;   ///< relative slack on max_feed (printed F words are rounded)
   /// Largest joint step between collision samples inside every move (mm or deg).
   double collision_step = 0.5;
-  /// Optional collision check of a machine configuration against the part/fixture: returns a
-  /// description of the collision, or an empty string when free. Applied inside every move, rapid or feed.
-  std::function<std::string(const kin::Axes&)> collision;
+  /// A collision check of a machine configuration against the scene (part, fixture, the machine's own bodies):
+  /// returns a description of the collision, or an empty string when free.
+  using CollisionCheck = std::function<std::string(const kin::Axes&)>;
+  /// Optional: makes a collision check for one worker (each keeps its own query workspace, so that the moves are
+  /// checked in parallel). Applied inside every move, rapid or feed.
+  std::function<CollisionCheck()> make_collision;
 };
 
 /// Options for a program posted with `tolerance_mm` / `axis_tolerance_deg` (0: the machine file's)
