@@ -126,24 +126,23 @@ std::unique_ptr<Setup> setup(const PlanArgs& a, std::vector<std::string>* warnin
   return s;
 }
 
-void add_scene(Setup& setup, const PlanArgs& a, const std::vector<cl::Tool>& tools, bool require_tool) {
-  Setup* s = &setup;
+void add_scene(Setup& s, const PlanArgs& a, const std::vector<cl::Tool>& tools, bool require_tool) {
   for (const auto& p : a.parts)
-    s->scene.add(fs::path(p).filename().string(), geom::ObstacleRole::Part, checked_mesh(*s, p, a.mesh_scale));
+    s.scene.add(fs::path(p).filename().string(), geom::ObstacleRole::Part, checked_mesh(s, p, a.mesh_scale));
   for (const auto& p : a.fixtures)
-    s->scene.add(fs::path(p).filename().string(), geom::ObstacleRole::Fixture, checked_mesh(*s, p, a.mesh_scale));
+    s.scene.add(fs::path(p).filename().string(), geom::ObstacleRole::Fixture, checked_mesh(s, p, a.mesh_scale));
   // Machine meshes from the machine file: the table moves with the part (fixed in the part frame), the head
   // moves with the spindle. Both are given in the machine frame at home.
-  if (!s->m.geometry.table_mesh.empty()) {
-    geom::Mesh table = checked_mesh(*s, s->m.geometry.table_mesh, 1.0);
+  if (!s.m.geometry.table_mesh.empty()) {
+    geom::Mesh table = checked_mesh(s, s.m.geometry.table_mesh, 1.0);
     Eigen::Isometry3d T = Eigen::Isometry3d::Identity();
-    if (s->m.serial) T.translation() = -s->m.serial->part_origin_home_mm;
+    if (s.m.serial) T.translation() = -s.m.serial->part_origin_home_mm;
     table.transform(T);
-    s->scene.add("machine table", geom::ObstacleRole::Fixture, std::move(table));
+    s.scene.add("machine table", geom::ObstacleRole::Fixture, std::move(table));
   }
-  if (!s->m.geometry.head_mesh.empty()) {
-    s->head.add("machine head", geom::ObstacleRole::Machine, checked_mesh(*s, s->m.geometry.head_mesh, 1.0));
-    s->has_head = true;
+  if (!s.m.geometry.head_mesh.empty()) {
+    s.head.add("machine head", geom::ObstacleRole::Machine, checked_mesh(s, s.m.geometry.head_mesh, 1.0));
+    s.has_head = true;
   }
   // The tool: from the CL (first tool), the rest from the machine file's holder settings.
   const cl::Tool* t = nullptr;
@@ -152,7 +151,7 @@ void add_scene(Setup& setup, const PlanArgs& a, const std::vector<cl::Tool>& too
       t = &tt;
       break;
     }
-  auto& o = s->opt;
+  auto& o = s.opt;
   o.cspace.cone_rad = deg2rad(a.cone_deg);
   o.cspace.min_tilt_rad = deg2rad(a.min_tilt_deg);
   o.cspace.resolution_rad = deg2rad(a.resolution_deg);
@@ -165,53 +164,54 @@ void add_scene(Setup& setup, const PlanArgs& a, const std::vector<cl::Tool>& too
     post::Options po;
     po.tolerance_mm = a.tolerance;
     po.strategy = "planned";
-    o.can_bridge = [s, po](const kin::Axes& q0, const kin::Posed& p0, const kin::Axes& q1, const kin::Posed& p1) {
-      return post::can_follow(*s->kin, s->m, po, p0, q0, p1, q1);
+    o.can_bridge = [setup = &s, po](const kin::Axes& q0, const kin::Posed& p0, const kin::Axes& q1,
+                                    const kin::Posed& p1) {
+      return post::can_follow(*setup->kin, setup->m, po, p0, q0, p1, q1);
     };
   }
   // On a parallel machine the actuated legs' reversals count too (every Cartesian move moves every leg).
-  if (s->kin->traits().parallel)
+  if (s.kin->traits().parallel)
     for (int i = 0; i < 5; ++i)
-      if (!s->m.axes[static_cast<size_t>(i)].rotary()) o.monotone_axes.push_back(i);
+      if (!s.m.axes[static_cast<size_t>(i)].rotary()) o.monotone_axes.push_back(i);
   if (t) {
     const double flute = t->length_mm > 0 ? t->length_mm : 3.0 * t->diameter_mm;
-    s->tool =
-        std::make_unique<geom::ToolShape>(cspace::tool_on_machine(s->m, t->diameter_mm, t->corner_radius_mm, flute));
+    s.tool =
+        std::make_unique<geom::ToolShape>(cspace::tool_on_machine(s.m, t->diameter_mm, t->corner_radius_mm, flute));
     if (t->is_ball()) o.cspace.ball_radius_mm = 0.5 * t->diameter_mm;
   }
   // Machine bodies (geometry.bodies). The head is lifted to where the checked tool shape's holder ends when
   // that is above the kinematic gauge point (tool length 0 on a table-table machine: the control compensates).
   // With --no-machine-geometry the planner ignores them, but the report's independent collision count and the
   // safety gate still check against them (as with --no-collision).
-  if (!s->m.geometry.bodies.empty() && !s->tool)
-    s->warn(a.cl + ": no CUTTER/ or TLDATA/: the machine's bodies are not checked");
-  if (!s->m.geometry.bodies.empty() && s->tool) {
-    const double lift = std::max(0.0, s->tool->gauge_length_mm() - s->tool_length);
-    auto bodies = cspace::add_machine_bodies(s->m, lift, s->scene, s->head);
+  if (!s.m.geometry.bodies.empty() && !s.tool)
+    s.warn(a.cl + ": no CUTTER/ or TLDATA/: the machine's bodies are not checked");
+  if (!s.m.geometry.bodies.empty() && s.tool) {
+    const double lift = std::max(0.0, s.tool->gauge_length_mm() - s.tool_length);
+    auto bodies = cspace::add_machine_bodies(s.m, lift, s.scene, s.head);
     for (auto& r : bodies.mesh_reports) {
-      warn_mesh_report(*s, r.source, r);
-      s->mesh_reports.push_back(std::move(r));
+      warn_mesh_report(s, r.source, r);
+      s.mesh_reports.push_back(std::move(r));
     }
-    s->machine_bodies = bodies.fixed_bodies + bodies.head_bodies;
-    if (bodies.head_bodies) s->has_head = true;
+    s.machine_bodies = bodies.fixed_bodies + bodies.head_bodies;
+    if (bodies.head_bodies) s.has_head = true;
   }
-  if (s->has_head) s->head.build(false);
-  s->scene.build(false);  // collision only: nothing asks for distances
-  const bool meshes = !a.parts.empty() || !a.fixtures.empty() || !s->m.geometry.table_mesh.empty() || s->has_head ||
-                      s->machine_bodies > 0;
-  s->has_meshes = meshes;
+  if (s.has_head) s.head.build(false);
+  s.scene.build(false);  // collision only: nothing asks for distances
+  const bool meshes =
+      !a.parts.empty() || !a.fixtures.empty() || !s.m.geometry.table_mesh.empty() || s.has_head || s.machine_bodies > 0;
+  s.has_meshes = meshes;
   o.cspace.check_collision = meshes && !a.no_collision;
   if (a.no_machine_geometry) {
     o.cspace.collision.roles =
         static_cast<unsigned>(geom::ObstacleRole::Part) | static_cast<unsigned>(geom::ObstacleRole::Fixture);
-    s->planner_ignores_machine = true;
+    s.planner_ignores_machine = true;
   }
   if (meshes && !t) {
     if (require_tool)
       throw InputError(SourceLoc{a.cl},
                        "collision checking needs the cutter size: the CL file has no CUTTER/ or TLDATA/");
-    s->warn(a.cl + ": no CUTTER/ or TLDATA/: the moves are not checked against the machine's meshes");
-    s->has_meshes = false;
+    s.warn(a.cl + ": no CUTTER/ or TLDATA/: the moves are not checked against the machine's meshes");
+    s.has_meshes = false;
   }
 }
 
