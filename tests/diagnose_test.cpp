@@ -172,24 +172,7 @@ TEST(Diagnose, GeometricParameterOfTheXmini) {
   expect_found(r, "geometric", "A1x", "A1x_mm", -0.15);
 }
 
-TEST(Diagnose, RasterScaleAndSquareness) {
-  std::string nc = "G21 G90 G94\nG0 X-100 Y-100 Z0 A0 C0\n";
-  double x = -100;
-  for (int j = 0; j <= 20; ++j) {
-    if (j > 0) nc += "G1 Y" + std::to_string(-100 + 10 * j) + " F3000\n";
-    x = -x;
-    nc += "G1 X" + std::to_string(x) + " F3000\n";
-  }
-  sim::ProfileOptions po;
-  po.rate_hz = 25;
-  const auto tr = sim::profile(
-      sim::blocks_from_nc(nc::read_text(nc, "raster.ngc", report::axis_letters(trunnion())), trunnion()), po);
-  const auto r = run(tr, trunnion(), {"scale:x:40", "squareness:x,y:60"}, {"tip"}, 0.0005);
-  expect_found(r, "scale", "x", "ppm", 40);
-  expect_found(r, "squareness", "x,y", "angle_urad", 60);
-}
-
-/// The raster of RasterScaleAndSquareness (200 x 200 mm, X strokes stepped along Y) at 25 Hz.
+/// A raster of 200 x 200 mm (X strokes stepped along Y) at 25 Hz.
 sim::Trajectory raster() {
   std::string nc = "G21 G90 G94\nG0 X-100 Y-100 Z0 A0 C0\n";
   double x = -100;
@@ -202,6 +185,12 @@ sim::Trajectory raster() {
   po.rate_hz = 25;
   return sim::profile(
       sim::blocks_from_nc(nc::read_text(nc, "raster.ngc", report::axis_letters(trunnion())), trunnion()), po);
+}
+
+TEST(Diagnose, RasterScaleAndSquareness) {
+  const auto r = run(raster(), trunnion(), {"scale:x:40", "squareness:x,y:60"}, {"tip"}, 0.0005);
+  expect_found(r, "scale", "x", "ppm", 40);
+  expect_found(r, "squareness", "x,y", "angle_urad", 60);
 }
 
 // A guideway that bows: Z follows the square of X about an apex off the centre (0.8 mm/m^2, 8 um at 100 mm from it).
