@@ -424,3 +424,22 @@ TEST(DiagnoseCli, BadInputAndJson) {
   EXPECT_NE(out.find("no missing physics"), std::string::npos) << out;
   fs::remove_all(dir);
 }
+
+// A cyclic error whose fitted period is longer than the travel the recording shows is not resolved: the finding and
+// the warnings say so. NX's variable-axis path on the head-head machine tilts A through 41 deg; a 120 deg error there
+// is fitted as a cyclic error of about 90 deg plus a scale error.
+TEST(Diagnose, APeriodLongerThanTheTravelIsSaidToBeUnresolved) {
+  const auto m = machine::load(std::string(CSCAM_SOURCE_DIR) + "/machines/head-head-ac.yaml");
+  sim::ProfileOptions po;
+  po.rate_hz = 100;
+  const auto tr = sim::profile(
+      sim::blocks_from_cl(std::string(CSCAM_SOURCE_DIR) + "/examples/nx-haas-umc750/variable_axis.cls", m, 0), po);
+  const auto r = run(tr, m, {"cyclic:a:period_deg=120,amplitude_deg=0.003"}, {"tip", "enc"}, 0.0005);
+  const auto* f = find(r, "cyclic", "a");
+  ASSERT_NE(f, nullptr) << r.text();
+  ASSERT_GT(param(*f, "period_deg"), 41.0) << r.text();
+  EXPECT_NE(f->explains.find("not resolved"), std::string::npos) << r.text();
+  EXPECT_TRUE(std::any_of(r.warnings.begin(), r.warnings.end(), [](const std::string& w) {
+    return w.find("longer than its recorded travel") != std::string::npos;
+  })) << r.text();
+}

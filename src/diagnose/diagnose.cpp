@@ -1110,6 +1110,22 @@ Report diagnose(sim::Recording& rec, const machine::Machine& m, const std::vecto
       if (s > domv) domv = s, dom = c.name;
     }
     fd.explains = explain(*fd.effect, dom);
+    if (fd.effect->name() == "cyclic") {
+      // A period longer than the travel recorded is a curve the recording cannot close: it stands in for a slope or
+      // a bow over that travel as much as for a periodic error.
+      const auto& q = ctx.q[static_cast<size_t>(fd.effect->axis)];
+      const auto [lo, hi] = std::minmax_element(q.begin(), q.end());
+      const double travel = q.empty() ? 0.0 : *hi - *lo;
+      if (fd.effect->p[0] > travel) {
+        const std::string u = fd.effect->rotary ? "deg" : "mm";
+        const std::string why = fmt::format(
+            "the period of the cyclic error on {} ({:.1f} {}) is longer than its recorded travel ({:.1f} {}): not "
+            "resolved; a recording over a whole period would tell",
+            fd.effect->target, fd.effect->p[0], u, travel, u);
+        fd.explains += "; " + why;
+        R.warnings.push_back(why);
+      }
+    }
     fd.share = on_held ? weighted_ms(F, others, true) - held_ms
                        : weighted_ms(F, others, false) - weighted_ms(F, fx_all, false);
     total_gain += std::max(0.0, fd.share);
