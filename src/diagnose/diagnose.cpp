@@ -313,8 +313,7 @@ void joint_fit(Fit& f, const std::vector<Effect*>& fx, size_t stride = 1) {
       if (names[q] == "apex") {
         // Within a travel of the second axis's recorded range: an apex far beyond it is a tilted line (squareness or
         // scale), which the curvature would then fit only as a large, meaningless product.
-        double lo = std::numeric_limits<double>::infinity(), hi = -lo;
-        for (double v : f.ctx->q[static_cast<size_t>(e->axis2)]) lo = std::min(lo, v), hi = std::max(hi, v);
+        const auto [lo, hi] = f.ctx->range(static_cast<size_t>(e->axis2));
         const double span = std::max(hi - lo, 1.0);
         prob.SetParameterLowerBound(e->p.data(), static_cast<int>(q), std::min(e->p[q], lo - span));
         prob.SetParameterUpperBound(e->p.data(), static_cast<int>(q), std::max(e->p[q], hi + span));
@@ -784,9 +783,7 @@ Report diagnose(sim::Recording& rec, const machine::Machine& m, const std::vecto
   // geometric zero offsets describe, and its fit to the noise would be reported as lost motion that nothing shows.
   std::array<bool, 5> moves{}, reverses{};
   for (int j = 0; j < 5; ++j) {
-    const auto& q = ctx.q[static_cast<size_t>(j)];
-    const auto [lo, hi] = std::minmax_element(q.begin(), q.end());
-    moves[static_cast<size_t>(j)] = !q.empty() && *hi - *lo > 1e-9;
+    moves[static_cast<size_t>(j)] = ctx.range(static_cast<size_t>(j)).travel() > 1e-9;
     const auto& since = ctx.since_rev[static_cast<size_t>(j)];
     reverses[static_cast<size_t>(j)] =
         moves[static_cast<size_t>(j)] &&
@@ -1113,9 +1110,7 @@ Report diagnose(sim::Recording& rec, const machine::Machine& m, const std::vecto
     if (fd.effect->name() == "cyclic") {
       // A period longer than the travel recorded is a curve the recording cannot close: it stands in for a slope or
       // a bow over that travel as much as for a periodic error.
-      const auto& q = ctx.q[static_cast<size_t>(fd.effect->axis)];
-      const auto [lo, hi] = std::minmax_element(q.begin(), q.end());
-      const double travel = q.empty() ? 0.0 : *hi - *lo;
+      const double travel = ctx.range(static_cast<size_t>(fd.effect->axis)).travel();
       if (fd.effect->p[0] > travel) {
         const std::string u = fd.effect->rotary ? "deg" : "mm";
         const std::string why = fmt::format(

@@ -20,6 +20,12 @@ constexpr double kPi = std::numbers::pi;
 constexpr double kInf = std::numeric_limits<double>::infinity();
 }  // namespace
 
+Context::Range Context::range(size_t j) const {
+  Range r{kInf, -kInf};
+  for (const double x : q[j]) r.lo = std::min(r.lo, x), r.hi = std::max(r.hi, x);
+  return r;
+}
+
 Context make_context(const std::vector<double>& t, const std::vector<kin::Axes>& cmd, const std::array<bool, 5>& rotary,
                      size_t stride) {
   Context c;
@@ -218,8 +224,7 @@ class Straightness : public EffectImpl<Straightness, 2> {
   }
   /// The apex at five places along the second axis's travel (and a little beyond its ends).
   std::vector<std::vector<double>> grid(const Context& c, const GridHints&) const override {
-    double lo = kInf, hi = -kInf;
-    for (double q : c.q[axis2]) lo = std::min(lo, q), hi = std::max(hi, q);
+    const auto [lo, hi] = c.range(axis2);
     if (!(hi > lo)) return {{0, lo}};
     std::vector<std::vector<double>> g;
     for (double f : {-0.25, 0.0, 0.25, 0.5, 0.75, 1.0, 1.25}) g.push_back({0, lo + f * (hi - lo)});
@@ -258,9 +263,7 @@ class Cyclic : public EffectImpl<Cyclic, 3> {
   }
   std::vector<std::vector<double>> grid(const Context& c, const GridHints&) const override {
     std::vector<std::vector<double>> g;
-    double lo = kInf, hi = -kInf;
-    for (double q : c.q[axis]) lo = std::min(lo, q), hi = std::max(hi, q);
-    const double span = hi - lo;
+    const double span = c.range(axis).travel();
     // A rotary's errors once, twice and three times per revolution (eccentricity, an oval bearing, a worm gear's
     // tooth count) need only one period seen: a whole turn shows them apart from an offset.
     const std::vector<double> periods =

@@ -38,6 +38,12 @@ struct Context {
   double t0 = 0, duration = 0;
   std::vector<size_t> index;  ///< row of the full recording each sample comes from
   [[nodiscard]] size_t size() const { return t.size(); }
+  /// The recorded range of axis `j` (file units): lo > hi when it has no sample.
+  struct Range {
+    double lo, hi;
+    [[nodiscard]] double travel() const { return hi > lo ? hi - lo : 0.0; }
+  };
+  [[nodiscard]] Range range(size_t j) const;
 };
 
 /// Builds the context from the full-rate commanded trajectory (file units) and keeps every `stride`-th
