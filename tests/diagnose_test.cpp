@@ -2,6 +2,7 @@
 // target with its parameter within 20 % and the held-out RMS at least halved; clean data give no finding.
 #include "cscam/diagnose/diagnose.hpp"
 
+#include <fmt/format.h>
 #include <gtest/gtest.h>
 #include <unistd.h>
 
@@ -55,7 +56,8 @@ sim::Trajectory xmini_cut(double rate) {
 }
 
 diagnose::Report run(const sim::Trajectory& tr, const machine::Machine& m, const std::vector<std::string>& inject,
-                     std::vector<std::string> channels, double noise, double rpm = 0, int flutes = 0) {
+                     std::vector<std::string> channels, double noise, double rpm = 0, int flutes = 0,
+                     const std::vector<sim::NoiseSpec>& other_noise = {}) {
   std::vector<std::unique_ptr<sim::Effect>> fx;
   std::vector<const sim::Effect*> v;
   for (const auto& s : inject) fx.push_back(sim::parse_effect(s, m)), v.push_back(fx.back().get());
@@ -68,6 +70,7 @@ diagnose::Report run(const sim::Trajectory& tr, const machine::Machine& m, const
                                          so.channels.end();
                                 }),
                  so.noise.end());
+  so.noise.insert(so.noise.end(), other_noise.begin(), other_noise.end());
   so.seed = 11;
   so.spindle_rpm = rpm;
   so.flutes = flutes;
@@ -407,6 +410,19 @@ TEST(DiagnoseCli, BadInputAndJson) {
             0);
   EXPECT_NE(out.find("unknown effect 'wobble'"), std::string::npos) << out;
   EXPECT_FALSE(fs::exists(dir / "x.csv"));  // nothing partial
+  const std::string circle_on_trunnion = "simulate " + std::string(CSCAM_SOURCE_DIR) +
+                                         "/examples/diagnose/circle.ngc -m trunnion-ac -o " + (dir / "x.csv").string();
+  EXPECT_NE(run_cli(circle_on_trunnion + " --noise tip:nan", out), 0);
+  EXPECT_NE(out.find("--noise 'tip:nan': sigma must be a finite number"), std::string::npos) << out;
+  EXPECT_NE(run_cli(circle_on_trunnion + " --inject backlash:x:inf", out), 0);
+  EXPECT_NE(out.find("expected a finite number, got 'inf'"), std::string::npos) << out;
+  // A program for another machine: its X Y Z words would be read as nothing on the XMINI (U V W).
+  EXPECT_NE(run_cli("simulate " + std::string(CSCAM_SOURCE_DIR) + "/examples/diagnose/circle.ngc -m xmini -o " +
+                        (dir / "x.csv").string(),
+                    out),
+            0);
+  EXPECT_NE(out.find("but machine 'xmini' has no such axis"), std::string::npos) << out;
+  EXPECT_FALSE(fs::exists(dir / "x.csv"));
   ASSERT_EQ(run_cli("simulate " + std::string(CSCAM_SOURCE_DIR) + "/examples/diagnose/circle.ngc -m trunnion-ac -o " +
                         (dir / "c.csv").string() + " --rate 100 --inject backlash:x:0.01 --noise tip:0.0005",
                     out),
@@ -442,4 +458,43 @@ TEST(Diagnose, APeriodLongerThanTheTravelIsSaidToBeUnresolved) {
   EXPECT_TRUE(std::any_of(r.warnings.begin(), r.warnings.end(), [](const std::string& w) {
     return w.find("longer than its recorded travel") != std::string::npos;
   })) << r.text();
+}
+
+// Bad metadata is an error at its line (a NaN tool length once escaped a worker thread and aborted the program), and a
+// recording whose measured cells are all empty is an error, not "no missing physics".
+TEST(Diagnose, BadMetadataAndEmptyMeasurementsAreErrors) {
+  std::string rows;
+  for (int i = 0; i < 200; ++i) rows += fmt::format("{},{},0,0,0,0,{}\n", 0.01 * i, 0.1 * i, 0.1 * i);
+  for (const char* tl : {"nan", "-inf", "1e12", "12mm"}) {
+    sim::Recording rec =
+        sim::parse_recording(std::string("# machine: trunnion-ac\n# kind: trajectory\n# tool_length: ") + tl +
+                                 "\nt,cmd.x,cmd.y,cmd.z,cmd.a,cmd.c,tip.x\n" + rows,
+                             "tl.csv");
+    try {
+      diagnose::diagnose(rec, trunnion(), {});
+      FAIL() << "expected an error for tool_length " << tl;
+    } catch (const InputError& e) {
+      EXPECT_NE(std::string(e.what()).find("tl.csv:3: metadata tool_length: expected a number"), std::string::npos)
+          << e.what();
+    }
+  }
+  std::string empty_rows = "t,cmd.x,cmd.y,cmd.z,cmd.a,cmd.c,tip.x\n";
+  for (int i = 0; i < 200; ++i) empty_rows += fmt::format("{},{},0,0,0,0,\n", 0.01 * i, 0.1 * i);
+  sim::Recording empty = sim::parse_recording(empty_rows, "empty.csv");
+  try {
+    diagnose::diagnose(empty, trunnion(), {});
+    FAIL() << "expected an error";
+  } catch (const InputError& e) {
+    EXPECT_NE(std::string(e.what()).find("every cell of the measured channels is empty"), std::string::npos)
+        << e.what();
+  }
+}
+
+// Acceleration channels are not fitted: a vibration seen only by an accelerometer is "unexplained", never noise.
+TEST(Diagnose, AnAccelerometerOnlyRecordingIsNotCalledNoise) {
+  const auto clean = run(circle(100), trunnion(), {}, {"acc"}, 0.0, 0, 0, {{"acc", 0.01}});
+  EXPECT_NE(clean.verdict.find("no missing physics"), std::string::npos) << clean.text();
+  const auto r = run(circle(100), trunnion(), {"vibration:tip.z:23:0.02"}, {"acc"}, 0.0, 0, 0, {{"acc", 0.01}});
+  EXPECT_TRUE(r.residual_above_noise) << r.text();
+  EXPECT_EQ(r.verdict.rfind("unexplained: the acceleration residual", 0), 0u) << r.text();
 }

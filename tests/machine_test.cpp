@@ -379,6 +379,9 @@ TEST(MachineBodies, LinkPosesAgreeWithForwardKinematics) {
       Eigen::Isometry3d Thead;
       ASSERT_TRUE(kk->head_in_part(q, Thead));
       EXPECT_LT((Thead.matrix() - Th.matrix()).norm(), 1e-12);
+      // head_link() names the link whose pose that is (the C-space places the head with the other links).
+      ASSERT_GE(kk->head_link(), 0);
+      EXPECT_LT((all[static_cast<std::size_t>(kk->head_link())].matrix() - Thead.matrix()).norm(), 1e-12);
       // The tool axis as a primary rotation of a secondary vector (tabulated by the C-space) is FK's axis.
       Eigen::Matrix3d R1;
       Vec3 v2;

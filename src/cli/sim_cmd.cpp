@@ -84,11 +84,14 @@ int cmd_simulate(const SimArgs& a) {
     sim::NoiseSpec ns;
     ns.group = s.substr(0, c);
     try {
-      ns.sigma = std::stod(s.substr(c + 1));
+      size_t used = 0;
+      ns.sigma = std::stod(s.substr(c + 1), &used);
+      if (used != s.size() - c - 1) throw std::invalid_argument(s);
     } catch (const std::exception&) {
       throw InputError(fmt::format("--noise '{}': expected a number after the colon", s));
     }
-    if (ns.sigma < 0) throw InputError(fmt::format("--noise '{}': sigma must not be negative", s));
+    if (!(ns.sigma >= 0) || !std::isfinite(ns.sigma))
+      throw InputError(fmt::format("--noise '{}': sigma must be a finite number, not negative", s));
     so.noise.push_back(ns);
   }
   so.seed = a.seed;
@@ -129,8 +132,7 @@ int cmd_simulate(const SimArgs& a) {
       tr.cmd.push_back(q);
     }
     if (tr.t.empty()) throw InputError(SourceLoc{a.program}, "no poses in the file");
-    if (a.tool_length < 0)
-      if (auto tl = poses.meta_value("tool_length")) L = std::stod(*tl);
+    if (a.tool_length < 0) L = poses.meta_number("tool_length", 0.0, 1e4).value_or(L);
     so.tool_length_mm = L;
     sim::Recording rec = sim::simulate(tr, m, fx, so);
     rec.set_meta("kind", "static");
@@ -147,6 +149,9 @@ int cmd_simulate(const SimArgs& a) {
   std::vector<sim::Block> blocks;
   if (is_nc(a.program)) {
     nc::Program p = nc::read_file(a.program, report::axis_letters(m));
+    // Axis words the machine lacks would be misread: an error (as in verify). A header naming another machine is a
+    // warning here: a calibrated copy of the machine file simulates the program it was posted for.
+    if (auto other = report::check_machine_of(p, m)) std::cerr << "warning: " << other->what() << "\n";
     report::resolve_work_planes(p, m);  // tilted-plane words as the machine axes they move
     if (p.tcp)
       throw InputError(SourceLoc{a.program}, "this program uses TCP: simulate needs machine-coordinate axis values");

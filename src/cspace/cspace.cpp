@@ -55,6 +55,7 @@ Space::Space(std::shared_ptr<const kin::Kinematics> kinematics, const geom::Scen
   if (head_)
     for (std::size_t i = 0; i < head_->obstacle_count(); ++i)
       if (head_->obstacle_link(i) >= 0) certify_head_ = false;
+  if (head_ && kin_->head_link() >= 0 && kin_->head_link() < kMaxLinks) head_link_ = kin_->head_link();
   if (tool_) {
     tip_tool_.cutter = {tool_->cutter.diameter_mm, 0.0,
                         tool_->cutter.corner_radius_mm + 2.0 * kRapidSweepMarginCapMm + 1e-3};
@@ -465,7 +466,8 @@ void Space::evaluate(const kin::Posed& cl, Cell& cell, geom::QueryWorkspace& ws,
   if (opt_.check_collision && scene_ && tool_) {
     LinkPoses links;
     geom::CheckOptions linked;
-    const geom::CheckOptions& co = with_links(q, links, linked);
+    const Eigen::Isometry3d* head_placed = nullptr;
+    const geom::CheckOptions& co = with_links(q, links, linked, &head_placed);
     // Head bodies are certified by their bounding boxes grown by the margin (check_meshes has no clearance).
     const bool certify = certify_links_ && certify_head_;
     // A certificate from a neighbouring point covers this pose: same rotaries and axis, moved less than the margin.
@@ -516,7 +518,8 @@ void Space::evaluate(const kin::Posed& cl, Cell& cell, geom::QueryWorkspace& ws,
       ++c.collision;
       Eigen::Isometry3d T_head_part;
       if (m > 0 && !geom::check(*scene_, *tool_, pose, o, ws).collides &&
-          (!head_ || !kin_->head_in_part(q, T_head_part) || geom::meshes_apart(*head_, T_head_part, *scene_, co, m))) {
+          (!head_ || !head_pose(q, head_placed, T_head_part) ||
+           geom::meshes_apart(*head_, T_head_part, *scene_, co, m))) {
         *cert = {true, pose.tip_mm, pose.axis, cell.r1, cell.r2, m, cert->probe_mm};
         cell.status = Status::Feasible;
         return;
@@ -537,7 +540,7 @@ void Space::evaluate(const kin::Posed& cl, Cell& cell, geom::QueryWorkspace& ws,
     if (!std::isnan(r.min_distance_mm)) cell.clearance_mm = static_cast<float>(r.min_distance_mm);
     if (head_) {
       Eigen::Isometry3d T;
-      if (kin_->head_in_part(q, T)) {
+      if (head_pose(q, head_placed, T)) {
         int hm = -1;
         const geom::CollisionResult h = geom::check_meshes(*head_, T, *scene_, co, ws, &hm);
         if (h.collides) {
@@ -577,7 +580,8 @@ std::string Space::collision_at_axes(const kin::Axes& q, geom::QueryWorkspace& w
   if (!opt_.check_collision || !scene_ || !tool_) return {};
   LinkPoses links;
   geom::CheckOptions linked;
-  const geom::CheckOptions& co = with_links(q, links, linked);
+  const Eigen::Isometry3d* head_placed = nullptr;
+  const geom::CheckOptions& co = with_links(q, links, linked, &head_placed);
   ++c.collision;
   const geom::CollisionResult r = geom::check(*scene_, *tool_, kin_->forward(q), co, ws);
   if (r.collides)
@@ -586,7 +590,7 @@ std::string Space::collision_at_axes(const kin::Axes& q, geom::QueryWorkspace& w
         r.obstacle >= 0 ? scene_->obstacle_name(static_cast<std::size_t>(r.obstacle)) : std::string("?"));
   if (!head_) return {};
   Eigen::Isometry3d T;
-  if (!kin_->head_in_part(q, T)) return {};
+  if (!head_pose(q, head_placed, T)) return {};
   int hm = -1;
   const geom::CollisionResult h = geom::check_meshes(*head_, T, *scene_, co, ws, &hm);
   if (!h.collides) return {};
@@ -594,15 +598,31 @@ std::string Space::collision_at_axes(const kin::Axes& q, geom::QueryWorkspace& w
                      scene_->obstacle_name(static_cast<std::size_t>(h.obstacle)));
 }
 
+bool Space::head_pose(const kin::Axes& q, const Eigen::Isometry3d* placed, Eigen::Isometry3d& T) const {
+  if (placed) {
+    T = *placed;
+    return true;
+  }
+  return kin_->head_in_part(q, T);
+}
+
 bool Space::place_links(const kin::Kinematics& k, const kin::Axes& q, int n, LinkPoses& T, unsigned used) {
   return k.links_in_part(q, n, used, T.data());
 }
 
-const geom::CheckOptions& Space::with_links(const kin::Axes& q, LinkPoses& links, geom::CheckOptions& scratch) const {
+const geom::CheckOptions& Space::with_links(const kin::Axes& q, LinkPoses& links, geom::CheckOptions& scratch,
+                                            const Eigen::Isometry3d** head) const {
+  if (head) *head = nullptr;
   // Nothing to place: no linked obstacle, or only fixed ones and the options leave machine obstacles out.
   if (links_ == 0 || (!head_ && !(opt_.collision.roles & static_cast<unsigned>(geom::ObstacleRole::Machine))))
     return opt_.collision;
-  CSCAM_CHECK(place_links(*kin_, q, links_, links, used_links_), "machine link poses unavailable");
+  if (head && head_link_ >= 0) {  // the head's link in the same pass: the joint motions are computed once
+    CSCAM_CHECK(place_links(*kin_, q, std::max(links_, head_link_ + 1), links, used_links_ | (1u << head_link_)),
+                "machine link poses unavailable");
+    *head = &links[static_cast<std::size_t>(head_link_)];
+  } else {
+    CSCAM_CHECK(place_links(*kin_, q, links_, links, used_links_), "machine link poses unavailable");
+  }
   scratch = opt_.collision;
   scratch.links_in_part = links.data();
   return scratch;

@@ -24,6 +24,25 @@ namespace cscam::diagnose {
 
 namespace {
 
+/// f(w) for w = 0 .. nt-1 on nt threads (each worker's share is fixed, so the results do not depend on scheduling);
+/// the first exception a worker throws is rethrown here, after every worker has joined.
+template <class F>
+void on_workers(size_t nt, const F& f) {
+  std::vector<std::thread> th;
+  std::vector<std::exception_ptr> err(nt);
+  for (size_t w = 0; w < nt; ++w)
+    th.emplace_back([&, w] {
+      try {
+        f(w);
+      } catch (...) {
+        err[w] = std::current_exception();
+      }
+    });
+  for (auto& t : th) t.join();
+  for (auto& e : err)
+    if (e) std::rethrow_exception(e);
+}
+
 using sim::Context;
 using sim::Effect;
 using sim::Scope;
@@ -586,22 +605,10 @@ Report diagnose(sim::Recording& rec, const machine::Machine& m, const std::vecto
       cmd[i][j] = col[i];
     }
   }
-  double L = m.default_tool_length_mm;
-  if (auto tl = rec.meta_value("tool_length")) {
-    try {
-      L = std::stod(*tl);
-    } catch (const std::exception&) {
-      throw InputError(SourceLoc{rec.file}, fmt::format("metadata tool_length: expected a number, got '{}'", *tl));
-    }
-  }
-  double rpm = 0;
-  int flutes = 0;
-  try {
-    if (auto v = rec.meta_value("spindle_rpm")) rpm = std::stod(*v);
-    if (auto v = rec.meta_value("flutes")) flutes = std::stoi(*v);
-  } catch (const std::exception&) {
-    throw InputError(SourceLoc{rec.file}, "metadata spindle_rpm / flutes: expected numbers");
-  }
+  // A tool length past 10 m or a spindle past 10^6 rpm is a broken file, not a machine.
+  const double L = rec.meta_number("tool_length", 0.0, 1e4).value_or(m.default_tool_length_mm);
+  const double rpm = rec.meta_number("spindle_rpm", 0.0, 1e6).value_or(0.0);
+  const int flutes = static_cast<int>(rec.meta_number("flutes", 0.0, 1000.0).value_or(0.0));
 
   // ---- 1. simulate and subtract -------------------------------------------------------------------
   std::vector<Comp> comps;
@@ -643,6 +650,11 @@ Report diagnose(sim::Recording& rec, const machine::Machine& m, const std::vecto
   if (comps.empty())
     throw InputError(SourceLoc{rec.file},
                      "no measured channel to compare with the model (tip.*, ptip.*, dir.*, enc.*, acc.*)");
+  if (std::all_of(comps.begin(), comps.end(), [&](const Comp& c) {
+        const auto& col = rec.data[static_cast<size_t>(c.col)];
+        return std::all_of(col.begin(), col.end(), [](double v) { return std::isnan(v); });
+      }))
+    throw InputError(SourceLoc{rec.file}, "every cell of the measured channels is empty: nothing to compare");
   sim::Trajectory traj{t, cmd};
   sim::SimulateOptions so;
   for (const auto& g : {"tip", "ptip", "dir", "acc"})
@@ -679,21 +691,18 @@ Report diagnose(sim::Recording& rec, const machine::Machine& m, const std::vecto
   std::vector<std::vector<Peak>> peaks(comps.size());
   std::vector<std::vector<double>> spectra(comps.size());
   {
-    std::vector<std::thread> th;
-    const int nt = static_cast<int>(worker_threads());
-    for (int w = 0; w < nt; ++w)
-      th.emplace_back([&, w, nt] {
-        for (size_t ci = static_cast<size_t>(w); ci < comps.size(); ci += static_cast<size_t>(nt)) {
-          std::vector<double> x = comps[ci].res_full;
-          for (auto& v : x)
-            if (std::isnan(v)) v = 0;
-          auto P = periodogram(x);
-          comps[ci].sigma = noise_from_spectrum(P, n);
-          peaks[ci] = find_peaks(P, n, fs, duration);
-          if (o.keep_plot_data) spectra[ci] = std::move(P);
-        }
-      });
-    for (auto& x : th) x.join();
+    const size_t nt = worker_threads();
+    on_workers(nt, [&](size_t w) {
+      for (size_t ci = w; ci < comps.size(); ci += nt) {
+        std::vector<double> x = comps[ci].res_full;
+        for (auto& v : x)
+          if (std::isnan(v)) v = 0;
+        auto P = periodogram(x);
+        comps[ci].sigma = noise_from_spectrum(P, n);
+        peaks[ci] = find_peaks(P, n, fs, duration);
+        if (o.keep_plot_data) spectra[ci] = std::move(P);
+      }
+    });
   }
   for (const auto& g : groups) {
     double s = 0;
@@ -724,13 +733,10 @@ Report diagnose(sim::Recording& rec, const machine::Machine& m, const std::vecto
   F.J.assign(ma, Eigen::Matrix<double, 9, 5>::Zero());
   if (need_j) {
     const sim::Predictor P(m, L);
-    std::vector<std::thread> th;
     const size_t nt = worker_threads();
-    for (size_t w = 0; w < nt; ++w)
-      th.emplace_back([&, w, nt] {
-        for (size_t k = ma * w / nt; k < ma * (w + 1) / nt; ++k) P.jacobian(cmd[ctx.index[k]], F.J[k]);
-      });
-    for (auto& x : th) x.join();
+    on_workers(nt, [&](size_t w) {
+      for (size_t k = ma * w / nt; k < ma * (w + 1) / nt; ++k) P.jacobian(cmd[ctx.index[k]], F.J[k]);
+    });
   }
   F.held.resize(ma);
   const int K = std::max(3, o.time_blocks);
@@ -848,32 +854,27 @@ Report diagnose(sim::Recording& rec, const machine::Machine& m, const std::vecto
       for (size_t k = 0; k < ma; k += astep) anchors.push_back(k);
       if (anchors.back() != ma - 1) anchors.push_back(ma - 1);
       std::vector<std::vector<std::array<double, 9>>> at(np, std::vector<std::array<double, 9>>(anchors.size()));
-      std::vector<std::thread> th;
       const size_t nt = worker_threads();
-      for (size_t w = 0; w < nt; ++w)
-        th.emplace_back([&, w, nt] {
-          auto scratch = cm->make_scratch();
-          std::vector<double> base(nch), pert(nch), p = p0;
-          for (size_t a = w; a < anchors.size(); a += nt) {
-            const kin::Axes& q = cmd[ctx.index[anchors[a]]];
-            cm->predict_channels(q.data(), p.data(), base.data(), scratch.get());
-            for (size_t j = 0; j < np; ++j) {
-              const double h = 1e-5;
-              p[j] += h;
-              cm->predict_channels(q.data(), p.data(), pert.data(), scratch.get());
-              p[j] = p0[j];
-              auto& o = at[j][a];
-              for (int c = 0; c < 3; ++c) {  // calib order: tip, dir, ptip -> ours: tip, ptip, dir
-                o[static_cast<size_t>(c)] = (pert[static_cast<size_t>(c)] - base[static_cast<size_t>(c)]) / h;
-                o[3 + static_cast<size_t>(c)] =
-                    (pert[6 + static_cast<size_t>(c)] - base[6 + static_cast<size_t>(c)]) / h;
-                o[6 + static_cast<size_t>(c)] =
-                    (pert[3 + static_cast<size_t>(c)] - base[3 + static_cast<size_t>(c)]) / h;
-              }
+      on_workers(nt, [&](size_t w) {
+        auto scratch = cm->make_scratch();
+        std::vector<double> base(nch), pert(nch), p = p0;
+        for (size_t a = w; a < anchors.size(); a += nt) {
+          const kin::Axes& q = cmd[ctx.index[anchors[a]]];
+          cm->predict_channels(q.data(), p.data(), base.data(), scratch.get());
+          for (size_t j = 0; j < np; ++j) {
+            const double h = 1e-5;
+            p[j] += h;
+            cm->predict_channels(q.data(), p.data(), pert.data(), scratch.get());
+            p[j] = p0[j];
+            auto& o = at[j][a];
+            for (int c = 0; c < 3; ++c) {  // calib order: tip, dir, ptip -> ours: tip, ptip, dir
+              o[static_cast<size_t>(c)] = (pert[static_cast<size_t>(c)] - base[static_cast<size_t>(c)]) / h;
+              o[3 + static_cast<size_t>(c)] = (pert[6 + static_cast<size_t>(c)] - base[6 + static_cast<size_t>(c)]) / h;
+              o[6 + static_cast<size_t>(c)] = (pert[3 + static_cast<size_t>(c)] - base[3 + static_cast<size_t>(c)]) / h;
             }
           }
-        });
-      for (auto& x : th) x.join();
+        }
+      });
       for (size_t j = 0; j < np; ++j) {
         auto tab = std::make_shared<std::vector<std::array<double, 9>>>(ma);
         double mag = 0;
@@ -945,19 +946,16 @@ Report diagnose(sim::Recording& rec, const machine::Machine& m, const std::vecto
     }
     std::vector<Candidate> res(protos.size());
     {
-      std::vector<std::thread> th;
       const size_t nt = worker_threads();
-      for (size_t w = 0; w < nt; ++w)
-        th.emplace_back([&, w, nt] {
-          for (size_t pi = w; pi < protos.size(); pi += nt) {
-            const Effect& pr = *protos[pi];
-            sim::GridHints h;
-            for (size_t ci = 0; ci < comps.size(); ++ci)
-              if (pr.scope() == Scope::Channel && comps[ci].name == pr.channel) h = hints[ci];
-            res[pi] = screen(F, pr, sidx, cur, h);
-          }
-        });
-      for (auto& x : th) x.join();
+      on_workers(nt, [&](size_t w) {
+        for (size_t pi = w; pi < protos.size(); pi += nt) {
+          const Effect& pr = *protos[pi];
+          sim::GridHints h;
+          for (size_t ci = 0; ci < comps.size(); ++ci)
+            if (pr.scope() == Scope::Channel && comps[ci].name == pr.channel) h = hints[ci];
+          res[pi] = screen(F, pr, sidx, cur, h);
+        }
+      });
     }
     // A named effect of the library is the more specific explanation: a geometric parameter that explains
     // the same (e.g. an axis direction vs squareness) must do clearly better (by 3 %) to be chosen.
@@ -1274,8 +1272,19 @@ Report diagnose(sim::Recording& rec, const machine::Machine& m, const std::vecto
       left += fmt::format("{}{} {:.2f} um RMS held out vs noise {:.2f} um", left.empty() ? "" : ", ", g, rms * 1000,
                           R.noise[gi].second * 1000);
   }
+  // Acceleration channels give spectra but are not fitted: a residual there far above the noise is not noise either.
+  std::string acc_left;
+  for (size_t gi = 0; gi < R.noise.size(); ++gi)
+    if (R.noise[gi].first == "acc" && R.noise[gi].second > 0 && R.rms_before[gi].second > 2.0 * R.noise[gi].second)
+      acc_left = fmt::format("acc {:.4g} RMS vs noise {:.4g}", R.rms_before[gi].second, R.noise[gi].second);
   R.residual_above_noise = !left.empty();
-  if (R.findings.empty() && R.residual_above_noise) {
+  if (R.findings.empty() && left.empty() && !acc_left.empty()) {
+    R.residual_above_noise = true;
+    R.verdict = fmt::format(
+        "unexplained: the acceleration residual is above the measurement noise ({}); acceleration channels are not "
+        "fitted to the effect library{}: record tip, ptip or enc channels as well to name the cause",
+        acc_left, F.fitc.empty() ? " and the recording has no other" : "");
+  } else if (R.findings.empty() && R.residual_above_noise) {
     R.verdict = fmt::format(
         "unexplained: the residual is above the measurement noise ({}), but no effect of the library explains it; {}",
         left,

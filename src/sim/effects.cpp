@@ -533,9 +533,11 @@ std::vector<std::unique_ptr<Effect>> parse_effects(const std::string& spec, cons
             fmt::format("--inject '{}': expected geometric:PARAM=VALUE (e.g. geometric:A1x=-150.06)", spec));
       double v = 0;
       try {
-        v = std::stod(item.substr(eq + 1));
+        size_t used = 0;
+        v = std::stod(item.substr(eq + 1), &used);
+        if (used != item.size() - eq - 1 || !std::isfinite(v)) throw std::invalid_argument(item);
       } catch (const std::exception&) {
-        throw InputError(fmt::format("--inject '{}': expected a number after '{}='", spec, item.substr(0, eq)));
+        throw InputError(fmt::format("--inject '{}': expected a finite number after '{}='", spec, item.substr(0, eq)));
       }
       out.push_back(geometric_from(item.substr(0, eq), v, true, m));
       a = b + 1;
@@ -561,10 +563,10 @@ std::unique_ptr<Effect> parse_effect(const std::string& spec, const machine::Mac
     try {
       size_t used = 0;
       const double v = std::stod(s, &used);
-      if (used != s.size()) throw std::invalid_argument(s);
+      if (used != s.size() || !std::isfinite(v)) throw std::invalid_argument(s);
       return v;
     } catch (const std::exception&) {
-      throw InputError(fmt::format("--inject '{}': expected a number, got '{}'", spec, s));
+      throw InputError(fmt::format("--inject '{}': expected a finite number, got '{}'", spec, s));
     }
   };
   if (rest.find('=') != std::string::npos) {

@@ -37,6 +37,20 @@ std::optional<std::string> Recording::meta_value(const std::string& key) const {
   return std::nullopt;
 }
 
+std::optional<double> Recording::meta_number(const std::string& key, double lo, double hi) const {
+  for (size_t i = 0; i < meta.size(); ++i) {
+    if (meta[i].first != key) continue;
+    const std::string& v = meta[i].second;
+    double x = kNaN;
+    const auto r = std::from_chars(v.data(), v.data() + v.size(), x);
+    if (r.ec != std::errc() || r.ptr != v.data() + v.size() || !std::isfinite(x) || x < lo || x > hi)
+      throw InputError(SourceLoc{file, i < meta_line.size() ? meta_line[i] : 0},
+                       fmt::format("metadata {}: expected a number in [{:g}, {:g}], got '{}'", key, lo, hi, v));
+    return x;
+  }
+  return std::nullopt;
+}
+
 void Recording::set_meta(const std::string& key, const std::string& value) {
   for (auto& [k, v] : meta)
     if (k == key) {
@@ -44,6 +58,7 @@ void Recording::set_meta(const std::string& key, const std::string& value) {
       return;
     }
   meta.emplace_back(key, value);
+  meta_line.push_back(0);
 }
 
 int Recording::add_column(const std::string& name, std::vector<double> values) {
@@ -73,6 +88,7 @@ Recording parse_recording(const std::string& text, const std::string& name) {
       const auto colon = body.find(':');
       if (colon == std::string_view::npos) continue;  // a plain comment
       rec.meta.emplace_back(trim(body.substr(0, colon)), trim(body.substr(colon + 1)));
+      rec.meta_line.push_back(line);
       continue;
     }
     if (!header_seen) {

@@ -206,9 +206,15 @@ class Space {
   bool certify_links_ = true;  // certificates stay sound with the linked obstacles
   bool certify_head_ = true;   // head bodies all move rigidly with the spindle (none has a link)
   unsigned used_links_ = 0;    // bit l: an obstacle uses link l
+  int head_link_ = -1;         // the link that carries the head meshes (Kinematics::head_link), if placed with links
   static bool place_links(const kin::Kinematics& k, const kin::Axes& q, int n, LinkPoses& T, unsigned used);
-  /// opt_.collision, or a copy in `scratch` with the link poses for q when obstacles have links.
-  const geom::CheckOptions& with_links(const kin::Axes& q, LinkPoses& links, geom::CheckOptions& scratch) const;
+  /// opt_.collision, or a copy in `scratch` with the link poses for q when obstacles have links. With `head`, the head
+  /// meshes' pose is placed with the links when they are placed at all (one pass over the joints), and `*head` is then
+  /// set to it; otherwise `*head` is left null (call Kinematics::head_in_part).
+  const geom::CheckOptions& with_links(const kin::Axes& q, LinkPoses& links, geom::CheckOptions& scratch,
+                                       const Eigen::Isometry3d** head = nullptr) const;
+  /// The head meshes' pose for q: from the links `with_links` placed, or from the kinematics. False if unavailable.
+  bool head_pose(const kin::Axes& q, const Eigen::Isometry3d* placed, Eigen::Isometry3d& T) const;
   /// The tool axis for rotary values, through the grid tables for grid values (the same numbers everywhere).
   bool axis_at(double r1, double r2, const Eigen::Vector3d& tip_mm, Eigen::Vector3d& axis) const;
   /// The tool axis of tool_pose(cl, r1, r2): axis_at the tip where that pose puts it.

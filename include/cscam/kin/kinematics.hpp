@@ -77,6 +77,9 @@ class Kinematics {
   /// chain) for axis values q: it maps a point given in the machine frame at home to the part frame.
   /// `axis` = -1 is the machine base. False if the model cannot say (then machine bodies cannot be placed).
   virtual bool link_in_part(int /*axis*/, const Axes& /*q*/, Eigen::Isometry3d& /*T*/) const { return false; }
+  /// The link l (as in links_in_part) whose pose is head_in_part's, or -1 when the model has none: a caller that
+  /// places links anyway gets the head's pose with them.
+  [[nodiscard]] virtual int head_link() const { return -1; }
   /// link_in_part for the links l < n whose bit l is set in `used` (link 0: the base, 1 + i: axis i), into T[l]:
   /// models override it to share the joint motions between the links.
   virtual bool links_in_part(const Axes& q, int n, unsigned used, Eigen::Isometry3d* T) const {

@@ -139,6 +139,9 @@ class SerialKinematics final : public Kinematics {
   bool motion_bound(const Axes& qa, const Axes& qb, MotionBound& out) const override;
   bool link_in_part(int axis, const Axes& q, Eigen::Isometry3d& T) const override;
   bool links_in_part(const Axes& q, int n, unsigned used, Eigen::Isometry3d* T) const override;
+  [[nodiscard]] int head_link() const override {
+    return geometry_.head_chain.empty() ? 0 : 1 + geometry_.head_chain.back();
+  }
   [[nodiscard]] const SerialGeometry<double>& geometry() const { return geometry_; }
   /// The tool axis in the part frame that the two rotary values give (independent of the linear axes).
   [[nodiscard]] Eigen::Vector3d axis_for_rotaries(double primary, double secondary) const;

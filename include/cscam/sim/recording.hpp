@@ -17,6 +17,7 @@ namespace cscam::sim {
 struct Recording {
   std::string file;                                       ///< where it was read from (messages)
   std::vector<std::pair<std::string, std::string>> meta;  ///< metadata in file order
+  std::vector<int> meta_line;                             ///< 1-based file line of each metadata entry (0: set)
   std::vector<std::string> columns;                       ///< header names
   std::vector<std::vector<double>> data;                  ///< data[column][row]; NaN = empty cell
   std::vector<int> row_line;                              ///< 1-based file line of every row
@@ -25,6 +26,9 @@ struct Recording {
   [[nodiscard]] std::size_t rows() const { return data.empty() ? 0 : data.front().size(); }
   [[nodiscard]] int column(const std::string& name) const;  ///< -1 if absent
   [[nodiscard]] std::optional<std::string> meta_value(const std::string& key) const;
+  /// A numeric metadata value, if present. @throws InputError naming the file and line when it is not a finite
+  /// number in [lo, hi].
+  [[nodiscard]] std::optional<double> meta_number(const std::string& key, double lo, double hi) const;
   void set_meta(const std::string& key, const std::string& value);
   /// Adds a column (all NaN if `values` is empty) and returns its index.
   int add_column(const std::string& name, std::vector<double> values = {});
