@@ -593,6 +593,27 @@ TEST(ClErrors, FileLineColumn) {
   // first: a few bytes expanded into half a million points).
   expect_error_at("GOTO/40,20,6\nCIRCLE/40,15,6,0,0,-1,500000000\nGOTO/40,20,6\n", "2:23", "beyond any machine");
   expect_error_at("FEDRAT/100\nGOTO/10,0,0\nCIRCLE/0,0,0,0,0,1,5\nGOTO/0,-5,0\n", "3:1", "off the circle");
+  // A start at the centre is a radius off the circle, not an arc to straighten.
+  expect_error_at("FEDRAT/100\nGOTO/0,0,10\nCIRCLE/0,0,0,0,0,1,5,0.01\nGOTO/20,0,0\n", "3:1", "15.0000 mm off");
+  expect_error_at("FEDRAT/100\nGOTO/5,0,0\nCIRCLE/0,0,0,0,0,1,5\nCIRCLE/0,0,0,0,0,1,5\nGOTO/0,5,0\n", "4:1",
+                  "follows the CIRCLE/ of line 3 without the GOTO/");
+  // A zero feed, and a feed per revolution with no spindle speed to convert it, are not feeds.
+  expect_error_at("FEDRAT/0,MMPM\nGOTO/1,2,3\n", "1:8", "feed must be positive");
+  expect_error_at("FEDRAT/0.1,MMPR\nGOTO/1,2,3\n", "1:1", "feed per revolution (IPR/MMPR) before any spindle");
+}
+
+// MULTAX/OFF is 3-axis mode: the tool axis is +Z until a GOTO/ gives one again.
+TEST(ClIso, MultaxOffMeansAVerticalTool) {
+  const Program p = read_text(
+      "UNITS/MM\nMULTAX/ON\nFEDRAT/MMPM,600\nGOTO/0,0,0,0.1,0,0.995\nMULTAX/OFF\nGOTO/10,0,0\nMULTAX/ON\n"
+      "GOTO/20,0,0\nGOTO/30,0,0,0,0.6,0.8\n",
+      "m.cls");
+  ASSERT_EQ(p.moves.size(), 4u);
+  EXPECT_GT((p.moves[0].axis_in_part - Eigen::Vector3d::UnitZ()).norm(), 0.05);
+  EXPECT_LT((p.moves[1].axis_in_part - Eigen::Vector3d::UnitZ()).norm(), kExactMm);
+  EXPECT_LT((p.moves[2].axis_in_part - Eigen::Vector3d::UnitZ()).norm(), kExactMm);  // until a GOTO/ gives one
+  EXPECT_LT((p.moves[3].axis_in_part - Eigen::Vector3d(0, 0.6, 0.8)).norm(), kExactMm);
+  EXPECT_TRUE(p.multax);
 }
 
 // Inputs found by fuzz/cl_fuzz (tests/data/fuzz-regressions): each is refused quickly with a located error.

@@ -501,3 +501,26 @@ TEST(GateArcs, RefusesAnArcWhoseCentreMovedAndNamesTheBlock) {
   EXPECT_FALSE(s.ok);
   EXPECT_TRUE(has_kind(s, gate::Violation::Kind::Deviation, n)) << s.message;
 }
+
+// The NC file never replaces the CL file it came from (`-o PART.cls` by mistake).
+TEST(Gate, TheOutputNeverOverwritesItsClInput) {
+  namespace fs = std::filesystem;
+  const fs::path cl_path = fs::temp_directory_path() / ("cscam_gate_self_" + std::to_string(::getpid()) + ".cls");
+  const std::string cl_text = "UNITS/MM\nFEDRAT/MMPM,500\nGOTO/0,0,10\nGOTO/10,0,10\n";
+  std::ofstream(cl_path) << cl_text;
+  const cl::Program prog = cl::read_file(cl_path.string());
+  const auto m = machine::load(test::source_path("machines/trunnion-ac.yaml"));
+  const auto k = m.kinematics();
+  std::ostringstream os;
+  post::Summary sum;
+  post::write_nc(os, prog, m, *k, post::conventional_axes(prog, m, *k), post::Options{}, sum);
+  try {
+    (void)gate::write_checked(cl_path.string(), os.str(), prog, m, *k, gate::options_for(m, 0, 0, 0));
+    FAIL() << "expected an error";
+  } catch (const InputError& e) {
+    EXPECT_NE(std::string(e.what()).find("would overwrite its CL input"), std::string::npos) << e.what();
+  }
+  std::ifstream in(cl_path);
+  EXPECT_EQ(std::string(std::istreambuf_iterator<char>(in), {}), cl_text);  // untouched
+  fs::remove(cl_path);
+}

@@ -515,7 +515,7 @@ TEST(PostDialects, EachControllerFamilySpellsItsOwnForms) {
   EXPECT_TRUE(has(ha, "O00042 (TRUNNION-AC)") && has(ha, "G234 H1\n") && has(ha, "\nG49\n")) << ha.substr(0, 800);
   const std::string sv = post_as("siemens", true, "vectors");
   EXPECT_TRUE(has(sv, "\nTRAORI\n") && has(sv, "ORIWKS ORIVECT") && has(sv, " A3=") && has(sv, " C3=") &&
-              has(sv, "\nTRAFOOF\n") && has(sv, "G71 ") && has(sv, "\n; (cscam post: machine trunnion-ac"))
+              has(sv, "\nTRAFOOF\n") && has(sv, "G710 ") && has(sv, "\n; (cscam post: machine trunnion-ac"))
       << sv.substr(0, 800);
   const std::string hh = post_as("heidenhain", true, "angles");
   EXPECT_TRUE(has(hh, "0 BEGIN PGM TRUNNION_AC MM\n") && has(hh, "FUNCTION TCPM F TCP AXIS POS PATHCTRL AXIS") &&
@@ -643,6 +643,11 @@ TEST(PostProgram, ShortestWayRotaryIsWrittenModulo360AndReadBackUnwound) {
     EXPECT_GT(rad2deg(cmax), 600.0) << "read back the short way, the table winds on";
     const auto gs = gate::check(p.text, "spiral.ngc", prog, m, *k, gate::options_for(m, 0, 0, 0));
     EXPECT_TRUE(gs.ok) << gs.message;
+    // LinuxCNC takes the short way only for a joint configured as wrapped: the post says so.
+    const bool warned = std::any_of(p.summary.warnings.begin(), p.summary.warnings.end(), [](const std::string& w) {
+      return w.find("[AXIS_C]WRAPPED_ROTARY = 1") != std::string::npos;
+    });
+    EXPECT_EQ(warned, dialect == std::string("linuxcnc"));
   }
 }
 
@@ -1794,4 +1799,64 @@ TEST(Post, EveryNcLineIsAttributedOnceWhenBlendWordsAreInserted) {
   ASSERT_EQ(p.summary.retracts, 1u);
   EXPECT_EQ(p.summary.cl_line_of_nc_line.size(),
             static_cast<size_t>(std::count(p.text.begin(), p.text.end(), '\n')) + 1);
+}
+
+// What a control reads differently from what the gate reads, found by trying machine files the examples do not use.
+TEST(PostProgram, ControlsReadEveryWordAsTheGateDoes) {
+  const cl::Program prog = cl::read_text(synthetic_cl(25.0, 3, 40, 10.0), "words.cls");
+  {
+    // Fanuc and Haas read "X300" in input increments (0.3 mm): integers keep their point.
+    std::ifstream in(test::source_path("machines/trunnion-ac.yaml"));
+    std::string text(std::istreambuf_iterator<char>(in), {});
+    text = std::regex_replace(text, std::regex("decimals_(linear|rotary): 4"), "decimals_$1: 0");
+    const auto m = machine::load_text(text, test::source_path("machines/trunnion-ac-integers.yaml"));
+    const auto k = m.kinematics();
+    for (const char* d : {"fanuc", "haas"}) {
+      const Posted p = post_program(prog, m, *k, true, std::nullopt, d);
+      EXPECT_NE(p.text.find(" Z250.\n"), std::string::npos) << d << "\n" << p.text.substr(0, 900);
+      EXPECT_EQ(std::regex_search(p.text, std::regex(" [XYZAC]-?[0-9]+[ \n]")), false) << d;
+    }
+    // LinuxCNC reads integers as they are.
+    const Posted l = post_program(prog, m, *k, true, std::nullopt, "linuxcnc");
+    EXPECT_NE(l.text.find(" Z250\n"), std::string::npos) << l.text.substr(0, 900);
+  }
+  {
+    // Sequence numbers stay within N99999 on Fanuc-family controls (numbering starts again).
+    const auto m = machine_with_post("trunnion-ac", "  sequence_numbers: true\n  sequence_step: 1000\n");
+    const auto k = m.kinematics();
+    const Posted p = post_program(prog, m, *k, true, std::nullopt, "fanuc");
+    EXPECT_EQ(std::regex_search(p.text, std::regex("\nN[0-9]{6}")), false);
+    EXPECT_NE(p.text.find("\nN99000 "), std::string::npos);
+  }
+  {
+    // A '%' in a comment would end the program on a Fanuc control as it loads.
+    const cl::Program pct = cl::read_text("UNITS/MM\nPPRINT/50% STEPOVER\nFEDRAT/MMPM,500\nGOTO/0,0,10\n", "p.cls");
+    const auto m = machine::load(test::source_path("machines/trunnion-ac.yaml"));
+    const Posted p = post_program(pct, m, *m.kinematics(), true, std::nullopt, "fanuc");
+    EXPECT_NE(p.text.find("(50_ STEPOVER)"), std::string::npos) << p.text;
+    EXPECT_EQ(std::count(p.text.begin(), p.text.end(), '%'), 2) << p.text;  // the tape marks only
+  }
+  {
+    // Siemens in inches: G700 (feeds in inches too), read back as inches by the gate.
+    const auto m = machine_with_post("trunnion-ac", "  inch: true\n");
+    const auto k = m.kinematics();
+    const Posted p = post_program(prog, m, *k, true, std::nullopt, "siemens");
+    EXPECT_NE(p.text.find("\nG700 G90"), std::string::npos) << p.text.substr(0, 600);
+    const auto gs = gate::check(p.text, "si.mpf", prog, m, *k, gate::options_for(m, 0, 0, 0));
+    EXPECT_TRUE(gs.ok) << gs.message;
+  }
+  {
+    // G54.1 P<n> is not a LinuxCNC (or Sinumerik) work offset.
+    const auto m = machine_with_post("trunnion-ac", "  work_offset: G54.1 P300\n");
+    const auto k = m.kinematics();
+    for (const char* d : {"linuxcnc", "siemens"}) {
+      try {
+        (void)post_program(prog, m, *k, true, std::nullopt, d);
+        FAIL() << d << ": expected an error";
+      } catch (const InputError& e) {
+        EXPECT_NE(std::string(e.what()).find("post.work_offset G54.1 P300"), std::string::npos) << e.what();
+      }
+    }
+    EXPECT_NE(post_program(prog, m, *k, true, std::nullopt, "fanuc").text.find("\nG54.1 P300\n"), std::string::npos);
+  }
 }

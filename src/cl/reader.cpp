@@ -754,18 +754,19 @@ void AptReader::emit_arc(const Circle& c, const Vector3d& end_mm, const Vector3d
   const Vector3d u = start - c.centre_mm, w = end_mm - c.centre_mm;
   const double h0 = u.dot(n), h1 = w.dot(n);
   const Vector3d up = u - h0 * n, wp = w - h1 * n;
-  if (up.norm() <= kMinVectorNorm || wp.norm() <= kMinVectorNorm) {
-    prog_.warnings.push_back({SourceLoc{prog_.file, c.line, c.column},
-                              "CIRCLE/ with its start or end at the centre: moving straight to its end"});
-    return;
-  }
   const double r = c.radius_mm;
+  // (A start or end at the centre is r off the circle.)
   const double off_circle_mm = std::max(std::abs(up.norm() - r), std::abs(wp.norm() - r));
   if (off_circle_mm > kArcEndOffCircleErrorMm)
     throw InputError(SourceLoc{prog_.file, c.line, c.column},
                      fmt::format("CIRCLE/ start or end lies {:.4f} mm off the circle of radius {} mm (at most {} mm): "
                                  "the arc does not join its end points",
                                  off_circle_mm, r, kArcEndOffCircleErrorMm));
+  if (up.norm() <= kMinVectorNorm || wp.norm() <= kMinVectorNorm) {
+    prog_.warnings.push_back({SourceLoc{prog_.file, c.line, c.column},
+                              "CIRCLE/ with its start or end at the centre: moving straight to its end"});
+    return;
+  }
   if (off_circle_mm > kArcEndOffCircleMm)
     prog_.warnings.push_back({SourceLoc{prog_.file, c.line, c.column},
                               fmt::format("CIRCLE/ start or end lies {:.4f} mm off the circle", off_circle_mm)});
@@ -807,7 +808,7 @@ void AptReader::fedrat(const Statement& st, const Head& h) {
   for (const Field& f : fields_) {
     if (f.is_number() && !value) {
       value = f.value;
-      if (*value < 0) fail(st, f.offset, fmt::format("negative feed (expected a feed >= 0, got '{}')", f.text));
+      if (!(*value > 0)) fail(st, f.offset, fmt::format("feed must be positive (got '{}')", f.text));
     } else if (f.is_word("IPM")) {
       unit_scale = kMmPerInch;
     } else if (f.is_word("MMPM")) {
@@ -828,10 +829,10 @@ void AptReader::fedrat(const Statement& st, const Head& h) {
     fail(st, h.args_offset, fmt::format("FEDRAT/ without a feed (expected a number, got '{}')", trim(h.args)));
   double feed = *value * unit_scale;
   if (per_rev) {
-    if (rpm_ <= 0) {
-      warn(st, h.keyword_offset, "feed per revolution before any spindle speed: feed left unchanged");
-      return;
-    }
+    if (rpm_ <= 0)
+      fail(st, h.keyword_offset,
+           "feed per revolution (IPR/MMPR) before any spindle speed: it cannot be converted to a feed per minute "
+           "(expected SPINDL/ with an RPM before it)");
     feed *= rpm_;
   }
   feed_mm_per_min_ = feed;
@@ -950,6 +951,9 @@ bool AptReader::statement(const Statement& st) {
       fail(st, offs[6],
            fmt::format("circle radius {} mm is beyond any machine (at most {} mm)", v[6] * scale_, kMaxArcRadiusMm));
     const auto [line, col] = st.where(h.keyword_offset);
+    if (circle_)  // the first would be dropped: which arc was meant is not known
+      fail(st, h.keyword_offset,
+           fmt::format("CIRCLE/ follows the CIRCLE/ of line {} without the GOTO/ that ends that arc", circle_->line));
     circle_ = Circle{Vector3d(v[0], v[1], v[2]) * scale_, unit_vector(st, v + 3, offs[3], "circle axis"), v[6] * scale_,
                      line, col};
   } else if (h.is("FROM")) {
@@ -994,7 +998,11 @@ bool AptReader::statement(const Statement& st) {
     if (!opt_.units) set_unit(*u);
   } else if (h.is("MULTAX")) {
     split_fields(h.args, h.args_offset, fields_);
-    if (fields_.empty() || !fields_[0].is_word("OFF")) prog_.multax = true;
+    if (fields_.empty() || !fields_[0].is_word("OFF")) {
+      prog_.multax = true;
+    } else {
+      axis_ = Vector3d::UnitZ();  // 3-axis mode: the tool axis is +Z until a GOTO gives one again
+    }
   } else if (h.is("SPINDL")) {
     spindl(st, h);
   } else if (h.is("COOLNT")) {

@@ -4,6 +4,7 @@
 
 #include <algorithm>
 #include <cmath>
+#include <filesystem>
 #include <stdexcept>
 
 #include "cscam/core/atomic_file.hpp"
@@ -402,6 +403,10 @@ Summary check(const std::string& nc_text, const std::string& nc_name, const cl::
 Summary write_checked(const std::string& path, const std::string& nc_text, const cl::Program& cl,
                       const machine::Machine& machine, const kin::Kinematics& kinematics, const Options& options,
                       const std::vector<int>* cl_line_of_nc_line, nc::Program* read_back) {
+  std::error_code ec;
+  if (!cl.file.empty() && std::filesystem::equivalent(path, cl.file, ec))
+    throw InputError(SourceLoc{path},
+                     fmt::format("the NC output would overwrite its CL input {}: give another -o", cl.file));
   // The text goes to a temporary file beside `path` while it is checked (the check reads this same text): a program
   // that passes is then only renamed into place, and the temporary of one that fails is removed unread. Declared
   // in this order, the writer is joined before the temporary can go.

@@ -579,9 +579,13 @@ Program read_text(const std::string& text, const std::string& name, const AxisLe
             plane = g10 / 10;
             break;
           case 200:
+          case 700:   // Sinumerik G70 (and older ISO milling controls): inch
+          case 7000:  // Sinumerik G700: inch, feeds too
             inch = true;
             break;
           case 210:
+          case 710:
+          case 7100:
             inch = false;
             break;
           case 900:

@@ -59,9 +59,11 @@ void append_feed(std::string& out, double feed, int decimals) {
   fmt::format_to(std::back_inserter(out), " F{:.{}f}", feed, decimals);
 }
 
+/// Comment text that cannot end the comment early ( ')' ), open a nested one, or end the program on a control that
+/// reads '%' as the end-of-program mark wherever it stands (Fanuc, Haas).
 std::string sanitize_comment(std::string s) {
   for (char& c : s)
-    if (c == '(' || c == ')') c = '_';
+    if (c == '(' || c == ')' || c == '%') c = '_';
   return s;
 }
 
@@ -71,6 +73,7 @@ std::string sanitize_comment(std::string s) {
 
 void Formatter::line_start(std::string& out) {
   if (!numbers_) return;
+  if (max_sequence_number_ > 0 && n_ + step_ > max_sequence_number_) n_ = 0;
   n_ += step_;
   char tmp[32];
   tmp[0] = 'N';
@@ -79,12 +82,14 @@ void Formatter::line_start(std::string& out) {
   out.append(tmp, static_cast<size_t>(e - tmp));
 }
 
-void Formatter::append_fixed(std::string& out, long long r, int d, bool plus_sign) {
+void Formatter::append_fixed(std::string& out, long long r, int d, bool plus_sign) const {
   char tmp[48];
   char* const end = tmp + sizeof tmp;
+  char* digits_end = end;
+  if (d == 0 && integer_point_) *--digits_end = '.';
   // The magnitude as unsigned: -r overflows for the most negative value.
   const auto u = r < 0 ? 0ULL - static_cast<unsigned long long>(r) : static_cast<unsigned long long>(r);
-  char* b = fixed_backwards(end, u, d);
+  char* b = fixed_backwards(digits_end, u, d);
   if (r < 0)
     *--b = '-';
   else if (plus_sign)
@@ -201,7 +206,7 @@ void Formatter::motion_word(std::string& out, const BlockSpec& b) {
     out += b.motion == BlockSpec::Motion::Rapid ? "G0" : "G1";
 }
 
-void Formatter::arc_centre_words(std::string& out, const BlockSpec& b) {
+void Formatter::arc_centre_words(std::string& out, const BlockSpec& b) const {
   if (!b.arc) return;
   for (int k = 0; k < 3; ++k)
     if (b.arc->write[static_cast<size_t>(k)]) {
@@ -221,9 +226,11 @@ void Formatter::block(std::string& out, const BlockSpec& b) {
     const std::string& letter = info_.letters[static_cast<size_t>(w.slot)];
     char tmp[64];
     char* const end = tmp + sizeof tmp;
+    char* digits_end = end;
+    if (w.decimals == 0 && integer_point_) *--digits_end = '.';
     const auto u =
         w.scaled < 0 ? 0ULL - static_cast<unsigned long long>(w.scaled) : static_cast<unsigned long long>(w.scaled);
-    char* p = fixed_backwards(end, u, w.decimals);
+    char* p = fixed_backwards(digits_end, u, w.decimals);
     if (w.scaled < 0) *--p = '-';
     if (letter.size() < 16) {
       p -= letter.size();
@@ -250,7 +257,13 @@ namespace {
 class Linuxcnc : public Formatter {
  public:
   Linuxcnc(const ProgramInfo& info, std::string name, bool switchkins)
-      : Formatter(info), name_(std::move(name)), switchkins_(switchkins) {}
+      : Formatter(info), name_(std::move(name)), switchkins_(switchkins) {
+    if (info.work_offset.rfind("G54.1", 0) == 0)
+      throw InputError(
+          fmt::format("post.work_offset {}: LinuxCNC has the work offsets G54..G59 only (G54.1 P<n> is "
+                      "a Fanuc and Haas form)",
+                      info.work_offset));
+  }
   [[nodiscard]] std::string name() const override { return name_; }
   // The XMINI's joint words are legs, not a Cartesian X Y Z: no arcs there.
   [[nodiscard]] bool has_arcs() const override { return switchkins_; }
@@ -294,7 +307,10 @@ class Linuxcnc : public Formatter {
 // --- Fanuc --------------------------------------------------------------------------------------------
 class Fanuc : public Formatter {
  public:
-  using Formatter::Formatter;
+  explicit Fanuc(const ProgramInfo& info) : Formatter(info) {
+    integer_point_ = true;
+    max_sequence_number_ = 99999;  // N1..N99999
+  }
   [[nodiscard]] std::string name() const override { return "fanuc"; }
   void begin(std::string& out) override {
     out += "%\n";
@@ -396,16 +412,24 @@ class Haas : public Fanuc {
 // --- Siemens Sinumerik 840D ---------------------------------------------------------------------------
 class Siemens : public Formatter {
  public:
-  using Formatter::Formatter;
+  explicit Siemens(const ProgramInfo& info) : Formatter(info) {
+    if (info.work_offset.rfind("G54.1", 0) == 0)
+      throw InputError(
+          fmt::format("post.work_offset {}: Sinumerik has no G54.1 P<n> (use G54..G57 or G505..G599 in "
+                      "the control's own form)",
+                      info.work_offset));
+  }
   [[nodiscard]] std::string name() const override { return "siemens"; }
   void comment(std::string& out, const std::string& text) override {
     fmt::format_to(std::back_inserter(out), "; ({})\n", sanitize_comment(text));
   }
   void begin(std::string& out) override {
-    // Sinumerik's own start block: G71 metric (G70 inch), TRAFOOF instead of G49, no canned cycles to cancel.
+    // Sinumerik's own start block: G710 metric (G700 inch), TRAFOOF instead of G49, no canned cycles to cancel.
+    // G710/G700 set the feed's unit too; G71/G70 would leave F in the control's basic system (an inch program on a
+    // metric control would feed in mm/min).
     header_comments(out, true);
     line_start(out);
-    out += info_.inch ? "G70" : "G71";
+    out += info_.inch ? "G700" : "G710";
     out += " G90 G94 G17 G40 G64\n";
     line_start(out);
     out += "TRAFOOF\n";

@@ -94,6 +94,15 @@ Sequencer::Sequencer(std::ostream& out, const cl::Program& program, const machin
     throw InputError(machine.where("post.dialect"), e.message());  // the machine file's value
   }
   fmt_->number_lines(m_.post.sequence_numbers, m_.post.sequence_step);
+  // Modulo words (C359.5 then C0.2) mean "the short way" only where the control wraps that axis; LinuxCNC does so
+  // for a joint configured as wrapped, and otherwise turns 359 deg inside the block.
+  if (fmt_->name() == "linuxcnc")
+    for (std::size_t i = 0; i < 5; ++i)
+      if (shortest_[i])
+        sum_.warnings.push_back(fmt::format(
+            "{}: rotary_output shortest writes {} modulo 360 deg: LinuxCNC turns it the short way only with "
+            "[AXIS_{}]WRAPPED_ROTARY = 1 in its configuration (without it, the long way inside a block)",
+            machine.file, info_.letters[i], info_.letters[i]));
   mode_ = fmt_->blend_words();  // the header's (empty where the dialect writes none)
   for (auto& memo : fk_memo_) memo.first.setConstant(std::numeric_limits<double>::quiet_NaN());  // matches no q
   exact_words_ = fmt_->exact_path_words();

@@ -139,14 +139,20 @@ class Formatter {
   void header_comments(std::string& out, bool with_name);
   /// The ISO safe start block (units, absolute, feed per minute, XY plane, no compensation) and work offset.
   void start_block(std::string& out);
-  static void append_fixed(std::string& out, long long r, int d, bool plus_sign = false);
+  /// r / 10^d with d decimals (and a trailing point for d = 0 where integer_point_).
+  void append_fixed(std::string& out, long long r, int d, bool plus_sign = false) const;
   /// "G0", "G1" or "G2"/"G3" (after a plane word when the plane changes).
   void motion_word(std::string& out, const BlockSpec& b);
   /// " I.. J.." of an arc block.
-  static void arc_centre_words(std::string& out, const BlockSpec& b);
+  void arc_centre_words(std::string& out, const BlockSpec& b) const;
   int plane_ = 17;  ///< the plane the start block selected
   const ProgramInfo& info_;
   bool tcp_active_ = false;
+  /// Axis words without decimals still get a point ("X300."): a Fanuc-family control reads "X300" in its least
+  /// input increment (0.3 mm).
+  bool integer_point_ = false;
+  /// The largest sequence number the control reads (0: no limit); numbering starts again past it.
+  long long max_sequence_number_ = 0;
 
  private:
   bool numbers_ = false;

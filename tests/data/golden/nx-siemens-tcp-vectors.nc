@@ -3,7 +3,7 @@
 ; (source: variable_axis.cls)
 ; (cscam tool_length_mm=0.0000 tolerance_mm=0.0100)
 ; (cartesian: X Y Z = tool tip, vector words = tool vector; the control runs the kinematics)
-G71 G90 G94 G17 G40 G64
+G710 G90 G94 G17 G40 G64
 TRAFOOF
 G54
 ; (OPERATION NORM_PART)

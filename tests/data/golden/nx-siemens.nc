@@ -2,7 +2,7 @@
 ; (cscam post: machine haas-umc750 dialect siemens strategy conventional)
 ; (source: variable_axis.cls)
 ; (cscam tool_length_mm=0.0000 tolerance_mm=0.0100)
-G71 G90 G94 G17 G40 G64
+G710 G90 G94 G17 G40 G64
 TRAFOOF
 G54
 ; (OPERATION NORM_PART)
