@@ -498,3 +498,26 @@ TEST(Diagnose, AnAccelerometerOnlyRecordingIsNotCalledNoise) {
   EXPECT_TRUE(r.residual_above_noise) << r.text();
   EXPECT_EQ(r.verdict.rfind("unexplained: the acceleration residual", 0), 0u) << r.text();
 }
+
+// A control that records a rotary modulo 360 deg (359.9 then 0.1): the wrap is no reversal and no velocity spike.
+// Oracle: the same recording unwrapped. (Wrapped, servo lag on C was reported as 0.16 deg of lost motion, cyclic
+// errors and lags on other axes.)
+TEST(Diagnose, ARotaryRecordedModulo360IsUnwound) {
+  std::vector<std::unique_ptr<sim::Effect>> fx;
+  fx.push_back(sim::parse_effect("servo_lag:c:0.003", trunnion()));
+  sim::SimulateOptions so;
+  so.channels = {"ptip", "enc"};
+  so.noise = {{"ptip", 0.0005}, {"enc", 0.0001}};
+  so.seed = 5;
+  so.tool_length_mm = trunnion().default_tool_length_mm;
+  sim::Recording rec = sim::simulate(table_turns(720), trunnion(), {fx.front().get()}, so);
+  rec.file = "wrapped.csv";
+  for (const char* col : {"cmd.c", "enc.c"})
+    for (double& v : rec.data[static_cast<size_t>(rec.column(col))]) v = std::fmod(v + 3600.0, 360.0);
+  const auto r = diagnose::diagnose(rec, trunnion(), {});
+  ASSERT_FALSE(r.findings.empty()) << r.text();
+  EXPECT_EQ(r.findings.front().effect->name(), "servo_lag") << r.text();
+  EXPECT_EQ(r.findings.front().effect->target, "c") << r.text();
+  EXPECT_EQ(find(r, "backlash", "c"), nullptr) << r.text();
+  EXPECT_NE(r.verdict.find("deg"), std::string::npos) << r.verdict;  // an encoder of C in degrees, not micrometres
+}

@@ -149,6 +149,16 @@ std::vector<Peak> find_peaks(const std::vector<double>& P, size_t n, double fs, 
 
 std::string fmt_um(double mm) { return fmt::format("{:.1f} um", mm * 1000); }
 
+/// A residual of channel group `g` in its own unit: a rotary encoder's in degrees, a direction's (a unit vector's
+/// difference, i.e. radians) in microradians, a length in micrometres.
+std::string fmt_group(const machine::Machine& m, const std::string& g, double v) {
+  if (g == "dir") return fmt::format("{:.1f} urad", v * 1e6);
+  if (g.rfind("enc.", 0) == 0)
+    for (const auto& a : m.axes)
+      if (g == "enc." + a.name && a.rotary()) return fmt::format("{:.4f} deg", v);
+  return fmt_um(v);
+}
+
 std::string fmt_value(const std::string& unit_group, double v) {
   return unit_group == "deg" ? fmt::format("{:.4f} deg", v) : fmt_um(v);
 }
@@ -604,6 +614,13 @@ Report diagnose(sim::Recording& rec, const machine::Machine& m, const std::vecto
                          fmt::format("row {}: column 'cmd.{}' is empty", i + 1, name));
       cmd[i][j] = col[i];
     }
+    // A control may record a rotary modulo 360 deg (a cyclic table's 359.9 then 0.1). No axis turns half a turn
+    // between two samples: such a step is a wrap, unwound here so that velocities and reversals stay physical.
+    if (m.axes[static_cast<size_t>(j)].rotary())
+      for (size_t i = 1; i < n; ++i) {
+        double prev = cmd[i - 1][j], &q = cmd[i][j];
+        q -= 360.0 * std::round((q - prev) / 360.0);
+      }
   }
   // A tool length past 10 m or a spindle past 10^6 rpm is a broken file, not a machine.
   const double L = rec.meta_number("tool_length", 0.0, 1e4).value_or(m.default_tool_length_mm);
@@ -668,6 +685,8 @@ Report diagnose(sim::Recording& rec, const machine::Machine& m, const std::vecto
     const auto& p = pred.data[static_cast<size_t>(pred.column(c.name))];
     c.res_full.resize(n);
     for (size_t i = 0; i < n; ++i) c.res_full[i] = meas[i] - p[i];
+    if (c.kind == Kind::Enc && m.axes[static_cast<size_t>(c.idx)].rotary())  // a wrapped encoder against the unwound
+      for (double& r : c.res_full) r = std::remainder(r, 360.0);
   }
   for (const auto& g : groups) {
     double s = 0;
@@ -1269,8 +1288,8 @@ Report diagnose(sim::Recording& rec, const machine::Machine& m, const std::vecto
     if (cnt < 10) continue;
     const double rms = group_rms(F, fx_all, g, true), ratio2 = std::pow(rms / R.noise[gi].second, 2);
     if (ratio2 > 1.0 + std::max(0.2, 8.0 * std::sqrt(2.0 / cnt)))
-      left += fmt::format("{}{} {:.2f} um RMS held out vs noise {:.2f} um", left.empty() ? "" : ", ", g, rms * 1000,
-                          R.noise[gi].second * 1000);
+      left += fmt::format("{}{} {} RMS held out vs noise {}", left.empty() ? "" : ", ", g, fmt_group(m, g, rms),
+                          fmt_group(m, g, R.noise[gi].second));
   }
   // Acceleration channels give spectra but are not fitted: a residual there far above the noise is not noise either.
   std::string acc_left;
@@ -1295,8 +1314,9 @@ Report diagnose(sim::Recording& rec, const machine::Machine& m, const std::vecto
     std::string parts;
     for (size_t i = 0; i < R.rms_before.size(); ++i)
       if (R.rms_before[i].first != "acc")
-        parts += fmt::format("{}{} {:.2f} um RMS vs noise {:.2f} um", parts.empty() ? "" : ", ", R.rms_before[i].first,
-                             R.rms_before[i].second * 1000, R.noise[i].second * 1000);
+        parts += fmt::format("{}{} {} RMS vs noise {}", parts.empty() ? "" : ", ", R.rms_before[i].first,
+                             fmt_group(m, R.rms_before[i].first, R.rms_before[i].second),
+                             fmt_group(m, R.rms_before[i].first, R.noise[i].second));
     R.verdict =
         fmt::format("no missing physics found: the residual is consistent with measurement noise alone ({})", parts);
   } else {
@@ -1308,9 +1328,10 @@ Report diagnose(sim::Recording& rec, const machine::Machine& m, const std::vecto
                              fmt::join(fd.alternatives, "; or "));
     }
     const auto& top = R.findings.front();
-    R.verdict = fmt::format("missing physics: {}; modelled, the {} RMS of {} falls from {} to {}", parts,
-                            top.judged_on_training ? "training-block" : "held-out", top.group,
-                            fmt_um(top.heldout_rms_before), fmt_um(top.heldout_rms_after));
+    R.verdict =
+        fmt::format("missing physics: {}; modelled, the {} RMS of {} falls from {} to {}", parts,
+                    top.judged_on_training ? "training-block" : "held-out", top.group,
+                    fmt_group(m, top.group, top.heldout_rms_before), fmt_group(m, top.group, top.heldout_rms_after));
     if (R.residual_above_noise)
       R.verdict += fmt::format(
           "; what is left is still above the noise ({}): an effect outside the library, or one modelled only in part",
