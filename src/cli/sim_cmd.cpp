@@ -193,6 +193,16 @@ int cmd_diagnose(const DiagArgs& a) {
   o.max_fit_samples = a.max_fit;
   diagnose::Report r = diagnose::diagnose(rec, m, kv, o);
   r.seconds.insert(r.seconds.begin(), {"read", t_read});
+  // --machine over the recording's own: a calibrated copy is expected (same machine name); another machine's model
+  // explains nothing, and its misfit would be read as missing physics.
+  if (const auto mm = rec.meta_value("machine"); mm && !a.machine.empty()) {
+    const std::string stem = fs::path(*mm).stem().string();
+    if (stem != m.name && stem != fs::path(a.machine).stem().string())
+      r.warnings.insert(r.warnings.begin(),
+                        fmt::format("the recording was made on machine '{}' (its metadata), but --machine gives '{}': "
+                                    "the findings describe the difference between the two machines",
+                                    *mm, m.name));
+  }
   for (const auto& w : r.warnings) std::cerr << "warning: " << w << "\n";
   if (!a.svg.empty()) {
     fs::create_directories(a.svg);

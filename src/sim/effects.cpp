@@ -265,12 +265,13 @@ class Cyclic : public EffectImpl<Cyclic, 3> {
     std::vector<std::vector<double>> g;
     const double span = c.range(axis).travel();
     // A rotary's errors once, twice and three times per revolution (eccentricity, an oval bearing, a worm gear's
-    // tooth count) need only one period seen: a whole turn shows them apart from an offset.
+    // tooth count) need only one period seen: a whole turn shows them apart from an offset, and most of one (0.9)
+    // still names them (the finding then says the period is not resolved) where the alternative is a wrong effect.
     const std::vector<double> periods =
         rotary ? std::vector<double>{1, 2, 3, 4, 5, 6, 8, 10, 12, 15, 20, 30, 45, 60, 90, 120, 180, 360}
                : std::vector<double>{0.5, 1, 2, 2.5, 3, 4, 5, 6, 8, 10, 12, 16, 20, 25, 32, 40};
     for (double per : periods)
-      if (span >= (rotary && per >= 120 ? 1.0 : 1.5) * per - 1e-9) g.push_back({per, 0, 0});  // 1.5 periods seen
+      if (span >= (rotary && per >= 120 ? 0.9 : 1.5) * per - 1e-9) g.push_back({per, 0, 0});  // 1.5 periods seen
     return g;
   }
 };
