@@ -1860,3 +1860,41 @@ TEST(PostProgram, ControlsReadEveryWordAsTheGateDoes) {
     EXPECT_NE(post_program(prog, m, *k, true, std::nullopt, "fanuc").text.find("\nG54.1 P300\n"), std::string::npos);
   }
 }
+
+// Under tool-tip control the tool leaves along its axis up to the safe Z. With the head tilted 70 deg that point lies a
+// metre out in X: the retract stops inside the travel (with a warning) instead of the program being refused.
+TEST(PostProgram, ATcpRetractAlongASteepToolStopsAtTheTravel) {
+  const std::string yaml =
+      "name: ht-bc\nkinematics: serial\ntool_direction: [0, 0, 1]\nspindle_gauge_mm: [0, 0, 200]\n"
+      "part_origin_mm: [0, 0, 0]\ndefault_tool_length_mm: 100\naxes:\n"
+      "  - {name: x, type: linear, side: head, direction: [1, 0, 0], limits: [-500, 500], max_feed: 20000}\n"
+      "  - {name: y, type: linear, side: head, direction: [0, 1, 0], limits: [-500, 500], max_feed: 20000}\n"
+      "  - {name: z, type: linear, side: head, direction: [0, 0, 1], limits: [-400, 400], max_feed: 20000}\n"
+      "  - {name: b, type: rotary, side: head, direction: [0, 1, 0], pivot_mm: [0, 0, 350], limits: [-100, 100], "
+      "max_feed: 5000}\n"
+      "  - {name: c, type: rotary, side: table, direction: [0, 0, -1], pivot_mm: [0, 0, 0], limits: [-360, 360], "
+      "max_feed: 10000}\n"
+      "chains:\n  table: [c]\n  head: [x, y, z, b]\npost:\n  dialect: linuxcnc\n  tcp: true\n"
+      "  letters: {x: X, y: Y, z: Z, b: B, c: C}\n  safe_z_mm: 150\n  singularity: {flip: auto, retract_mm: 10}\n";
+  const auto m = machine::load_text(yaml, test::source_path("machines/ht-bc.yaml"));
+  const auto k = m.kinematics();
+  std::ostringstream cl;
+  cl << "UNITS/MM\nMULTAX/ON\nFEDRAT/MMPM,1000\n";
+  for (int i = 0; i <= 20; ++i) {  // along a ring whose normal tilts 70 deg from Z
+    const double c = deg2rad(3.0 * i), t = deg2rad(70.0);
+    const Vec3 n(std::sin(t) * std::cos(c), std::sin(t) * std::sin(c), std::cos(t));
+    cl << "GOTO/" << 30 * std::cos(c) << "," << 30 * std::sin(c) << ",0," << n.x() << "," << n.y() << "," << n.z()
+       << "\n";
+  }
+  const cl::Program prog = cl::read_text(cl.str(), "ring.cls");
+  for (const char* d : {"linuxcnc", "fanuc", "siemens", "heidenhain"}) {
+    SCOPED_TRACE(d);
+    const Posted p = post_program(prog, m, *k, true, true, d);
+    const auto gs = gate::check(p.text, "ring.ngc", prog, m, *k, gate::options_for(m, 0, 0, 0));
+    EXPECT_TRUE(gs.ok) << gs.message;
+    const bool warned = std::any_of(p.summary.warnings.begin(), p.summary.warnings.end(), [](const std::string& w) {
+      return w.find("stops at the machine's travel") != std::string::npos;
+    });
+    EXPECT_TRUE(warned);
+  }
+}

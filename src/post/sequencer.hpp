@@ -46,6 +46,8 @@ inline long long round_half_away(double x) {
 
 /// Feed for cutting moves without one (the CL reader refuses those unless a default is given).
 inline constexpr double kFallbackFeedMmMin = 1000.0;
+/// How far inside a linear axis's limit a retract that the travel stops ends, mm.
+inline constexpr double kRetractLimitMarginMm = 1.0;
 
 /// The motion sequencer: turns CL moves and their axis values into motion blocks for a formatter, with modal
 /// suppression of unchanged axis words.
@@ -256,6 +258,8 @@ class Sequencer {
 
   /// Under TCP: the point up the tool axis where the machine's Z (or the tip) reaches the safe height.
   bool tcp_retract_point(const Vec3& tip, const Vec3& axis, const kin::Axes& q, Vec3& up) const;
+  /// A retract stopped short of the safe Z by the travel was reported (once per program).
+  mutable bool retract_short_warned_ = false;
 
   /// The axis values with q's tip moved along its tool axis to the safe plane (an error when out of the limits).
   kin::Axes pkm_retracted(const kin::Axes& q, const SourceLoc& where);

@@ -302,7 +302,26 @@ bool Sequencer::tcp_retract_point(const Vec3& tip, const Vec3& axis, const kin::
   if (!kin_.solve_for_rotaries(kin::Posed{tip + dir, dir}, q1)) return false;
   const double slope = q1[z_] - q[z_];
   if (slope < kin::kMinRetractAxisZ) return false;
-  const double d = (safe_z_ - q[z_]) / slope;
+  double d = (safe_z_ - q[z_]) / slope;
+  // A steep tool reaches the safe Z only far out along its axis: the linear axes (affine in d) stop it at their
+  // limits, short of the safe Z, rather than the program leaving the machine's travel.
+  double d_travel = std::numeric_limits<double>::infinity();
+  for (int i = 0; i < 5; ++i) {
+    const auto& a = m_.axes[static_cast<size_t>(i)];
+    const double rate = q1[i] - q[i];
+    if (a.rotary() || std::abs(rate) < 1e-12) continue;
+    d_travel = std::min(d_travel, ((rate > 0 ? a.max : a.min) - q[i]) / rate - kRetractLimitMarginMm);
+  }
+  if (d_travel < d) {
+    d = d_travel;
+    if (!retract_short_warned_) {
+      retract_short_warned_ = true;
+      sum_.warnings.push_back(fmt::format(
+          "{}: the retract along a tilted tool axis (under tool-tip control) stops at the machine's travel, below "
+          "the safe Z {} mm: the rotaries turn there (the gate checks the turn against the machine's bodies)",
+          prog_.file, safe_z_));
+    }
+  }
   if (d <= tol::kLimitSlackMm) return false;
   up = tip + d * dir;
   return true;
