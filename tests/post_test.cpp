@@ -19,6 +19,7 @@
 #include <random>
 #include <regex>
 #include <sstream>
+#include <tuple>
 
 #include "../src/post/linearize.hpp"
 #include "cscam/cl/program.hpp"
@@ -713,6 +714,21 @@ TEST(PostProgram, MachineFileRejectsBadPostSettings) {
     } catch (const InputError& e) {
       EXPECT_NE(std::string(e.what()).find(key), std::string::npos) << e.what();
       EXPECT_NE(std::string(e.what()).find("trunnion-ac-variant.yaml:"), std::string::npos) << e.what();
+    }
+  }
+  // A safe Z beyond the Z travel (it was blamed on the CL file's first rapid), and a cyclic axis that cannot turn.
+  std::ifstream in(test::source_path("machines/trunnion-ac.yaml"));
+  const std::string text(std::istreambuf_iterator<char>(in), {});
+  for (const auto& [from, to, what] : std::vector<std::tuple<std::string, std::string, std::string>>{
+           {"safe_z_mm: 250", "safe_z_mm: 900", "'post.safe_z_mm': 900 mm is outside the travel of z"},
+           {"name: a, type: rotary,", "name: a, type: rotary, cyclic: true,", "span less than one"}}) {
+    const std::string bad = std::regex_replace(text, std::regex(from), to);
+    ASSERT_NE(bad, text);
+    try {
+      (void)machine::load_text(bad, "bad.yaml");
+      FAIL() << "accepted: " << to;
+    } catch (const InputError& e) {
+      EXPECT_NE(std::string(e.what()).find(what), std::string::npos) << e.what();
     }
   }
 }

@@ -70,6 +70,15 @@ TEST(SimRecording, ErrorsNameTheRowTheColumnOrTheCell) {
   EXPECT_NE(error_of([] { sim::parse_recording("t,cmd.x\n0,1,2\n", "r.csv"); }).find("too many cells"),
             std::string::npos);
   EXPECT_NE(error_of([] { sim::parse_recording("cmd.x\n1\n", "r.csv"); }).find("time column 't'"), std::string::npos);
+  EXPECT_NE(error_of([] {
+              sim::parse_recording("t,tip.x\n0,1\n0.1,1e300\n", "r.csv");
+            }).find("r.csv:3:5: column tip.x: 1e300 is out of range"),
+            std::string::npos);
+  // Numeric metadata: a finite number in range, at its line.
+  const auto meta = sim::parse_recording("# machine: m\n# tool_length: inf\nt,tip.x\n0,1\n", "r.csv");
+  EXPECT_NE(error_of([&] { (void)meta.meta_number("tool_length", 0, 1e4); }).find("r.csv:2: metadata tool_length"),
+            std::string::npos);
+  EXPECT_FALSE(meta.meta_number("spindle_rpm", 0, 1e6).has_value());
   const auto m = trunnion();
   auto rec = sim::parse_recording("t,cmd.x,cmd.y,cmd.z,cmd.a,tip.x\n0,0,0,0,0,0\n", "r.csv");
   EXPECT_NE(error_of([&] { sim::validate_against(rec, m); }).find("missing column 'cmd.c'"), std::string::npos);

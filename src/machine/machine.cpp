@@ -421,6 +421,10 @@ void load_serial(const Reader& r, const YAML::Node& root, Machine& m) {
     }
     if (a["cyclic"]) info.cyclic = r.boolean(a["cyclic"], path + ".cyclic");
     if (info.cyclic && !info.rotary()) r.fail(a["cyclic"], path + ".cyclic", "only a rotary axis can be cyclic");
+    if (info.cyclic && info.max - info.min < 2.0 * kPi - 1e-9)
+      r.fail(a["cyclic"], path + ".cyclic",
+             fmt::format("a cyclic axis turns on through whole turns, but its limits [{}, {}] deg span less than one",
+                         lim[0], lim[1]));
 
     kin::JointGeometry<double>& j = g.joints[i];
     j.type = info.type;
@@ -614,6 +618,12 @@ Machine load_node(const YAML::Node& root, const std::string& name) {
       m.post.letters[i] = l;
     }
   if (root["post"]) load_post(r, root["post"], m);
+  // The safe Z of a machine with a Z slide is a value of that slide (a PKM's is a plane of the part frame).
+  if (kind == "serial" && std::isfinite(m.post.safe_z_mm))
+    for (const auto& a : m.axes)
+      if (!a.rotary() && a.name == "z" && (m.post.safe_z_mm < a.min || m.post.safe_z_mm > a.max))
+        r.fail(root["post"]["safe_z_mm"], "post.safe_z_mm",
+               fmt::format("{} mm is outside the travel of z [{}, {}] mm", m.post.safe_z_mm, a.min, a.max));
   // The machines we post for; a registered model (a measuring machine, say) may not write G-code at all.
   if (kind == "serial" || kind == "xmini") check_letters(r, root, m);
   if (root["geometry"]) load_geometry(r, root["geometry"], m);

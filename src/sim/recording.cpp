@@ -25,6 +25,8 @@ std::string trim(std::string_view s) {
 }
 }  // namespace
 
+constexpr double kMaxCellMagnitude = 1e9;
+
 int Recording::column(const std::string& name) const {
   for (size_t i = 0; i < columns.size(); ++i)
     if (columns[i] == name) return static_cast<int>(i);
@@ -128,6 +130,11 @@ Recording parse_recording(const std::string& text, const std::string& name) {
           throw InputError(SourceLoc{name, line, static_cast<int>(s0) + 1},
                            fmt::format("column {}: expected a number, got '{}'", rec.columns[c],
                                        std::string(ln.substr(s0, s1 - s0))));
+        // Squares of larger values overflow the fits; no position, time or acceleration of a machine comes near.
+        if (std::abs(v) > kMaxCellMagnitude)
+          throw InputError(SourceLoc{name, line, static_cast<int>(s0) + 1},
+                           fmt::format("column {}: {} is out of range (at most {:g} in magnitude)", rec.columns[c],
+                                       std::string(ln.substr(s0, s1 - s0)), kMaxCellMagnitude));
       }
       rec.data[c].push_back(v);
       ++c;
