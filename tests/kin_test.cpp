@@ -3,6 +3,7 @@
 #include <gtest/gtest.h>
 
 #include <cmath>
+#include <tuple>
 
 #include "cscam/core/units.hpp"
 #include "cscam/kin/serial.hpp"
@@ -223,6 +224,33 @@ TEST(Track, ALimitMetBetweenTwoNearbyPosesIsAJump) {
       EXPECT_NEAR(rad2deg(out[4]), c1_deg, 1e-6);
     } else {
       EXPECT_TRUE(!tracked || jumped) << "C " << rad2deg(out[4]) << " A " << rad2deg(out[3]);
+    }
+  }
+}
+
+// A pose no branch reaches is reported by the branch that misses its limits by least: A needs 60 deg, or -60 deg with
+// C turned half a turn; whichever of the two misses its limit by 10 deg (the other by 30) is named. The first branch's
+// miss was reported, whichever it was.
+TEST(Track, AnUnreachablePoseNamesTheBranchThatMissesByLeast) {
+  SerialGeometry<double> g;
+  g.joints = {J(AxisType::Linear, Side::Head, Vec3::UnitX()), J(AxisType::Linear, Side::Head, Vec3::UnitY()),
+              J(AxisType::Linear, Side::Head, Vec3::UnitZ()),
+              J(AxisType::Rotary, Side::Table, Vec3::UnitX(), Vec3(0, 20, 10)),
+              J(AxisType::Rotary, Side::Table, Vec3::UnitZ())};
+  g.table_chain = {3, 4};
+  g.head_chain = {0, 1, 2};
+  for (const auto& [a_min, a_max, named] :
+       {std::tuple{-30.0, 50.0, "a = 60.0000 deg"}, std::tuple{-50.0, 30.0, "a = -60.0000 deg"}}) {
+    const SerialKinematics k(g, {lin("x", -1e4, 1e4), lin("y", -1e4, 1e4), lin("z", -1e4, 1e4), rot("a", a_min, a_max),
+                                 rot("c", -36000, 36000, true)});
+    for (const double c_deg : {0.0, 180.0, 90.0}) {
+      Axes q = Axes::Zero();
+      q[3] = deg2rad(60.0);
+      q[4] = deg2rad(c_deg);
+      Axes out;
+      std::string violation;
+      EXPECT_FALSE(nearest_solution(k, k.forward(q), Axes::Zero(), out, &violation));
+      EXPECT_NE(violation.find(named), std::string::npos) << violation;
     }
   }
 }

@@ -5,6 +5,8 @@
 #include <limits>
 #include <vector>
 
+#include "cscam/core/units.hpp"
+
 namespace cscam::kin {
 
 namespace {
@@ -40,13 +42,29 @@ bool track_rec(const Kinematics& k, const Axes& prev, const Posed& p0, const Pos
 bool choose_nearest(const Kinematics& k, std::vector<Solution>& sols, const Axes& near, Axes& out,
                     std::string* violation, bool* singular, const std::function<double(const Axes&)>& extra_cost) {
   double best = std::numeric_limits<double>::infinity();
+  // Of the branches that break a limit, the one that misses by least is the one to name (the first may be a flipped
+  // branch 180 deg away while the nearest misses by one degree).
+  double least_miss = std::numeric_limits<double>::infinity();
+  bool named_here = false;  // a violation named by an earlier call (another pose of the same track) is kept
   for (Solution& s : sols) {
     k.nearest_winding(s.axes, near);
     // Axis limits after the winding choice, then the limits the axis values do not show (a PKM's passive joints).
     std::string v = k.check_limits(s.axes);
-    if (v.empty()) v = k.passive_violation(s.axes);
+    const bool passive = v.empty();
+    if (passive) v = k.passive_violation(s.axes);
     if (!v.empty()) {
-      if (violation && violation->empty()) *violation = v;
+      double miss = 0.0;  // mm, or deg for a rotary
+      for (std::size_t i = 0; i < k.axes().size(); ++i) {
+        const auto& a = k.axes()[i];
+        const double q = s.axes[static_cast<int>(i)];
+        miss += std::max({0.0, a.min - q, q - a.max}) * (a.rotary() ? 180.0 / kPi : 1.0);
+      }
+      if (passive) miss = std::numeric_limits<double>::max();  // a passive joint: named only when nothing else is
+      if (violation && (violation->empty() || (named_here && miss < least_miss))) {
+        *violation = v;
+        named_here = true;
+      }
+      least_miss = std::min(least_miss, miss);
       continue;
     }
     const double d = rotary_distance(k, s.axes, near) + (extra_cost ? extra_cost(s.axes) : 0.0);
