@@ -74,7 +74,7 @@ void BM_PostPipeline(benchmark::State& state) {
       auto cc = std::make_shared<cscam::cspace::Counters>();
       return [space, ws, cc](const cscam::kin::Axes& q) { return space->collision_at_axes(q, *ws, *cc); };
     };
-  size_t blocks = 0, inserted = 0, collision_checks = 0;
+  size_t blocks = 0, inserted = 0, collision_checks = 0, narrowed = 0;
   double t_read = 0, t_ik = 0, t_post = 0, t_gate = 0;
   tbb::task_arena arena(threads);
   for (auto _ : state) {
@@ -100,12 +100,14 @@ void BM_PostPipeline(benchmark::State& state) {
       t_gate += since(t);
       blocks = sum.blocks;
       inserted = sum.inserted_points;
+      narrowed = sum.narrowed_corners + sum.exact_corners;
     });
   }
   state.SetItemsProcessed(static_cast<int64_t>(state.iterations() * n));
   const double it = static_cast<double>(state.iterations());
   state.counters["blocks"] = static_cast<double>(blocks);
   state.counters["inserted"] = static_cast<double>(inserted);
+  state.counters["corners_bounded"] = static_cast<double>(narrowed);  // blends narrowed (G64 P) or made exact
   state.counters["collision_checks"] = static_cast<double>(collision_checks);
   state.counters["read_s"] = t_read / it;
   state.counters["ik_s"] = t_ik / it;
