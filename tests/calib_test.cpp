@@ -2,6 +2,7 @@
 #include <ceres/jet.h>
 #include <fmt/format.h>
 #include <gtest/gtest.h>
+#include <unistd.h>
 
 #include <cmath>
 #include <filesystem>
@@ -589,4 +590,88 @@ TEST(CalibIdent, RegulariseKeepsUnidentifiableNearNominalAndHoldoutFileIsUsed) {
   ASSERT_EQ(c.status, 0) << c.output;
   EXPECT_NE(c.output.find("held-out (" + hold + ", 30 poses)"), std::string::npos) << c.output;
   EXPECT_NE(c.output.find("regularised toward nominal"), std::string::npos) << c.output;
+}
+
+// Without the robust loss and without sigmas in the recording, gross outliers raised their own limit (the
+// chi^2-rescaled sigma) and hid: the limit is now the median pose's residual.
+TEST(CalibIdent, OutliersShowWithoutTheRobustLossAndWithoutSigmas) {
+  const auto m = load("trunnion-ac");
+  std::vector<double> truth = m->nominal();
+  truth[m->index("EX0C")] = 0.02;
+  calib::Sigmas s;
+  s.ptip_mm = 0.001;
+  Dataset d = calib::simulate(*m, truth, m->random_poses(40, 3), {"ptip"}, s, 7);
+  d.sigma = calib::Sigmas{};  // as read from a recording that gives none
+  for (std::size_t k = 0; k < d.poses.size(); ++k) d.poses[k].line = static_cast<int>(k) + 3;
+  for (const std::size_t k : {4u, 9u, 17u}) d.poses[k].meas[6] += 0.58;  // three probing errors of 0.58 mm
+  calib::Options o;
+  o.free = m->select({"rotary_a", "rotary_c"});
+  const calib::Result r = calib::calibrate(*m, d, o);
+  ASSERT_EQ(r.outliers.size(), 3u);
+  EXPECT_EQ(r.outliers[0].line, 7);
+  EXPECT_EQ(r.outliers[1].line, 12);
+  EXPECT_EQ(r.outliers[2].line, 20);
+}
+
+// Free parameters that none of the measured channels sees: an error naming them (an empty identifiable set crashed
+// the analysis).
+TEST(CalibIdent, FreeParametersTheDataCannotSeeAreAnError) {
+  const auto m = load("trunnion-ac");
+  calib::Sigmas s;
+  Dataset d = calib::simulate(*m, m->nominal(), m->random_poses(30, 3), {"tip"}, s, 7);
+  calib::Options o;
+  o.free = m->select({"rotary_c"});
+  try {
+    (void)calib::calibrate(*m, d, o);
+    FAIL() << "expected an error";
+  } catch (const InputError& e) {
+    EXPECT_NE(std::string(e.what()).find("none of the free parameters (EX0C"), std::string::npos) << e.what();
+  }
+}
+
+// A corrected file is written only if it predicts held-out poses no worse than the nominal one, and the report says
+// when poses cover too little of the working volume for the file to hold away from them.
+TEST(CalibCli, NoCorrectedFileThatPredictsWorseAndAWarningWhenPosesAreBunched) {
+  namespace fs = std::filesystem;
+  const fs::path dir = fs::temp_directory_path() / ("cscam_calib_guard_" + std::to_string(::getpid()));
+  fs::create_directories(dir);
+  const auto m = load("trunnion-ac");
+  std::vector<double> truth = m->nominal();
+  truth[m->index("EX0C")] = 0.05;
+  truth[m->index("EB0A")] = 0.02;
+  calib::Sigmas s;
+  s.ptip_mm = 0.001;
+  auto write = [&](const Dataset& d, const std::string& name) {
+    std::ofstream o(dir / name);
+    o << "# machine: trunnion-ac\n# kind: static\n# tool_length: 0\n# sigma.ptip: 0.001\n"
+         "cmd.x,cmd.y,cmd.z,cmd.a,cmd.c,ptip.x,ptip.y,ptip.z\n";
+    for (const auto& p : d.poses)
+      o << fmt::format("{},{},{},{},{},{:.6f},{:.6f},{:.6f}\n", p.q[0], p.q[1], p.q[2], p.q[3], p.q[4], p.meas[6],
+                       p.meas[7], p.meas[8]);
+  };
+  // Outliers ruin the fit: the held-out poses get worse, and nothing is written.
+  Dataset bad = calib::simulate(*m, truth, m->random_poses(40, 3), {"ptip"}, s, 7);
+  for (const std::size_t k : {3u, 8u, 16u, 23u}) bad.poses[k].meas[6] += 0.6;
+  write(bad, "bad.csv");
+  const std::string cli = std::string(CSCAM_CLI) + " calibrate ";
+  const std::string out_bad = (dir / "bad.yaml").string();
+  const auto r1 = test::run_command(cli + (dir / "bad.csv").string() + " --machine trunnion-ac -o " + out_bad);
+  EXPECT_EQ(r1.status, 2) << r1.output;
+  EXPECT_NE(r1.output.find("predicts the held-out poses worse than the nominal one"), std::string::npos) << r1.output;
+  EXPECT_FALSE(fs::exists(out_bad));
+  // Poses bunched within a few degrees of A and C: a good fit there, a warning for the rest of the volume.
+  std::vector<std::vector<double>> bunched = m->random_poses(40, 5);
+  for (std::size_t k = 0; k < bunched.size(); ++k) {
+    bunched[k][3] = -1.0 + 0.05 * static_cast<double>(k);
+    bunched[k][4] = 0.07 * static_cast<double>(k);
+  }
+  write(calib::simulate(*m, truth, bunched, {"ptip"}, s, 9), "bunched.csv");
+  const auto r2 = test::run_command(cli + (dir / "bunched.csv").string() + " --machine trunnion-ac");
+  EXPECT_NE(r2.output.find("the poses cover too little of the volume"), std::string::npos) << r2.output;
+  // Spread poses: no such warning.
+  write(calib::simulate(*m, truth, m->random_poses(40, 5), {"ptip"}, s, 9), "spread.csv");
+  const auto r3 = test::run_command(cli + (dir / "spread.csv").string() + " --machine trunnion-ac");
+  EXPECT_EQ(r3.status, 0) << r3.output;
+  EXPECT_EQ(r3.output.find("cover too little"), std::string::npos) << r3.output;
+  fs::remove_all(dir);
 }

@@ -372,6 +372,15 @@ Identifiability analyse(const Model& model, const Dataset& d, const std::vector<
     }
   }
   std::sort(keep.begin(), keep.end());
+  if (keep.empty()) {
+    std::string names;
+    for (const std::size_t pi : id.candidates) names += (names.empty() ? "" : ", ") + model.params()[pi].name;
+    throw InputError(SourceLoc{d.file},
+                     fmt::format("none of the free parameters ({}) changes what these poses measure: nothing can be "
+                                 "calibrated from them (free parameters that these channels see, with --free, or "
+                                 "measure channels that see these)",
+                                 names));
+  }
   Eigen::MatrixXd K(Jl.rows(), static_cast<Eigen::Index>(keep.size()));
   for (std::size_t j = 0; j < keep.size(); ++j) K.col(static_cast<Eigen::Index>(j)) = Jl.col(keep[j]);
   Eigen::ColPivHouseholderQR<Eigen::MatrixXd> kqr(K);
@@ -544,11 +553,13 @@ Result calibrate(const Model& model, const Dataset& d, const Options& opt) {
         }
     }
   }
-  // Outlier poses: normalised RMS residual above 3 (3 sigma per channel).
+  // Outlier poses: normalised RMS residual above 3 (3 sigma per channel). Without sigmas in the recording the scale
+  // is the median pose's: rescaled by the reduced chi^2, gross outliers raise their own limit and hide.
   {
     const std::size_t nch = 9 + model.links().size();
     std::vector<double> out(nch);
     auto scratch = model.make_scratch();
+    std::vector<double> pose_rms(d.poses.size(), 0.0);
     for (std::size_t k = 0; k < d.poses.size(); ++k) {
       const auto& pose = d.poses[k];
       model.predict_channels(pose.q.data(), p.data(), out.data(), scratch.get());
@@ -560,10 +571,16 @@ Result calibrate(const Model& model, const Dataset& d, const Options& opt) {
           s2 += r * r;
           ++cnt;
         }
-      const double nr = cnt ? std::sqrt(s2 / cnt) : 0.0;
-      const double limit = d.sigma.given ? 3.0 : 3.0 * std::sqrt(std::max(res.chi2_reduced, 1e-300));
-      if (nr > limit) res.outliers.push_back({k, pose.line, nr});
+      pose_rms[k] = cnt ? std::sqrt(s2 / cnt) : 0.0;
     }
+    double scale = 1.0;
+    if (!d.sigma.given && !pose_rms.empty()) {
+      std::vector<double> sorted = pose_rms;
+      std::nth_element(sorted.begin(), sorted.begin() + static_cast<std::ptrdiff_t>(sorted.size() / 2), sorted.end());
+      scale = std::max(sorted[sorted.size() / 2], 1e-300);
+    }
+    for (std::size_t k = 0; k < d.poses.size(); ++k)
+      if (pose_rms[k] > 3.0 * scale) res.outliers.push_back({k, d.poses[k].line, pose_rms[k] / scale});
   }
   res.summary.time_s = std::chrono::duration<double>(std::chrono::steady_clock::now() - t0).count();
   return res;

@@ -282,12 +282,75 @@ int run_calibrate(const CalibArgs& a) {
   }
   t << "residuals on the fitted poses (measured - predicted, before -> after):\n" << stats_line(r.before, r.after);
   calib::ResidualStats hb, ha;
+  // A corrected file must predict poses it was not fitted to better than the nominal one: a channel whose held-out
+  // residual rises clearly (by more than 10 % and to more than three sigmas) means the data do not pin the
+  // parameters down, or hold outliers, and the file is not written.
+  std::string worse;
   if (hold) {
     hb = calib::residual_stats(*model, *hold, model->nominal());
     ha = calib::residual_stats(*model, *hold, r.estimate);
     t << fmt::format("held-out ({}, {} poses), before -> after:\n", hold_label, hold->poses.size())
       << stats_line(hb, ha);
+    for (const auto& [g, before] : hb.rms) {
+      const auto it = ha.rms.find(g);
+      if (it == ha.rms.end()) continue;
+      const double sigma = g == "tip"    ? data.sigma.tip_mm
+                           : g == "ptip" ? data.sigma.ptip_mm
+                           : g == "dir"  ? data.sigma.dir
+                                         : data.sigma.len_mm;
+      const double width = g == "tip" || g == "ptip" || g == "dir" ? std::sqrt(3.0) : 1.0;
+      if (it->second > 1.1 * before && it->second > 3.0 * sigma * width)
+        worse += fmt::format("{}{} {:.6g} -> {:.6g}", worse.empty() ? "" : ", ", g, before, it->second);
+    }
+  } else {
+    t << fmt::format(
+        "not validated: no held-out poses ({} with {} measurements for {} free parameters; the fitted "
+        "part needs twice as many measurements as free parameters to spare some: add poses, or give "
+        "--holdout)\n",
+        a.split > 0 ? "too few poses" : "--split 0", data.measurement_count(), nfree);
   }
+  js["validated"] = hold.has_value();
+  // Extrapolation: poses that cover a small part of the working volume fit well where they are, and the corrected
+  // file can be far off elsewhere. How far it moves the measured channels from the nominal model over random poses of
+  // the working volume, against how far at the measured poses, says so.
+  {
+    const std::size_t nch = model->channel_names().size();
+    std::vector<char> measured(nch, 0);
+    for (const auto& pose : data.poses)
+      for (std::size_t c = 0; c < nch; ++c) measured[c] |= static_cast<char>(!std::isnan(pose.meas[c]));
+    auto scratch = model->make_scratch();
+    const std::vector<double> nominal = model->nominal();
+    std::vector<double> a0(nch), a1(nch);
+    auto moved = [&](const std::vector<double>& q) {
+      model->predict_channels(q.data(), nominal.data(), a0.data(), scratch.get());
+      model->predict_channels(q.data(), r.estimate.data(), a1.data(), scratch.get());
+      double worst = 0;
+      for (std::size_t g0 = 0; g0 < nch; g0 += g0 < 9 ? 3 : 1) {
+        if (g0 >= 3 && g0 < 6) continue;  // directions: unitless, judged through the tip
+        double d2 = 0;
+        for (std::size_t c = g0; c < g0 + (g0 < 9 ? 3 : 1); ++c)
+          if (measured[c]) d2 += (a1[c] - a0[c]) * (a1[c] - a0[c]);
+        worst = std::max(worst, std::sqrt(d2));
+      }
+      return worst;
+    };
+    double at_poses = 0, in_volume = 0;
+    for (const auto& pose : data.poses) at_poses = std::max(at_poses, moved(pose.q));
+    for (const auto& q : model->random_poses(200, a.seed + 1)) in_volume = std::max(in_volume, moved(q));
+    const double floor_mm = 3.0 * std::max(data.sigma.tip_mm, data.sigma.ptip_mm);
+    js["extrapolation"] = {{"max_change_at_poses_mm", at_poses}, {"max_change_in_volume_mm", in_volume}};
+    if (in_volume > 5.0 * at_poses + floor_mm)
+      t << fmt::format(
+          "warning: the corrected model moves the tip by up to {:.4g} mm from the nominal one over the "
+          "working volume, but by at most {:.4g} mm at the measured poses: the poses cover too little of "
+          "the volume to trust the corrected file away from them (spread them: --design)\n",
+          in_volume, at_poses);
+  }
+  if (data.sigma.given && r.chi2_reduced > 100.0)
+    t << fmt::format(
+        "warning: reduced chi^2 {:.3g}: the model with these free parameters does not explain the "
+        "measurements (other parameters are off too, or the sigmas are far too small)\n",
+        r.chi2_reduced);
 
   js["recording"] = a.rec;
   js["poses"] = data.poses.size();
@@ -354,6 +417,14 @@ int run_calibrate(const CalibArgs& a) {
     t << fmt::format("not converged: Ceres ended with {} ({}); no corrected file written\n", r.summary.termination,
                      r.summary.message);
     rc = 1;
+  } else if (!worse.empty()) {
+    t << fmt::format(
+        "the corrected model predicts the held-out poses worse than the nominal one ({}): no corrected "
+        "file written (the poses do not pin the parameters down, or hold outliers: see the "
+        "identifiability and outlier lists above; --loss huber down-weights outliers)\n",
+        worse);
+    js["refused"] = worse;
+    rc = 2;
   } else if (!a.out.empty()) {
     const std::string text = model->corrected_yaml(r.estimate);
     write_file_atomically(a.out, [&](std::ostream& o) { o << text; });
