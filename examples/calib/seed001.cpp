@@ -34,7 +34,9 @@ std::vector<double> in_convention(const calib::Model& m, std::vector<double> t) 
 
 }  // namespace
 
-int main(int argc, char** argv) {
+namespace {
+
+int run(int argc, char** argv) {
   const std::string file = argc > 1 ? argv[1] : std::string(CSCAM_SOURCE_DIR) + "/machines/pcmm.yaml";
   const auto model = calib::load_model(file);
   const calib::Model& m = *model;
@@ -176,4 +178,19 @@ int main(int argc, char** argv) {
     }
   }
   return worst <= 1e-8 ? 0 : 1;
+}
+
+}  // namespace
+
+int main(int argc, char** argv) {
+  if (argc > 1 && (std::string(argv[1]) == "-h" || std::string(argv[1]) == "--help")) {
+    fmt::print("usage: calib_seed001 [PCMM_MACHINE.yaml]  (default: machines/pcmm.yaml)\n");
+    return 0;
+  }
+  try {
+    return run(argc, argv);
+  } catch (const std::exception& e) {
+    fmt::print(stderr, "error: {}\n", e.what());
+    return 2;
+  }
 }
