@@ -72,7 +72,10 @@ void BM_PostPipeline(benchmark::State& state) {
     go.make_collision = [space]() -> cscam::gate::Options::CollisionCheck {
       auto ws = std::make_shared<cscam::geom::QueryWorkspace>();
       auto cc = std::make_shared<cscam::cspace::Counters>();
-      return [space, ws, cc](const cscam::kin::Axes& q) { return space->collision_at_axes(q, *ws, *cc); };
+      return [space, ws, cc](const cscam::kin::Axes& q, bool whole_tool) {
+        return space->collision_at_axes(
+            q, *ws, *cc, whole_tool ? cscam::cspace::SweepMode::Rapid : cscam::cspace::SweepMode::Cutting);
+      };
     };
   size_t blocks = 0, inserted = 0, collision_checks = 0, narrowed = 0;
   double t_read = 0, t_ik = 0, t_post = 0, t_gate = 0;

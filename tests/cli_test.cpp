@@ -1231,7 +1231,8 @@ TEST(Cli, JobsFileErrorsNameTheLineAndRunNothing) {
        "jobs.yaml:7:14: 'machine': machine file not found"},
       {head + "  - cl: a.cls\n    output: b.ngc\n    strategy: fastest\n",
        "jobs.yaml:7:15: 'strategy': unknown strategy"},
-      {head + "  - cl: a.cls\n    output: b.ngc\n    cone: 5\n", "jobs.yaml:5:5: 'strategy': cone needs 'strategy: planner'"},
+      {head + "  - cl: a.cls\n    output: b.ngc\n    cone: 5\n",
+       "jobs.yaml:5:5: 'strategy': cone needs 'strategy: planner'"},
       {head + "  - a.cls\n", "jobs.yaml:5:5: output"},
       {"jobs:\n  - a.cls\n", "jobs.yaml:2:5: 'machine': missing"},
       {"defaults:\n  machine: trunnion-ac\n", "'jobs': missing"},
@@ -1391,4 +1392,24 @@ TEST(Cli, PlannerFixedTierIsWrittenInATiltedWorkPlane) {
       r = run_command(kCli + " verify " + out + " --machine trunnion-ac --cl " + cl + " --cone 10");
       EXPECT_EQ(r.status, 0) << r.output;
     }
+}
+
+// Planner options no machine can use are refused before any work, naming the option: a fine grid once filled 24 GB
+// on a 92-point path; a file given as the SVG folder failed after the program was written.
+TEST(Cli, PlanOptionsNoMachineCanUseAreRefusedFirst) {
+  TempDir d;
+  const std::string cl = cscam::test::source_path("examples/groove/groove.cls");
+  const std::string afile = d.file("afile", "x");
+  for (const auto& [opts, what] : std::vector<std::pair<std::string, std::string>>{
+           {"--cone 200", "--cone 200: expected 0..90 deg"},
+           {"--cone 10 --resolution 400", "--resolution 400: expected a grid step in (0, 30] deg"},
+           {"--cone 25 --resolution 0.05", "gives about 785398 grid cells at every CL point"},
+           {"--cone 10 --clearance -3", "--clearance -3: expected a distance >= 0 mm"},
+           {"--cone 10 --svg " + afile, "--svg: exists and is not a folder"}}) {
+    const std::string out = d.file("o.ngc");
+    const auto r = run_command(kCli + " compare " + cl + " --machine trunnion-ac " + opts + " -o " + out);
+    EXPECT_EQ(r.status, 2) << opts << "\n" << r.output;
+    EXPECT_NE(r.output.find(what), std::string::npos) << opts << "\n" << r.output;
+    EXPECT_FALSE(fs::exists(out)) << opts;
+  }
 }

@@ -338,7 +338,9 @@ TEST(Gate, RefusesARapidThroughThePart) {
   opt.make_collision = [&]() -> gate::Options::CollisionCheck {  // one workspace and counters per worker
     auto w = std::make_shared<geom::QueryWorkspace>();
     auto c = std::make_shared<cspace::Counters>();
-    return [&space, c, w](const kin::Axes& q) { return space.collision_at_axes(q, *w, *c); };
+    return [&space, c, w](const kin::Axes& q, bool whole_tool) {
+      return space.collision_at_axes(q, *w, *c, whole_tool ? cspace::SweepMode::Rapid : cspace::SweepMode::Cutting);
+    };
   };
   const auto ok = gate::check(os.str(), "g.ngc", planned.program, m, *k, opt, &sum.cl_line_of_nc_line);
   EXPECT_TRUE(ok.ok) << ok.message;
@@ -396,7 +398,9 @@ TEST(Gate, CollisionsAreSampledAlongThePathAcrossShortBlocks) {
     opt.make_collision = [&]() -> gate::Options::CollisionCheck {
       auto w = std::make_shared<geom::QueryWorkspace>();
       auto c = std::make_shared<cspace::Counters>();
-      return [&space, c, w](const kin::Axes& q) { return space.collision_at_axes(q, *w, *c); };
+      return [&space, c, w](const kin::Axes& q, bool whole_tool) {
+        return space.collision_at_axes(q, *w, *c, whole_tool ? cspace::SweepMode::Rapid : cspace::SweepMode::Cutting);
+      };
     };
     return gate::check(p.text, "line.ngc", prog, m, *k, opt, &p.summary.cl_line_of_nc_line);
   };
@@ -523,4 +527,50 @@ TEST(Gate, TheOutputNeverOverwritesItsClInput) {
   std::ifstream in(cl_path);
   EXPECT_EQ(std::string(std::istreambuf_iterator<char>(in), {}), cl_text);  // untouched
   fs::remove(cl_path);
+}
+
+// A rapid move must touch nothing, its cutting end included: a G0 that drags the ball 3 mm deep across a block was
+// passed, because the cutting end was left out of every check as it is for feed moves. The same path as a feed
+// passes (the cutting end is in the material by design), and a rapid that ends on the block (where a cut starts)
+// passes too.
+TEST(Gate, ARapidMayNotCutWithItsCuttingEnd) {
+  const auto m = load_machine("trunnion-ac");
+  const auto k = m.make_kinematics(post::tool_length_for(m, 0));
+  const auto tool = geom::ToolShape::from_cutter(10, 5, 30);
+  geom::Scene scene;
+  scene.add("block", geom::ObstacleRole::Part, geom::box_mesh({-30, -30, 0}, {30, 30, 20}, "the block"));
+  scene.build(false);
+  cspace::Options co;
+  co.check_collision = true;
+  const cspace::Space space(k, &scene, &tool, co, nullptr);
+  gate::Options opt = gate::options_for(m, 0, 0, 0);
+  opt.make_collision = [&]() -> gate::Options::CollisionCheck {
+    auto w = std::make_shared<geom::QueryWorkspace>();
+    auto c = std::make_shared<cspace::Counters>();
+    return [&space, c, w](const kin::Axes& q, bool whole_tool) {
+      return space.collision_at_axes(q, *w, *c, whole_tool ? cspace::SweepMode::Rapid : cspace::SweepMode::Cutting);
+    };
+  };
+  auto run = [&](const std::string& motion) {
+    // Across the block with the tip 3 mm below its top (z 17), from clear air on one side to clear air on the other.
+    const std::string text =
+        "UNITS/MM\nMULTAX/ON\nCUTTER/10,5\nFEDRAT/MMPM,1000\nGOTO/-60,0,60,0,0,1\nGOTO/-60,0,17,0,0,1\n" + motion +
+        "GOTO/60,0,17,0,0,1\nGOTO/60,0,60,0,0,1\n";
+    const cl::Program prog = cl::read_text(text, "across.cls");
+    const Posted p = post_program(prog, m, *k);
+    return gate::check(p.text, "across.ngc", prog, m, *k, opt, &p.summary.cl_line_of_nc_line);
+  };
+  const auto rapid = run("RAPID\n");
+  ASSERT_FALSE(rapid.ok);
+  EXPECT_NE(rapid.message.find("hits block"), std::string::npos) << rapid.message;
+  const auto feed = run("");
+  EXPECT_TRUE(feed.ok) << feed.message;
+  // A rapid down onto the top face (the ball tangent to it at the end) passes.
+  const cl::Program onto = cl::read_text(
+      "UNITS/MM\nMULTAX/ON\nCUTTER/10,5\nFEDRAT/MMPM,1000\nGOTO/0,0,60,0,0,1\nRAPID\nGOTO/0,0,20,0,0,1\n"
+      "GOTO/10,0,20,0,0,1\n",
+      "onto.cls");
+  const Posted p = post_program(onto, m, *k);
+  const auto down = gate::check(p.text, "onto.ngc", onto, m, *k, opt, &p.summary.cl_line_of_nc_line);
+  EXPECT_TRUE(down.ok) << down.message;
 }

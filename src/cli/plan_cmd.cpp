@@ -106,7 +106,32 @@ nlohmann::json mesh_reports_json(const Setup& s) {
 /// cutter size: an error with `require_tool`, else a warning and no collision checks.
 void add_scene(Setup& s, const PlanArgs& a, const std::vector<cl::Tool>& tools, bool require_tool);
 
+/// The planner's options that no machine can use, refused before any work: a cone past the horizontal, a grid coarser
+/// than any cone it could resolve or so fine that a few points fill the memory, a negative clearance, an SVG folder
+/// that is a file.
+void check_plan_args(const PlanArgs& a) {
+  if (!(a.cone_deg >= 0.0 && a.cone_deg <= 90.0))
+    throw InputError(
+        fmt::format("--cone {}: expected 0..90 deg (the deviation of the tool axis from the CL axis)", a.cone_deg));
+  if (!(a.resolution_deg > 0.0 && a.resolution_deg <= 30.0))
+    throw InputError(fmt::format("--resolution {}: expected a grid step in (0, 30] deg", a.resolution_deg));
+  // Cells of the cone at every CL point: the C-space rows the search keeps grow with it.
+  constexpr double kMaxConeCells = 50000.0;
+  const double cells = kPi * std::pow(a.cone_deg / a.resolution_deg, 2);
+  if (cells > kMaxConeCells)
+    throw InputError(
+        fmt::format("--resolution {} deg at --cone {} deg gives about {:.0f} grid cells at every CL point "
+                    "(at most {:.0f}, or the search outgrows the memory): coarsen the resolution to at "
+                    "least {:.2f} deg",
+                    a.resolution_deg, a.cone_deg, cells, kMaxConeCells, a.cone_deg * std::sqrt(kPi / kMaxConeCells)));
+  if (!(a.clearance_mm >= 0.0) || !std::isfinite(a.clearance_mm))
+    throw InputError(fmt::format("--clearance {}: expected a distance >= 0 mm", a.clearance_mm));
+  if (!a.svg_dir.empty() && fs::exists(a.svg_dir) && !fs::is_directory(a.svg_dir))
+    throw InputError(SourceLoc{a.svg_dir}, "--svg: exists and is not a folder");
+}
+
 std::unique_ptr<Setup> setup(const PlanArgs& a, std::vector<std::string>* warnings = nullptr) {
+  check_plan_args(a);
   auto s = std::make_unique<Setup>();
   s->warnings = warnings;
   s->m = machine::load(resolve_machine(a.machine));
@@ -266,7 +291,10 @@ gate::Options gate_options(const Setup& s, const PlanArgs& a, double cone_deg) {
     g.make_collision = [space]() -> gate::Options::CollisionCheck {
       auto ws = std::make_shared<geom::QueryWorkspace>();
       auto cc = std::make_shared<cspace::Counters>();
-      return [space, ws, cc](const kin::Axes& q) { return space->collision_at_axes(q, *ws, *cc); };
+      return [space, ws, cc](const kin::Axes& q, bool whole_tool) {
+        return space->collision_at_axes(q, *ws, *cc,
+                                        whole_tool ? cspace::SweepMode::Rapid : cspace::SweepMode::Cutting);
+      };
     };
   }
   return g;

@@ -576,18 +576,23 @@ bool Space::free_with_margin(const kin::Posed& cl, const Cell& cell, double marg
   return !geom::check(*scene_, *tool_, tool_pose(cl, cell.r1, cell.r2), o, ws).collides;
 }
 
-std::string Space::collision_at_axes(const kin::Axes& q, geom::QueryWorkspace& ws, Counters& c) const {
+std::string Space::collision_at_axes(const kin::Axes& q, geom::QueryWorkspace& ws, Counters& c, SweepMode mode) const {
   if (!opt_.check_collision || !scene_ || !tool_) return {};
   LinkPoses links;
   geom::CheckOptions linked;
   const Eigen::Isometry3d* head_placed = nullptr;
   const geom::CheckOptions& co = with_links(q, links, linked, &head_placed);
-  ++c.collision;
-  const geom::CollisionResult r = geom::check(*scene_, *tool_, kin_->forward(q), co, ws);
-  if (r.collides)
-    return fmt::format(
-        "{} hits {}", geom::to_string(r.part),
-        r.obstacle >= 0 ? scene_->obstacle_name(static_cast<std::size_t>(r.obstacle)) : std::string("?"));
+  if (mode == SweepMode::Rapid) {  // the whole tool, its cutting end too: a rapid must not touch anything
+    if (std::string hit = collision_inflated(q, kin_->forward(q), 0.0, SweepMode::Rapid, ws, c); !hit.empty())
+      return hit;
+  } else {
+    ++c.collision;
+    const geom::CollisionResult r = geom::check(*scene_, *tool_, kin_->forward(q), co, ws);
+    if (r.collides)
+      return fmt::format(
+          "{} hits {}", geom::to_string(r.part),
+          r.obstacle >= 0 ? scene_->obstacle_name(static_cast<std::size_t>(r.obstacle)) : std::string("?"));
+  }
   if (!head_) return {};
   Eigen::Isometry3d T;
   if (!head_pose(q, head_placed, T)) return {};

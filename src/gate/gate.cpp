@@ -237,8 +237,17 @@ Summary check(const std::string& nc_text, const std::string& nc_name, const cl::
           const double span = move_span(bi);
           const bool run_ends = bi + 1 >= b1 || !joints_ok[bi + 1];
           const bool arc = b.arc && !s.tool_tip_control;
+          // A rapid is sampled on its own, at least at its middle, with the whole tool away from its ends (where the
+          // tool leaves or reaches the material as the CL put it: options.rapid_contact_mm).
+          const bool rapid = b.motion == nc::Motion::Rapid;
+          Eigen::Vector3d tip_a = Eigen::Vector3d::Zero(), tip_b = tip_a;
+          if (rapid) tip_a = kinematics.forward(qa).tip_mm, tip_b = kinematics.forward(qb).tip_mm;
           at.clear();
-          if (arc) {
+          if (rapid) {
+            const int n = std::clamp(static_cast<int>(std::ceil(span / step)), 2, 20000);
+            for (int k = 1; k <= n; ++k) at.push_back(static_cast<double>(k) / n);
+            carried = 0.0;
+          } else if (arc) {
             const int n = std::clamp(static_cast<int>(std::ceil(span / step)), 1, 20000);
             for (int k = 1; k <= n; ++k) at.push_back(static_cast<double>(k) / n);
             carried = 0.0;
@@ -256,7 +265,12 @@ Summary check(const std::string& nc_text, const std::string& nc_name, const cl::
               for (int i = 0; i < 5; ++i) q[i] = p[static_cast<size_t>(i)];
             }
             ++chunk_checks[c];
-            if (std::string hit = collides(q); !hit.empty()) {
+            bool whole_tool = false;
+            if (rapid) {
+              const Eigen::Vector3d tip = kinematics.forward(q).tip_mm;
+              whole_tool = std::min((tip - tip_a).norm(), (tip - tip_b).norm()) > options.rapid_contact_mm;
+            }
+            if (std::string hit = collides(q, whole_tool); !hit.empty()) {
               hits[c].emplace_back(bi, std::move(hit));
               break;
             }

@@ -172,7 +172,9 @@ class Space {
   [[nodiscard]] bool free_with_margin(const kin::Posed& cl_pose, const Cell& cell, double margin_mm,
                                       geom::QueryWorkspace& ws, Counters& c) const;
   /// Collision of the tool and the machine head meshes for axis values q. Empty string if free.
-  [[nodiscard]] std::string collision_at_axes(const kin::Axes& q, geom::QueryWorkspace& ws, Counters& c) const;
+  /// With SweepMode::Rapid the whole tool counts, its cutting end too (as a rapid move must touch nothing).
+  [[nodiscard]] std::string collision_at_axes(const kin::Axes& q, geom::QueryWorkspace& ws, Counters& c,
+                                              SweepMode mode = SweepMode::Cutting) const;
   /// Swept check of the straight joint-space move qa -> qb (what a control does between two blocks), with a
   /// clearance certificate: the interval around a pose is free when the tool there, inflated by the largest
   /// distance any tool point can travel over the interval, is free. That distance is the smaller of a first-order bound

@@ -33,8 +33,13 @@ struct Options {
   /// Largest joint step between collision samples inside every move (mm or deg).
   double collision_step = 0.5;
   /// A collision check of a machine configuration against the scene (part, fixture, the machine's own bodies):
-  /// returns a description of the collision, or an empty string when free.
-  using CollisionCheck = std::function<std::string(const kin::Axes&)>;
+  /// returns a description of the collision, or an empty string when free. `whole_tool`: inside a rapid move the
+  /// cutting end counts too (a feed move's cutting end is in contact with the material by design).
+  using CollisionCheck = std::function<std::string(const kin::Axes&, bool whole_tool)>;
+  /// Inside a rapid, poses whose tip is within this distance of either end are checked as cuts (mm): there the
+  /// tool leaves or reaches the material where the CL put it, and the rapid check bounds the cutting end by a
+  /// cylinder, coarser than a ball.
+  double rapid_contact_mm = 10.0;
   /// Optional: makes a collision check for one worker (each keeps its own query workspace, so that the moves are
   /// checked in parallel). Applied inside every move, rapid or feed.
   std::function<CollisionCheck()> make_collision;
