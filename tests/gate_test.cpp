@@ -11,6 +11,7 @@
 
 #include <filesystem>
 #include <fstream>
+#include <functional>
 #include <regex>
 #include <sstream>
 
@@ -50,6 +51,17 @@ Posted post_program(const cl::Program& prog, const machine::Machine& m, const ki
   post::write_nc(os, prog, m, k, axes, o, p.summary);
   p.text = os.str();
   return p;
+}
+
+/// The gate's collision check against `space` (which must outlive it): one workspace and counters per worker.
+std::function<gate::Options::CollisionCheck()> collision_against(const cspace::Space& space) {
+  return [&space]() -> gate::Options::CollisionCheck {
+    auto w = std::make_shared<geom::QueryWorkspace>();
+    auto c = std::make_shared<cspace::Counters>();
+    return [&space, c, w](const kin::Axes& q, bool whole_tool) {
+      return space.collision_at_axes(q, *w, *c, whole_tool ? cspace::SweepMode::Rapid : cspace::SweepMode::Cutting);
+    };
+  };
 }
 
 std::vector<std::string> lines_of(const std::string& text) {
@@ -335,13 +347,7 @@ TEST(Gate, RefusesARapidThroughThePart) {
   post::write_nc(os, planned.program, m, *k, planned.axes, o, sum);
   const cspace::Space space(k, &scene, &tool, po.cspace, nullptr);
   gate::Options opt = gate::options_for(m, 0, 0, 25.0);
-  opt.make_collision = [&]() -> gate::Options::CollisionCheck {  // one workspace and counters per worker
-    auto w = std::make_shared<geom::QueryWorkspace>();
-    auto c = std::make_shared<cspace::Counters>();
-    return [&space, c, w](const kin::Axes& q, bool whole_tool) {
-      return space.collision_at_axes(q, *w, *c, whole_tool ? cspace::SweepMode::Rapid : cspace::SweepMode::Cutting);
-    };
-  };
+  opt.make_collision = collision_against(space);
   const auto ok = gate::check(os.str(), "g.ngc", planned.program, m, *k, opt, &sum.cl_line_of_nc_line);
   EXPECT_TRUE(ok.ok) << ok.message;
   EXPECT_GT(ok.collision_checks, 10u);
@@ -395,13 +401,7 @@ TEST(Gate, CollisionsAreSampledAlongThePathAcrossShortBlocks) {
     co.collision.clearance_mm = 0.5;
     const cspace::Space space(k, &scene, &tool, co, nullptr);
     gate::Options opt = gate::options_for(m, 0, 0, 0);
-    opt.make_collision = [&]() -> gate::Options::CollisionCheck {
-      auto w = std::make_shared<geom::QueryWorkspace>();
-      auto c = std::make_shared<cspace::Counters>();
-      return [&space, c, w](const kin::Axes& q, bool whole_tool) {
-        return space.collision_at_axes(q, *w, *c, whole_tool ? cspace::SweepMode::Rapid : cspace::SweepMode::Cutting);
-      };
-    };
+    opt.make_collision = collision_against(space);
     return gate::check(p.text, "line.ngc", prog, m, *k, opt, &p.summary.cl_line_of_nc_line);
   };
   const auto coarse = gate_with_wall(0.2, 200.0), fine = gate_with_wall(0.1, 200.0);
@@ -544,13 +544,7 @@ TEST(Gate, ARapidMayNotCutWithItsCuttingEnd) {
   co.check_collision = true;
   const cspace::Space space(k, &scene, &tool, co, nullptr);
   gate::Options opt = gate::options_for(m, 0, 0, 0);
-  opt.make_collision = [&]() -> gate::Options::CollisionCheck {
-    auto w = std::make_shared<geom::QueryWorkspace>();
-    auto c = std::make_shared<cspace::Counters>();
-    return [&space, c, w](const kin::Axes& q, bool whole_tool) {
-      return space.collision_at_axes(q, *w, *c, whole_tool ? cspace::SweepMode::Rapid : cspace::SweepMode::Cutting);
-    };
-  };
+  opt.make_collision = collision_against(space);
   auto run = [&](const std::string& motion) {
     // Across the block with the tip 3 mm below its top (z 17), from clear air on one side to clear air on the other.
     const std::string text =

@@ -30,8 +30,8 @@ JointGeometry<double> J(AxisType t, Side s, Vec3 d, Vec3 p = Vec3::Zero()) {
   return j;
 }
 
-/// The A/C trunnion of LinuxCNC's xyzac-trt sim: A about +X through (y 20, z 10), C about +Z.
-SerialKinematics trunnion_ac(double y_off = 20, double z_off = 10) {
+/// The joints of the A/C trunnion of LinuxCNC's xyzac-trt sim: A about +X through (y, z), C about +Z.
+SerialGeometry<double> trunnion_ac_geometry(double y_off = 20, double z_off = 10) {
   SerialGeometry<double> g;
   g.joints = {J(AxisType::Linear, Side::Head, Vec3::UnitX()), J(AxisType::Linear, Side::Head, Vec3::UnitY()),
               J(AxisType::Linear, Side::Head, Vec3::UnitZ()),
@@ -39,6 +39,12 @@ SerialKinematics trunnion_ac(double y_off = 20, double z_off = 10) {
               J(AxisType::Rotary, Side::Table, Vec3::UnitZ())};
   g.table_chain = {3, 4};
   g.head_chain = {0, 1, 2};
+  return g;
+}
+
+/// That trunnion with the sim's limits.
+SerialKinematics trunnion_ac(double y_off = 20, double z_off = 10) {
+  const SerialGeometry<double> g = trunnion_ac_geometry(y_off, z_off);
   return SerialKinematics(g, {lin("x", -1e4, 1e4), lin("y", -1e4, 1e4), lin("z", -1e4, 1e4), rot("a", -100, 50),
                               rot("c", -36000, 36000, true)});
 }
@@ -193,16 +199,7 @@ TEST(Track, ALimitMetBetweenTwoNearbyPosesIsAJump) {
   // winding C would pass its limit, and the nearest solution inside the limits is the other branch (A negated, C half
   // a turn away). Halving the pose step must keep seeing that jump; it once stopped where the two halves' axes were
   // about 1e-8 rad apart (acos of their dot product is 0 there) and reported a continuous motion.
-  SerialGeometry<double> g = [] {
-    SerialGeometry<double> geo;
-    geo.joints = {J(AxisType::Linear, Side::Head, Vec3::UnitX()), J(AxisType::Linear, Side::Head, Vec3::UnitY()),
-                  J(AxisType::Linear, Side::Head, Vec3::UnitZ()),
-                  J(AxisType::Rotary, Side::Table, Vec3::UnitX(), Vec3(0, 20, 10)),
-                  J(AxisType::Rotary, Side::Table, Vec3::UnitZ())};
-    geo.table_chain = {3, 4};
-    geo.head_chain = {0, 1, 2};
-    return geo;
-  }();
+  SerialGeometry<double> g = trunnion_ac_geometry();
   const SerialKinematics k(
       g, {lin("x", -1e4, 1e4), lin("y", -1e4, 1e4), lin("z", -1e4, 1e4), rot("a", -100, 100), rot("c", -360, 360)});
   auto pose_at = [&](double a_deg, double c_deg) {
@@ -232,13 +229,7 @@ TEST(Track, ALimitMetBetweenTwoNearbyPosesIsAJump) {
 // C turned half a turn; whichever of the two misses its limit by 10 deg (the other by 30) is named. The first branch's
 // miss was reported, whichever it was.
 TEST(Track, AnUnreachablePoseNamesTheBranchThatMissesByLeast) {
-  SerialGeometry<double> g;
-  g.joints = {J(AxisType::Linear, Side::Head, Vec3::UnitX()), J(AxisType::Linear, Side::Head, Vec3::UnitY()),
-              J(AxisType::Linear, Side::Head, Vec3::UnitZ()),
-              J(AxisType::Rotary, Side::Table, Vec3::UnitX(), Vec3(0, 20, 10)),
-              J(AxisType::Rotary, Side::Table, Vec3::UnitZ())};
-  g.table_chain = {3, 4};
-  g.head_chain = {0, 1, 2};
+  const SerialGeometry<double> g = trunnion_ac_geometry();
   for (const auto& [a_min, a_max, named] :
        {std::tuple{-30.0, 50.0, "a = 60.0000 deg"}, std::tuple{-50.0, 30.0, "a = -60.0000 deg"}}) {
     const SerialKinematics k(g, {lin("x", -1e4, 1e4), lin("y", -1e4, 1e4), lin("z", -1e4, 1e4), rot("a", a_min, a_max),
