@@ -578,6 +578,7 @@ TEST(ClErrors, FileLineColumn) {
   expect_error_at("GOTO/1,2,3,0,NaN,1\n", "1:14", "not a finite number");
   expect_error_at("GOTO/1,2,-inf\n", "1:10", "not a finite number");
   expect_error_at("GOTO/1,2,1e999\n", "1:10", "out of range");
+  expect_error_at("GOTO/1,1e308,3\n", "1:8", "beyond any machine");
   expect_error_at("GOTO/1,2,3,4\n", "1:12", "expected 3 (x,y,z) or 6 (x,y,z,i,j,k), got 4");
   expect_error_at("GOTO/1,2,3,0,0,1,7\n", "1:18", "got 7");
   expect_error_at("GOTO/1,2\n", "1:9", "got 2");

@@ -1413,3 +1413,24 @@ TEST(Cli, PlanOptionsNoMachineCanUseAreRefusedFirst) {
     EXPECT_FALSE(fs::exists(out)) << opts;
   }
 }
+
+// A part mesh far from the CL path (another origin or unit) constrains nothing: the plan says so instead of calling
+// itself collision-free against it.
+TEST(Cli, APartMeshFarFromThePathIsAWarning) {
+  TempDir d;
+  const std::string far = d.file("far.stl",
+                                 "solid t\n"
+                                 "facet normal 0 0 -1\nouter loop\nvertex 5000 5000 5000\nvertex 5000 5010 5000\n"
+                                 "vertex 5010 5000 5000\nendloop\nendfacet\n"
+                                 "facet normal 0 -1 0\nouter loop\nvertex 5000 5000 5000\nvertex 5010 5000 5000\n"
+                                 "vertex 5000 5000 5010\nendloop\nendfacet\n"
+                                 "facet normal -1 0 0\nouter loop\nvertex 5000 5000 5000\nvertex 5000 5000 5010\n"
+                                 "vertex 5000 5010 5000\nendloop\nendfacet\n"
+                                 "facet normal 1 1 1\nouter loop\nvertex 5010 5000 5000\nvertex 5000 5010 5000\n"
+                                 "vertex 5000 5000 5010\nendloop\nendfacet\nendsolid t\n");
+  const auto r = run_command(kCli + " plan " + cscam::test::source_path("examples/groove/groove.cls") +
+                             " --machine trunnion-ac --cone 5 --part " + far + " -o " + d.file("g.ngc"));
+  EXPECT_EQ(r.status, 0) << r.output;
+  EXPECT_NE(r.output.find("far.stl: the mesh lies"), std::string::npos) << r.output;
+  EXPECT_NE(r.output.find("from the CL path"), std::string::npos) << r.output;
+}

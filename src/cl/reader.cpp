@@ -54,6 +54,8 @@ constexpr double kArcEndOffCircleErrorMm = 1.0;
 /// No machine travels a circle larger than this; a larger radius is a corrupt record (and, expanded within the
 /// tolerance, it would blow a few bytes up into a million points: fuzzing found it).
 constexpr double kMaxArcRadiusMm = 1e5;
+/// No machine travels a kilometre: a coordinate past it is a broken file (1e308 reached the planner's messages).
+constexpr double kMaxCoordinateMm = 1e6;
 
 bool is_space(char c) { return c == ' ' || c == '\t' || c == '\r' || c == '\f' || c == '\v'; }
 char to_upper(char c) { return (c >= 'a' && c <= 'z') ? static_cast<char>(c - 'a' + 'A') : c; }
@@ -711,6 +713,10 @@ void AptReader::motion(const Statement& st, const Head& h, MotionKind forced) {
   }
   commit_tool();
   const Vector3d tip(v[0] * scale_, v[1] * scale_, v[2] * scale_);
+  for (int k = 0; k < 3; ++k)
+    if (std::abs(tip[k]) > kMaxCoordinateMm)
+      fail(st, offs[k],
+           fmt::format("coordinate {} mm is beyond any machine (at most {:g} mm)", tip[k], kMaxCoordinateMm));
   const bool rapid = forced == MotionKind::Rapid || next_rapid_;
   if (circle_) {
     if (prog_.moves.empty())
@@ -1180,6 +1186,11 @@ void read_csv(string_view text, Program& prog, const ReadOptions& opt) {
       if (v[6] < 0) csv_fail(prog, line_no, offs[6], fmt::format("negative feed (expected a feed >= 0, got {})", v[6]));
       feed = v[6] * scale;
     }
+    for (int k = 0; k < 3; ++k)
+      if (std::abs(v[k] * scale) > kMaxCoordinateMm)
+        csv_fail(
+            prog, line_no, offs[k],
+            fmt::format("coordinate {} mm is beyond any machine (at most {:g} mm)", v[k] * scale, kMaxCoordinateMm));
     Move m;
     m.tip_in_part_mm = Vector3d(v[0], v[1], v[2]) * scale;
     m.axis_in_part = a.normalized();

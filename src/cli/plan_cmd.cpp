@@ -151,11 +151,31 @@ std::unique_ptr<Setup> setup(const PlanArgs& a, std::vector<std::string>* warnin
   return s;
 }
 
+/// A part or fixture mesh far from the CL path (another origin, or units): it would constrain nothing, and the plan
+/// would be "collision-free" against it.
+void warn_if_off_the_path(Setup& s, const std::string& path, const geom::Mesh& mesh) {
+  Eigen::AlignedBox3d cl_box;
+  for (const auto& mv : s.prog.moves) cl_box.extend(mv.tip_in_part_mm);
+  const Eigen::AlignedBox3d box = mesh.bounding_box();
+  if (cl_box.isEmpty() || box.isEmpty()) return;
+  const Eigen::Vector3d gap =
+      (box.min() - cl_box.max()).cwiseMax(cl_box.min() - box.max()).cwiseMax(Eigen::Vector3d::Zero());
+  const double reach_mm = s.tool_length + 100.0;  // the tool and its holder reach no further from the tip
+  if (gap.norm() > reach_mm)
+    s.warn(fmt::format(
+        "{}: the mesh lies {:.0f} mm from the CL path (its box x {:.1f}..{:.1f}, y {:.1f}..{:.1f}, z "
+        "{:.1f}..{:.1f} mm): nothing of the tool reaches it; another origin or unit (--mesh-scale)?",
+        path, gap.norm(), box.min().x(), box.max().x(), box.min().y(), box.max().y(), box.min().z(), box.max().z()));
+}
+
 void add_scene(Setup& s, const PlanArgs& a, const std::vector<cl::Tool>& tools, bool require_tool) {
-  for (const auto& p : a.parts)
-    s.scene.add(fs::path(p).filename().string(), geom::ObstacleRole::Part, checked_mesh(s, p, a.mesh_scale));
-  for (const auto& p : a.fixtures)
-    s.scene.add(fs::path(p).filename().string(), geom::ObstacleRole::Fixture, checked_mesh(s, p, a.mesh_scale));
+  for (const auto& [paths, role] :
+       {std::pair{&a.parts, geom::ObstacleRole::Part}, std::pair{&a.fixtures, geom::ObstacleRole::Fixture}})
+    for (const auto& p : *paths) {
+      geom::Mesh mesh = checked_mesh(s, p, a.mesh_scale);
+      warn_if_off_the_path(s, p, mesh);
+      s.scene.add(fs::path(p).filename().string(), role, std::move(mesh));
+    }
   // Machine meshes from the machine file: the table moves with the part (fixed in the part frame), the head
   // moves with the spindle. Both are given in the machine frame at home.
   if (!s.m.geometry.table_mesh.empty()) {
@@ -417,10 +437,12 @@ std::vector<std::string> segment_reports(const Setup& s, const plan::Plan& p, co
       if (!rot && tp > 1.25 * tc && tp - tc > 10.0)
         notes.push_back(
             fmt::format("segment {} (CL lines {}-{}): the {} makes {} travel {:.0f} mm instead of {:.0f} "
-                        "mm (x{:.2f}) at the CL points",
+                        "mm{} at the CL points",
                         g + 1, seg.first_line, seg.last_line,
                         seg.tier == plan::Tier::Fixed2 ? "fixed (3+2) orientation" : "chosen orientation",
-                        s.m.post.letters[J], tp, tc, tp / tc));
+                        s.m.post.letters[J], tp, tc,
+                        // (a ratio to a travel of almost nothing says nothing)
+                        tc >= 1.0 ? fmt::format(" (x{:.2f})", tp / tc) : std::string()));
     }
     out.push_back(
         {{"cl_lines", {seg.first_line, seg.last_line}},
