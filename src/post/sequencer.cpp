@@ -386,6 +386,15 @@ bool Sequencer::add_words(const kin::Axes& q, std::initializer_list<int> which, 
 }
 
 /// Writes the block started with start(); `feed` is per minute (G94) or inverse time (G93).
+void Sequencer::emit_per_minute(double f) {
+  std::optional<double> word;
+  if (std::abs(f - last_feed_) > 1e-9) {  // F is modal: written where it changes
+    word = f;
+    last_feed_ = f;
+  }
+  emit(word);
+}
+
 void Sequencer::emit(std::optional<double> feed) {
   for (const auto& w : blk_.words)
     if (m_.axes[static_cast<size_t>(w.slot)].rotary() && clamped_[static_cast<size_t>(w.slot)]) {

@@ -129,6 +129,8 @@ class Sequencer {
 
   /// Writes the block started with start(), `feed` per minute or inverse time; tracks feed blocks' blend modes.
   void emit(std::optional<double> feed = std::nullopt);
+  /// emit() of a per-minute feed block (program units), its F word written only where the feed changes.
+  void emit_per_minute(double f);
 
   /// Whether a rotary word of q differs from (or was never) written.
   bool rotaries_differ(const kin::Axes& q) const {

@@ -155,13 +155,8 @@ std::size_t Sequencer::arc_end(const std::vector<kin::Axes>& axes, std::size_t i
   if (!add_words(axes[end], {0, 1, 2, 3, 4})) add_words(axes[end], {xyz_[static_cast<size_t>(u)]}, true);
   blk_.arc = words;
   set_mode94();
-  std::optional<double> fw;
   const double f = f_mm * feed_to_file_;
-  if (std::abs(f - last_feed_) > 1e-9) {
-    fw = f;
-    last_feed_ = f;
-  }
-  emit(fw);
+  emit_per_minute(f);
   ++sum_.arc_blocks;
   cur_ = axes[end];
   at_cut_ = true;
@@ -224,12 +219,7 @@ void Sequencer::feed_linear(const cl::Move& m0, const kin::Axes& q0, const cl::M
     const double programmed = len_mm / feed_mm_min;
     const double minutes = block_minutes(q0, q1, programmed);
     const double f = (minutes > programmed * (1.0 + 1e-9) ? len_mm / minutes : feed_mm_min) * feed_to_file_;
-    std::optional<double> fw;
-    if (std::abs(f - last_feed_) > 1e-9) {
-      fw = f;
-      last_feed_ = f;
-    }
-    emit(fw);
+    emit_per_minute(f);
     cur_ = q1;
     return;
   }

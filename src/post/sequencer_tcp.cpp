@@ -255,12 +255,7 @@ void Sequencer::emit_tcp_feed(const Vec3& tip, const Vec3& axis, const kin::Axes
     const double minutes =
         std::max(block_minutes(cart_q_, q, programmed), block_minutes(ctrl_before, ctrl_q_, programmed));
     const double f = minutes > programmed * (1.0 + 1e-9) ? word_length(cur_, v) / minutes : feed_mm_min * feed_to_file_;
-    std::optional<double> fw;
-    if (std::abs(f - last_feed_) > 1e-9) {
-      fw = f;
-      last_feed_ = f;
-    }
-    emit(fw);
+    emit_per_minute(f);
   }
   cur_ = v;
   cart_q_ = q;
