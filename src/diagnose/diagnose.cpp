@@ -47,6 +47,11 @@ using sim::Context;
 using sim::Effect;
 using sim::Scope;
 constexpr double kNaN = std::numeric_limits<double>::quiet_NaN();
+/// A noise estimate is lowered after a finding only when it falls by more than this factor (not for the spread of
+/// the estimate itself).
+constexpr double kNoiseRefit = 0.9;
+/// A channel's constant offset is reported when it exceeds this many noise sigmas.
+constexpr double kOffsetNoted = 5.0;
 /// No measurement system resolves below this (mm or deg): the floor of the noise estimate.
 constexpr double kNoiseFloor = 2e-5;
 
@@ -232,6 +237,17 @@ double weighted_ms(const Fit& f, const std::vector<const Effect*>& fx, bool held
     }
   }
   return cnt ? s / static_cast<double>(cnt) : 0.0;
+}
+
+/// The noise level of a component's residual under a model, from the spectrum of the analysis samples (missing
+/// cells as zeros). Compared only with itself under another model: the analysis samples may be strided, so their
+/// upper band is not the full recording's.
+double analysis_noise(const Fit& f, const std::vector<const Effect*>& fx, int ci) {
+  const Comp& c = (*f.comps)[static_cast<size_t>(ci)];
+  std::vector<double> r(f.ctx->size(), 0.0);
+  for (size_t k = 0; k < r.size(); ++k)
+    if (!std::isnan(c.res[k])) r[k] = model_residual(f, fx, ci, k);
+  return noise_from_spectrum(periodogram(r), r.size());
 }
 
 /// Held-out RMS of a channel group (vector RMS for tip/ptip/dir) under a model.
@@ -951,6 +967,25 @@ Report diagnose(sim::Recording& rec, const machine::Machine& m, const std::vecto
     t.push_back(std::move(extra));
     return t;
   };
+  // A large effect with sharp steps (lost motion) leaks into the upper band and raises the noise estimate, which
+  // would then hide a small effect beside it. Once effects are modelled, the estimate is lowered by the factor by
+  // which the analysis samples' own noise level fell (never raised: the first estimate used every sample).
+  std::vector<double> noise0_analysis(comps.size(), 0.0), noise0(comps.size(), 0.0);
+  for (int ci : F.fitc) {
+    noise0_analysis[static_cast<size_t>(ci)] = analysis_noise(F, {}, ci);
+    noise0[static_cast<size_t>(ci)] = comps[static_cast<size_t>(ci)].sigma;
+  }
+  auto renoise = [&](const std::vector<const Effect*>& fx) {
+    bool changed = false;
+    for (int ci : F.fitc) {
+      auto& c = comps[static_cast<size_t>(ci)];
+      const double a0 = noise0_analysis[static_cast<size_t>(ci)];
+      if (!(a0 > kNoiseFloor)) continue;
+      const double lowered = std::max(kNoiseFloor, noise0[static_cast<size_t>(ci)] * analysis_noise(F, fx, ci) / a0);
+      if (lowered < kNoiseRefit * c.sigma) c.sigma = lowered, changed = true;
+    }
+    return changed;
+  };
   double held_ms = weighted_ms(F, {}, true);
   const double held_ms_start = held_ms;
   std::vector<char> event_only;                        // per accepted effect: judged on the training blocks (try_event)
@@ -1015,6 +1050,7 @@ Report diagnose(sim::Recording& rec, const machine::Machine& m, const std::vecto
       held_ms = new_held;
       model = std::move(trial);
       event_only.push_back(1);
+      if (renoise(view(model))) held_ms = weighted_ms(F, view(model), true);
       return true;
     };
     if (order.empty()) {
@@ -1066,6 +1102,14 @@ Report diagnose(sim::Recording& rec, const machine::Machine& m, const std::vecto
     event_only.push_back(0);
     alternatives.resize(model.size());
     alternatives.back() = std::move(same);
+    if (renoise(view(model))) held_ms = weighted_ms(F, view(model), true);
+  }
+  // The groups' noise as the findings left it (lowered where modelled steps had raised it).
+  for (auto& [g, v] : R.noise) {
+    double s = 0;
+    for (const auto& c : comps)
+      if (c.group == g) s += c.sigma * c.sigma;
+    v = std::sqrt(s);
   }
   R.seconds.emplace_back("explain", secs(tstage));
   tstage = Clock::now();
@@ -1267,6 +1311,14 @@ Report diagnose(sim::Recording& rec, const machine::Machine& m, const std::vecto
   }
   R.seconds.emplace_back("localise_and_report", secs(tstage));
 
+  // Constant offsets well above the noise of their component (5 sigma; a mean of many samples is known far better,
+  // but a sub-noise zero shift is nothing to act on).
+  for (int ci : F.fitc) {
+    const Comp& c = comps[static_cast<size_t>(ci)];
+    const double off = F.off[static_cast<size_t>(ci)];
+    if (std::abs(off) > kOffsetNoted * c.sigma) R.offsets.emplace_back(c.name, off);
+  }
+
   // ---- 6. verdict ------------------------------------------------------------------------------------
   std::string fitted_groups;
   double noise_total = 0;
@@ -1311,12 +1363,13 @@ Report diagnose(sim::Recording& rec, const machine::Machine& m, const std::vecto
                                  "velocities, accelerations, directions of motion, time)"
                                : "see where it is large and what it follows");
   } else if (R.findings.empty()) {
+    // The held-out RMS once the constant offsets are removed (the raw RMS holds them; they are listed apart).
     std::string parts;
-    for (size_t i = 0; i < R.rms_before.size(); ++i)
-      if (R.rms_before[i].first != "acc")
-        parts += fmt::format("{}{} {} RMS vs noise {}", parts.empty() ? "" : ", ", R.rms_before[i].first,
-                             fmt_group(m, R.rms_before[i].first, R.rms_before[i].second),
-                             fmt_group(m, R.rms_before[i].first, R.noise[i].second));
+    for (size_t i = 0; i < R.noise.size(); ++i)
+      if (R.noise[i].first != "acc")
+        parts += fmt::format("{}{} {} RMS held out vs noise {}", parts.empty() ? "" : ", ", R.noise[i].first,
+                             fmt_group(m, R.noise[i].first, group_rms(F, fx_all, R.noise[i].first, true)),
+                             fmt_group(m, R.noise[i].first, R.noise[i].second));
     R.verdict =
         fmt::format("no missing physics found: the residual is consistent with measurement noise alone ({})", parts);
   } else {
@@ -1336,6 +1389,17 @@ Report diagnose(sim::Recording& rec, const machine::Machine& m, const std::vecto
       R.verdict += fmt::format(
           "; what is left is still above the noise ({}): an effect outside the library, or one modelled only in part",
           left);
+  }
+  if (!R.offsets.empty()) {
+    std::string offs;
+    for (const auto& [name, v] : R.offsets) {
+      const auto& c = *std::find_if(comps.begin(), comps.end(), [&](const Comp& x) { return x.name == name; });
+      offs += fmt::format("{}{} {}", offs.empty() ? "" : ", ", name, fmt_group(m, c.group, v));
+    }
+    R.verdict += fmt::format(
+        "; constant offsets (a zero or reference shift, or an effect this motion shows only as a constant, such as "
+        "lost motion on an axis that never reverses): {}",
+        offs);
   }
 
   // ---- plot data ---------------------------------------------------------------------------------------
@@ -1464,6 +1528,8 @@ std::string Report::to_json() const {
                            {"rms_before_noise_units", heldout_rms_before},
                            {"rms_after_noise_units", heldout_rms_after},
                            {"above_noise", residual_above_noise}};
+  j["offsets"] = nlohmann::ordered_json::object();
+  for (const auto& [k, v] : offsets) j["offsets"][k] = v;
   j["verdict"] = verdict;
   j["seconds"] = nlohmann::ordered_json::object();
   for (const auto& [k, v] : seconds) j["seconds"][k] = v;

@@ -65,6 +65,10 @@ struct Report {
   /// The held-out residual left after the findings is clearly above the noise: something the library does not
   /// model (or models only in part) is in the recording.
   bool residual_above_noise = false;
+  /// Constant offsets per channel component clearly above its noise (mm or deg): a zero or reference shift, or an
+  /// effect that the recording shows only as a constant (lost motion on an axis that never reverses). Fitted with
+  /// the findings; not physics the recording can name.
+  std::vector<std::pair<std::string, double>> offsets;
   std::string verdict;
   std::vector<std::string> warnings;
   std::vector<std::pair<std::string, double>> seconds;  ///< time per stage
