@@ -162,6 +162,7 @@ void report_plan(benchmark::State& state, const cscam::plan::Plan& p, std::array
   state.counters["cells_evaluated"] = static_cast<double>(p.counters.ik);
   state.counters["collision_queries"] = static_cast<double>(p.counters.collision);
   state.counters["certified"] = static_cast<double>(p.counters.certified);
+  state.counters["witnessed"] = static_cast<double>(p.counters.witnessed);
   state.counters["sweeps"] = static_cast<double>(p.counters.swept);
   state.counters["swept_queries"] = static_cast<double>(p.counters.swept_queries);
   state.counters["swept_collisions"] = static_cast<double>(p.swept.collisions);

@@ -594,20 +594,18 @@ TEST(MeshFuzzRegressions, MalformedPlyAndOffAreInputErrors) {
   namespace fs = std::filesystem;
   // The third hangs assimp itself: the loader's child process is stopped at the time limit.
   ::setenv("CSCAM_MESH_TIMEOUT_S", "3", 1);
-  const std::pair<const char*, const char*> cases[] = {{"mesh-ply-no-end-header.bin", ".ply"},
-                                                       {"mesh-off-binary-bytes.bin", ".off"},
-                                                       {"mesh-ply-end-header-in-token.bin", ".ply"},
-                                                       {"mesh-off-huge-count.bin", ".off"},
-                                                       {"mesh-ply-huge-count.bin", ".ply"},
-                                                       {"mesh-off-triangulate-abort.bin", ".off"},
-                                                       {"mesh-off-no-keyword-huge-count.bin", ".off"}};
+  const std::pair<const char*, const char*> cases[] = {
+      {"mesh-ply-no-end-header.bin", ".ply"},        {"mesh-off-binary-bytes.bin", ".off"},
+      {"mesh-ply-end-header-in-token.bin", ".ply"},  {"mesh-off-huge-count.bin", ".off"},
+      {"mesh-ply-huge-count.bin", ".ply"},           {"mesh-off-triangulate-abort.bin", ".off"},
+      {"mesh-off-no-keyword-huge-count.bin", ".off"}};
   for (const auto& [file, ext] : cases) {
     SCOPED_TRACE(file);
     std::ifstream in(test::source_path(std::string("tests/data/fuzz-regressions/") + file), std::ios::binary);
     ASSERT_TRUE(in);
     std::string bytes((std::istreambuf_iterator<char>(in)), std::istreambuf_iterator<char>());
-    const fs::path p = fs::temp_directory_path() / (std::string("cscam_fuzz_regression_") +
-                                                    std::to_string(::getpid()) + ext);
+    const fs::path p =
+        fs::temp_directory_path() / (std::string("cscam_fuzz_regression_") + std::to_string(::getpid()) + ext);
     std::ofstream(p, std::ios::binary) << bytes.substr(1);  // the fuzzer's first byte chose the extension
     try {
       (void)geom::load_mesh(p.string(), 1.0, false);
@@ -767,7 +765,10 @@ TEST(GeomMeshCheck, DegenerateTrianglesAreRemovedWithoutOpeningTheSurface) {
   EXPECT_NEAR(m.signed_volume_mm3(), volume, 1e-9);
   for (const auto& t : m.triangles) {
     const Eigen::Vector3d a = m.vertices_mm[static_cast<std::size_t>(t[0])];
-    EXPECT_GT((m.vertices_mm[static_cast<std::size_t>(t[1])] - a).cross(m.vertices_mm[static_cast<std::size_t>(t[2])] - a).norm(), 1e-9);
+    EXPECT_GT((m.vertices_mm[static_cast<std::size_t>(t[1])] - a)
+                  .cross(m.vertices_mm[static_cast<std::size_t>(t[2])] - a)
+                  .norm(),
+              1e-9);
   }
 }
 
@@ -947,4 +948,42 @@ TEST(GeomQuery, AnErodedHitMeansEveryPoseWithinTheErosionHits) {
   }
   EXPECT_GE(eroded_hits, 40);
   EXPECT_GE(checked, 400);
+}
+
+// The planner re-tests a colliding cell's previous contact at the next CL point before it queries (check_witness).
+// Oracle: the full query. At the pose that found it the witness must hold; at a moved pose a witness that holds
+// must be a hit the full query sees too (with and without erosion), and it must be the usual case for small moves.
+TEST(GeomQuery, AWitnessThatHoldsIsAHitTheFullQuerySees) {
+  Scene scene;
+  scene.add("groove", ObstacleRole::Part, load_mesh(test::source_path("examples/groove/groove.stl")));
+  scene.build(false);
+  const ToolShape tool = ToolShape::from_cutter(10, 5, 30);
+  QueryWorkspace ws;
+  auto rng = test::rng(43);
+  std::uniform_real_distribution<double> U(-1.0, 1.0);
+  int hits = 0, held = 0, moved = 0;
+  for (int trial = 0; trial < 400; ++trial) {
+    const kin::Posed p{Eigen::Vector3d(40 * U(rng), 6 * U(rng), 2 + 4 * U(rng)),
+                       (Eigen::Vector3d::UnitZ() + 0.7 * Eigen::Vector3d(U(rng), U(rng), 0)).normalized()};
+    CheckOptions o;
+    o.erosion_mm = trial % 2 ? 0.0 : 0.3;
+    const CollisionResult r = check(scene, tool, p, o, ws);
+    if (!r.collides) continue;
+    ++hits;
+    const Witness w{r.segment, r.obstacle, r.triangle};
+    ASSERT_TRUE(w.valid());
+    const CollisionResult again = check_witness(scene, tool, p, o, ws, w);
+    EXPECT_TRUE(again.collides) << "trial " << trial;
+    EXPECT_EQ(again.part, r.part);
+    for (int k = 0; k < 5; ++k) {
+      const kin::Posed q{p.tip_mm + 0.05 * Eigen::Vector3d(U(rng), U(rng), U(rng)), p.axis};
+      if (!check_witness(scene, tool, q, o, ws, w).collides) continue;
+      ++held;
+      EXPECT_TRUE(check(scene, tool, q, o, ws).collides) << "trial " << trial << ": witness holds, query is free";
+    }
+    moved += 5;
+  }
+  EXPECT_GE(hits, 40);
+  EXPECT_GT(held, moved / 2);  // the common case after a small move: the same contact
+  EXPECT_FALSE(check_witness(scene, tool, {Eigen::Vector3d(0, 0, 50), Eigen::Vector3d::UnitZ()}, {}, ws, {}).collides);
 }

@@ -20,6 +20,7 @@ Counters& Counters::operator+=(const Counters& o) {
   collision += o.collision;
   cache_hits += o.cache_hits;
   certified += o.certified;
+  witnessed += o.witnessed;
   swept += o.swept;
   swept_queries += o.swept_queries;
   return *this;
@@ -488,21 +489,39 @@ void Space::evaluate(const kin::Posed& cl, Cell& cell, geom::QueryWorkspace& ws,
         return;
       }
       hit->valid = false;
+      // It collided last time: probe eroded. A hit decides this cell and certifies the next points. The previous
+      // contact first (one triangle test), then a query.
+      const geom::Witness wit = hit->witness;
       if (hit->collided_before && hit->probe_mm >= kMinHitProbeMm) {
-        // It collided last time: probe eroded. A hit decides this cell and certifies the next points.
         geom::CheckOptions o = co;
         o.erosion_mm = hit->probe_mm;
-        ++c.collision;
-        const geom::CollisionResult r = geom::check(*scene_, *tool_, pose, o, ws);
+        geom::CollisionResult r = geom::check_witness(*scene_, *tool_, pose, o, ws, wit);
+        if (r.collides) {
+          ++c.witnessed;
+        } else {
+          ++c.collision;
+          r = geom::check(*scene_, *tool_, pose, o, ws);
+        }
         if (r.collides) {
           cell.status = Status::Collision;
-          cell.detail = fmt::format(
-              "{} hits {}", geom::to_string(r.part),
-              r.obstacle >= 0 ? scene_->obstacle_name(static_cast<std::size_t>(r.obstacle)) : std::string("?"));
-          *hit = {true, pose.tip_mm, pose.axis, cell.r1, cell.r2, hit->probe_mm, hit->probe_mm, true, cell.detail};
+          cell.detail = collision_detail(r);
+          *hit = {true,          pose.tip_mm,   pose.axis, cell.r1,     cell.r2,
+                  hit->probe_mm, hit->probe_mm, true,      cell.detail, {r.segment, r.obstacle, r.triangle}};
           return;
         }
         hit->probe_mm *= 0.5;  // less erosion next time (a deep hit is rare at the edge of the free region)
+      }
+      // Shallower than the erosion: the previous contact may still prove this point's hit.
+      if (wit.valid()) {
+        const geom::CollisionResult r = geom::check_witness(*scene_, *tool_, pose, co, ws, wit);
+        if (r.collides) {
+          ++c.witnessed;
+          cell.status = Status::Collision;
+          cell.detail = collision_detail(r);
+          hit->collided_before = true;
+          return;
+        }
+        hit->witness = {};
       }
     }
     if (cert && certify) {
@@ -528,12 +547,13 @@ void Space::evaluate(const kin::Posed& cl, Cell& cell, geom::QueryWorkspace& ws,
     }
     ++c.collision;
     const geom::CollisionResult r = geom::check(*scene_, *tool_, pose, co, ws);
-    if (hit) hit->collided_before = r.collides;
+    if (hit) {
+      hit->collided_before = r.collides;
+      if (r.collides) hit->witness = {r.segment, r.obstacle, r.triangle};
+    }
     if (r.collides) {
       cell.status = Status::Collision;
-      cell.detail =
-          fmt::format("{} hits {}", geom::to_string(r.part),
-                      r.obstacle >= 0 ? scene_->obstacle_name(static_cast<std::size_t>(r.obstacle)) : std::string("?"));
+      cell.detail = collision_detail(r);
       return;
     }
     if (hit) hit->probe_mm = 1.0;
@@ -560,6 +580,10 @@ std::string Space::collision_at(const kin::Posed& pose, geom::QueryWorkspace& ws
   ++c.collision;
   const geom::CollisionResult r = geom::check(*scene_, *tool_, pose, opt_.collision, ws);
   if (!r.collides) return {};
+  return collision_detail(r);
+}
+
+std::string Space::collision_detail(const geom::CollisionResult& r) const {
   return fmt::format("{} hits {}", geom::to_string(r.part),
                      r.obstacle >= 0 ? scene_->obstacle_name(static_cast<std::size_t>(r.obstacle)) : std::string("?"));
 }
@@ -588,10 +612,7 @@ std::string Space::collision_at_axes(const kin::Axes& q, geom::QueryWorkspace& w
   } else {
     ++c.collision;
     const geom::CollisionResult r = geom::check(*scene_, *tool_, kin_->forward(q), co, ws);
-    if (r.collides)
-      return fmt::format(
-          "{} hits {}", geom::to_string(r.part),
-          r.obstacle >= 0 ? scene_->obstacle_name(static_cast<std::size_t>(r.obstacle)) : std::string("?"));
+    if (r.collides) return collision_detail(r);
   }
   if (!head_) return {};
   Eigen::Isometry3d T;

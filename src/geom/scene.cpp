@@ -5,6 +5,7 @@
 #include <fcl/math/bv/OBB.h>
 #include <fcl/math/bv/RSS.h>
 #include <fcl/narrowphase/collision.h>
+#include <fcl/narrowphase/detail/gjk_solver_libccd.h>
 #include <fcl/narrowphase/distance.h>
 #include <fmt/format.h>
 
@@ -286,6 +287,7 @@ QueryStats& QueryStats::operator+=(const QueryStats& o) {
   fcl_collide_calls += o.fcl_collide_calls;
   fcl_distance_calls += o.fcl_distance_calls;
   aabb_rejects += o.aabb_rejects;
+  witness_tests += o.witness_tests;
   return *this;
 }
 
@@ -459,6 +461,8 @@ CollisionResult check(const Scene& scene, const ToolShape& tool, const kin::Pose
         out.collides = true;
         out.part = w.segs[i].seg.part;
         out.obstacle = static_cast<int>(j);
+        out.segment = static_cast<int>(i);
+        if (w.cres.numContacts() > 0) out.triangle = w.cres.getContact(0).b1;  // o1 is the mesh
         break;
       }
     }
@@ -476,6 +480,43 @@ CollisionResult check(const Scene& scene, const ToolShape& tool, const kin::Pose
       out.nearest_part = n.part;
       out.nearest_obstacle = n.obstacle;
     }
+  }
+  return out;
+}
+
+CollisionResult check_witness(const Scene& scene, const ToolShape& tool, const kin::Posed& pose, const CheckOptions& o,
+                              QueryWorkspace& ws, const Witness& wit) {
+  const Scene::Impl& sc = scene.impl();
+  CSCAM_CHECK(sc.built, "geom::check_witness() before Scene::build()");
+  CollisionResult out;
+  if (!wit.valid() || static_cast<std::size_t>(wit.obstacle) >= sc.obstacles.size()) return out;
+  const Obstacle& ob = sc.obstacles[static_cast<std::size_t>(wit.obstacle)];
+  Eigen::Isometry3d T_part_obstacle;
+  if (!selected(ob, o.roles) || !obstacle_pose(ob, o, T_part_obstacle)) return out;
+  auto& w = ws.impl();
+  w.prepare(tool, o);
+  const auto si = static_cast<std::size_t>(wit.segment);
+  const auto& bvh = *ob.collide_bvh;
+  if (si >= w.segs.size() || wit.triangle >= bvh.num_tris) return out;
+  const double n = pose.axis.norm();
+  CSCAM_CHECK(n > 0.0 && std::isfinite(n) && pose.tip_mm.allFinite(), "tool pose must be finite with a non-zero axis");
+  const Eigen::Vector3d a = pose.axis / n;
+  const ToolSegment& s = w.segs[si].seg;
+  // The segment placed as place() places it; the triangle as the leaf test of check() takes it.
+  fcl::Transform3d T_part_seg = fcl::Transform3d::Identity();
+  T_part_seg.linear() = Eigen::Quaterniond::FromTwoVectors(Eigen::Vector3d::UnitZ(), a).toRotationMatrix();
+  T_part_seg.translation() = pose.tip_mm + (0.5 * (s.z0_mm + s.z1_mm)) * a;
+  const fcl::Triangle& t = bvh.tri_indices[wit.triangle];
+  ++ws.stats.witness_tests;
+  const fcl::detail::GJKSolver_libccd<double> solver;  // (as fcl::collide makes one: default settings)
+  if (solver.shapeTriangleIntersect(*w.segs[si].shape, T_part_seg, bvh.vertices[t[0]], bvh.vertices[t[1]],
+                                    bvh.vertices[t[2]], fcl::Transform3d(T_part_obstacle.matrix()), nullptr, nullptr,
+                                    nullptr)) {
+    out.collides = true;
+    out.part = s.part;
+    out.obstacle = wit.obstacle;
+    out.segment = wit.segment;
+    out.triangle = wit.triangle;
   }
   return out;
 }

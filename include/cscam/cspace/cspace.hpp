@@ -53,6 +53,7 @@ struct Counters {
   std::uint64_t collision = 0;  ///< collision queries
   std::uint64_t cache_hits = 0;
   std::uint64_t certified = 0;      ///< collision queries skipped by a clearance certificate
+  std::uint64_t witnessed = 0;      ///< collision queries replaced by the previous contact's one-triangle test
   std::uint64_t swept = 0;          ///< swept (between-point) moves checked
   std::uint64_t swept_queries = 0;  ///< collision queries those swept checks made (not in `collision`)
   Counters& operator+=(const Counters& o);
@@ -85,6 +86,7 @@ struct HitCertificate {
   double probe_mm = 1.0;         ///< the erosion the next probe asks for (halved after a probe that found no hit)
   bool collided_before = false;  ///< the cell's last evaluation collided: probe eroded at the next one
   std::string detail;            ///< what the eroded tool hit
+  geom::Witness witness;         ///< the contact of the cell's last collision (tested first at the next point)
 };
 
 /// How a motion between two poses is checked. Cutting: the cutting end (ball or corner radius plus relief) is in
@@ -216,6 +218,8 @@ class Space {
   const geom::CheckOptions& with_links(const kin::Axes& q, LinkPoses& links, geom::CheckOptions& scratch,
                                        const Eigen::Isometry3d** head = nullptr) const;
   /// The head meshes' pose for q: from the links `with_links` placed, or from the kinematics. False if unavailable.
+  /// "<tool part> hits <obstacle>" for a tool collision.
+  [[nodiscard]] std::string collision_detail(const geom::CollisionResult& r) const;
   bool head_pose(const kin::Axes& q, const Eigen::Isometry3d* placed, Eigen::Isometry3d& T) const;
   /// The tool axis for rotary values, through the grid tables for grid values (the same numbers everywhere).
   bool axis_at(double r1, double r2, const Eigen::Vector3d& tip_mm, Eigen::Vector3d& axis) const;

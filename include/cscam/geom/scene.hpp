@@ -172,6 +172,7 @@ struct QueryStats {
   std::uint64_t fcl_collide_calls = 0;   ///< narrow FCL collide() calls (tool segment x obstacle)
   std::uint64_t fcl_distance_calls = 0;  ///< narrow FCL distance() calls
   std::uint64_t aabb_rejects = 0;        ///< segment x obstacle pairs settled by bounding boxes alone
+  std::uint64_t witness_tests = 0;       ///< witness_holds() calls (one triangle each)
   QueryStats& operator+=(const QueryStats& o);
 };
 
@@ -237,7 +238,26 @@ struct CollisionResult {
   double min_distance_mm = std::numeric_limits<double>::quiet_NaN();
   ToolPart nearest_part = ToolPart::CutterBody;  ///< part realising min_distance_mm (when computed)
   int nearest_obstacle = -1;                     ///< obstacle realising min_distance_mm (when computed)
+  /// The contact that proved the hit (valid when collides): the checked tool segment (index into
+  /// checked_segments()) and the obstacle's triangle. witness_holds() tests it again at another pose.
+  int segment = -1;
+  int triangle = -1;
 };
+
+/// A contact found by check(): tool segment, obstacle and triangle.
+struct Witness {
+  int segment = -1, obstacle = -1, triangle = -1;
+  [[nodiscard]] bool valid() const { return segment >= 0 && obstacle >= 0 && triangle >= 0; }
+};
+
+/// Whether the witness's tool segment at `tool_pose_in_part` still intersects the witness's triangle, with
+/// FCL's narrow phase (the leaf test of check()). A hit proves that check() with the same options collides and
+/// is returned as check() would describe it; no hit proves nothing (another triangle may be hit). One triangle
+/// test instead of a tree traversal: a cell that collided at one CL point usually still collides, by the same
+/// contact, at the next.
+[[nodiscard]] CollisionResult check_witness(const Scene& scene, const ToolShape& tool,
+                                            const kin::Posed& tool_pose_in_part, const CheckOptions& options,
+                                            QueryWorkspace& ws, const Witness& witness);
 
 /// The tool segments check() actually tests for this tool and these options (after the cutting-end
 /// exclusion and the inflation), from the tip upward.
