@@ -607,7 +607,7 @@ std::string Space::collision_at_axes(const kin::Axes& q, geom::QueryWorkspace& w
   const Eigen::Isometry3d* head_placed = nullptr;
   const geom::CheckOptions& co = with_links(q, links, linked, &head_placed);
   if (mode == SweepMode::Rapid) {  // the whole tool, its cutting end too: a rapid must not touch anything
-    if (std::string hit = collision_inflated(q, kin_->forward(q), 0.0, SweepMode::Rapid, ws, c); !hit.empty())
+    if (std::string hit = collision_inflated_placed(co, kin_->forward(q), 0.0, SweepMode::Rapid, ws, c); !hit.empty())
       return hit;
   } else {
     ++c.collision;

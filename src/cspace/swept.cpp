@@ -70,18 +70,24 @@ double Space::cutting_margin_cap_mm() const {
 
 std::string Space::collision_inflated(const kin::Axes& q, const kin::Posed& pose, double m, SweepMode mode,
                                       geom::QueryWorkspace& ws, Counters& c, double m_cutter) const {
-  if (m_cutter < 0) m_cutter = m;
   if (!checks_collision()) return {};
+  // Machine bodies carried by the axes are placed for q. (They may move relative to the part within a move, so for
+  // them the inflation certifies only the sampled poses, as for head meshes.)
+  LinkPoses links;
+  geom::CheckOptions scratch;
+  return collision_inflated_placed(with_links(q, links, scratch), pose, m, mode, ws, c, m_cutter);
+}
+
+std::string Space::collision_inflated_placed(const geom::CheckOptions& placed, const kin::Posed& pose, double m,
+                                             SweepMode mode, geom::QueryWorkspace& ws, Counters& c,
+                                             double m_cutter) const {
+  if (m_cutter < 0) m_cutter = m;
   auto name = [&](const geom::CollisionResult& r, const char* part) {
     return fmt::format(
         "{} hits {}", part ? part : geom::to_string(r.part),
         r.obstacle >= 0 ? scene_->obstacle_name(static_cast<std::size_t>(r.obstacle)) : std::string("?"));
   };
-  // Machine bodies carried by the axes are placed for q. (They may move relative to the part within a move, so for
-  // them the inflation certifies only the sampled poses, as for head meshes.)
-  LinkPoses links;
-  geom::CheckOptions scratch;
-  geom::CheckOptions o = with_links(q, links, scratch);
+  geom::CheckOptions o = placed;
   o.clearance_mm += m;
   o.cutter_clearance_mm += m_cutter;
   if (mode == SweepMode::Cutting) {

@@ -218,6 +218,10 @@ class Space {
   const geom::CheckOptions& with_links(const kin::Axes& q, LinkPoses& links, geom::CheckOptions& scratch,
                                        const Eigen::Isometry3d** head = nullptr) const;
   /// The head meshes' pose for q: from the links `with_links` placed, or from the kinematics. False if unavailable.
+  /// collision_inflated() with the machine bodies already placed (with_links() for the pose's axes).
+  [[nodiscard]] std::string collision_inflated_placed(const geom::CheckOptions& placed, const kin::Posed& pose,
+                                                      double margin_mm, SweepMode mode, geom::QueryWorkspace& ws,
+                                                      Counters& c, double cutter_margin_mm = -1.0) const;
   /// "<tool part> hits <obstacle>" for a tool collision.
   [[nodiscard]] std::string collision_detail(const geom::CollisionResult& r) const;
   bool head_pose(const kin::Axes& q, const Eigen::Isometry3d* placed, Eigen::Isometry3d& T) const;
