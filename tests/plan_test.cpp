@@ -1605,3 +1605,28 @@ TEST(PlannerIssue11, SweptVerdictsAgreeWithDenseSamplingOnTheGroove) {
   std::cout << "swept vs dense sampling: " << free_moves << " free, " << sampled_hits << " hit, " << ends_free
             << " with free ends\n";
 }
+
+// A point buried in the part: every orientation collides. The message offered "none found within 90 deg" after the
+// wider cones had listed only their 20,000 cells nearest the CL axis (14 deg at a 1 deg grid near the vertical); it
+// now searches on beyond each list and claims only the angle it covered.
+TEST(Planner, TheNearestFeasibleCellClaimIsOnlyAsWideAsTheSearch) {
+  const auto m = machine::load(test::source_path("machines/trunnion-ac.yaml"));
+  geom::Scene scene;
+  scene.add("groove", geom::ObstacleRole::Part, geom::load_mesh(test::source_path("examples/groove/groove.stl")));
+  scene.build(false);
+  const auto tool = geom::ToolShape::from_cutter(10, 5, 30);
+  const cl::Program prog = cl::read_text("UNITS/MM\nMULTAX\nGOTO/0,0,-15,0,0,1\nGOTO/1,0,-15,0,0,1\n", "b.cls");
+  plan::Options o;
+  o.cspace.check_collision = true;
+  try {
+    (void)plan::Planner(m, m.kinematics(), &scene, &tool, o).run(prog);
+    FAIL() << "expected an InputError";
+  } catch (const InputError& e) {
+    const std::string msg = e.what();
+    std::smatch sm;
+    ASSERT_TRUE(std::regex_search(msg, sm, std::regex(R"(none found within ([0-9.]+) deg of the CL axis)"))) << msg;
+    const double covered = std::stod(sm[1]);
+    EXPECT_GT(covered, 20.0) << msg;  // beyond the first list
+    if (covered < 90.0) EXPECT_NE(msg.find("reach no farther"), std::string::npos) << msg;
+  }
+}

@@ -559,17 +559,21 @@ bool check_points(const SegmentView& v, SegmentCells& d, std::size_t& points_bey
     else
       why = fmt::format("stroke ({} cells) and collision ({} cells), e.g. {}", n_stroke, n_coll, example);
     // The nearest feasible cell beyond the cone, for the user to decide.
-    std::string nearest = "none found within 90 deg";
+    // (Each wider cone lists at most its kWideCells cells nearest the CL axis beyond what was searched: past that,
+    // the claim covers only the angle they reach.)
+    constexpr std::size_t kWideCells = 20000;
+    double covered_deg = space.options().cone_rad > 0 ? rad2deg(space.options().cone_rad) : 0.0;
+    std::string nearest;
     for (double cone_deg : {5.0, 15.0, 45.0, 90.0}) {
       cspace::Options wider = space.options();
       if (wider.cone_rad >= deg2rad(cone_deg)) continue;
       wider.cone_rad = deg2rad(cone_deg);
-      wider.min_tilt_rad = 0;
+      wider.min_tilt_rad = deg2rad(covered_deg);  // (what is nearer failed already)
       wider.resolution_rad = std::max(wider.resolution_rad, deg2rad(1.0));
       const cspace::Space wide(v.kinematics, nullptr, nullptr, wider);
       std::vector<Cell> cells;
       cspace::Counters dummy;
-      wide.enumerate(layers[k].cl, cells, 20000, dummy);
+      wide.enumerate(layers[k].cl, cells, kWideCells, dummy);
       geom::QueryWorkspace ws;
       bool found = false;
       for (Cell& c : cells) {
@@ -584,7 +588,12 @@ bool check_points(const SegmentView& v, SegmentCells& d, std::size_t& points_bey
         }
       }
       if (found) break;
+      // Sorted nearest first: a full list covers the angle of its last cell only (the next cone goes on from there).
+      covered_deg = cells.size() >= kWideCells ? rad2deg(cells.back().orient_err) : cone_deg;
     }
+    if (nearest.empty())
+      nearest = fmt::format("none found within {:.1f} deg of the CL axis{}", covered_deg,
+                            covered_deg < 90.0 - 1e-9 ? " (the cells searched nearest the axis reach no farther)" : "");
     throw InputError(SourceLoc{v.program.file, mv.line, 0},
                      fmt::format("no feasible orientation at CL point ({:.4f}, {:.4f}, {:.4f}) axis ({:.5f}, {:.5f}, "
                                  "{:.5f}): {}; nearest feasible cell: {}",
