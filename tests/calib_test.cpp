@@ -499,6 +499,14 @@ TEST(CalibCli, TrunnionTableProbingAndDesign) {
                                     CSCAM_CLI, machine));
   ASSERT_EQ(r.status, 0) << r.output;
   EXPECT_NE(r.output.find("designed"), std::string::npos) << r.output;
+  // Free parameters the channel cannot see are named, so that a design's healthy figures (of the others) do not
+  // pass for theirs.
+  r = test::run_command(
+      fmt::format("{} calibrate --design 12 --machine {} --channels tip --free squareness,tool --candidates 300",
+                  CSCAM_CLI, machine));
+  ASSERT_EQ(r.status, 0) << r.output;
+  EXPECT_NE(r.output.find("not identifiable from tip: tool_tilt_x"), std::string::npos) << r.output;
+  EXPECT_NE(r.output.find("for the identifiable parameters only"), std::string::npos) << r.output;
 }
 
 TEST(CalibIdent, PcmmMonteCarloCoverageOf95PercentIntervals) {

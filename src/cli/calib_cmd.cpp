@@ -166,7 +166,19 @@ int run_design(const CalibArgs& a, calib::Model& model, nlohmann::json& js) {
                              model.kind(), fmt::join(ch, ","));
     std::cout << fmt::format("  {} identifiable parameters of {} candidates (rank of all candidates)\n",
                              id.identifiable.size(), id.candidates.size());
+    // The figures below are for the identifiable ones: say which are not, and why, or the design looks healthy for
+    // parameters it cannot calibrate.
+    for (const auto& msg : id.messages)
+      std::cout << "  not identifiable from " << fmt::format("{}", fmt::join(ch, ",")) << ": " << msg << "\n";
+    for (const auto& comb : id.combinations)  // (a single parameter's own null vector repeats its message)
+      if (comb.find(',') < comb.find(']')) std::cout << "  only in combination: " << comb << "\n";
+    if (!id.messages.empty())
+      std::cout << "  the figures below are for the identifiable parameters only; the others stay nominal\n";
   }
+  js["identifiability"] = {{"candidates", id.candidates.size()},
+                           {"identified", id.identifiable.size()},
+                           {"unidentifiable", id.messages},
+                           {"null_space", id.combinations}};
   js["design"] = {{"chosen", evaluate(dposes, "designed")}, {"random", evaluate(rposes, "random")}};
   if (!a.out.empty()) {
     calib::Recording r;
