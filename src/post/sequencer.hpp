@@ -286,6 +286,12 @@ class Sequencer {
   /// The length a control measures a G94 block by, between the printed words.
   [[nodiscard]] double word_length(const kin::Axes& wa, const kin::Axes& wb) const;
 
+  /// Where the linearizer refused q0 -> q1: the branch tracked from q0 with CL points inserted along a swing of the
+  /// rotaries beside a singular orientation; false (nothing written) where that does not reach q1 either.
+  bool follow_swing(const cl::Move& m0, const kin::Axes& q0, const cl::Move& m1, const kin::Axes& q1);
+  /// The IK branch (Solution::branch) that q takes at pose, or -1 when no solution is q.
+  [[nodiscard]] int branch_of(const kin::Posed& pose, const kin::Axes& q) const;
+
   /// Feed q0 -> q1 on one branch, linearised within the tip and axis tolerances.
   void feed_linear(const cl::Move& m0, const kin::Axes& q0, const cl::Move& m1, const kin::Axes& q1);
 

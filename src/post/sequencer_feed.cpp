@@ -1,5 +1,7 @@
 // The motion sequencer (sequencer.hpp): feed moves: a CL arc as one G2/G3, straight and linearised feeds, the
 // segments linearised in parallel ahead of the sequencer, and the blocks' timing (max_feed, G93 or G94).
+#include <fmt/format.h>
+
 #include <algorithm>
 #include <cmath>
 #include <utility>
@@ -7,6 +9,7 @@
 
 #include "cscam/core/parallel.hpp"
 #include "cscam/core/units.hpp"
+#include "cscam/kin/track.hpp"
 #include "linearize.hpp"
 #include "sequencer.hpp"
 
@@ -24,6 +27,15 @@ void Sequencer::feed(const cl::Move& m0, const kin::Axes& q0_in, const cl::Move&
     try {
       feed_linear(m0, *q0, m1, q1);
     } catch (const BranchChangeError&) {
+      // Beside (not through) a singular orientation q1's branch may swing the primary half a turn within a piece of
+      // the segment too short for the linearizer's halving, which crosses there holding the primary and so ends on
+      // the other wrist branch: the branch is followed with CL points inserted along the swing.
+      if (follow_swing(m0, *q0, m1, q1)) {
+        at_cut_ = true;
+        cut_move_ = m1;
+        if (cut_move_.feed_mm_per_min <= 0) cut_move_.feed_mm_per_min = kFallbackFeedMmMin;
+        return;
+      }
       // continues_branch takes a small rotary change as continuous unchecked, but beside a singular orientation even
       // a small one can end on another branch (A changing sign): turned as for any flip. (The linearizer refuses
       // before it writes a block.)
@@ -195,6 +207,97 @@ double Sequencer::word_length(const kin::Axes& wa, const kin::Axes& wb) const {
     (m_.axes[static_cast<size_t>(i)].rotary() ? rot2 : lin2) += d * d;
   }
   return lin2 > 1e-18 ? std::sqrt(lin2) : std::sqrt(rot2);
+}
+
+/// The IK branch (Solution::branch) that q takes at pose, or -1 when no solution is q.
+int Sequencer::branch_of(const kin::Posed& pose, const kin::Axes& q) const {
+  std::vector<kin::Solution> sols;
+  kin_.inverse_branches(pose, &q, sols);
+  for (kin::Solution& s : sols) {
+    kin_.nearest_winding(s.axes, q);
+    if (rotary_jump(s.axes, q) < 1e-6) return s.branch;
+  }
+  return -1;
+}
+
+/// The branch from q0 (at m0) followed to q1 (at m1) where the linearizer refused the feed q0 -> q1. Beside (not
+/// through) a singular orientation one IK branch swings the primary half a turn over a piece of the segment far shorter
+/// than the rest; nearest-solution tracking and the linearizer's halving both cross there holding the primary, which
+/// keeps the tool within the tolerance but ends on the other branch. Here the branch is followed by its index (the
+/// closed-form root, which the swing keeps), with CL points inserted on the segment (tip along the chord, axis along
+/// the great circle, as the linearizer interpolates) by halving wherever the rotaries change by more than
+/// kSwingStepRad between two; each piece is then fed as any segment. False, with nothing written, when q0 and q1 are
+/// on different branches, the branch leaves the limits, the swing is a jump at the finest halving (the singular
+/// orientation itself), or the linearizer refuses a piece.
+bool Sequencer::follow_swing(const cl::Move& m0, const kin::Axes& q0, const cl::Move& m1, const kin::Axes& q1) {
+  constexpr double kSwingStepRad = 0.0872664626;  // 5 deg, as kin::track's steps
+  constexpr int kMaxHalvings = 48;                // 2^-48 of the segment: the round-off of the tip
+  const double off = opt_.control_offset_mm;
+  const Vec3 u0 = m0.axis_in_part.normalized(), u1 = m1.axis_in_part.normalized();
+  const Vec3 P0 = m0.tip_in_part_mm + off * u0, P1 = m1.tip_in_part_mm + off * u1;
+  const Slerp axis(u0, u1);
+  auto move_at = [&](double s) {
+    cl::Move m = m1;
+    m.axis_in_part = axis(s);
+    m.tip_in_part_mm = P0 + s * (P1 - P0) - off * m.axis_in_part;
+    return m;
+  };
+  auto pose_of = [](const cl::Move& m) { return kin::Posed{m.tip_in_part_mm, m.axis_in_part.normalized()}; };
+  const int branch = branch_of(pose_of(m0), q0);
+  if (branch < 0 || branch_of(pose_of(m1), q1) != branch) return false;
+  // The solution on `branch` at m nearest `near` in winding, inside every limit.
+  std::vector<kin::Solution> sols;
+  auto on_branch = [&](const cl::Move& m, const kin::Axes& near, kin::Axes& q) {
+    kin_.inverse_branches(pose_of(m), &near, sols);
+    for (kin::Solution& s : sols) {
+      if (s.branch != branch || s.singular) continue;
+      kin_.nearest_winding(s.axes, near);
+      q = s.axes;
+      return kin_.check_limits(q).empty() && kin_.passive_violation(q).empty();
+    }
+    return false;
+  };
+  struct Point {
+    double s;
+    cl::Move m;
+    kin::Axes q;
+    int depth;
+  };
+  std::vector<Point> pts{{0.0, m0, q0, 0}};
+  std::vector<Point> todo{{1.0, m1, q1, 0}};  // the points still to reach, the next one last
+  while (!todo.empty()) {
+    const Point& a = pts.back();
+    Point& b = todo.back();
+    if (rotary_jump(a.q, b.q) <= kSwingStepRad) {
+      pts.push_back(b);
+      todo.pop_back();
+      continue;
+    }
+    const int depth = std::max(a.depth, b.depth) + 1;
+    if (depth > kMaxHalvings) return false;
+    const double sm = 0.5 * (a.s + b.s);
+    Point mid{sm, move_at(sm), kin::Axes::Zero(), depth};
+    if (!on_branch(mid.m, a.q, mid.q)) return false;
+    todo.push_back(std::move(mid));
+  }
+  if (pts.size() <= 2) return false;  // nothing to insert: the linearizer's refusal stands
+  // Every piece is split first, so that a refusal leaves nothing written.
+  std::vector<Linearizer::Piece> scratch;
+  Linearizer::Stats st;
+  for (std::size_t k = 1; k < pts.size(); ++k) {
+    try {
+      lin_.split(pts[k - 1].m, pts[k - 1].q, pts[k].m, pts[k].q, prog_.file, scratch, st, nullptr);
+    } catch (const InputError&) {
+      return false;
+    }
+  }
+  for (std::size_t k = 1; k < pts.size(); ++k) feed_linear(pts[k - 1].m, pts[k - 1].q, pts[k].m, pts[k].q);
+  sum_.inserted_points += pts.size() - 2;
+  sum_.warnings.push_back(fmt::format(
+      "{}: the rotaries swing beside a singular orientation between CL lines {} and "
+      "{} ({}): followed with {} CL points inserted",
+      SourceLoc{prog_.file, m1.line, 0}.str(), m0.line, m1.line, rotary_change(kin_, q0, q1), pts.size() - 2));
+  return true;
 }
 
 /// Feed from q0 (at m0) to q1 (at m1) on one branch, linearised so that the tip stays within the
