@@ -437,6 +437,13 @@ TEST(Cli, PlanAndCompareOnTheSeedGroove) {
   EXPECT_EQ(parsed["cl"], cl);
   r = run_command(kCli + " verify " + out + " --machine trunnion-ac --cl " + cl + " --cone 25");
   EXPECT_EQ(r.status, 0) << r.output;
+  // The planned program states its cone in the header: verified as planned without being told (before, a plain
+  // `verify` of a planned program failed on the tilt it was planned to have), and as a plain post's with --cone 0.
+  r = run_command(kCli + " verify " + out + " --machine trunnion-ac --cl " + cl);
+  EXPECT_EQ(r.status, 0) << r.output;
+  EXPECT_NE(r.output.find("planned with a 25 deg cone (its header)"), std::string::npos) << r.output;
+  r = run_command(kCli + " verify " + out + " --machine trunnion-ac --cl " + cl + " --cone 0");
+  EXPECT_EQ(r.status, 1) << r.output;
 }
 
 TEST(Cli, CompareJsonNamesTheCauseOfEveryEarlierTierFailure) {

@@ -156,7 +156,8 @@ int cmd_post(const PostArgs& a) {
 
 struct VerifyArgs {
   std::string nc, machine, cl, units;
-  double tolerance = 0, axis_tolerance = 0, tool_length = -1, cone = 0;
+  double tolerance = 0, axis_tolerance = 0, tool_length = -1;
+  std::optional<double> cone;  // none: the cone a cscam-planned program's header states, else 0
   std::optional<int> samples;  // none: adaptive (a proven bound between samples); N: N fixed samples per block
   bool json = false;
 };
@@ -175,9 +176,16 @@ int cmd_verify(const VerifyArgs& a) {
   // The post's tolerances plus the slack for printed decimals (one place: report::verify_options_for); an explicit
   // --tolerance / --axis-tolerance is the allowed deviation itself. A planned program may tilt within a cone: then
   // the axis may deviate by the cone and a ball mill's centre (not its tip) is what stays on the CL path.
-  report::VerifyOptions vo = report::verify_options_for(m, 0.0, 0.0, a.cone);
+  // A program planned by `cscam plan` states its cone in the header: compared as planned unless --cone says otherwise.
+  const double cone = a.cone.value_or(ncp.header_cone_deg.value_or(0.0));
+  if (!a.cone && cone > 0)
+    std::cerr << fmt::format(
+        "note: {} was planned with a {:g} deg cone (its header): the tool axis may deviate by that much and ball "
+        "centres are compared (--cone to say otherwise)\n",
+        a.nc, cone);
+  report::VerifyOptions vo = report::verify_options_for(m, 0.0, 0.0, cone);
   if (a.tolerance > 0) vo.tip_tolerance_mm = a.tolerance;
-  if (a.axis_tolerance > 0) vo.axis_tolerance_deg = a.axis_tolerance + a.cone;
+  if (a.axis_tolerance > 0) vo.axis_tolerance_deg = a.axis_tolerance + cone;
   if (a.samples) {  // asked for: exactly that many samples in every block, nothing added
     vo.samples_per_block = *a.samples;
     vo.adaptive_samples = false;
@@ -346,8 +354,12 @@ int main(int argc, char** argv) {
   verify_cmd->add_option("--tolerance", va.tolerance, "allowed tip deviation, mm");
   verify_cmd->add_option("--axis-tolerance", va.axis_tolerance, "allowed tool-axis deviation, deg");
   verify_cmd->add_option("--tool-length", va.tool_length, "tool length, mm (default: from the NC header)");
-  verify_cmd->add_option("--cone", va.cone,
-                         "the program was planned with this cone, deg: compare ball centres, allow the cone");
+  verify_cmd
+      ->add_option(
+          "--cone", va.cone,
+          "the program was planned with this cone, deg: compare ball centres, allow the cone (default: the cone a "
+          "cscam-planned program's header states, else 0)")
+      ->check(CLI::Range(0.0, 90.0));
   verify_cmd
       ->add_option("--samples", va.samples,
                    "FK samples inside every block, fixed (default: as few as a proven bound on the path between "

@@ -27,6 +27,17 @@ static_assert(sizeof(Block) <= 128, "nc::Block grew: keep rare members out of li
 
 namespace {
 
+/// "cone_deg=X" in our header comment (the rest of the line from "cscam tool_length_mm="): a planned program's cone.
+void read_header_cone(std::string_view rest, Program& prog) {
+  constexpr std::string_view kKey = " cone_deg=";
+  const auto p = rest.find(kKey);
+  if (p == std::string_view::npos) return;
+  const auto v = rest.substr(p + kKey.size());
+  double c = 0;
+  if (std::from_chars(v.data(), v.data() + v.size(), c).ec == std::errc() && std::isfinite(c) && c > 0 && c <= 90)
+    prog.header_cone_deg = c;
+}
+
 // Character classes of the "C" locale (cscam never sets another), inline: the reader asks them for every
 // character of a program that may have millions of lines.
 constexpr bool is_space(char c) { return c == ' ' || (c >= '\t' && c <= '\r'); }
@@ -252,6 +263,7 @@ Program read_heidenhain(const std::string& text, const std::string& name, const 
         const auto v = s.substr(p + 21);
         double L = 0;
         if (std::from_chars(v.data(), v.data() + v.size(), L).ec == std::errc()) prog.tool_length_mm = L;
+        read_header_cone(s.substr(p), prog);
       }
       constexpr std::string_view kHeader = "cscam post: machine ";
       if (const auto p = s.find(kHeader); !prog.header_machine && p != std::string_view::npos) {
@@ -510,6 +522,7 @@ Program read_text(const std::string& text, const std::string& name, const AxisLe
       double L = 0;
       auto r = std::from_chars(v.data(), v.data() + v.size(), L);
       if (r.ec == std::errc()) prog.tool_length_mm = L;
+      read_header_cone(s.substr(p), prog);
     }
     // Our post's header names the machine the program was written for.
     if (!prog.header_machine) {

@@ -92,7 +92,8 @@ std::array<double, 5> arc_axis_travel(const std::array<double, 5>& start, const 
 struct Program {
   std::string file;
   std::vector<Block> blocks;
-  std::optional<double> tool_length_mm;  ///< from a "(cscam tool_length_mm=...)" header comment
+  std::optional<double> tool_length_mm;   ///< from a "(cscam tool_length_mm=...)" header comment
+  std::optional<double> header_cone_deg;  ///< "cone_deg=..." in that comment: the cone the program was planned with
   bool tcp = false;  ///< G43.4/G43.5/G234/M428/TRAORI/TCPM/M128 seen: axis values are part coordinates (Block::tcp)
   bool tcp_words = false;          ///< a word switched tool-tip control on (Block::tcp follows it; not a header alone)
   bool tcp_vectors = false;        ///< the tool orientation is given as vectors (Block::tool_vector)

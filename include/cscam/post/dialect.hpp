@@ -25,10 +25,11 @@ struct ProgramInfo {
   std::string strategy;
   double tool_length_mm = 0.0;
   double tolerance_mm = 0.01;
-  bool tcp = false;                    ///< tool-tip control: linear words are the tip in the part frame
-  bool tcp_vectors = false;            ///< the tool orientation as a vector (G43.5 I J K, Siemens A3 B3 C3), not angles
-  bool inch = false;                   ///< G20 / MM->INCH output
-  std::string work_offset;             ///< "G54", ...; empty: none
+  double cone_deg = 0.0;     ///< a planned program's cone (header comment: verify compares ball centres within it)
+  bool tcp = false;          ///< tool-tip control: linear words are the tip in the part frame
+  bool tcp_vectors = false;  ///< the tool orientation as a vector (G43.5 I J K, Siemens A3 B3 C3), not angles
+  bool inch = false;         ///< G20 / MM->INCH output
+  std::string work_offset;   ///< "G54", ...; empty: none
   std::string swivel_record = "TC1";   ///< Siemens CYCLE800 _TC (machine file post.swivel_record)
   std::array<std::string, 5> letters;  ///< word letter per axis slot
   std::array<bool, 5> rotary{};
