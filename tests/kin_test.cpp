@@ -3,6 +3,7 @@
 #include <gtest/gtest.h>
 
 #include <cmath>
+#include <limits>
 #include <tuple>
 
 #include "cscam/core/units.hpp"
@@ -244,4 +245,176 @@ TEST(Track, AnUnreachablePoseNamesTheBranchThatMissesByLeast) {
       EXPECT_NE(violation.find(named), std::string::npos) << violation;
     }
   }
+}
+
+// --- Calibrated (slightly non-ideal) serial machines ----------------------------------------------------------------
+
+namespace {
+
+/// The four serial layouts of machines/: trunnion A/C, Haas B/C table-table, head-head C/A, 45-degree nutating B head
+/// with a C table. Axis order x y z r1 r2 as in the machine files.
+SerialGeometry<double> layout_geometry(int layout) {
+  SerialGeometry<double> g;
+  const Vec3 X = Vec3::UnitX(), Y = Vec3::UnitY(), Z = Vec3::UnitZ();
+  const auto L = [](const Vec3& d) { return J(AxisType::Linear, Side::Head, d); };
+  g.head_chain = {0, 1, 2};
+  switch (layout) {
+    case 0:  // trunnion-ac
+      return trunnion_ac_geometry();
+    case 1:  // haas-umc750: B about -Y under C about -Z
+      g.joints = {L(X), L(Y), L(Z), J(AxisType::Rotary, Side::Table, -Y, Vec3(0, 0, -50.8)),
+                  J(AxisType::Rotary, Side::Table, -Z)};
+      g.table_chain = {3, 4};
+      return g;
+    case 2:  // head-head-ac: the gantry carries C, C carries A
+      g.joints = {L(X), L(Y), L(Z), J(AxisType::Rotary, Side::Head, X, Vec3(0, 0, 780)),
+                  J(AxisType::Rotary, Side::Head, Z, Vec3(0, 0, 780))};
+      g.head_chain = {0, 1, 2, 4, 3};
+      g.gauge_home_mm = Vec3(0, 0, 600);
+      g.tool_length_mm = 120;
+      return g;
+    default:  // head-table-bc45
+      g.joints = {L(X), L(Y), L(Z), J(AxisType::Rotary, Side::Head, Vec3(0, -1, 1), Vec3(0, 0, 450)),
+                  J(AxisType::Rotary, Side::Table, -Z)};
+      g.head_chain = {0, 1, 2, 3};
+      g.table_chain = {4};
+      g.gauge_home_mm = Vec3(0, 0, 300);
+      g.tool_length_mm = 100;
+      return g;
+  }
+}
+
+Vec3 tilted(const Vec3& d, double angle, std::mt19937_64& rng) {
+  std::normal_distribution<double> N;
+  Vec3 r;
+  do r = d.cross(Vec3(N(rng), N(rng), N(rng)));
+  while (r.norm() < 1e-3);
+  return (std::cos(angle) * d + std::sin(angle) * r.normalized()).normalized();
+}
+
+/// `g` as a calibration writes it (ISO 230-1 location errors): rotary directions tilted 20-500 urad, pivots moved
+/// 5-50 um, Y and Z out of square with X by 20-200 urad.
+SerialGeometry<double> calibrated(SerialGeometry<double> g, std::mt19937_64& rng) {
+  std::uniform_real_distribution<double> rot_tilt(20e-6, 500e-6), pivot(0.005, 0.050), lin_tilt(20e-6, 200e-6);
+  std::normal_distribution<double> N;
+  for (std::size_t i = 0; i < 5; ++i) {
+    auto& j = g.joints[i];
+    if (j.type == AxisType::Rotary) {
+      j.direction = tilted(j.direction, rot_tilt(rng), rng);
+      j.pivot_mm += pivot(rng) * Vec3(N(rng), N(rng), N(rng)).normalized();
+    } else if (i > 0) {
+      j.direction = tilted(j.direction, lin_tilt(rng), rng);
+    }
+  }
+  return g;
+}
+
+SerialKinematics layout_kinematics(const SerialGeometry<double>& g) {
+  return SerialKinematics(g, {lin("x", -1e4, 1e4), lin("y", -1e4, 1e4), lin("z", -1e4, 1e4),
+                              rot("r1", -36000, 36000, true), rot("r2", -36000, 36000, true)});
+}
+
+double angle_between(const Vec3& a, const Vec3& b) { return std::atan2(a.cross(b).norm(), a.dot(b)); }
+
+/// The oracle for how near the machine's tool axis comes to `u`: the least angle over both rotaries, by a 3-degree
+/// grid and then a pattern search, from FK alone (no IK).
+double nearest_reachable_angle(const SerialKinematics& k, const Vec3& u) {
+  const auto rp = k.rotary_pair();
+  auto f = [&](double r1, double r2) {
+    Axes q = Axes::Zero();
+    q[rp[0]] = r1;
+    q[rp[1]] = r2;
+    return angle_between(k.forward(q).axis, u);
+  };
+  double b1 = 0, b2 = 0, best = f(0, 0);
+  for (int i = -60; i < 60; ++i)
+    for (int j = -60; j < 60; ++j)
+      if (const double v = f(deg2rad(3.0 * i), deg2rad(3.0 * j)); v < best)
+        std::tie(best, b1, b2) = std::tuple(v, deg2rad(3.0 * i), deg2rad(3.0 * j));
+  for (double h = deg2rad(3.0); h > 1e-13; h *= 0.5)
+    for (bool moved = true; moved;) {
+      moved = false;
+      for (const auto& [d1, d2] : {std::pair(h, 0.0), std::pair(-h, 0.0), std::pair(0.0, h), std::pair(0.0, -h),
+                                   std::pair(h, h), std::pair(-h, -h), std::pair(h, -h), std::pair(-h, h)})
+        if (const double v = f(b1 + d1, b2 + d2); v < best) {
+          std::tie(best, b1, b2) = std::tuple(v, b1 + d1, b2 + d2);
+          moved = true;
+        }
+    }
+  return best;
+}
+
+}  // namespace
+
+// A calibrated machine's tilted rotaries leave a cone of tool axes about the primary unreachable, as wide as the tilts
+// (here up to about 1 mrad), with the vertical tool on or beside its edge. A CL path beside the vertical crosses it
+// (gen/hemi.cls on a trunnion with C tilted 0.5 mrad: "no inverse-kinematics solution" at its second point, found
+// half way from the first). The IK now returns the nearest reachable axis there, exact tip, and says how far off it
+// is. Oracles: FK of every solution, and the least angle to the requested axis found by searching FK alone.
+TEST(SerialKinematics, CalibratedMachinesReachAxesBesideThePrimaryAsNearlyAsTheyCan) {
+  auto rng = test::rng(11);
+  std::uniform_real_distribution<double> U(-100, 100), R(0, 1), Az(-kPi, kPi);
+  std::vector<Solution> sols;
+  int inside_cones = 0;
+  for (int layout = 0; layout < 4; ++layout)
+    for (int n = 0; n < 5; ++n) {
+      SCOPED_TRACE(::testing::Message() << "layout " << layout << " machine " << n);
+      const SerialKinematics k = layout_kinematics(calibrated(layout_geometry(layout), rng));
+      const Vec3 w1 = k.geometry().joints[static_cast<std::size_t>(k.rotary_pair()[0])].direction;
+      for (int i = 0; i < 10; ++i) {
+        // Within 1.5 mrad of either pole of the primary.
+        const Vec3 pole = (i % 2 ? -1.0 : 1.0) * w1;
+        const Vec3 u = tilted(pole, 1.5e-3 * R(rng), rng);
+        const Posed target{Vec3(U(rng), U(rng), U(rng)), u};
+        const double oracle = nearest_reachable_angle(k, u);
+        k.inverse_branches(target, nullptr, sols);
+        if (oracle > tol::kReachSlackRad) {  // a pole outside the band (the nutating head's downward axis)
+          EXPECT_TRUE(sols.empty());
+          continue;
+        }
+        inside_cones += oracle > 1e-7;
+        ASSERT_FALSE(sols.empty()) << "axis " << u.transpose() << " is " << oracle << " rad from the reachable ones";
+        for (const auto& s : sols) {
+          const Posed p = k.forward(s.axes);
+          EXPECT_LT((p.tip_mm - target.tip_mm).norm(), tol::kRoundTripMm);
+          EXPECT_NEAR(angle_between(p.axis, u), oracle, 1e-8);
+          EXPECT_NEAR(s.axis_error_rad, oracle, 1e-8);
+        }
+      }
+    }
+  EXPECT_GT(inside_cones, 20);  // the requested axes inside an unreachable cone, not only beside it
+}
+
+// Every branch, near the singular direction too: FK of axis values whose secondary is within 3 mrad of 0 or of half a
+// turn (the tool axis within a few mrad of the primary, where the two branches approach each other) gives a pose whose
+// IK lists those axis values (one of its branches, modulo whole turns), and every branch it lists is exact.
+TEST(SerialKinematics, CalibratedMachinesListEveryBranchBesideThePrimary) {
+  auto rng = test::rng(12);
+  std::uniform_real_distribution<double> U(-100, 100), Near(-3e-3, 3e-3), Az(-kPi, kPi);
+  std::vector<Solution> sols;
+  for (int layout = 0; layout < 4; ++layout)
+    for (int n = 0; n < 6; ++n) {
+      SCOPED_TRACE(::testing::Message() << "layout " << layout << " machine " << n);
+      const SerialKinematics k = layout_kinematics(calibrated(layout_geometry(layout), rng));
+      const auto rp = k.rotary_pair();
+      for (int i = 0; i < 40; ++i) {
+        Axes q;
+        q << U(rng), U(rng), U(rng), 0, 0;
+        q[rp[0]] = Az(rng);
+        q[rp[1]] = (i % 2 ? kPi : 0.0) + Near(rng);
+        const Posed target = k.forward(q);
+        k.inverse_branches(target, nullptr, sols);
+        ASSERT_FALSE(sols.empty());
+        double nearest = std::numeric_limits<double>::infinity();
+        for (const auto& s : sols) {
+          const Posed p = k.forward(s.axes);
+          EXPECT_LT((p.tip_mm - target.tip_mm).norm(), tol::kRoundTripMm);
+          EXPECT_LT(angle_between(p.axis, target.axis), tol::kRoundTripRad);
+          double d = 0;
+          for (const int r : rp) d += std::abs(std::remainder(s.axes[r] - q[r], 2 * kPi));
+          nearest = std::min(nearest, d);
+        }
+        EXPECT_LT(nearest, 1e-6) << "the branch of " << q.transpose() << " is missing";
+      }
+    }
 }

@@ -1914,3 +1914,57 @@ TEST(PostProgram, ATcpRetractAlongASteepToolStopsAtTheTravel) {
     EXPECT_TRUE(warned);
   }
 }
+
+namespace {
+
+/// machines/NAME.yaml with each (from, to) text replaced, as a calibration writes its corrected file.
+machine::Machine machine_edited(const std::string& name,
+                                const std::vector<std::pair<std::string, std::string>>& edits) {
+  std::ifstream in(test::source_path("machines/" + name + ".yaml"));
+  std::stringstream ss;
+  ss << in.rdbuf();
+  std::string text = ss.str();
+  for (const auto& [from, to] : edits) {
+    const size_t p = text.find(from);
+    EXPECT_NE(p, std::string::npos) << from;
+    if (p != std::string::npos) text.replace(p, from.size(), to);
+  }
+  return machine::load_text(text, test::source_path("machines/" + name + "-calibrated.yaml"));
+}
+
+}  // namespace
+
+// The start of gen/hemi.cls (scripts/generate_cl.py): the tool normal to a sphere, from the vertical tilting away while
+// its azimuth turns. On a trunnion whose C is tilted 0.5 mrad (and A 0.3 mrad), axes within about 0.4 mrad of C are
+// out of reach, and the path from the first point to the second passes through them: "no inverse-kinematics solution"
+// at the second point, where the nominal machine posts it. Now the machine takes the nearest axis there. The oracle is
+// the safety gate's back-simulation (tip and axis within the tolerances of the CL path in every block).
+TEST(Post, ACalibratedTrunnionPostsAPathThroughTheAxesItCannotReachExactly) {
+  std::ostringstream cl;
+  cl << "PARTNO HEMI\nUNITS/MM\nMULTAX/ON\nCUTTER/6,3\nLOADTL/1\nSPINDL/8000,CLW\nFEDRAT/MMPM,1500\nRAPID\n";
+  for (int i = 0; i <= 80; ++i) {
+    const double tilt = deg2rad(0.05 * i), az = 0.08 * i;
+    const Vec3 n(std::sin(tilt) * std::cos(az), std::sin(tilt) * std::sin(az), std::cos(tilt));
+    cl << fmt::format("GOTO/{:.4f},{:.4f},{:.4f},{:.6f},{:.6f},{:.6f}\n", 20 * n.x(), 20 * n.y(), 20 * n.z(), n.x(),
+                      n.y(), n.z());
+  }
+  cl << "FINI\n";
+  const auto prog = cl::read_text(cl.str(), "hemi.cls");
+  const std::string c_nominal = "direction: [0, 0, 1], pivot_mm: [0, 0, 0]";
+  const std::string a_nominal = "direction: [1, 0, 0], pivot_mm: [0, 20, 10]";
+  const std::vector<std::vector<std::pair<std::string, std::string>>> variants = {
+      {},
+      {{c_nominal, "direction: [0.0004, -0.0003, 1], pivot_mm: [0.02, -0.01, 0]"}},
+      {{c_nominal, "direction: [0.0004, -0.0003, 1], pivot_mm: [0.02, -0.01, 0]"},
+       {a_nominal, "direction: [1, 0.0003, 0.0001], pivot_mm: [0.01, 20.03, 9.98]"}},
+      {{c_nominal, "direction: [-0.00045, 0, 1], pivot_mm: [0, 0, 0]"}}};
+  for (std::size_t v = 0; v < variants.size(); ++v) {
+    SCOPED_TRACE(::testing::Message() << "variant " << v);
+    const auto m = machine_edited("trunnion-ac", variants[v]);
+    const auto k = m.kinematics();
+    Posted p;
+    ASSERT_NO_THROW(p = post_program(prog, m, *k));
+    const auto gs = gate::check(p.text, "hemi.ngc", prog, m, *k, gate::options_for(m, 0, 0, 0));
+    EXPECT_TRUE(gs.ok) << gs.message;
+  }
+}

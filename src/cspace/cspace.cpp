@@ -232,7 +232,7 @@ void Space::enumerate(const kin::Posed& cl, std::vector<Cell>& out, std::size_t 
       cell.r2 = r2;
       cell.i1 = static_cast<int>(std::lround(r1 / res));
       cell.i2 = static_cast<int>(std::lround(r2 / res));
-      cell.orient_err = 0.0f;
+      cell.orient_err = static_cast<float>(s.axis_error_rad);  // 0 unless the machine reaches the axis only nearly
       cell.singular = s.singular;
       out.push_back(cell);
     }

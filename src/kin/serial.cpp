@@ -244,12 +244,29 @@ void SerialKinematics::inverse_branches(const Posed& pose, const Axes* hint, std
   // w2.z = w2.p and w1.z = w1.q; write z = a w1 + b w2 + c (w1 x w2).
   const double c12 = w1.dot(w2);
   const double den = c12 * c12 - 1.0;
-  const double a = (c12 * w2.dot(p) - w1.dot(q)) / den;
-  const double b = (c12 * w1.dot(q) - w2.dot(p)) / den;
+  const double s2 = w2.dot(p);
+  double a = (c12 * s2 - w1.dot(q)) / den;
+  double b = (c12 * w1.dot(q) - s2) / den;
   const Vec3 w12 = w1.cross(w2);
   double g2 = (p.squaredNorm() - a * a - b * b - 2.0 * a * b * c12) / w12.squaredNorm();
-  if (g2 < -1e-12) return;  // this orientation is unreachable for this head (e.g. beyond a nutating head's cone)
-  g2 = std::max(g2, 0.0);
+  double axis_error = 0.0;
+  if (g2 < 0.0) {
+    // The cone of axes at q's angle from w1 misses the cone the secondary sweeps p over: q lies outside the band of
+    // angles from w1 that the machine reaches. On an ideal trunnion that band is [0, pi]; tilt its axes by a few
+    // hundred microradians (a calibrated machine) and a cone of that size about w1 becomes unreachable, with the
+    // vertical tool axis on or near its edge; a nutating head's band ends at its widest tilt. The reachable axes
+    // nearest q have the band's nearer end as angle from w1 and q's azimuth about it: z is the tangent point, in
+    // the plane of w1 and w2 (c = 0), with w2.z = w2.p and |z| = |p|: a^2 (1 - c12^2) + (w2.p)^2 = |p|^2.
+    const double span = std::sqrt(std::max(0.0, (p.squaredNorm() - s2 * s2) / (1.0 - c12 * c12)));
+    const double w1z_hi = span * (1.0 - c12 * c12) + s2 * c12, w1z_lo = -span * (1.0 - c12 * c12) + s2 * c12;
+    a = std::abs(w1.dot(q) - w1z_hi) <= std::abs(w1.dot(q) - w1z_lo) ? span : -span;
+    b = s2 - a * c12;
+    const Vec3 z = a * w1 + b * w2;
+    // How far q is from the nearest reachable axis: the difference of the two angles from w1.
+    axis_error = std::abs(std::atan2(w1.cross(q).norm(), w1.dot(q)) - std::atan2(w1.cross(z).norm(), w1.dot(z)));
+    if (axis_error > tol::kReachSlackRad) return;  // unreachable, e.g. beyond a nutating head's cone
+    g2 = 0.0;
+  }
   const double g = std::sqrt(g2);
   const int nroots = g > 1e-12 ? 2 : 1;
   for (int r = 0; r < nroots; ++r) {
@@ -258,6 +275,7 @@ void SerialKinematics::inverse_branches(const Posed& pose, const Axes* hint, std
     if (!pk1(w2, p, z, t2)) t2 = 0.0;  // p on w2: the secondary does nothing to the axis
     Solution s;
     s.branch = r;
+    s.axis_error_rad = axis_error;
     if (!pk1(w1, z, q, t1)) {
       // Tool axis parallel to the primary rotary: its angle is free; keep the previous one.
       s.singular = true;

@@ -37,6 +37,10 @@ struct Solution {
   Axes axes = Axes::Zero();
   int branch = 0;         ///< which closed-form root (0/1; meaning is model specific)
   bool singular = false;  ///< the primary rotary was undetermined and taken from the hint
+  /// Angle between the requested tool axis and the one these axes give: 0 for an exact solution; for a requested axis
+  /// just outside the reachable orientations (within tol::kReachSlackRad) the nearest reachable one is returned and
+  /// this says how far it is (the tip is exact either way).
+  double axis_error_rad = 0.0;
   std::string violation;  ///< empty when every axis is inside its limits, else the first broken limit
   [[nodiscard]] bool feasible() const { return violation.empty(); }
 };
