@@ -290,6 +290,34 @@ void SerialKinematics::inverse_branches(const Posed& pose, const Axes* hint, std
   // secondary got there. They are genuine distinct solutions (e.g. A=+0 vs the flipped one) only if
   // they differ; drop exact duplicates.
   if (out.size() == 2 && (out[0].axes - out[1].axes).norm() < 1e-12) out.pop_back();
+  // The pole of a calibrated machine. On the ideal machine the home tool direction p lies along the primary (a
+  // trunnion's C, a head's C), and a CL axis there (the vertical tool of every 3-axis stretch) leaves the primary
+  // free. Tilt the primary by rho (tens to hundreds of microradians) and that axis is rho from the pole: its two
+  // branches fix the primary to values unrelated to the path's, so a walk past the vertical swung C twice where the
+  // ideal machine kept it, and a segment from the vertical to a tilted axis could need a flip against the secondary's
+  // limit. Within rho of the pole the primary is free as on the ideal machine, within what the machine's own tilt
+  // costs: one more branch, flagged singular, with the hint's primary and the secondary that brings the axis nearest
+  // (at most about 2 rho off, axis_error_rad); the exact branches stay listed and the post or the planner chooses.
+  if (std::any_of(out.begin(), out.end(), [](const Solution& s) { return s.singular; })) return;
+  for (const double sign : {1.0, -1.0}) {
+    const Vec3 pole = sign * w1;
+    const double rho = std::atan2(p.cross(pole).norm(), p.dot(pole));
+    if (rho > tol::kReachSlackRad || rho <= 0.0) continue;
+    if (std::atan2(q.cross(pole).norm(), q.dot(pole)) > rho * (1.0 + 1e-9) + tol::kSingularRad) continue;
+    Solution s;
+    s.branch = static_cast<int>(out.size());
+    s.singular = true;
+    const double t1 = hint ? sign_[0] * ((*hint)[rot_[0]] + j1.offset) : 0.0;
+    const Vec3 v = detail::axis_angle<double>(w1, -t1) * q;  // the axis the secondary must give
+    double t2 = 0.0;
+    if (!pk1(w2, p, v, t2)) t2 = 0.0;
+    const Vec3 got = detail::axis_angle<double>(w1, t1) * (detail::axis_angle<double>(w2, t2) * p);
+    s.axis_error_rad = std::atan2(got.cross(q).norm(), got.dot(q));
+    s.axes[rot_[0]] = wrap_pi(sign_[0] * t1 - j1.offset);
+    s.axes[rot_[1]] = wrap_pi(sign_[1] * t2 - j2.offset);
+    if (s.axis_error_rad <= tol::kReachSlackRad && solve_for_rotaries(pose, s.axes)) out.push_back(std::move(s));
+    return;
+  }
 }
 
 void SerialKinematics::inverse_all(const Posed& pose, const Axes* hint, std::vector<Solution>& out) const {

@@ -1,6 +1,7 @@
 #include <fmt/format.h>
 
 #include <algorithm>
+#include <cmath>
 #include <limits>
 
 #include "cscam/core/error.hpp"
@@ -40,8 +41,13 @@ void resolve_singular(const kin::Kinematics& k, const cl::Program& prog, size_t 
     kin::Axes trial = q;
     trial[p] = pick[p];
     const kin::Posed here{prog.moves[i].tip_in_part_mm, prog.moves[i].axis_in_part.normalized()};
-    if (k.solve_for_rotaries(here, trial) && k.check_limits(trial).empty() && k.passive_violation(trial).empty())
-      q = trial;
+    // The singular solution with that primary (the hint): on a calibrated machine, whose pole is beside the tool axis,
+    // the secondary that brings the axis nearest depends on the primary; on an ideal one it is the same secondary.
+    kin::Axes turned;
+    bool still_singular = false;
+    if (kin::nearest_solution(k, here, trial, turned, nullptr, &still_singular) && still_singular &&
+        std::abs(turned[p] - trial[p]) < 1e-9)
+      q = turned;
     return;
   }
 }
