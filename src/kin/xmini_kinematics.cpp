@@ -2,11 +2,14 @@
 
 #include <fmt/format.h>
 
+#include <algorithm>
+#include <array>
 #include <atomic>
 #include <cmath>
 #include <limits>
 #include <stdexcept>
 
+#include "cscam/core/tolerances.hpp"
 #include "cscam/core/units.hpp"
 
 namespace cscam::kin {
@@ -97,11 +100,13 @@ Posed XminiKinematics::forward(const Axes& q) const {
   return Posed{r.pose.tip_in_W_mm, r.pose.u_in_W};
 }
 
-void XminiKinematics::to_solutions(const std::vector<XminiIkSolution>& in, bool principal_only,
+void XminiKinematics::to_solutions(const Posed& pose, const std::vector<XminiIkSolution>& in, bool principal_only,
                                    std::vector<Solution>& out) const {
   out.clear();
+  std::array<bool, 2> exact_branch{false, false};  // [0]: branch +1, [1]: branch -1
   for (const XminiIkSolution& s : in) {
-    if (!s.exact) continue;  // an unreachable direction (psi != 0): the nearest is not a solution
+    if (!s.exact) continue;
+    exact_branch[s.branch > 0 ? 0 : 1] = true;
     if (principal_only && s.winding != 0) continue;
     Solution o;
     o.axes = s.joints();
@@ -110,18 +115,91 @@ void XminiKinematics::to_solutions(const std::vector<XminiIkSolution>& in, bool 
     if (!s.violations.empty()) o.violation = s.violations.front().describe();
     out.push_back(std::move(o));
   }
+  // A branch without an exact solution: an unreachable direction near the C axis (psi, gx, gy off nominal). Its
+  // nearest reachable axis, tip exact, flagged with the angle it is off, if within tol::kReachSlackRad.
+  for (const XminiIkSolution& s : in) {
+    const int b = s.branch > 0 ? 0 : 1;
+    if (s.exact || exact_branch[b] || (principal_only && s.winding != 0)) continue;
+    Solution o;
+    o.axes = s.joints();
+    double err = 0.0;
+    if (!nearest_reachable(pose, o.axes, err, o.violation) || !(err <= tol::kReachSlackRad)) continue;
+    o.axis_error_rad = std::max(err, std::numeric_limits<double>::min());
+    o.branch = b;
+    o.singular = s.singular;
+    const bool dup = std::any_of(out.begin(), out.end(), [&](const Solution& e) {
+      return !e.exact() && (e.axes - o.axes).cwiseAbs().maxCoeff() < 1e-9;
+    });
+    if (!dup) out.push_back(std::move(o));
+  }
+}
+
+bool XminiKinematics::nearest_reachable(const Posed& pose, Axes& q, double& axis_error_rad,
+                                        std::string& violation) const {
+  const Vec3 ut = pose.axis.normalized();
+  const Vec3 e1 = ut.unitOrthogonal(), e2 = ut.cross(e1);
+  XminiState<double> x;
+  auto resid = [&](double c, double a, Eigen::Vector2d& r, Vec3* u_out = nullptr) {
+    x = platform_start(c, a, pose.tip_mm);
+    if (!solve_platform_for_tip(c, a, pose.tip_mm, x)) return false;
+    const Vec3 u = tool_pose(model_.geometry(), x, c, a, model_.tool_length_mm()).u_in_W;
+    if (!(u.dot(ut) > 0.0)) return false;
+    r << u.dot(e1), u.dot(e2);
+    if (u_out) *u_out = u;
+    return true;
+  };
+  double c = q[3], a = q[4];
+  Eigen::Vector2d r, rc, ra, rt;
+  if (!resid(c, a, r)) return false;
+  double lambda = 1e-3;
+  constexpr double kStep = 1e-7;  // forward differences (rad)
+  for (int it = 0; it < 40 && r.norm() > 1e-15; ++it) {
+    if (!resid(c + kStep, a, rc) || !resid(c, a + kStep, ra)) return false;
+    Eigen::Matrix2d J;
+    J.col(0) = (rc - r) / kStep;
+    J.col(1) = (ra - r) / kStep;
+    const Eigen::Matrix2d A = J.transpose() * J;
+    const Eigen::Vector2d g = J.transpose() * r;
+    bool improved = false;
+    for (int k = 0; k < 12 && !improved; ++k) {
+      Eigen::Matrix2d M = A;
+      M.diagonal() += lambda * A.diagonal() + Eigen::Vector2d::Constant(1e-30);
+      const Eigen::Vector2d step = -M.ldlt().solve(g);
+      if (!step.allFinite()) break;
+      if (resid(c + step[0], a + step[1], rt) && rt.norm() < r.norm()) {
+        c += step[0];
+        a += step[1];
+        r = rt;
+        lambda = std::max(1e-12, 0.1 * lambda);
+        improved = true;
+      } else {
+        lambda *= 10.0;
+      }
+    }
+    if (!improved) break;
+  }
+  Vec3 u;
+  if (!resid(c, a, r, &u)) return false;
+  axis_error_rad = std::atan2(u.cross(ut).norm(), u.dot(ut));
+  const XminiPlatform<double> P = platform_from_state(model_.geometry(), x);
+  q[3] = c;
+  q[4] = a;
+  q.head<3>() = P.rho_mm - model_.geometry().L0_mm;
+  const auto v = kin::check_limits(model_.limits(), q, x);
+  violation = v.empty() ? std::string() : v.front().describe();
+  return true;
 }
 
 void XminiKinematics::inverse_all(const Posed& pose, const Axes* hint, std::vector<Solution>& out) const {
   thread_local std::vector<XminiIkSolution> sols;
   model_.inverse(pose.tip_mm, pose.axis, sols, hint ? std::optional<double>((*hint)[3]) : std::nullopt);
-  to_solutions(sols, false, out);
+  to_solutions(pose, sols, false, out);
 }
 
 void XminiKinematics::inverse_branches(const Posed& pose, const Axes* hint, std::vector<Solution>& out) const {
   thread_local std::vector<XminiIkSolution> sols;
   model_.inverse(pose.tip_mm, pose.axis, sols, hint ? std::optional<double>((*hint)[3]) : std::nullopt);
-  to_solutions(sols, true, out);
+  to_solutions(pose, sols, true, out);
 }
 
 XminiState<double> XminiKinematics::platform_start(double c_rad, double a_rad, const Vec3& tip_W_mm) const {

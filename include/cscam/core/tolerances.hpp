@@ -12,8 +12,9 @@ inline constexpr double kLinearisationMm = 0.01;
 inline constexpr double kAxisDeviationRad = 0.005;  // ~0.29 deg
 /// Below this, a tool axis counts as parallel to the primary rotary axis (IK singularity).
 inline constexpr double kSingularRad = 1e-9;
-/// A tool axis at most this far outside the orientations a serial machine can reach (the small cone about the primary
-/// rotary that a calibrated machine's tilted axes leave unreachable, the edge of a nutating head's band) is reached as
+/// A tool axis at most this far outside the orientations a machine can reach (the small cone about the primary rotary
+/// that a calibrated serial machine's tilted axes leave unreachable, the edge of a nutating head's band, a calibrated
+/// XMINI wrist's twist psi or gauge offset near its pole) is reached as
 /// nearly as the machine can: its IK returns the nearest reachable axis and says how far off it is
 /// (kin::Solution::axis_error_rad). Half the default axis tolerance: calibration tilts axes by tens to hundreds of
 /// microradians, so such cones are well inside it; the gate still judges every deviation against the post's tolerance.

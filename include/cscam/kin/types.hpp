@@ -42,6 +42,7 @@ struct Solution {
   /// this says how far it is (the tip is exact either way).
   double axis_error_rad = 0.0;
   std::string violation;  ///< empty when every axis is inside its limits, else the first broken limit
+  [[nodiscard]] bool exact() const { return axis_error_rad == 0.0; }
   [[nodiscard]] bool feasible() const { return violation.empty(); }
 };
 

@@ -81,7 +81,13 @@ class XminiKinematics final : public Kinematics {
   bool solve_platform_for_tip(double c_rad, double a_rad, const Eigen::Vector3d& tip_W_mm, XminiState<double>& x) const;
   /// A start for solve_platform_for_tip: the untilted platform under the wrist, put into the legs' plane.
   [[nodiscard]] XminiState<double> platform_start(double c_rad, double a_rad, const Eigen::Vector3d& tip_W_mm) const;
-  void to_solutions(const std::vector<XminiIkSolution>& in, bool principal_only, std::vector<Solution>& out) const;
+  void to_solutions(const Posed& pose, const std::vector<XminiIkSolution>& in, bool principal_only,
+                    std::vector<Solution>& out) const;
+  /// Where a wrist branch has no exact solution (with psi != 0 directions within |psi| of the C axis are
+  /// unreachable; with gx, gy != 0 the tip swings with C about the pole): the (c, a) nearest `q`'s whose tool axis
+  /// is closest to pose.axis with the tip exactly at pose.tip_mm (Levenberg-Marquardt on the axis error, the platform
+  /// solved for the tip at every step). Sets q (legs too), the angle left and the broken limit; false if none.
+  bool nearest_reachable(const Posed& pose, Axes& q, double& axis_error_rad, std::string& violation) const;
 
   XminiModel model_;
   std::vector<AxisInfo> axes_;
