@@ -314,6 +314,16 @@ SerialKinematics layout_kinematics(const SerialGeometry<double>& g) {
                               rot("r1", -36000, 36000, true), rot("r2", -36000, 36000, true)});
 }
 
+/// body(k) for `per_layout` randomly calibrated machines of each of the four serial layouts (traced).
+template <typename Body>
+void for_calibrated_machines(int per_layout, std::mt19937_64& rng, Body body) {
+  for (int layout = 0; layout < 4; ++layout)
+    for (int n = 0; n < per_layout; ++n) {
+      SCOPED_TRACE(::testing::Message() << "layout " << layout << " machine " << n);
+      body(layout_kinematics(calibrated(layout_geometry(layout), rng)));
+    }
+}
+
 double angle_between(const Vec3& a, const Vec3& b) { return std::atan2(a.cross(b).norm(), a.dot(b)); }
 
 /// The oracle for how near the machine's tool axis comes to `u`: the least angle over both rotaries, by a 3-degree
@@ -356,36 +366,33 @@ TEST(SerialKinematics, CalibratedMachinesReachAxesBesideThePrimaryAsNearlyAsThey
   std::uniform_real_distribution<double> U(-100, 100), R(0, 1), Az(-kPi, kPi);
   std::vector<Solution> sols;
   int inside_cones = 0;
-  for (int layout = 0; layout < 4; ++layout)
-    for (int n = 0; n < 5; ++n) {
-      SCOPED_TRACE(::testing::Message() << "layout " << layout << " machine " << n);
-      const SerialKinematics k = layout_kinematics(calibrated(layout_geometry(layout), rng));
-      const Vec3 w1 = k.geometry().joints[static_cast<std::size_t>(k.rotary_pair()[0])].direction;
-      for (int i = 0; i < 10; ++i) {
-        // Within 1.5 mrad of either pole of the primary.
-        const Vec3 pole = (i % 2 ? -1.0 : 1.0) * w1;
-        const Vec3 u = tilted(pole, 1.5e-3 * R(rng), rng);
-        const Posed target{Vec3(U(rng), U(rng), U(rng)), u};
-        const double oracle = nearest_reachable_angle(k, u);
-        k.inverse_branches(target, nullptr, sols);
-        if (oracle > tol::kReachSlackRad) {  // a pole outside the band (the nutating head's downward axis)
-          EXPECT_TRUE(sols.empty());
-          continue;
-        }
-        inside_cones += oracle > 1e-7;
-        ASSERT_FALSE(sols.empty()) << "axis " << u.transpose() << " is " << oracle << " rad from the reachable ones";
-        int nearest = 0;
-        for (const auto& s : sols) {
-          const Posed p = k.forward(s.axes);
-          EXPECT_LT((p.tip_mm - target.tip_mm).norm(), tol::kRoundTripMm);
-          EXPECT_NEAR(angle_between(p.axis, u), s.axis_error_rad, 1e-8);
-          if (s.singular) continue;  // the free primary of the pole (CalibratedMachinesKeepThePrimaryFreeAtTheVertical)
-          ++nearest;
-          EXPECT_NEAR(s.axis_error_rad, oracle, 1e-8);
-        }
-        EXPECT_GE(nearest, 1);
+  for_calibrated_machines(5, rng, [&](const SerialKinematics& k) {
+    const Vec3 w1 = k.geometry().joints[static_cast<std::size_t>(k.rotary_pair()[0])].direction;
+    for (int i = 0; i < 10; ++i) {
+      // Within 1.5 mrad of either pole of the primary.
+      const Vec3 pole = (i % 2 ? -1.0 : 1.0) * w1;
+      const Vec3 u = tilted(pole, 1.5e-3 * R(rng), rng);
+      const Posed target{Vec3(U(rng), U(rng), U(rng)), u};
+      const double oracle = nearest_reachable_angle(k, u);
+      k.inverse_branches(target, nullptr, sols);
+      if (oracle > tol::kReachSlackRad) {  // a pole outside the band (the nutating head's downward axis)
+        EXPECT_TRUE(sols.empty());
+        continue;
       }
+      inside_cones += oracle > 1e-7;
+      ASSERT_FALSE(sols.empty()) << "axis " << u.transpose() << " is " << oracle << " rad from the reachable ones";
+      int nearest = 0;
+      for (const auto& s : sols) {
+        const Posed p = k.forward(s.axes);
+        EXPECT_LT((p.tip_mm - target.tip_mm).norm(), tol::kRoundTripMm);
+        EXPECT_NEAR(angle_between(p.axis, u), s.axis_error_rad, 1e-8);
+        if (s.singular) continue;  // the free primary of the pole (CalibratedMachinesKeepThePrimaryFreeAtTheVertical)
+        ++nearest;
+        EXPECT_NEAR(s.axis_error_rad, oracle, 1e-8);
+      }
+      EXPECT_GE(nearest, 1);
     }
+  });
   EXPECT_GT(inside_cones, 20);  // the requested axes inside an unreachable cone, not only beside it
 }
 
@@ -397,32 +404,29 @@ TEST(SerialKinematics, CalibratedMachinesListEveryBranchBesideThePrimary) {
   auto rng = test::rng(12);
   std::uniform_real_distribution<double> U(-100, 100), Near(-3e-3, 3e-3), Az(-kPi, kPi);
   std::vector<Solution> sols;
-  for (int layout = 0; layout < 4; ++layout)
-    for (int n = 0; n < 6; ++n) {
-      SCOPED_TRACE(::testing::Message() << "layout " << layout << " machine " << n);
-      const SerialKinematics k = layout_kinematics(calibrated(layout_geometry(layout), rng));
-      const auto rp = k.rotary_pair();
-      for (int i = 0; i < 40; ++i) {
-        Axes q;
-        q << U(rng), U(rng), U(rng), 0, 0;
-        q[rp[0]] = Az(rng);
-        q[rp[1]] = (i % 2 ? kPi : 0.0) + Near(rng);
-        const Posed target = k.forward(q);
-        k.inverse_branches(target, nullptr, sols);
-        ASSERT_FALSE(sols.empty());
-        double nearest = std::numeric_limits<double>::infinity();
-        for (const auto& s : sols) {
-          const Posed p = k.forward(s.axes);
-          EXPECT_LT((p.tip_mm - target.tip_mm).norm(), tol::kRoundTripMm);
-          // The pole's free-primary branch is the nearest axis at the hint's primary, off by axis_error_rad.
-          EXPECT_LT(angle_between(p.axis, target.axis), s.singular ? s.axis_error_rad + 1e-12 : tol::kRoundTripRad);
-          double d = 0;
-          for (const int r : rp) d += std::abs(std::remainder(s.axes[r] - q[r], 2 * kPi));
-          nearest = std::min(nearest, d);
-        }
-        EXPECT_LT(nearest, 1e-6) << "the branch of " << q.transpose() << " is missing";
+  for_calibrated_machines(6, rng, [&](const SerialKinematics& k) {
+    const auto rp = k.rotary_pair();
+    for (int i = 0; i < 40; ++i) {
+      Axes q;
+      q << U(rng), U(rng), U(rng), 0, 0;
+      q[rp[0]] = Az(rng);
+      q[rp[1]] = (i % 2 ? kPi : 0.0) + Near(rng);
+      const Posed target = k.forward(q);
+      k.inverse_branches(target, nullptr, sols);
+      ASSERT_FALSE(sols.empty());
+      double nearest = std::numeric_limits<double>::infinity();
+      for (const auto& s : sols) {
+        const Posed p = k.forward(s.axes);
+        EXPECT_LT((p.tip_mm - target.tip_mm).norm(), tol::kRoundTripMm);
+        // The pole's free-primary branch is the nearest axis at the hint's primary, off by axis_error_rad.
+        EXPECT_LT(angle_between(p.axis, target.axis), s.singular ? s.axis_error_rad + 1e-12 : tol::kRoundTripRad);
+        double d = 0;
+        for (const int r : rp) d += std::abs(std::remainder(s.axes[r] - q[r], 2 * kPi));
+        nearest = std::min(nearest, d);
       }
+      EXPECT_LT(nearest, 1e-6) << "the branch of " << q.transpose() << " is missing";
     }
+  });
 }
 
 // On the ideal machine the vertical tool (the home tool direction) lies along the primary, which is then free (kept
@@ -435,43 +439,40 @@ TEST(SerialKinematics, CalibratedMachinesKeepThePrimaryFreeAtTheVertical) {
   auto rng = test::rng(13);
   std::uniform_real_distribution<double> U(-100, 100), Az(-kPi, kPi);
   std::vector<Solution> sols;
-  for (int layout = 0; layout < 4; ++layout)
-    for (int n = 0; n < 6; ++n) {
-      SCOPED_TRACE(::testing::Message() << "layout " << layout << " machine " << n);
-      const SerialKinematics k = layout_kinematics(calibrated(layout_geometry(layout), rng));
-      const auto rp = k.rotary_pair();
-      const Vec3 w1 = k.geometry().joints[static_cast<std::size_t>(rp[0])].direction;
-      const Vec3 vertical = k.forward(Axes::Zero()).axis;
-      const double rho = std::min(angle_between(vertical, w1), angle_between(vertical, -w1));
-      ASSERT_GT(rho, 1e-6);
-      for (int i = 0; i < 5; ++i) {
-        Axes hint = Axes::Zero();
-        hint[rp[0]] = Az(rng);
-        const Posed target{Vec3(U(rng), U(rng), U(rng)), vertical};
-        k.inverse_branches(target, &hint, sols);
-        int exact = 0, singular = 0;
-        for (const auto& s : sols) {
-          const Posed p = k.forward(s.axes);
-          EXPECT_LT((p.tip_mm - target.tip_mm).norm(), tol::kRoundTripMm);
-          if (!s.singular) {
-            ++exact;
-            EXPECT_LT(angle_between(p.axis, vertical), tol::kRoundTripRad);
-            continue;
-          }
-          ++singular;
-          EXPECT_NEAR(std::remainder(s.axes[rp[0]] - hint[rp[0]], 2 * kPi), 0.0, 1e-12);
-          EXPECT_NEAR(angle_between(p.axis, vertical), s.axis_error_rad, 1e-12);
-          EXPECT_LE(s.axis_error_rad, 2 * rho + 1e-12);
-          double best = std::numeric_limits<double>::infinity();  // the oracle: every secondary at this primary
-          Axes q = s.axes;
-          for (int j = 0; j < 3600; ++j) {
-            q[rp[1]] = deg2rad(0.1 * j);
-            best = std::min(best, angle_between(k.forward(q).axis, vertical));
-          }
-          EXPECT_LE(s.axis_error_rad, best + 1e-9);
+  for_calibrated_machines(6, rng, [&](const SerialKinematics& k) {
+    const auto rp = k.rotary_pair();
+    const Vec3 w1 = k.geometry().joints[static_cast<std::size_t>(rp[0])].direction;
+    const Vec3 vertical = k.forward(Axes::Zero()).axis;
+    const double rho = std::min(angle_between(vertical, w1), angle_between(vertical, -w1));
+    ASSERT_GT(rho, 1e-6);
+    for (int i = 0; i < 5; ++i) {
+      Axes hint = Axes::Zero();
+      hint[rp[0]] = Az(rng);
+      const Posed target{Vec3(U(rng), U(rng), U(rng)), vertical};
+      k.inverse_branches(target, &hint, sols);
+      int exact = 0, singular = 0;
+      for (const auto& s : sols) {
+        const Posed p = k.forward(s.axes);
+        EXPECT_LT((p.tip_mm - target.tip_mm).norm(), tol::kRoundTripMm);
+        if (!s.singular) {
+          ++exact;
+          EXPECT_LT(angle_between(p.axis, vertical), tol::kRoundTripRad);
+          continue;
         }
-        EXPECT_GE(exact, 1);
-        EXPECT_EQ(singular, 1);
+        ++singular;
+        EXPECT_NEAR(std::remainder(s.axes[rp[0]] - hint[rp[0]], 2 * kPi), 0.0, 1e-12);
+        EXPECT_NEAR(angle_between(p.axis, vertical), s.axis_error_rad, 1e-12);
+        EXPECT_LE(s.axis_error_rad, 2 * rho + 1e-12);
+        double best = std::numeric_limits<double>::infinity();  // the oracle: every secondary at this primary
+        Axes q = s.axes;
+        for (int j = 0; j < 3600; ++j) {
+          q[rp[1]] = deg2rad(0.1 * j);
+          best = std::min(best, angle_between(k.forward(q).axis, vertical));
+        }
+        EXPECT_LE(s.axis_error_rad, best + 1e-9);
       }
+      EXPECT_GE(exact, 1);
+      EXPECT_EQ(singular, 1);
     }
+  });
 }
