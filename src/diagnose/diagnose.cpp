@@ -1392,9 +1392,9 @@ Report diagnose(sim::Recording& rec, const machine::Machine& m, const std::vecto
   }
   if (!R.offsets.empty()) {
     std::string offs;
-    for (const auto& [name, v] : R.offsets) {
-      const auto& c = *std::find_if(comps.begin(), comps.end(), [&](const Comp& x) { return x.name == name; });
-      offs += fmt::format("{}{} {}", offs.empty() ? "" : ", ", name, fmt_group(m, c.group, v));
+    for (const auto& off : R.offsets) {  // (no structured binding: a lambda captures it)
+      const auto& c = *std::find_if(comps.begin(), comps.end(), [&](const Comp& x) { return x.name == off.first; });
+      offs += fmt::format("{}{} {}", offs.empty() ? "" : ", ", off.first, fmt_group(m, c.group, off.second));
     }
     R.verdict += fmt::format(
         "; constant offsets (a zero or reference shift, or an effect this motion shows only as a constant, such as "
