@@ -240,8 +240,9 @@ class Space {
   bool rows_in_closed_form_ = false;
   Eigen::Vector3d v2_p_ = Eigen::Vector3d::Zero(), v2_q_ = Eigen::Vector3d::Zero(), v2_r_ = Eigen::Vector3d::Zero();
   /// The in-cone grid cells of a CL axis, row by row (rows_in_closed_form_): (cosine to the axis, i1, i2).
-  void scan_rows(const Eigen::Vector3d& cl_axis, double cos_min,
-                 const std::function<void(double, int, int)>& take) const;
+  /// `take(cosine, i1, i2)` per cell (a template: it runs for every cell of every cone; defined in cspace.cpp).
+  template <typename Take>
+  void scan_rows(const Eigen::Vector3d& cl_axis, double cos_min, Take&& take) const;
   geom::ToolShape tip_tool_;      ///< the lowest part of the cutter as a flat cylinder (Rapid-mode sweeps)
   double reach_mm_ = 0.0;         ///< tool length plus largest checked radius: lever arm of a tool-axis rotation
   double cutter_reach_mm_ = 0.0;  ///< the same for the cutter body alone (its top plus its checked radius)
