@@ -907,6 +907,92 @@ TEST(PlannerWindows, WindowsShareOneMoveAndCutAtSegmentEnds) {
       EXPECT_TRUE(prog.moves[b + 1].kind == cl::MotionKind::Rapid || prog.moves[b].kind != cl::MotionKind::Rapid);
   EXPECT_EQ(plan::effective_window(60, {}), 0u) << "automatic: no windows for a short program";
   EXPECT_EQ(plan::effective_window(60000, {}), 1000u);
+  EXPECT_EQ(plan::effective_window(60, {}), 0u) << "below auto_above the cell budget decides (plan_windowed)";
+}
+
+TEST(PlannerWindows, CostWindowsHoldTheBudgetAndCountsMatchTheListing) {
+  // windows_by_cost against its definition, on random costs: windows share one move, cover the program, and hold at
+  // most the budget each beyond their pinned first move (unless a single move exceeds it alone).
+  std::ostringstream o;
+  o << "UNITS/MM\nMULTAX\nCUTTER/10,0\nFEDRAT/MMPM,1000\n";
+  std::mt19937 rng(test::kSeed);
+  std::uniform_real_distribution<double> U(0.0, 1.0);
+  for (int i = 0; i < 300; ++i) o << (U(rng) < 0.03 ? "RAPID\n" : "") << "GOTO/" << i << ",0,0,0,0,1\n";
+  const cl::Program prog = cl::read_text(o.str(), "cost.cls");
+  std::vector<double> cost(prog.moves.size());
+  for (double& c : cost) c = U(rng) < 0.1 ? 40.0 : 1.0 + 9.0 * U(rng);
+  for (const double budget : {30.0, 100.0, 1000.0, 1e9}) {
+    const auto w = plan::windows_by_cost(prog, cost, budget);
+    ASSERT_FALSE(w.empty());
+    EXPECT_EQ(w.front().first, 0u);
+    EXPECT_EQ(w.back().second, prog.moves.size() - 1);
+    for (std::size_t i = 0; i < w.size(); ++i) {
+      const auto [a, b] = w[i];
+      EXPECT_GT(b, a) << "a window holds a move after its pinned one";
+      if (i > 0) EXPECT_EQ(a, w[i - 1].second) << "consecutive windows share one move";
+      double sum = 0;
+      for (std::size_t m = a + 1; m <= b; ++m) sum += cost[m];
+      if (b > a + 1) EXPECT_LE(sum, budget) << "window " << i;
+    }
+    if (budget >= 1e9) EXPECT_EQ(w.size(), 1u);
+  }
+  // windows_of is the unit-cost case.
+  EXPECT_EQ(plan::windows_of(prog, 25), plan::windows_by_cost(prog, std::vector<double>(prog.moves.size(), 1.0), 25));
+  // The cone's cell count without the listing, against the listing itself (near the singular axis the cap decides).
+  const auto m = trunnion();
+  cspace::Options co;
+  co.cone_rad = deg2rad(8.0);
+  const cspace::Space sp(m.kinematics(), nullptr, nullptr, co);
+  for (const double tilt : {0.0, 3.0, 7.5, 20.0, 60.0})
+    for (const std::size_t cap : {std::size_t{300}, std::size_t{100000}}) {
+      const kin::Posed cl{
+          Vec3(1, 2, 3),
+          Vec3(std::sin(deg2rad(tilt)), 0.2 * std::sin(deg2rad(tilt)), std::cos(deg2rad(tilt))).normalized()};
+      std::vector<cspace::Cell> cells;
+      cspace::Counters c;
+      sp.enumerate(cl, cells, cap, c);
+      EXPECT_EQ(sp.count_in_cone(cl, cap), cells.size()) << "tilt " << tilt << " cap " << cap;
+    }
+}
+
+TEST(PlannerWindows, AutomaticWindowsKeepTheCellListsWithinTheBudget) {
+  // A sweep near the vertical (the C-space's singular axis) at cone 8: thousands of cells per point. Automatic
+  // windowing (no window size given) cuts the program so that no window lists more than the cell budget, and the
+  // windows join without a jump; with a budget the program fits, it is one planner run.
+  const cl::Program prog = sweep(
+      60, [](double s) { return 2.0 + 4.0 * s; }, [](double s) { return 30.0 * s; });
+  static const machine::Machine m = trunnion();
+  plan::Options o;
+  o.cspace.cone_rad = deg2rad(8.0);
+  const cspace::Space sp(m.kinematics(), nullptr, nullptr, o.cspace);
+  std::vector<double> cells;
+  for (const auto& mv : prog.moves)
+    cells.push_back(static_cast<double>(
+        sp.count_in_cone({mv.tip_in_part_mm, mv.axis_in_part.normalized()}, o.max_cells_per_point)));
+  double total = 0;
+  for (double c : cells) total += c;
+  ASSERT_GT(total, 60 * 1000.0) << "thousands of cells per point";
+  plan::WindowOptions w;
+  w.cell_budget = static_cast<std::size_t>(total / 4);
+  const plan::Plan p = plan::plan_windowed(m, m.kinematics(), nullptr, nullptr, o, prog, w);
+  EXPECT_GE(p.windows, 4u) << p.summary();
+  EXPECT_NE(p.summary().find("windows (at most"), std::string::npos) << p.summary();
+  // As many windows as the budget asks for (a window holds at least half the budget unless it ends a segment; this
+  // sweep is one segment): from the exact counts, up to the sampling of every 8th point.
+  EXPECT_LE(p.windows, static_cast<std::size_t>(std::ceil(2.2 * total / static_cast<double>(w.cell_budget))) + 1);
+  const auto k = m.kinematics();
+  for (std::size_t i = 0; i < prog.moves.size(); ++i) {
+    EXPECT_LE(std::acos(std::min(1.0, k->forward(p.axes[i]).axis.dot(prog.moves[i].axis_in_part.normalized()))),
+              deg2rad(8.0) + 1e-9)
+        << "move " << i;
+    if (i > 0) EXPECT_LE(rotary_step(p, i), deg2rad(20.0) + 1e-9) << "no jump into move " << i;
+  }
+  w.cell_budget = static_cast<std::size_t>(2 * total);
+  const plan::Plan whole = plan::plan_windowed(m, m.kinematics(), nullptr, nullptr, o, prog, w);
+  EXPECT_EQ(whole.windows, 1u);
+  const plan::Plan direct = plan::Planner(m, m.kinematics(), nullptr, nullptr, o).run(prog);
+  for (std::size_t i = 0; i < prog.moves.size(); ++i)
+    for (int j = 0; j < 5; ++j) EXPECT_EQ(whole.axes[i][j], direct.axes[i][j]);
 }
 
 TEST(PlannerWindows, SmallWindowsKeepTheTiersAndJoinWithoutAJump) {

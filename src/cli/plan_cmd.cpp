@@ -350,7 +350,8 @@ void write_svgs(const Setup& s, const plan::Planner& planner, const plan::Plan& 
   }
 }
 
-/// The planner's answer, in windows of --window moves (automatic above 50,000 moves) so that memory stays bounded.
+/// The planner's answer, in windows of --window moves (automatic: above 50,000 moves, or by the cell budget) so that
+/// memory stays bounded.
 plan::Plan planned(const Setup& s, const PlanArgs& a, const geom::Scene* head) {
   plan::WindowOptions w;
   w.window = a.window;
@@ -665,7 +666,8 @@ void common_options(CLI::App* c, PlanArgs& a) {
       ->check(CLI::IsMember({"tilted", "machine"}));
   c->add_option("--window", a.window,
                 "plan in windows of N moves, each continuing where the previous ended (bounded memory); "
-                "default: 1000 above 50,000 moves, else none");
+                "default: 1000 above 50,000 moves, else windows of at most 4,000,000 listed C-space cells where the "
+                "points' cones hold more (none otherwise)");
   c->add_flag("--no-machine-geometry", a.no_machine_geometry,
               "leave the machine file's bodies (geometry.bodies) out of the collision scene");
 }

@@ -215,6 +215,18 @@ kin::Posed Space::tool_pose(const kin::Posed& cl, double r1, double r2) const {
   return {cl.tip_mm, a};
 }
 
+std::size_t Space::count_in_cone(const kin::Posed& cl, std::size_t cap) const {
+  if (opt_.cone_rad > 0 && rows_in_closed_form_) {  // (cells inside a minimum tilt counted too: at most a few)
+    std::size_t n = 0;
+    scan_rows(cl.axis, std::cos(opt_.cone_rad) - 1e-15, [&](double, int, int) { ++n; });
+    return std::min(n, cap);
+  }
+  std::vector<Cell> cells;
+  Counters ignored;
+  enumerate(cl, cells, cap, ignored);
+  return cells.size();
+}
+
 void Space::enumerate(const kin::Posed& cl, std::vector<Cell>& out, std::size_t cap, Counters& c) const {
   out.clear();
   std::vector<kin::Solution> sols;  // (the row scan needs none)

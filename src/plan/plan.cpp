@@ -116,6 +116,7 @@ std::string Plan::summary() const {
       s += fmt::format("    swept: {} move(s) collide, {} uncertified (first into CL line {}: {})\n",
                        g.swept_collisions, g.swept_uncertified, g.swept_first_line, g.swept_first_detail);
   }
+  if (windows > 1) s += fmt::format("planned in {} windows ({}), continuous at the joins\n", windows, window_rule);
   if (points_beyond_cap)
     s += fmt::format("{} point(s) needed cells beyond the first cells per point: searched their whole cone\n",
                      points_beyond_cap);

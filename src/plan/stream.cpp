@@ -9,6 +9,7 @@
 #include <limits>
 #include <map>
 #include <optional>
+#include <string>
 #include <utility>
 
 #include "cscam/core/error.hpp"
@@ -24,36 +25,48 @@ std::size_t effective_window(std::size_t moves, const WindowOptions& w) {
   return std::max<std::size_t>(n, 2);
 }
 
-std::vector<std::pair<std::size_t, std::size_t>> windows_of(const cl::Program& program, std::size_t window) {
+std::vector<std::pair<std::size_t, std::size_t>> windows_by_cost(const cl::Program& program,
+                                                                 const std::vector<double>& cost, double budget) {
   const auto& mv = program.moves;
   const std::size_t n = mv.size();
+  CSCAM_CHECK(cost.size() == n, "a cost per move");
   std::vector<std::pair<std::size_t, std::size_t>> out;
   if (n == 0) return out;
-  if (window < 2 || n <= window + 1) {
-    out.emplace_back(0, n - 1);
-    return out;
-  }
+  // Costs of moves [0, m): the cost of (a, b] is at[b + 1] - at[a + 1].
+  std::vector<double> at(n + 1, 0.0);
+  for (std::size_t m = 0; m < n; ++m) at[m + 1] = at[m] + cost[m];
+  auto between = [&](std::size_t a, std::size_t b) { return at[b + 1] - at[a + 1]; };
   for (std::size_t a = 0;;) {
-    if (n - 1 - a <= window) {
+    if (a + 1 >= n || between(a, n - 1) <= budget) {
       out.emplace_back(a, n - 1);
       break;
     }
-    // Prefer a segment end in the window's second half: the next window then starts a whole segment.
+    // The furthest end within the budget (a window covers at least its pinned move and one more).
+    std::size_t last = a + 1;
+    while (last + 1 < n && between(a, last + 1) <= budget) ++last;
+    // Prefer a segment end once half the budget is used: the next window then starts a whole segment.
     std::size_t b = 0;
-    for (std::size_t c = a + window; c > a + window / 2; --c)
+    for (std::size_t c = last; c > a && between(a, c) > 0.5 * budget; --c)
       if (mv[c + 1].kind == cl::MotionKind::Rapid) {
         b = c;
         break;
       }
     if (b == 0) {
       // Inside a segment: at a feed move (a pinned rapid would be a segment start the later window cannot approach).
-      b = a + window;
+      b = last;
       while (b > a + 1 && mv[b].kind == cl::MotionKind::Rapid) --b;
     }
     out.emplace_back(a, b);
     a = b;
   }
   return out;
+}
+
+std::vector<std::pair<std::size_t, std::size_t>> windows_of(const cl::Program& program, std::size_t window) {
+  const std::size_t n = program.moves.size();
+  if (n == 0) return {};
+  if (window < 2 || n <= window + 1) return {{0, n - 1}};
+  return windows_by_cost(program, std::vector<double>(n, 1.0), static_cast<double>(window));
 }
 
 namespace {
@@ -147,7 +160,28 @@ Plan plan_windowed(const machine::Machine& machine, std::shared_ptr<const kin::K
                    const cl::Program& program, const WindowOptions& w, const geom::Scene* head) {
   const auto t0 = std::chrono::steady_clock::now();
   const std::size_t window = effective_window(program.moves.size(), w);
-  if (window == 0) return Planner(machine, kinematics, scene, tool, options, head).run(program);
+  std::unique_ptr<cspace::Space> space;  // for the cell counts and the orientation pre-pass
+  std::vector<std::pair<std::size_t, std::size_t>> wins;
+  std::string rule;
+  if (window > 0) {
+    wins = windows_of(program, window);
+    rule = fmt::format("{} moves each", window);
+  } else if (w.window == 0 && w.cell_budget > 0 && program.moves.size() > 2) {
+    // The points' cell lists (what the planner keeps per point) against the budget: counted at every kStride-th
+    // point (neighbouring points have cones of about the same size), at most the cap a layer lists.
+    constexpr std::size_t kStride = 8;
+    space = std::make_unique<cspace::Space>(kinematics, scene, tool, options.cspace, head);
+    const auto& mv = program.moves;
+    std::vector<double> cells(mv.size(), 0.0);
+    for (std::size_t m0 = 0; m0 < mv.size(); m0 += kStride) {
+      const auto n = static_cast<double>(
+          space->count_in_cone({mv[m0].tip_in_part_mm, mv[m0].axis_in_part.normalized()}, options.max_cells_per_point));
+      for (std::size_t m = m0; m < std::min(mv.size(), m0 + kStride); ++m) cells[m] = n;
+    }
+    wins = windows_by_cost(program, cells, static_cast<double>(w.cell_budget));
+    rule = fmt::format("at most {} listed cells each", w.cell_budget);
+  }
+  if (wins.size() <= 1) return Planner(machine, kinematics, scene, tool, options, head).run(program);
   CSCAM_CHECK(!options.start_rotaries, "plan_windowed pins the windows' first moves itself");
   const auto rp = kinematics->rotary_pair();
   const std::size_t n = program.moves.size();
@@ -162,8 +196,6 @@ Plan plan_windowed(const machine::Machine& machine, std::shared_ptr<const kin::K
   sub.multax = program.multax;
   sub.msys = program.msys;
   sub.tools = program.tools;
-  const auto wins = windows_of(program, window);
-  std::unique_ptr<cspace::Space> space;  // for the orientation pre-pass
   for (std::size_t wi = 0; wi < wins.size(); ++wi) {
     const auto [a, b] = wins[wi];
     sub.moves.assign(program.moves.begin() + static_cast<std::ptrdiff_t>(a),
@@ -264,6 +296,8 @@ Plan plan_windowed(const machine::Machine& machine, std::shared_ptr<const kin::K
       if (seg.legs.state == Legs::NotCounted || seg.legs.state == Legs::Monotonic) seg.legs = r.legs;
     }
   }
+  out.windows = wins.size();
+  out.window_rule = rule;
   out.seconds = std::chrono::duration<double>(std::chrono::steady_clock::now() - t0).count();
   rusage ru{};
   if (getrusage(RUSAGE_SELF, &ru) == 0) out.peak_memory_mb = static_cast<double>(ru.ru_maxrss) / 1024.0;

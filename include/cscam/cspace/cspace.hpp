@@ -153,6 +153,10 @@ class Space {
   /// The cells of a CL pose that pass the orientation test (cheap: no stroke/collision yet), at most
   /// `cap` of them, closest to the CL axis first. At cone 0 these are the exact IK solutions.
   void enumerate(const kin::Posed& cl_pose, std::vector<Cell>& out, std::size_t cap, Counters& c) const;
+  /// How many cells enumerate() would list for this pose with this cap (at most), without listing them where the grid
+  /// rows have a closed form (a count along each row; cells inside the minimum tilt are counted too); otherwise the
+  /// listing's size. For sizing planning windows.
+  [[nodiscard]] std::size_t count_in_cone(const kin::Posed& cl_pose, std::size_t cap) const;
   /// Orientation test of one grid cell (cone and minimum tilt); fills orient_err.
   [[nodiscard]] bool in_cone(const kin::Posed& cl_pose, double r1, double r2, float* orient_err = nullptr) const;
   /// in_cone's answer without an arc cosine away from the bounds (for long scans): `dot` gets the cosine of the

@@ -139,6 +139,8 @@ struct Plan {
   std::vector<std::size_t> replaced_moves;  ///< approach/retract moves re-placed along the chosen tool axis
   double seconds = 0.0;
   double peak_memory_mb = 0.0;  ///< the process's peak resident memory when the plan was done
+  std::size_t windows = 1;      ///< windows the program was planned in (plan_windowed)
+  std::string window_rule;      ///< how the windows were cut (empty: one window)
   std::vector<std::string> warnings;
   std::string summary() const;
   /// What a program posted from this plan is judged against: the CL `cl` it was planned from (whose axes the cone

@@ -13,10 +13,14 @@ namespace cscam::plan {
 
 /// How plan_windowed cuts a program.
 struct WindowOptions {
-  /// Moves per window; 0: automatic (no windows up to `auto_above` moves, `auto_window` above).
+  /// Moves per window; 0: automatic: `auto_window` moves per window above `auto_above` moves; up to that, one window
+  /// unless the points' cell lists together would exceed `cell_budget` cells, in which case windows holding at most
+  /// that many (the lists are the planner's memory: about 150 bytes a cell, thousands per point near a singular axis
+  /// with a wide cone).
   std::size_t window = 0;
   std::size_t auto_above = 50000;
   std::size_t auto_window = 1000;
+  std::size_t cell_budget = 4000000;
 };
 
 /// The window size plan_windowed uses for a program of `moves` moves (0: one window, the planner as is).
@@ -28,6 +32,13 @@ struct WindowOptions {
 /// segment at a feed move.
 [[nodiscard]] std::vector<std::pair<std::size_t, std::size_t>> windows_of(const cl::Program& program,
                                                                           std::size_t window);
+
+/// As windows_of, but each window holds moves whose costs (`cost[m]` for move m, the window's pinned first move not
+/// counted) sum to at most `budget` (and at least one move after the pinned one); a segment end is preferred once
+/// half the budget is used. windows_of(program, N) is this with every cost 1 and budget N.
+[[nodiscard]] std::vector<std::pair<std::size_t, std::size_t>> windows_by_cost(const cl::Program& program,
+                                                                               const std::vector<double>& cost,
+                                                                               double budget);
 
 /// Plans `program` as Planner::run does, in windows of `w.window` moves (see WindowOptions). Each window is a
 /// Planner::run on its moves; a window after the first starts with the previous window's last move pinned to the
