@@ -11,6 +11,7 @@
 #include <sstream>
 
 #include "cscam/cl/program.hpp"
+#include "cscam/geom/mesh.hpp"
 #include "cscam/machine/machine.hpp"
 #include "cscam/post/post.hpp"
 #include "cscam/report/verify.hpp"
@@ -1419,6 +1420,40 @@ TEST(Cli, PlanOptionsNoMachineCanUseAreRefusedFirst) {
     EXPECT_NE(r.output.find(what), std::string::npos) << opts << "\n" << r.output;
     EXPECT_FALSE(fs::exists(out)) << opts;
   }
+}
+
+// The groove part written in inches and read as mm: 1/25.4 of its size near the origin, inside the path's box, so no
+// "far from the path" warning; the plan names the likely unit instead. With --mesh-scale 25.4 it is the part again.
+TEST(Cli, APartMeshInInchesIsAWarning) {
+  TempDir d;
+  const cscam::geom::Mesh groove = cscam::geom::load_mesh(cscam::test::source_path("examples/groove/groove.stl"));
+  std::ostringstream stl;
+  stl.precision(12);
+  stl << "solid inch\n";
+  for (const auto& t : groove.triangles) {
+    stl << "facet normal 0 0 0\nouter loop\n";
+    for (int k = 0; k < 3; ++k) {
+      const Eigen::Vector3d v = groove.vertices_mm[static_cast<std::size_t>(t[k])] / 25.4;
+      stl << "vertex " << v.x() << " " << v.y() << " " << v.z() << "\n";
+    }
+    stl << "endloop\nendfacet\n";
+  }
+  stl << "endsolid inch\n";
+  const std::string inch = d.file("inch.stl", stl.str());
+  const std::string cl = cscam::test::source_path("examples/groove/groove.cls");
+  const auto r =
+      run_command(kCli + " plan " + cl + " --machine trunnion-ac --cone 5 --part " + inch + " -o " + d.file("g.ngc"));
+  EXPECT_NE(r.output.find("inch.stl: the part spans"), std::string::npos) << r.output;
+  EXPECT_NE(r.output.find("--mesh-scale 25.4"), std::string::npos) << r.output;
+  EXPECT_EQ(r.output.find("the mesh lies"), std::string::npos) << r.output;
+  const auto ok = run_command(kCli + " plan " + cl + " --machine trunnion-ac --cone 25 --part " + inch +
+                              " --mesh-scale 25.4 -o " + d.file("h.ngc"));
+  EXPECT_EQ(ok.output.find("the part spans"), std::string::npos) << ok.output;
+  // The real part in mm: no unit warning either.
+  const auto mm = run_command(kCli + " plan " + cl + " --machine trunnion-ac --cone 25 --part " +
+                              cscam::test::source_path("examples/groove/groove.stl") + " -o " + d.file("i.ngc"));
+  EXPECT_EQ(mm.status, 0) << mm.output;
+  EXPECT_EQ(mm.output.find("the part spans"), std::string::npos) << mm.output;
 }
 
 // A part mesh far from the CL path (another origin or unit) constrains nothing: the plan says so instead of calling

@@ -151,9 +151,11 @@ std::unique_ptr<Setup> setup(const PlanArgs& a, std::vector<std::string>* warnin
   return s;
 }
 
-/// A part or fixture mesh far from the CL path (another origin, or units): it would constrain nothing, and the plan
-/// would be "collision-free" against it.
-void warn_if_off_the_path(Setup& s, const std::string& path, const geom::Mesh& mesh) {
+/// A part or fixture mesh far from the CL path (another origin, or units), or a part far smaller than the cutting moves
+/// that 25.4 times larger would meet them (inches read as mm): it would constrain nothing, and the plan would be
+/// "collision-free" against it. (Not with --mesh-scale given: the user has chosen the unit.)
+void warn_if_off_the_path(Setup& s, const std::string& path, const geom::Mesh& mesh, geom::ObstacleRole role,
+                          double a_scale) {
   Eigen::AlignedBox3d cl_box;
   for (const auto& mv : s.prog.moves) cl_box.extend(mv.tip_in_part_mm);
   const Eigen::AlignedBox3d box = mesh.bounding_box();
@@ -161,11 +163,28 @@ void warn_if_off_the_path(Setup& s, const std::string& path, const geom::Mesh& m
   const Eigen::Vector3d gap =
       (box.min() - cl_box.max()).cwiseMax(cl_box.min() - box.max()).cwiseMax(Eigen::Vector3d::Zero());
   const double reach_mm = s.tool_length + 100.0;  // the tool and its holder reach no further from the tip
-  if (gap.norm() > reach_mm)
+  if (gap.norm() > reach_mm) {
     s.warn(fmt::format(
         "{}: the mesh lies {:.0f} mm from the CL path (its box x {:.1f}..{:.1f}, y {:.1f}..{:.1f}, z "
         "{:.1f}..{:.1f} mm): nothing of the tool reaches it; another origin or unit (--mesh-scale)?",
         path, gap.norm(), box.min().x(), box.max().x(), box.min().y(), box.max().y(), box.min().z(), box.max().z()));
+    return;
+  }
+  // A part in inches read as mm sits near the origin at 1/25.4 of its size, often inside the path's box: the
+  // cutting moves then span far more than the part does, and the part scaled by 25.4 would meet them.
+  if (role != geom::ObstacleRole::Part || a_scale != 1.0) return;
+  Eigen::AlignedBox3d cut_box;
+  for (const auto& mv : s.prog.moves)
+    if (mv.kind != cl::MotionKind::Rapid) cut_box.extend(mv.tip_in_part_mm);
+  if (cut_box.isEmpty()) return;
+  const double cut_mm = cut_box.diagonal().norm(), part_mm = box.diagonal().norm();
+  constexpr double kInch = 25.4;
+  const Eigen::AlignedBox3d as_inches(kInch * box.min(), kInch * box.max());
+  if (part_mm > 0 && cut_mm > 10.0 * part_mm && as_inches.intersects(cut_box))
+    s.warn(
+        fmt::format("{}: the part spans {:.2f} mm across but the cutting moves {:.1f} mm; scaled by 25.4 it would "
+                    "meet them: a mesh in inches? (--mesh-scale 25.4)",
+                    path, part_mm, cut_mm));
 }
 
 void add_scene(Setup& s, const PlanArgs& a, const std::vector<cl::Tool>& tools, bool require_tool) {
@@ -173,7 +192,7 @@ void add_scene(Setup& s, const PlanArgs& a, const std::vector<cl::Tool>& tools, 
        {std::pair{&a.parts, geom::ObstacleRole::Part}, std::pair{&a.fixtures, geom::ObstacleRole::Fixture}})
     for (const auto& p : *paths) {
       geom::Mesh mesh = checked_mesh(s, p, a.mesh_scale);
-      warn_if_off_the_path(s, p, mesh);
+      warn_if_off_the_path(s, p, mesh, role, a.mesh_scale);
       s.scene.add(fs::path(p).filename().string(), role, std::move(mesh));
     }
   // Machine meshes from the machine file: the table moves with the part (fixed in the part frame), the head
