@@ -748,6 +748,32 @@ TEST(Cli, AssumedMillimetresAreAWarning) {
   EXPECT_EQ(r.output.find("no UNITS/"), std::string::npos) << r.output;
 }
 
+// A CL without units posted with --units inch: the header records the unit, and verify reads the CL in it (the
+// program passes, with a note), where reading it in the assumed mm would compare against a path 25.4 times smaller.
+TEST(Cli, VerifyReadsTheClInTheUnitThePostUsed) {
+  TempDir d;
+  const std::string cl =
+      d.file("in.cls", "FEDRAT/20\nRAPID\nGOTO/0,0,2,0,0,1\nGOTO/0,0,0,0,0,1\nGOTO/1,0.5,0,0,0,1\nGOTO/2,0,0,0,0,1\n");
+  const std::string nc = d.file("in.ngc");
+  auto r = run_command(kCli + " post " + q(cl) + " --units inch --machine trunnion-ac -o " + q(nc));
+  ASSERT_EQ(r.status, 0) << r.output;
+  std::ifstream in(nc);
+  const std::string text((std::istreambuf_iterator<char>(in)), {});
+  EXPECT_NE(text.find(" cl_units=inch)"), std::string::npos) << text;
+  r = run_command(kCli + " verify " + q(nc) + " --machine trunnion-ac --cl " + q(cl));
+  EXPECT_EQ(r.status, 0) << r.output;
+  EXPECT_NE(r.output.find("read in inch (its header"), std::string::npos) << r.output;
+  // Said otherwise on the command line: the CL in mm, and the program no longer follows it.
+  r = run_command(kCli + " verify " + q(nc) + " --machine trunnion-ac --cl " + q(cl) + " --units mm");
+  EXPECT_EQ(r.status, 1) << r.output;
+  // Posted in the CL's own unit: no note.
+  r = run_command(kCli + " post " + q(cl) + " --machine trunnion-ac -o " + q(d.file("mm.ngc")));
+  ASSERT_EQ(r.status, 0) << r.output;
+  r = run_command(kCli + " verify " + q(d.file("mm.ngc")) + " --machine trunnion-ac --cl " + q(cl));
+  EXPECT_EQ(r.status, 0) << r.output;
+  EXPECT_EQ(r.output.find("its header"), std::string::npos) << r.output;
+}
+
 TEST(Cli, MachineFileErrorsNameTheMachineFileNotTheClFile) {
   TempDir d;
   const std::string cl = d.file("part.cls", kSmallCl);

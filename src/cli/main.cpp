@@ -164,11 +164,18 @@ struct VerifyArgs {
 
 int cmd_verify(const VerifyArgs& a) {
   const machine::Machine m = machine::load(resolve_machine(a.machine));
-  cl::ReadOptions ro;
-  ro.units = parse_units(a.units);
-  const cl::Program prog = cl::read_file(a.cl, ro);
   // Tool-tip-control programs are read with the tip words X Y Z and compared through the control's view.
   nc::Program ncp = report::read_file_for_machine(a.nc, m);
+  cl::ReadOptions ro;
+  ro.units = parse_units(a.units);
+  cl::Program prog = cl::read_file(a.cl, ro);
+  // A program posted from a CL read in another unit (post --units) says so in its header: read the CL as it was.
+  if (!ro.units && ncp.header_cl_units && *ncp.header_cl_units != prog.source_units) {
+    ro.units = ncp.header_cl_units;
+    prog = cl::read_file(a.cl, ro);
+    std::cerr << fmt::format("note: {} was posted from {} read in {} (its header; --units to say otherwise)\n", a.nc,
+                             a.cl, *ro.units == LengthUnit::Inch ? "inch" : "mm");
+  }
   // Another machine's program would be verified against the wrong kinematics: an error, not a verdict.
   if (auto mismatch = report::check_machine_of(ncp, m)) throw *mismatch;
   const double L = a.tool_length >= 0 ? a.tool_length : ncp.tool_length_mm.value_or(m.default_tool_length_mm);

@@ -27,15 +27,23 @@ static_assert(sizeof(Block) <= 128, "nc::Block grew: keep rare members out of li
 
 namespace {
 
-/// "cone_deg=X" in our header comment (the rest of the line from "cscam tool_length_mm="): a planned program's cone.
+/// "cone_deg=X" and "cl_units=U" in our header comment (the rest of the line from "cscam tool_length_mm="): a planned
+/// program's cone, and the unit the CL was read in.
 void read_header_cone(std::string_view rest, Program& prog) {
-  constexpr std::string_view kKey = " cone_deg=";
-  const auto p = rest.find(kKey);
-  if (p == std::string_view::npos) return;
-  const auto v = rest.substr(p + kKey.size());
-  double c = 0;
-  if (std::from_chars(v.data(), v.data() + v.size(), c).ec == std::errc() && std::isfinite(c) && c > 0 && c <= 90)
-    prog.header_cone_deg = c;
+  constexpr std::string_view kKey = " cone_deg=", kUnits = " cl_units=";
+  if (const auto p = rest.find(kKey); p != std::string_view::npos) {
+    const auto v = rest.substr(p + kKey.size());
+    double c = 0;
+    if (std::from_chars(v.data(), v.data() + v.size(), c).ec == std::errc() && std::isfinite(c) && c > 0 && c <= 90)
+      prog.header_cone_deg = c;
+  }
+  if (const auto p = rest.find(kUnits); p != std::string_view::npos) {
+    const auto v = rest.substr(p + kUnits.size());
+    if (v.substr(0, 4) == "inch")
+      prog.header_cl_units = LengthUnit::Inch;
+    else if (v.substr(0, 2) == "mm")
+      prog.header_cl_units = LengthUnit::Millimetre;
+  }
 }
 
 // Character classes of the "C" locale (cscam never sets another), inline: the reader asks them for every

@@ -107,8 +107,9 @@ void Formatter::header_comments(std::string& out, bool with_name) {
                            name(), sanitize_comment(info_.strategy)));
   if (!info_.source_name.empty()) comment(out, "source: " + info_.source_name);
   comment(out,
-          fmt::format("cscam tool_length_mm={:.4f} tolerance_mm={:.4f}{}", info_.tool_length_mm, info_.tolerance_mm,
-                      info_.cone_deg > 0 ? fmt::format(" cone_deg={:.4f}", info_.cone_deg) : std::string()));
+          fmt::format("cscam tool_length_mm={:.4f} tolerance_mm={:.4f}{}{}", info_.tool_length_mm, info_.tolerance_mm,
+                      info_.cone_deg > 0 ? fmt::format(" cone_deg={:.4f}", info_.cone_deg) : std::string(),
+                      info_.cl_units.empty() ? std::string() : " cl_units=" + info_.cl_units));
   if (info_.tcp) {
     std::string rot;
     for (size_t i = 0; i < 5; ++i)

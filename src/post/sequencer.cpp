@@ -82,6 +82,7 @@ Sequencer::Sequencer(std::ostream& out, const cl::Program& program, const machin
   info_.tool_length_mm = opt.tool_length_mm;
   info_.tolerance_mm = tol_mm_;
   info_.cone_deg = opt.cone_deg;
+  info_.cl_units = program.source_units == LengthUnit::Inch ? "inch" : "mm";
   info_.tcp = cart_;
   info_.tcp_vectors = vectors_;
   info_.inch = m_.post.inch;

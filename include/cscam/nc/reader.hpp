@@ -13,6 +13,8 @@
 #include <utility>
 #include <vector>
 
+#include "cscam/core/units.hpp"
+
 namespace cscam::nc {
 
 /// What the reader needs to know about the machine's axes (letters and which ones are rotary).
@@ -94,6 +96,8 @@ struct Program {
   std::vector<Block> blocks;
   std::optional<double> tool_length_mm;   ///< from a "(cscam tool_length_mm=...)" header comment
   std::optional<double> header_cone_deg;  ///< "cone_deg=..." in that comment: the cone the program was planned with
+  /// "cl_units=mm|inch" in that comment: the unit the post read the CL in (a --units override included).
+  std::optional<LengthUnit> header_cl_units;
   bool tcp = false;  ///< G43.4/G43.5/G234/M428/TRAORI/TCPM/M128 seen: axis values are part coordinates (Block::tcp)
   bool tcp_words = false;          ///< a word switched tool-tip control on (Block::tcp follows it; not a header alone)
   bool tcp_vectors = false;        ///< the tool orientation is given as vectors (Block::tool_vector)

@@ -26,6 +26,7 @@ struct ProgramInfo {
   double tool_length_mm = 0.0;
   double tolerance_mm = 0.01;
   double cone_deg = 0.0;     ///< a planned program's cone (header comment: verify compares ball centres within it)
+  std::string cl_units;      ///< the unit the CL was read in, "mm" or "inch" (header comment: verify reads it so)
   bool tcp = false;          ///< tool-tip control: linear words are the tip in the part frame
   bool tcp_vectors = false;  ///< the tool orientation as a vector (G43.5 I J K, Siemens A3 B3 C3), not angles
   bool inch = false;         ///< G20 / MM->INCH output

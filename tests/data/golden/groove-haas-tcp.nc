@@ -2,7 +2,7 @@
 O00001 (TRUNNION-AC)
 (cscam post: machine trunnion-ac dialect haas strategy conventional)
 (source: groove.cls)
-(cscam tool_length_mm=0.0000 tolerance_mm=0.0100)
+(cscam tool_length_mm=0.0000 tolerance_mm=0.0100 cl_units=mm)
 (cartesian: X Y Z = tool tip, A C = tool vector; the control runs the kinematics)
 G21 G90 G94 G17 G40 G49 G80
 G54

@@ -2,7 +2,7 @@
 1 ; (TRUNNION-AC)
 2 ; (cscam post: machine trunnion-ac dialect heidenhain strategy conventional)
 3 ; (source: groove.cls)
-4 ; (cscam tool_length_mm=0.0000 tolerance_mm=0.0100)
+4 ; (cscam tool_length_mm=0.0000 tolerance_mm=0.0100 cl_units=mm)
 5 ; (cartesian: X Y Z = tool tip, A C = tool vector; the control runs the kinematics)
 6 CYCL DEF 247 DATUM SETTING ~
   Q339=+1 ;DATUM NUMBER

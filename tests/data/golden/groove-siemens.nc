@@ -1,7 +1,7 @@
 ; (TRUNNION-AC)
 ; (cscam post: machine trunnion-ac dialect siemens strategy conventional)
 ; (source: groove.cls)
-; (cscam tool_length_mm=0.0000 tolerance_mm=0.0100)
+; (cscam tool_length_mm=0.0000 tolerance_mm=0.0100 cl_units=mm)
 G710 G90 G94 G17 G40 G64
 TRAFOOF
 G54

@@ -2,7 +2,7 @@
 O0001 (HAAS-UMC750)
 (cscam post: machine haas-umc750 dialect fanuc strategy conventional)
 (source: variable_axis.cls)
-(cscam tool_length_mm=0.0000 tolerance_mm=0.0100)
+(cscam tool_length_mm=0.0000 tolerance_mm=0.0100 cl_units=inch)
 G21 G90 G94 G17 G40 G49 G80
 G54
 (OPERATION NORM_PART)

@@ -2,7 +2,7 @@
 1 ; (HAAS-UMC750)
 2 ; (cscam post: machine haas-umc750 dialect heidenhain strategy conventional)
 3 ; (source: variable_axis.cls)
-4 ; (cscam tool_length_mm=0.0000 tolerance_mm=0.0100)
+4 ; (cscam tool_length_mm=0.0000 tolerance_mm=0.0100 cl_units=inch)
 5 CYCL DEF 247 DATUM SETTING ~
   Q339=+1 ;DATUM NUMBER
 6 ; (OPERATION NORM_PART)

@@ -2,7 +2,7 @@
 (HAAS-UMC750)
 (cscam post: machine haas-umc750 dialect linuxcnc strategy conventional)
 (source: variable_axis.cls)
-(cscam tool_length_mm=0.0000 tolerance_mm=0.0100)
+(cscam tool_length_mm=0.0000 tolerance_mm=0.0100 cl_units=inch)
 (cartesian: X Y Z = tool tip, B C = tool vector; the control runs the kinematics)
 G21 G90 G94 G17 G40 G49 G80
 G54

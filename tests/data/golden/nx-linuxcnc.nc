@@ -2,7 +2,7 @@
 (HAAS-UMC750)
 (cscam post: machine haas-umc750 dialect linuxcnc strategy conventional)
 (source: variable_axis.cls)
-(cscam tool_length_mm=0.0000 tolerance_mm=0.0100)
+(cscam tool_length_mm=0.0000 tolerance_mm=0.0100 cl_units=inch)
 G21 G90 G94 G17 G40 G49 G80
 G54
 G64 P0.0100

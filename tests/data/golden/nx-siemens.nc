@@ -1,7 +1,7 @@
 ; (HAAS-UMC750)
 ; (cscam post: machine haas-umc750 dialect siemens strategy conventional)
 ; (source: variable_axis.cls)
-; (cscam tool_length_mm=0.0000 tolerance_mm=0.0100)
+; (cscam tool_length_mm=0.0000 tolerance_mm=0.0100 cl_units=inch)
 G710 G90 G94 G17 G40 G64
 TRAFOOF
 G54
