@@ -37,6 +37,7 @@ using namespace cscam;
 namespace {
 
 using cli::parse_units;
+using cli::read_cl_as_posted;
 using cli::resolve_machine;
 
 }  // namespace
@@ -47,6 +48,20 @@ std::optional<LengthUnit> parse_units(const std::string& s) {
   if (s == "mm") return LengthUnit::Millimetre;
   if (s == "inch" || s == "in") return LengthUnit::Inch;
   throw InputError(fmt::format("--units: expected mm or inch, got '{}'", s));
+}
+
+cl::Program read_cl_as_posted(const std::string& cl_path, const std::string& units_arg,
+                              const std::optional<LengthUnit>& header_units, const std::string& nc_path) {
+  cl::ReadOptions ro;
+  ro.units = parse_units(units_arg);
+  cl::Program prog = cl::read_file(cl_path, ro);
+  if (!ro.units && header_units && *header_units != prog.source_units) {
+    ro.units = header_units;
+    prog = cl::read_file(cl_path, ro);
+    std::cerr << fmt::format("note: {} was posted from {} read in {} (its header; --units to say otherwise)\n", nc_path,
+                             cl_path, *ro.units == LengthUnit::Inch ? "inch" : "mm");
+  }
+  return prog;
 }
 
 /// A machine may be named by path or by its name in the bundled machines/ folder.
@@ -166,16 +181,7 @@ int cmd_verify(const VerifyArgs& a) {
   const machine::Machine m = machine::load(resolve_machine(a.machine));
   // Tool-tip-control programs are read with the tip words X Y Z and compared through the control's view.
   nc::Program ncp = report::read_file_for_machine(a.nc, m);
-  cl::ReadOptions ro;
-  ro.units = parse_units(a.units);
-  cl::Program prog = cl::read_file(a.cl, ro);
-  // A program posted from a CL read in another unit (post --units) says so in its header: read the CL as it was.
-  if (!ro.units && ncp.header_cl_units && *ncp.header_cl_units != prog.source_units) {
-    ro.units = ncp.header_cl_units;
-    prog = cl::read_file(a.cl, ro);
-    std::cerr << fmt::format("note: {} was posted from {} read in {} (its header; --units to say otherwise)\n", a.nc,
-                             a.cl, *ro.units == LengthUnit::Inch ? "inch" : "mm");
-  }
+  const cl::Program prog = read_cl_as_posted(a.cl, a.units, ncp.header_cl_units, a.nc);
   // Another machine's program would be verified against the wrong kinematics: an error, not a verdict.
   if (auto mismatch = report::check_machine_of(ncp, m)) throw *mismatch;
   const double L = a.tool_length >= 0 ? a.tool_length : ncp.tool_length_mm.value_or(m.default_tool_length_mm);

@@ -56,6 +56,11 @@ std::function<int()> add_plan_commands(CLI::App& app);
 /// The --units option: empty (decide from the CL file), mm or inch; anything else is an InputError.
 std::optional<LengthUnit> parse_units(const std::string& s);
 
+/// The CL an NC program was posted from, read as the post read it: in the --units given, else in the unit the
+/// program's header records (a note on stderr when that differs from the CL's own), else as the CL declares.
+cl::Program read_cl_as_posted(const std::string& cl_path, const std::string& units_arg,
+                              const std::optional<LengthUnit>& header_units, const std::string& nc_path);
+
 /// A machine by path or by bundled name (shared with main.cpp).
 std::string resolve_machine(const std::string& arg);
 

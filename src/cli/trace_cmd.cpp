@@ -28,17 +28,15 @@ struct TraceArgs {
 
 int cmd_trace(const TraceArgs& a) {
   const machine::Machine m = machine::load(resolve_machine(a.machine));
-  cl::ReadOptions ro;
-  ro.units = parse_units(a.units);
-  const cl::Program prog = cl::read_file(a.cl, ro);
   double L = a.tool_length;
   std::optional<nc::Program> ncp;
   if (!a.nc.empty()) {
-    // The program that ran: its header names the machine and the tool length it was posted for.
+    // The program that ran: its header names the machine, the tool length and the CL unit it was posted for.
     ncp = nc::read_file(a.nc, report::axis_letters(m));
     if (auto mismatch = report::check_machine_of(*ncp, m)) throw *mismatch;
     if (L < 0 && ncp->tool_length_mm) L = *ncp->tool_length_mm;
   }
+  const cl::Program prog = read_cl_as_posted(a.cl, a.units, ncp ? ncp->header_cl_units : std::nullopt, a.nc);
   if (L < 0) L = m.default_tool_length_mm;
   const auto kin = m.make_kinematics(L);
   if (ncp)  // tilted-plane words as the machine axes they move
