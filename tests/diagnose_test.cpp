@@ -213,6 +213,22 @@ TEST(Diagnose, StraightnessOfZAlongXFromARaster) {
   EXPECT_TRUE(clean.findings.empty()) << clean.text();
 }
 
+// The column leans as the saddle accelerates: Z deflects 20 um per m/s^2 of X's acceleration (40 um at the raster's
+// 2 m/s^2 starts and stops). Seen by the tip, not by Z's encoder (the deflection is in the structure). On a raster
+// X's acceleration is neither X's position nor its velocity, so neither squareness nor lag stands in for it; the same
+// raster without it gives no such finding.
+TEST(Diagnose, CrossComplianceOfZWithTheAccelerationOfX) {
+  const auto r = run(raster(), trunnion(), {"cross_compliance:z,x:0.02"}, {"tip", "enc"}, 0.0005);
+  expect_found(r, "cross_compliance", "z,x", "mm_per_m_s2", 0.02);
+  const auto* f = find(r, "cross_compliance", "z,x");
+  ASSERT_NE(f, nullptr);
+  EXPECT_FALSE(f->effect->enc_visible) << r.text();
+  EXPECT_EQ(r.findings.size(), 1U) << r.text();
+  EXPECT_NE(r.verdict.find("cross compliance: z deflects"), std::string::npos) << r.verdict;
+  const auto clean = run(raster(), trunnion(), {}, {"tip", "enc"}, 0.0005);
+  EXPECT_EQ(find(clean, "cross_compliance", "z,x"), nullptr) << clean.text();
+}
+
 // A lead error that grows with the square of the distance from a point (straightness of X along itself), seen by the
 // tip but not by X's encoder (it is in the screw): found on X, invisible to the encoder.
 TEST(Diagnose, QuadraticLeadErrorOfXAlongItself) {

@@ -95,10 +95,10 @@ TEST(SimEffects, EveryEffectsAutodiffGradientMatchesFiniteDifferences) {
   const auto tr = square_path(m);
   const auto ctx = sim::make_context(tr.t, tr.cmd, {false, false, false, true, true});
   const std::vector<std::string> specs = {
-      "backlash:x:0.01",       "servo_lag:y:0.004",           "scale:x:30",
-      "squareness:x,y:50",     "cyclic:x:5:0.002:30",         "friction_spike:y:0.005:0.05",
-      "compliance:x:0.001",    "thermal_drift:tip.z:0.02:40", "vibration:tip.z:37.5:0.003:20",
-      "straightness:z,x:0.8:7"};
+      "backlash:x:0.01",        "servo_lag:y:0.004",           "scale:x:30",
+      "squareness:x,y:50",      "cyclic:x:5:0.002:30",         "friction_spike:y:0.005:0.05",
+      "compliance:x:0.001",     "thermal_drift:tip.z:0.02:40", "vibration:tip.z:37.5:0.003:20",
+      "straightness:z,x:0.8:7", "cross_compliance:z,x:0.004"};
   std::mt19937 rng(7);
   for (const auto& s : specs) {
     auto e = sim::parse_effect(s, m);

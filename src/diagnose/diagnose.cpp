@@ -558,6 +558,10 @@ std::string explain(const Effect& e, const std::string& dom) {
     return fmt::format("spike in {} after every reversal of {} (peak {}, decay {:.3f} s)", dom, e.target,
                        fmt_value(u, rep[0].second), rep[1].second);
   if (n == "compliance") return fmt::format("deflection in {} proportional to the acceleration of {}", dom, e.target);
+  if (n == "cross_compliance")
+    return fmt::format(
+        "deflection in {} proportional to the acceleration of the second axis of {} ({:.3g} mm per m/s^2)", dom,
+        e.target, rep[0].second);
   if (n == "geometric")
     return fmt::format("position-dependent error in {} reproduced by machine parameter {} off nominal by {:.6g} {}",
                        dom, e.target, e.p[0], e.unit);
@@ -593,6 +597,11 @@ std::string describe(const Effect& e) {
     return fmt::format("reversal spike of {} decaying in {:.0f} ms on {}", fmt_value(u, rep[0].second),
                        rep[1].second * 1000, e.target);
   if (n == "compliance") return fmt::format("compliance {:.3g} {} on {}", rep[0].second, rep[0].first, e.target);
+  if (n == "cross_compliance") {
+    const auto comma = e.target.find(',');
+    return fmt::format("cross compliance: {} deflects {} per m/s^2 of {}'s acceleration", e.target.substr(0, comma),
+                       fmt_um(rep[0].second), e.target.substr(comma + 1));
+  }
   if (n == "geometric")
     return fmt::format("geometry: {} is {:.6g} {} instead of {:.6g}", e.target, e.nominal + e.p[0], e.unit, e.nominal);
   return n + " on " + e.target;
@@ -855,12 +864,14 @@ Report diagnose(sim::Recording& rec, const machine::Machine& m, const std::vecto
   // orders: "z += g x" (X tilted toward Z) and "x += g z" (Z tilted toward X) differ in the machine frame; a circle
   // in the XY plane sees only the first.
   // Straightness: each linear axis bowing along each (itself included: a lead error that grows quadratically).
+  // Cross compliance: each linear axis deflecting with another's acceleration (one's own is `compliance`).
   if (has_geom_channel && m.kind == machine::ModelKind::Serial)
     for (int i = 0; i < 5; ++i)
       for (int j = 0; j < 5; ++j) {
         if (rot[i] || rot[j] || !moves[static_cast<size_t>(j)]) continue;
         const std::string pair = m.axes[static_cast<size_t>(i)].name + "," + m.axes[static_cast<size_t>(j)].name;
         if (i != j) protos.push_back(sim::make_effect("squareness", pair, m));
+        if (i != j) protos.push_back(sim::make_effect("cross_compliance", pair, m));
         protos.push_back(sim::make_effect("straightness", pair, m));
       }
   std::vector<sim::GridHints> hints(comps.size());

@@ -328,6 +328,29 @@ class Compliance : public EffectImpl<Compliance, 1> {
   }
 };
 
+/// Cross compliance: the first axis deflects against the commanded acceleration of the second (a column that leans
+/// when the saddle under it accelerates, a ram that dips as the table starts). Both linear slides of a serial
+/// machine; the deflection is in the structure, so the first axis's encoder does not see it.
+class CrossCompliance : public EffectImpl<CrossCompliance, 1> {
+ public:
+  std::string name() const override { return "cross_compliance"; }
+  Scope scope() const override { return Scope::Axis; }
+  std::vector<std::string> internal_names() const override { return {"k"}; }
+  std::vector<bool> linear() const override { return {true}; }
+  std::string signature() const override {
+    return fmt::format("deflection of the first axis proportional to the commanded acceleration of the second ({})",
+                       target);
+  }
+  template <class T>
+  T eval(const Context& c, size_t i, const T* pp) const {
+    return -(c.a[axis2][i] * 1e-3) * pp[0];  // a in m/s^2
+  }
+  std::vector<std::pair<std::string, double>> reported() const override { return {{"mm_per_m_s2", p[0]}}; }
+  void set_reported(const std::vector<std::pair<std::string, double>>& kv) override {
+    p[0] = get(kv, "mm_per_m_s2", name());
+  }
+};
+
 // ---- channel effects ----------------------------------------------------------------------------------
 
 class ThermalDrift : public EffectImpl<ThermalDrift, 2> {
@@ -426,6 +449,7 @@ const std::vector<std::pair<std::string, Factory>>& library() {
       {"cyclic", [] { return std::make_unique<Cyclic>(); }},
       {"friction_spike", [] { return std::make_unique<FrictionSpike>(); }},
       {"compliance", [] { return std::make_unique<Compliance>(); }},
+      {"cross_compliance", [] { return std::make_unique<CrossCompliance>(); }},
   };
   return lib;
 }
@@ -472,15 +496,16 @@ std::unique_ptr<Effect> make_effect(const std::string& name, const std::string& 
       e->channel = target;
       return e;
     }
-    if (name == "squareness" || name == "straightness") {
+    if (name == "squareness" || name == "straightness" || name == "cross_compliance") {
       const auto comma = target.find(',');
       if (comma == std::string::npos)
         throw InputError(fmt::format("effect {}: target must be an axis pair like {}, got '{}'", name,
                                      name == "squareness" ? "x,y" : "z,x", target));
       e->axis = m.axis_index(target.substr(0, comma));
       e->axis2 = m.axis_index(target.substr(comma + 1));
-      // Straightness of an axis along itself is a lead error that bows with the position.
-      if (e->axis < 0 || e->axis2 < 0 || (e->axis == e->axis2 && name == "squareness"))
+      // Straightness of an axis along itself is a lead error that bows with the position; an axis's compliance to
+      // its own acceleration is `compliance`.
+      if (e->axis < 0 || e->axis2 < 0 || (e->axis == e->axis2 && name != "straightness"))
         throw InputError(fmt::format("effect {}: '{}' is not a pair of axes of machine {}", name, target, m.name));
       // A property of Cartesian slides: between a parallel machine's legs, or with a rotary, it means nothing.
       if (m.kind != machine::ModelKind::Serial)
