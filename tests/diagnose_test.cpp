@@ -229,6 +229,22 @@ TEST(Diagnose, CrossComplianceOfZWithTheAccelerationOfX) {
   EXPECT_EQ(find(clean, "cross_compliance", "z,x"), nullptr) << clean.text();
 }
 
+// X's screw warms through the raster and grows: a scale error rising from 0 to 60 ppm with a 25 s time constant
+// (6 um at X = 100 mm by the end). Neither a scale error (constant in time) nor a drift (the same at both ends of
+// the stroke) explains it; the tip sees it, X's encoder on the motor does not.
+TEST(Diagnose, ThermalGrowthOfTheXScrew) {
+  const auto r = run(raster(), trunnion(), {"thermal_scale:x:ppm=60,time_constant_s=25"}, {"tip", "enc"}, 0.0005);
+  expect_found(r, "thermal_scale", "x", "ppm", 60);
+  const auto* f = find(r, "thermal_scale", "x");
+  ASSERT_NE(f, nullptr);
+  EXPECT_NEAR(param(*f, "time_constant_s"), 25.0, 8.0) << r.text();
+  EXPECT_FALSE(f->effect->enc_visible) << r.text();
+  EXPECT_EQ(find(r, "scale", "x"), nullptr) << r.text();
+  EXPECT_NE(r.verdict.find("thermal growth of x's screw"), std::string::npos) << r.verdict;
+  const auto clean = run(raster(), trunnion(), {}, {"tip", "enc"}, 0.0005);
+  EXPECT_EQ(find(clean, "thermal_scale", "x"), nullptr) << clean.text();
+}
+
 // A lead error that grows with the square of the distance from a point (straightness of X along itself), seen by the
 // tip but not by X's encoder (it is in the screw): found on X, invisible to the encoder.
 TEST(Diagnose, QuadraticLeadErrorOfXAlongItself) {

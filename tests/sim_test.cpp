@@ -98,7 +98,7 @@ TEST(SimEffects, EveryEffectsAutodiffGradientMatchesFiniteDifferences) {
       "backlash:x:0.01",        "servo_lag:y:0.004",           "scale:x:30",
       "squareness:x,y:50",      "cyclic:x:5:0.002:30",         "friction_spike:y:0.005:0.05",
       "compliance:x:0.001",     "thermal_drift:tip.z:0.02:40", "vibration:tip.z:37.5:0.003:20",
-      "straightness:z,x:0.8:7", "cross_compliance:z,x:0.004"};
+      "straightness:z,x:0.8:7", "cross_compliance:z,x:0.004",  "thermal_scale:x:ppm=40,time_constant_s=30"};
   std::mt19937 rng(7);
   for (const auto& s : specs) {
     auto e = sim::parse_effect(s, m);

@@ -332,6 +332,9 @@ class ChunkCost final : public ceres::CostFunction {
   std::vector<size_t> s_;
 };
 
+/// thermal_scale's shortest time constant, as a share of the recording's duration.
+constexpr double kThermalScaleMinTau = 0.1;
+
 /// Joint refit of all effects and the offsets on the training samples.
 void joint_fit(Fit& f, const std::vector<Effect*>& fx, size_t stride = 1) {
   ceres::Problem::Options po;
@@ -364,7 +367,11 @@ void joint_fit(Fit& f, const std::vector<Effect*>& fx, size_t stride = 1) {
         prob.SetParameterUpperBound(e->p.data(), static_cast<int>(q), std::max(e->p[q], hi + span));
       }
       if (names[q] == "tau_s" || names[q] == "decay_s" || names[q] == "period") {
-        prob.SetParameterLowerBound(e->p.data(), static_cast<int>(q), e->p[q] * 0.05);
+        // A screw that reaches its growth within a tenth of the run is a constant scale error to this recording:
+        // thermal_scale keeps its time constant above that, so the two stay apart (the scale has one parameter less).
+        const double floor =
+            e->name() == "thermal_scale" ? std::min(e->p[q], kThermalScaleMinTau * f.ctx->duration) : 0.0;
+        prob.SetParameterLowerBound(e->p.data(), static_cast<int>(q), std::max(e->p[q] * 0.05, floor));
         prob.SetParameterUpperBound(
             e->p.data(), static_cast<int>(q),
             names[q] == "decay_s" ? std::max(e->p[q], std::min(e->p[q] * 20, 1.0)) : e->p[q] * 20);
@@ -386,6 +393,7 @@ bool plausible(const Effect& e) {
   const std::string n = e.name();
   const double a = std::abs(e.p[0]);
   if (n == "scale") return a <= 1000;                                         // ppm
+  if (n == "thermal_scale") return a <= 1000 && e.p[1] > 0;                   // ppm at the end of the run
   if (n == "squareness") return a <= 5000;                                    // urad
   if (n == "straightness") return a <= 100;                                   // mm/m^2: 1 mm at 100 mm from the apex
   if (n == "servo_lag") return a <= 0.5;                                      // s
@@ -558,6 +566,11 @@ std::string explain(const Effect& e, const std::string& dom) {
     return fmt::format("spike in {} after every reversal of {} (peak {}, decay {:.3f} s)", dom, e.target,
                        fmt_value(u, rep[0].second), rep[1].second);
   if (n == "compliance") return fmt::format("deflection in {} proportional to the acceleration of {}", dom, e.target);
+  if (n == "thermal_scale")
+    return fmt::format(
+        "error in {} growing with the position of {} and with time ({:.1f} ppm at the end, time "
+        "constant {:.0f} s)",
+        dom, e.target, rep[0].second, rep[1].second);
   if (n == "cross_compliance")
     return fmt::format(
         "deflection in {} proportional to the acceleration of the second axis of {} ({:.3g} mm per m/s^2)", dom,
@@ -582,6 +595,9 @@ std::string describe(const Effect& e) {
     return fmt::format("vibration of {} at {:.1f} Hz in {}{}", fmt_um(rep[1].second), rep[0].second, e.target,
                        e.note.empty() ? "" : " (" + e.note + ")");
   if (n == "scale") return fmt::format("scale error of {:.1f} ppm on {}", rep[0].second, e.target);
+  if (n == "thermal_scale")
+    return fmt::format("thermal growth of {}'s screw: a scale error rising to {:.1f} ppm (time constant {:.0f} s)",
+                       e.target, rep[0].second, rep[1].second);
   if (n == "squareness") return fmt::format("squareness error of {:.1f} urad between {}", rep[0].second, e.target);
   if (n == "straightness") {
     // The bow over 100 mm either side of the apex says more to a machinist than the curvature.
@@ -841,10 +857,12 @@ Report diagnose(sim::Recording& rec, const machine::Machine& m, const std::vecto
   }
   for (int j = 0; j < 5; ++j) {
     const std::string ax = m.axes[static_cast<size_t>(j)].name;
-    for (const char* name : {"backlash", "servo_lag", "scale", "cyclic", "friction_spike", "compliance"}) {
+    for (const char* name :
+         {"backlash", "servo_lag", "scale", "cyclic", "friction_spike", "compliance", "thermal_scale"}) {
       if (!moves[static_cast<size_t>(j)]) break;
       const std::string n = name;
       if ((n == "backlash" || n == "friction_spike") && !reverses[static_cast<size_t>(j)]) continue;
+      if (n == "thermal_scale" && rot[static_cast<size_t>(j)]) continue;  // a lead screw's growth
       auto e = sim::make_effect(name, ax, m);
       if (has_enc(j)) {
         if (has_geom_channel) {

@@ -351,6 +351,39 @@ class CrossCompliance : public EffectImpl<CrossCompliance, 1> {
   }
 };
 
+/// Thermal scale: a lead screw that warms during the run and grows; the scale error rises from 0 at the start to
+/// `ppm` at the end as thermal_drift's profile does (time constant tau): q ppm 1e-6 (1 - e^(-t/tau)) / (1 -
+/// e^(-T/tau)). In the screw, so the axis's encoder on the motor does not see it.
+class ThermalScale : public EffectImpl<ThermalScale, 2> {
+ public:
+  std::string name() const override { return "thermal_scale"; }
+  Scope scope() const override { return Scope::Axis; }
+  std::vector<std::string> internal_names() const override { return {"ppm", "tau_s"}; }
+  std::vector<bool> linear() const override { return {true, false}; }
+  std::string signature() const override {
+    return fmt::format("error proportional to the position of {} growing with elapsed time (a warming screw)", target);
+  }
+  template <class T>
+  T eval(const Context& c, size_t i, const T* pp) const {
+    using std::exp;
+    const double T_run = std::max(c.duration, 1e-9);
+    return c.q[axis][i] * 1e-6 * pp[0] * (1.0 - exp(-(c.t[i] - c.t0) / pp[1])) / (1.0 - exp(-T_run / pp[1]));
+  }
+  std::vector<std::pair<std::string, double>> reported() const override {
+    return {{"ppm", p[0]}, {"time_constant_s", p[1]}};
+  }
+  void set_reported(const std::vector<std::pair<std::string, double>>& kv) override {
+    p[0] = get(kv, "ppm", name());
+    p[1] = get(kv, "time_constant_s", name());
+    if (!(p[1] > 0)) throw InputError("effect thermal_scale: time_constant_s must be positive");
+  }
+  std::vector<std::vector<double>> grid(const Context& c, const GridHints&) const override {
+    std::vector<std::vector<double>> g;
+    for (double f : {0.1, 0.2, 0.35, 0.5, 1.0, 2.0, 5.0}) g.push_back({0, f * std::max(c.duration, 1e-3)});
+    return g;
+  }
+};
+
 // ---- channel effects ----------------------------------------------------------------------------------
 
 class ThermalDrift : public EffectImpl<ThermalDrift, 2> {
@@ -450,6 +483,7 @@ const std::vector<std::pair<std::string, Factory>>& library() {
       {"friction_spike", [] { return std::make_unique<FrictionSpike>(); }},
       {"compliance", [] { return std::make_unique<Compliance>(); }},
       {"cross_compliance", [] { return std::make_unique<CrossCompliance>(); }},
+      {"thermal_scale", [] { return std::make_unique<ThermalScale>(); }},
   };
   return lib;
 }
@@ -521,7 +555,7 @@ std::unique_ptr<Effect> make_effect(const std::string& name, const std::string& 
       e->axis = m.axis_index(target);
       if (e->axis < 0) throw InputError(fmt::format("effect {}: machine {} has no axis '{}'", name, m.name, target));
       // Errors of the encoder's own scale or of the structure are invisible to the axis's encoder.
-      e->enc_visible = !(name == "scale" || name == "cyclic");
+      e->enc_visible = !(name == "scale" || name == "cyclic" || name == "thermal_scale");
     }
     e->rotary = m.axes[static_cast<size_t>(e->axis)].rotary();
     return e;
