@@ -507,6 +507,54 @@ TEST(ClIso, UnknownRecordWarnsAndContinues) {
       read_text("UNITS/MM\nPAINT/COLOR,3\nGOTO/0,0,0\nTool Path Listing has 2 lines.\n", "n.cls").warnings.empty());
 }
 
+// Records that move, repeat or replace the motion around them (a canned cycle's GOTOs are hole positions; TRACUT,
+// COPY, INDEX, ROTABL move or repeat the path) are errors naming their line: ignored with a warning, the program
+// would not drill, or would cut somewhere else. TRACUT/NOMORE and CYCLE/OFF end such a state and are harmless alone.
+TEST(ClIso, RecordsThatChangeTheMotionAreErrorsNotWarnings) {
+  for (const auto& [rec, what] : std::vector<std::pair<std::string, std::string>>{
+           {"CYCLE/DRILL,DEPTH,12,MMPM,150,CLEAR,3", "canned cycles are not supported"},
+           {"CYCLE/DRILL,12,IPM,5,0.1", "canned cycles are not supported"},
+           {"TRACUT/1,0,0,10,0,1,0,0,0,0,1,0", "TRACUT/ is not supported"},
+           {"COPY/1,XYROT,90,3", "COPY/ is not supported"},
+           {"INDEX/1", "INDEX/ is not supported"},
+           {"ROTABL/90,CLW", "ROTABL/ is not supported"},
+           {"GOHOME/0,0,100", "GOHOME/ is not supported"},
+           {"TLAXIS/NORMAL", "TLAXIS/"}}) {
+    const InputError e = error_of("UNITS/MM\nGOTO/0,0,5\n" + rec + "\nGOTO/10,0,5\n");
+    EXPECT_EQ(e.where().line, 3) << rec;
+    EXPECT_NE(std::string(e.what()).find(what), std::string::npos) << rec << ": " << e.what();
+  }
+  const Program p = read_text("UNITS/MM\nTRACUT/NOMORE\nCYCLE/OFF\nGOTO/0,0,0\n", "ok.cls");
+  EXPECT_TRUE(p.warnings.empty());
+  EXPECT_EQ(p.moves.size(), 1u);
+}
+
+// TLAXIS/i,j,k gives the tool axis of the GOTOs without one (3-axis GOTOs after a tilted axis: a 3+2 stretch).
+TEST(ClIso, TlaxisSetsTheAxisOfThreeAxisGotos) {
+  const Program p =
+      read_text("UNITS/MM\nMULTAX\nTLAXIS/0,1,1\nGOTO/0,0,0\nGOTO/1,0,0,0,0,1\nTLAXIS/1,0,0\nGOTO/2,0,0\n", "t.cls");
+  ASSERT_EQ(p.moves.size(), 3u);
+  EXPECT_LT((p.moves[0].axis_in_part - Eigen::Vector3d(0, 1, 1).normalized()).norm(), 1e-12);
+  EXPECT_LT((p.moves[1].axis_in_part - Eigen::Vector3d::UnitZ()).norm(), 1e-12);
+  EXPECT_LT((p.moves[2].axis_in_part - Eigen::Vector3d::UnitX()).norm(), 1e-12);
+  EXPECT_TRUE(p.warnings.empty());
+  EXPECT_NE(std::string(error_of("UNITS/MM\nTLAXIS/0,0,0\nGOTO/0,0,0\n").what()).find("TLAXIS"), std::string::npos);
+}
+
+// NX's drilling tool: TLDATA/DRILL,d,point angle,length,... (the point angle is no corner radius: a 118 deg point
+// was refused as a corner radius of 118 mm).
+TEST(ClIso, TldataDrillIsADrillNotACornerRadius) {
+  const Program p = read_text("UNITS/MM\nTLDATA/DRILL,8,118,50,35\nLOAD/TOOL,3\nGOTO/0,0,10\nGOTO/0,0,0\n", "d.cls");
+  ASSERT_EQ(p.tools.size(), 1u);
+  EXPECT_DOUBLE_EQ(p.tools[0].diameter_mm, 8.0);
+  EXPECT_DOUBLE_EQ(p.tools[0].corner_radius_mm, 0.0);
+  EXPECT_DOUBLE_EQ(p.tools[0].length_mm, 50.0);
+  EXPECT_NE(std::string(error_of("UNITS/MM\nTLDATA/DRILL,8,200,50\nGOTO/0,0,0\n").what()).find("point angle"),
+            std::string::npos);
+  EXPECT_NE(std::string(error_of("UNITS/MM\nTLDATA/TURN,8,1,50\nGOTO/0,0,0\n").what()).find("not a milling"),
+            std::string::npos);
+}
+
 TEST(ClIso, ExamplesParse) {
   const Program iso = read_file(source_path("examples/cl/iso_catia.cls"));
   EXPECT_TRUE(iso.warnings.empty());

@@ -877,13 +877,29 @@ void AptReader::spindl(const Statement& st, const Head& h) {
 void AptReader::tool_geometry(const Statement& st, const Head& h, bool tldata) {
   split_fields(h.args, h.args_offset, fields_);
   size_t first = 0;
+  bool drill = false;
   if (tldata && !fields_.empty() && !fields_[0].is_number() && fields_[0].status == NumStatus::Malformed &&
-      !fields_[0].text.empty() && std::isalpha(static_cast<unsigned char>(fields_[0].text[0])))
+      !fields_[0].text.empty() && std::isalpha(static_cast<unsigned char>(fields_[0].text[0]))) {
     first = 1;  // the tool type: MILL, DRILL, ...
+    // NX: TLDATA/MILL,d,r,length,... and TLDATA/DRILL,d,point angle,length,...; lathe tools have no cutter here.
+    drill = fields_[0].is_word("DRILL");
+    if (!drill && !fields_[0].is_word("MILL"))
+      fail(st, fields_[0].offset,
+           fmt::format("TLDATA/{}: not a milling or drilling tool (expected TLDATA/MILL or TLDATA/DRILL)",
+                       fields_[0].text));
+  }
   if (fields_.size() <= first)
     fail(st, h.args_offset + h.args.size(), fmt::format("{}/ without a diameter (expected a number)", h.keyword));
   auto value = [&](size_t i) { return i < fields_.size() ? number(st, fields_[i], "a tool dimension") * scale_ : 0.0; };
-  const double d = value(first), r = value(first + 1);
+  const double d = value(first);
+  if (drill && fields_.size() > first + 1) {
+    const double point_deg = number(st, fields_[first + 1], "a drill point angle");
+    if (!(point_deg > 0 && point_deg <= 180))
+      fail(st, fields_[first + 1].offset,
+           fmt::format("drill point angle out of range (expected 0 < angle <= 180 deg, got '{}')",
+                       fields_[first + 1].text));
+  }
+  const double r = drill ? 0.0 : value(first + 1);  // a drill's point is bounded by its flat end
   double len = 0.0;
   if (tldata) {
     len = value(first + 2);
@@ -1031,6 +1047,37 @@ bool AptReader::statement(const Statement& st) {
     prog_.events.back().seconds = secs;
   } else if (h.is("INSERT")) {
     push_event(Event::Kind::Insert, st.line, std::string(trim(h.args)));
+  } else if (h.is("TLAXIS")) {
+    // TLAXIS/i,j,k: the tool axis of the GOTOs that give none (3-axis and 3+2 stretches).
+    split_fields(h.args, h.args_offset, fields_);
+    const bool numbers =
+        std::all_of(fields_.begin(), fields_.end(), [](const auto& f) { return f.status != NumStatus::Malformed; });
+    double v[4];
+    size_t offs[5];
+    const int n = numbers ? parse_numbers(st, h.args, h.args_offset, v, offs, 4) : 0;
+    if (n != 3)
+      fail(st, h.args_offset,
+           "TLAXIS/ is supported as TLAXIS/i,j,k only (a fixed tool axis); the other forms (NORMAL, ATANGL, ...) "
+           "define the axis from geometry cscam does not have: output GOTO/x,y,z,i,j,k from the CAM system");
+    axis_ = unit_vector(st, v, offs[0], "TLAXIS tool axis");
+  } else if (h.is("CYCLE")) {
+    // The GOTOs under a canned cycle are hole positions, not the tool path: posting them as moves would not drill.
+    split_fields(h.args, h.args_offset, fields_);
+    if (fields_.empty() || !fields_[0].is_word("OFF"))
+      fail(st, h.keyword_offset,
+           fmt::format("CYCLE/{}: canned cycles are not supported (the GOTOs that follow are hole positions, not "
+                       "the tool path, and posting them as moves would not drill): output the cycle as explicit "
+                       "motion from the CAM system",
+                       trim(h.args)));
+  } else if (h.is("TRACUT") || h.is("COPY") || h.is("INDEX") || h.is("ROTABL") || h.is("ROTATE") || h.is("ROTHED") ||
+             h.is("GOHOME")) {
+    // They move or repeat the motion around them; ignored, the program would cut somewhere else.
+    split_fields(h.args, h.args_offset, fields_);
+    if (!(h.is("TRACUT") && !fields_.empty() && fields_[0].is_word("NOMORE")))
+      fail(st, h.keyword_offset,
+           fmt::format("{}/ is not supported: it transforms, repeats or adds motion that the CL does not list, so "
+                       "the program would not follow the part; output the motion itself from the CAM system",
+                       h.keyword));
   } else if (h.is("CUTCOM")) {
     // The CL is the tool path itself: the post writes it uncompensated (G40) and says so.
     warn(st, h.keyword_offset,
