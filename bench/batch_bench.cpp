@@ -35,7 +35,9 @@ void make_cl(const fs::path& path, unsigned seed, std::size_t points) {
         cy - 70.0 + 140.0 * static_cast<double>(row) / static_cast<double>(std::max<std::size_t>(rows - 1, 1));
     const double zz = std::sqrt(R * R - (x - cx) * (x - cx) - (y - cy) * (y - cy));
     if (k == 0) out << "RAPID\n";
-    out << fmt::format("GOTO/{:.4f},{:.4f},{:.4f},{:.7f},{:.7f},{:.7f}\n", x, y, zz - R + 20.0, (x - cx) / R,
+    // The dome stands 60 mm above the platter face (the part origin): its edge at z >= 30 mm, where the tilted
+    // holder clears the machine's table (machines/trunnion-ac.yaml's bodies; at +20 every file collided with it).
+    out << fmt::format("GOTO/{:.4f},{:.4f},{:.4f},{:.7f},{:.7f},{:.7f}\n", x, y, zz - R + 60.0, (x - cx) / R,
                        (y - cy) / R, zz / R);
   }
   out << "FINI\n";
@@ -84,6 +86,7 @@ int main(int argc, char** argv) {
     secs[threads] = std::chrono::duration<double>(std::chrono::steady_clock::now() - t0).count();
     if (rc != 0) {
       std::cerr << "batch failed (" << rc << "):\n" << slurp(dir / fmt::format("log{}.txt", threads));
+      fs::remove_all(dir);
       return 1;
     }
     // CPU time too: on a shared machine the wall time depends on the others' load, the CPU time does not.
