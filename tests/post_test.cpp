@@ -2017,3 +2017,25 @@ TEST(Post, ACalibratedTrunnionTurnsCAtTheVerticalAsLittleAsTheIdealOne) {
     EXPECT_TRUE(gs.ok) << gs.message;
   }
 }
+
+// A retract, turn and plunge at a point where the machine reaches the CL axis only approximately (C tilted 1.5 mrad:
+// the vertical tool is 0.09 deg out of reach). The plunge ran along the CL axis, beside the tool's own, 0.015 mm off
+// it over 10 mm, and the gate (rightly) measured it as a cut 10 mm off the path: the program was refused. Out and in
+// now follow the axis the machine has at each end of the turn; the gate passes the program, as on the ideal machine.
+TEST(Post, ARetractOnACalibratedMachineRunsAlongItsOwnToolAxis) {
+  const auto prog = cl::read_text(
+      "UNITS/MM\nMULTAX\nCUTTER/10,0\nFEDRAT/MMPM,1000\nRAPID\nGOTO/0,0,50,0,0,1\nGOTO/0,0,5,0,0,1\n"
+      "GOTO/10,0,5,0,0,1\nGOTO/10,10,5,0,0,1\nGOTO/20,10,5,0.05,0,0.99875\nGOTO/30,10,5,0,0,1\n",
+      "vertical.cls");
+  for (const char* c :
+       {"direction: [0, 0, 1], pivot_mm: [0, 0, 0]", "direction: [0.0015, 0, 1], pivot_mm: [0, 0, 0]",
+        "direction: [-0.0015, 0, 1], pivot_mm: [0, 0, 0]", "direction: [0, 0.0015, 1], pivot_mm: [0, 0, 0]"}) {
+    SCOPED_TRACE(c);
+    const auto m = machine_edited("trunnion-ac", {{"direction: [0, 0, 1], pivot_mm: [0, 0, 0]", c}});
+    const auto k = m.kinematics();
+    Posted p;
+    ASSERT_NO_THROW(p = post_program(prog, m, *k));
+    const auto gs = gate::check(p.text, "vertical.ngc", prog, m, *k, gate::options_for(m, 0, 0, 0));
+    EXPECT_TRUE(gs.ok) << gs.message;
+  }
+}

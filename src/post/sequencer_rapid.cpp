@@ -252,30 +252,38 @@ void Sequencer::turn_at(const cl::Move& m, const kin::Posed& pose, const kin::Ax
       return;
     }
   }
-  // Retract along the tool axis, turn at the safe position, come back above the point, plunge.
+  // Retract along the tool axis, turn at the safe position, come back above the point, plunge. Each along the axis
+  // the machine actually has there (FK of qa, of qb): a calibrated machine may reach the CL axis only to within a
+  // hundredth of a degree or so, and a plunge along the CL axis then runs beside the tool's own (0.015 mm over
+  // 10 mm at 1.5 mrad), which the gate rightly takes for a cut off the path.
   const double d = pol.retract_mm;
   kin::Axes up0, up1;
-  cl::Move m_up = m;  // the point d above m along the CL tool axis, at next's feed
-  m_up.tip_in_part_mm = pose.tip_mm + d * pose.axis;
-  m_up.axis_in_part = pose.axis;
-  m_up.feed_mm_per_min = feed_mm_min;
-  m_up.line = next.line;
-  const kin::Posed above{m_up.tip_in_part_mm, pose.axis};
-  if (!kin::nearest_solution(kin_, above, qa, up0) || !kin::nearest_solution(kin_, above, qb, up1) ||
-      rotary_jump(up0, qa) > kFlipCheckRad || rotary_jump(up1, qb) > kFlipCheckRad)
+  const Vec3 axis_a = kin_.forward(qa).axis, axis_b = kin_.forward(qb).axis;
+  auto above_m = [&](const Vec3& axis) {  // the point d above m along `axis`, at next's feed
+    cl::Move up = m;
+    up.tip_in_part_mm = pose.tip_mm + d * axis;
+    up.axis_in_part = axis;
+    up.feed_mm_per_min = feed_mm_min;
+    up.line = next.line;
+    return up;
+  };
+  const cl::Move m_up0 = above_m(axis_a), m_up1 = above_m(axis_b);
+  if (!kin::nearest_solution(kin_, {m_up0.tip_in_part_mm, axis_a}, qa, up0) ||
+      !kin::nearest_solution(kin_, {m_up1.tip_in_part_mm, axis_b}, qb, up1) || rotary_jump(up0, qa) > kFlipCheckRad ||
+      rotary_jump(up1, qb) > kFlipCheckRad)
     throw InputError(where, fmt::format("the rotaries must flip or unwind at CL line {} ({}) but the tool cannot "
                                         "retract {:.1f} mm along its axis inside the limits "
                                         "(post.singularity.retract_mm)",
                                         m.line, rotary_change(kin_, qa, qb), d));
-  stop_exactly_at_last_feed();    // no blend of the cut into the retract, nor of the plunge into the cut
-  feed_linear(m, qa, m_up, up0);  // straight out along the tool axis (linearised: a PKM's joints are not)
-  at_cut_ = false;                // already out
+  stop_exactly_at_last_feed();     // no blend of the cut into the retract, nor of the plunge into the cut
+  feed_linear(m, qa, m_up0, up0);  // straight out along the tool axis (linearised: a PKM's joints are not)
+  at_cut_ = false;                 // already out
   rapid(up1, next);
   resume_blend_ = false;
   cl::Move m_back = m;
   m_back.feed_mm_per_min = feed_mm_min;
   m_back.line = next.line;
-  feed_linear(m_up, up1, m_back, qb);  // and straight back in
+  feed_linear(m_up1, up1, m_back, qb);  // and straight back in
   resume_blend_ = true;
   ++sum_.retracts;
   sum_.warnings.push_back(
