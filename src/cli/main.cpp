@@ -36,7 +36,6 @@ using namespace cscam;
 
 namespace {
 
-using cli::parse_units;
 using cli::read_cl_as_posted;
 using cli::resolve_machine;
 
