@@ -101,6 +101,7 @@ TEST(Cli, CompareReportsAConventionalPostThatFailsAndStillComparesThePlan) {
   ASSERT_TRUE(j["conventional"].contains("error")) << j.dump(2);
   EXPECT_NE(j["conventional"]["error"].get<std::string>().find("must flip"), std::string::npos);
   EXPECT_TRUE(j["planner"]["verify_ok"].get<bool>());
+  EXPECT_EQ(j["planner"]["windows"], 1) << "a short program at a narrow cone: one window";
   EXPECT_TRUE(std::filesystem::exists(nc));
   // The planned program passes an independent verify against the CL.
   r = run_command(kCli + " verify " + nc + " --machine " + machine + " --cl " + cl + " --cone 5");

@@ -636,7 +636,9 @@ int run_compare(const PlanArgs& a) {
                            {"collision", p.counters.collision},
                            {"swept_moves", p.counters.swept},
                            {"swept_queries", p.counters.swept_queries}}},
-                         {"peak_memory_mb", report::rounded(p.peak_memory_mb, 1)}}}};
+                         {"peak_memory_mb", report::rounded(p.peak_memory_mb, 1)},
+                         {"windows", p.windows},
+                         {"window_rule", p.window_rule}}}};
   jc["planner"]["segments"] = std::move(segs);
   // JSON only where asked: a run must not leave files in the working directory it was not told to write.
   if (!a.json_out.empty()) {
