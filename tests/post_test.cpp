@@ -2038,4 +2038,16 @@ TEST(Post, ARetractOnACalibratedMachineRunsAlongItsOwnToolAxis) {
     const auto gs = gate::check(p.text, "vertical.ngc", prog, m, *k, gate::options_for(m, 0, 0, 0));
     EXPECT_TRUE(gs.ok) << gs.message;
   }
+  // Tilted 3 mrad (beyond tol::kReachSlackRad), the axes between the vertical and the next point pass through the cone
+  // about C that no rotary values reach. Both points are reachable: the error says so, and names the way between.
+  const auto m = machine_edited(
+      "trunnion-ac", {{"direction: [0, 0, 1], pivot_mm: [0, 0, 0]", "direction: [0.003, 0, 1], pivot_mm: [0, 0, 0]"}});
+  try {
+    (void)post::conventional_axes(prog, m, *m.kinematics());
+    ADD_FAILURE() << "no error for a path through the unreachable cone";
+  } catch (const InputError& e) {
+    EXPECT_EQ(e.where().line, 10);
+    EXPECT_NE(std::string(e.what()).find("from CL line 9"), std::string::npos) << e.what();
+    EXPECT_NE(std::string(e.what()).find("both points are reachable"), std::string::npos) << e.what();
+  }
 }

@@ -140,13 +140,26 @@ std::vector<kin::Axes> conventional_axes(const cl::Program& program, const machi
     if (!ok) {
       const auto& t = mv.tip_in_part_mm;
       const auto& u = mv.axis_in_part;
+      // Tracking fails without a broken limit either at the point itself or on the way to it: the tool axes
+      // between two reachable CL axes can pass through a cone the machine cannot point into (about a calibrated
+      // machine's tilted primary rotary), which is not the point's fault.
+      kin::Axes alone;
+      const bool reachable_alone =
+          have_prev && first_violation.empty() && kin::nearest_solution(kinematics, pose, prev, alone);
+      const std::size_t k = static_cast<std::size_t>(&mv - program.moves.data());
       throw InputError(
           SourceLoc{program.file, mv.line, 0},
-          fmt::format("CL point ({:.4f}, {:.4f}, {:.4f}) axis ({:.5f}, {:.5f}, {:.5f}) cannot be reached "
-                      "on machine '{}': {}",
-                      t.x(), t.y(), t.z(), u.x(), u.y(), u.z(), machine.name,
-                      first_violation.empty() ? std::string("no inverse-kinematics solution for this tool axis")
-                                              : first_violation));
+          reachable_alone
+              ? fmt::format("the tool axis from CL line {} to CL point ({:.4f}, {:.4f}, {:.4f}) axis ({:.5f}, "
+                            "{:.5f}, {:.5f}) passes where machine '{}' has no inverse-kinematics solution (a cone of "
+                            "tool axes no rotary values reach, e.g. about a slightly tilted rotary axis): both points "
+                            "are reachable, but no continuous motion follows the CL path between them",
+                            program.moves[k - 1].line, t.x(), t.y(), t.z(), u.x(), u.y(), u.z(), machine.name)
+              : fmt::format("CL point ({:.4f}, {:.4f}, {:.4f}) axis ({:.5f}, {:.5f}, {:.5f}) cannot be reached "
+                            "on machine '{}': {}",
+                            t.x(), t.y(), t.z(), u.x(), u.y(), u.z(), machine.name,
+                            first_violation.empty() ? std::string("no inverse-kinematics solution for this tool axis")
+                                                    : first_violation));
     }
     if (singular && always_sign == 0)
       resolve_singular(kinematics, program, static_cast<size_t>(&mv - program.moves.data()), chosen);
