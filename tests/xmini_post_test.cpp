@@ -456,7 +456,8 @@ TEST(XminiPost, APassBesideTheWristSingularityOfACalibratedMachineIsFollowed) {
   auto rng = test::rng(2024);
   std::uniform_real_distribution<double> mag(0.0005, 0.003);  // deg, the size of calibrated wrist tilts
   std::bernoulli_distribution sign(0.5);
-  std::vector<std::array<double, 2>> tilts{{0.002, 0.0}};  // the reported case, then seeded ones
+  // The nominal machine, the reported case, then seeded ones.
+  std::vector<std::array<double, 2>> tilts{{0.0, 0.0}, {0.002, 0.0}};
   for (int i = 0; i < 4; ++i) tilts.push_back({(sign(rng) ? 1 : -1) * mag(rng), (sign(rng) ? 1 : -1) * mag(rng)});
   for (const auto& [g1, g2] : tilts) {
     std::string text = read_text_file(test::source_path("machines/xmini.yaml"));
@@ -464,7 +465,8 @@ TEST(XminiPost, APassBesideTheWristSingularityOfACalibratedMachineIsFollowed) {
     text.replace(text.find("    gC2: 0\n"), 11, fmt::format("    gC2: {}\n", g2));
     const machine::Machine m = machine::load_text(text, test::source_path("machines/xmini-calibrated.yaml"));
     const auto k = m.kinematics();
-    for (const char* f : {"examples/cl/iso_catia.cls", "examples/xmini/seed000_x_cut.cls"}) {
+    for (const char* f :
+         {"examples/cl/iso_catia.cls", "examples/cl/points_csv.cls", "examples/xmini/seed000_x_cut.cls"}) {
       SCOPED_TRACE(fmt::format("gC1 {} gC2 {} {}", g1, g2, f));
       const cl::Program prog = cl::read_file(test::source_path(f));
       post::Summary sum;

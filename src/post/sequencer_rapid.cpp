@@ -252,25 +252,34 @@ void Sequencer::turn_at(const cl::Move& m, const kin::Posed& pose, const kin::Ax
       return;
     }
   }
-  // Retract along the tool axis, turn at the safe position, come back above the point, plunge. Each along the axis
-  // the machine actually has there (FK of qa, of qb): a calibrated machine may reach the CL axis only to within a
-  // hundredth of a degree or so, and a plunge along the CL axis then runs beside the tool's own (0.015 mm over
-  // 10 mm at 1.5 mrad), which the gate rightly takes for a cut off the path.
+  // Retract along the tool axis, turn at the safe position, come back above the point, plunge. The tip goes out and
+  // in along the axis the machine actually has at each end of the turn (FK of qa, of qb): a calibrated machine may
+  // reach the CL axis only to within a hundredth of a degree or so, and a plunge along the CL axis then runs beside
+  // the tool's own (0.015 mm over 10 mm at 1.5 mrad), which the gate rightly takes for a cut off the path. The
+  // orientation asked of the IK stays the CL axis, as at the point itself: near the pole a request a hair off it
+  // would land on a primary half a turn away.
   const double d = pol.retract_mm;
   kin::Axes up0, up1;
-  const Vec3 axis_a = kin_.forward(qa).axis, axis_b = kin_.forward(qb).axis;
-  auto above_m = [&](const Vec3& axis) {  // the point d above m along `axis`, at next's feed
+  // (Not on a machine whose FK is warm-started from its previous solve, the XMINI: from one branch to the other it
+  // may converge elsewhere. Its IK reaches the CL axis to within its own slack.)
+  const bool own_axis = !kin_.traits().forward_depends_on_call_order;
+  auto above_m = [&](const kin::Axes& q) {  // the point d above m along q's tool axis, at next's feed
+    Vec3 axis = pose.axis;
+    if (own_axis) {
+      const Vec3 a = kin_.forward(q).axis;
+      if (std::atan2(a.cross(pose.axis).norm(), a.dot(pose.axis)) <= tol::kReachSlackRad) axis = a;
+    }
     cl::Move up = m;
     up.tip_in_part_mm = pose.tip_mm + d * axis;
-    up.axis_in_part = axis;
+    up.axis_in_part = pose.axis;
     up.feed_mm_per_min = feed_mm_min;
     up.line = next.line;
     return up;
   };
-  const cl::Move m_up0 = above_m(axis_a), m_up1 = above_m(axis_b);
-  if (!kin::nearest_solution(kin_, {m_up0.tip_in_part_mm, axis_a}, qa, up0) ||
-      !kin::nearest_solution(kin_, {m_up1.tip_in_part_mm, axis_b}, qb, up1) || rotary_jump(up0, qa) > kFlipCheckRad ||
-      rotary_jump(up1, qb) > kFlipCheckRad)
+  const cl::Move m_up0 = above_m(qa), m_up1 = above_m(qb);
+  if (!kin::nearest_solution(kin_, {m_up0.tip_in_part_mm, pose.axis}, qa, up0) ||
+      !kin::nearest_solution(kin_, {m_up1.tip_in_part_mm, pose.axis}, qb, up1) ||
+      rotary_jump(up0, qa) > kFlipCheckRad || rotary_jump(up1, qb) > kFlipCheckRad)
     throw InputError(where, fmt::format("the rotaries must flip or unwind at CL line {} ({}) but the tool cannot "
                                         "retract {:.1f} mm along its axis inside the limits "
                                         "(post.singularity.retract_mm)",
