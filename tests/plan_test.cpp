@@ -936,6 +936,15 @@ TEST(PlannerWindows, CostWindowsHoldTheBudgetAndCountsMatchTheListing) {
     }
     if (budget >= 1e9) EXPECT_EQ(w.size(), 1u);
   }
+  // A last move alone over the budget (and a first one): windows of one move each there, the program covered.
+  std::vector<double> heavy(prog.moves.size(), 1.0);
+  heavy.back() = 500.0;
+  heavy[1] = 500.0;
+  const auto wh = plan::windows_by_cost(prog, heavy, 100.0);
+  ASSERT_FALSE(wh.empty());
+  EXPECT_EQ(wh.front(), (std::pair<std::size_t, std::size_t>{0, 1}));
+  EXPECT_EQ(wh.back().second, prog.moves.size() - 1);
+  EXPECT_EQ(wh.back().first + 1, prog.moves.size() - 1);
   // windows_of is the unit-cost case.
   EXPECT_EQ(plan::windows_of(prog, 25), plan::windows_by_cost(prog, std::vector<double>(prog.moves.size(), 1.0), 25));
   // The cone's cell count without the listing, against the listing itself (near the singular axis the cap decides).

@@ -44,6 +44,10 @@ std::vector<std::pair<std::size_t, std::size_t>> windows_by_cost(const cl::Progr
     // The furthest end within the budget (a window covers at least its pinned move and one more).
     std::size_t last = a + 1;
     while (last + 1 < n && between(a, last + 1) <= budget) ++last;
+    if (last + 1 >= n) {  // the last move alone is over the budget: it ends the program's last window
+      out.emplace_back(a, n - 1);
+      break;
+    }
     // Prefer a segment end once half the budget is used: the next window then starts a whole segment.
     std::size_t b = 0;
     for (std::size_t c = last; c > a && between(a, c) > 0.5 * budget; --c)
