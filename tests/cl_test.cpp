@@ -542,7 +542,7 @@ TEST(ClIso, TlaxisSetsTheAxisOfThreeAxisGotos) {
 }
 
 // NX's drilling tool: TLDATA/DRILL,d,point angle,length,... (the point angle is no corner radius: a 118 deg point
-// was refused as a corner radius of 118 mm).
+// was refused as a corner radius of 118 mm). Other tool types are read as a mill's numbers, with a warning.
 TEST(ClIso, TldataDrillIsADrillNotACornerRadius) {
   const Program p = read_text("UNITS/MM\nTLDATA/DRILL,8,118,50,35\nLOAD/TOOL,3\nGOTO/0,0,10\nGOTO/0,0,0\n", "d.cls");
   ASSERT_EQ(p.tools.size(), 1u);
@@ -551,8 +551,11 @@ TEST(ClIso, TldataDrillIsADrillNotACornerRadius) {
   EXPECT_DOUBLE_EQ(p.tools[0].length_mm, 50.0);
   EXPECT_NE(std::string(error_of("UNITS/MM\nTLDATA/DRILL,8,200,50\nGOTO/0,0,0\n").what()).find("point angle"),
             std::string::npos);
-  EXPECT_NE(std::string(error_of("UNITS/MM\nTLDATA/TURN,8,1,50\nGOTO/0,0,0\n").what()).find("not a milling"),
-            std::string::npos);
+  const Program t = read_text("UNITS/MM\nTLDATA/TCUTTER,20,1,60\nGOTO/0,0,0\n", "t.cls");
+  ASSERT_EQ(t.warnings.size(), 1u);
+  EXPECT_NE(t.warnings[0].message.find("TLDATA/TCUTTER read as TLDATA/MILL"), std::string::npos);
+  ASSERT_EQ(t.tools.size(), 1u);
+  EXPECT_DOUBLE_EQ(t.tools[0].corner_radius_mm, 1.0);
 }
 
 TEST(ClIso, ExamplesParse) {

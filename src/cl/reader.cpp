@@ -881,11 +881,14 @@ void AptReader::tool_geometry(const Statement& st, const Head& h, bool tldata) {
   if (tldata && !fields_.empty() && !fields_[0].is_number() && fields_[0].status == NumStatus::Malformed &&
       !fields_[0].text.empty() && std::isalpha(static_cast<unsigned char>(fields_[0].text[0]))) {
     first = 1;  // the tool type: MILL, DRILL, ...
-    // NX: TLDATA/MILL,d,r,length,... and TLDATA/DRILL,d,point angle,length,...; lathe tools have no cutter here.
+    // NX: TLDATA/MILL,d,r,length,... and TLDATA/DRILL,d,point angle,length,.... Other types are read as a mill's
+    // first three numbers, with a warning: their other dimensions (a T-slot cutter's neck, a barrel's profile) are
+    // not modelled.
     drill = fields_[0].is_word("DRILL");
     if (!drill && !fields_[0].is_word("MILL"))
-      fail(st, fields_[0].offset,
-           fmt::format("TLDATA/{}: not a milling or drilling tool (expected TLDATA/MILL or TLDATA/DRILL)",
+      warn(st, fields_[0].offset,
+           fmt::format("TLDATA/{} read as TLDATA/MILL,diameter,corner radius,length: the tool's other dimensions "
+                       "are not modelled (collision checks use a cylinder with that corner)",
                        fields_[0].text));
   }
   if (fields_.size() <= first)
