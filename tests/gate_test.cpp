@@ -568,3 +568,91 @@ TEST(Gate, ARapidMayNotCutWithItsCuttingEnd) {
   const auto down = gate::check(p.text, "onto.ngc", onto, m, *k, opt, &p.summary.cl_line_of_nc_line);
   EXPECT_TRUE(down.ok) << down.message;
 }
+
+namespace {
+
+/// Independent of the gate's search: the worst over the samples of every feed block of the smallest angle (deg)
+/// between the sample's tool axis and the axis of a CL pose whose tip lies within `tip_tol_mm` of the sample's tip.
+/// Every CL segment is tried (no window, no cursor), each sampled finely with its axis interpolated on the great
+/// circle. +inf where a sample has no CL pose within the tip tolerance. Blocks that move the tip only along the tool
+/// axis (the post's retract and plunge, off the path by design) are left out.
+double worst_axis_against_any_cl_pose(const std::string& nc_text, const cl::Program& prog, const machine::Machine& m,
+                                      const kin::Kinematics& k, double tip_tol_mm) {
+  const nc::Program p = nc::read_text(nc_text, "t.ngc", report::axis_letters(m));
+  struct Pose {
+    Eigen::Vector3d tip, axis;
+  };
+  std::vector<Pose> cl_poses;
+  constexpr int kClSteps = 400;
+  for (std::size_t i = 1; i < prog.moves.size(); ++i) {
+    const auto &a = prog.moves[i - 1], &b = prog.moves[i];
+    if (b.kind != cl::MotionKind::Feed) continue;
+    const Eigen::Vector3d ua = a.axis_in_part.normalized(), ub = b.axis_in_part.normalized();
+    const double th = std::acos(std::clamp(ua.dot(ub), -1.0, 1.0));
+    for (int s = 0; s <= kClSteps; ++s) {
+      const double t = static_cast<double>(s) / kClSteps;
+      const Eigen::Vector3d u =
+          th < 1e-12 ? ua : ((std::sin((1 - t) * th) * ua + std::sin(t * th) * ub) / std::sin(th)).normalized();
+      cl_poses.push_back({a.tip_in_part_mm + t * (b.tip_in_part_mm - a.tip_in_part_mm), u});
+    }
+  }
+  constexpr int kNcSteps = 50;
+  double worst = 0.0;
+  for (std::size_t i = 1; i < p.blocks.size(); ++i) {
+    if (p.blocks[i].motion != nc::Motion::Linear) continue;
+    kin::Axes qa, qb;
+    for (int j = 0; j < 5; ++j) {
+      qa[j] = p.blocks[i - 1].axes[static_cast<std::size_t>(j)];
+      qb[j] = p.blocks[i].axes[static_cast<std::size_t>(j)];
+    }
+    const kin::Posed xa = k.forward(qa), xb = k.forward(qb);
+    if ((xb.tip_mm - xa.tip_mm).norm() > tip_tol_mm &&
+        (xb.tip_mm - xa.tip_mm).cross(xa.axis.normalized()).norm() <= tip_tol_mm)
+      continue;
+    for (int s = 0; s <= kNcSteps; ++s) {
+      const kin::Posed x = k.forward(qa + (static_cast<double>(s) / kNcSteps) * (qb - qa));
+      double best = std::numeric_limits<double>::infinity();
+      for (const Pose& c : cl_poses)
+        if ((c.tip - x.tip_mm).norm() <= tip_tol_mm)
+          best = std::min(best, rad2deg(std::acos(std::clamp(c.axis.dot(x.axis.normalized()), -1.0, 1.0))));
+      worst = std::max(worst, best);
+    }
+  }
+  return worst;
+}
+
+}  // namespace
+
+TEST(Gate, AWalkThatCrossesItselfLaterIsJudgedWhereverItsTipCouldBe) {
+  // A random walk (generate_cl.py seed 5) doubles back, and 20 CL points later runs through the same spot with the
+  // axis 2.5 deg away. A sample near that spot was placed by its tip on the later segment, and its axis was only
+  // tried on the three segments either side of it: the gate refused a good program ("tool axis leaves the CL
+  // orientation by 2.4941 deg"). A sample's axis is now tried over the whole window its tip could be placed in.
+  // The oracle: every CL pose whose tip is within the tolerance, searched without a window. The control: one block
+  // with A turned by 1 deg is still refused.
+  const auto m = load_machine("head-head-ac");
+  const auto prog = cl::read_file(test::source_path("tests/data/crossing_walk.cls"));
+  const auto k = m.make_kinematics(post::tool_length_for(m, 0));
+  const Posted p = post_program(prog, m, *k);
+  const auto opt = gate::options_for(m, 0, 0, 0);
+  const auto s = gate::check(p.text, "walk.ngc", prog, m, *k, opt, &p.summary.cl_line_of_nc_line);
+  EXPECT_TRUE(s.ok) << s.message;
+  EXPECT_LE(worst_axis_against_any_cl_pose(p.text, prog, m, *k, opt.tip_tolerance_mm), opt.axis_tolerance_deg);
+
+  // The block into the spot the walk crosses again later (CL line 13, the fifth point), turned by 1 deg in A.
+  auto lines = lines_of(p.text);
+  const auto& cl_of = p.summary.cl_line_of_nc_line;
+  int nc_line = 0;  // 1-based
+  for (std::size_t j = 0; j < cl_of.size(); ++j)
+    if (cl_of[j] == 13 && lines[j].rfind("G1 ", 0) == 0) nc_line = static_cast<int>(j) + 1;
+  ASSERT_GT(nc_line, 0);
+  std::string& line = lines[static_cast<std::size_t>(nc_line - 1)];
+  std::smatch a;
+  ASSERT_TRUE(std::regex_search(line, a, std::regex("A(-?[0-9.]+)"))) << line;
+  line = std::regex_replace(line, std::regex("A-?[0-9.]+"), fmt::format("A{:.4f}", std::stod(a[1].str()) + 1.0));
+  const std::string tampered = join(lines);
+  EXPECT_GT(worst_axis_against_any_cl_pose(tampered, prog, m, *k, opt.tip_tolerance_mm), opt.axis_tolerance_deg);
+  const auto bad = gate::check(tampered, "walk.ngc", prog, m, *k, opt, &p.summary.cl_line_of_nc_line);
+  EXPECT_FALSE(bad.ok);
+  EXPECT_TRUE(has_kind(bad, gate::Violation::Kind::Deviation, 0)) << bad.message;
+}

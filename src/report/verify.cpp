@@ -73,8 +73,10 @@ double nearest_in(std::span<const ClSeg> segs, const Vec3& p, std::size_t lo, st
   return best;
 }
 
-/// How many CL segments either side of the nearest one a sample's axis may be matched on (best_axis_dot_near).
-constexpr std::size_t kNeighbourSegs = 3;
+/// How many CL segments either side of the cursor the tip search reaches (a path that doubles back passes segments a
+/// few CL points behind it), and either side of the nearest one a sample's axis may be matched on
+/// (best_axis_dot_near): the same window, since a sample may be wherever its tip could have been placed.
+constexpr std::size_t kWindowSegs = 64;
 
 /// The best match of the tool axis u along the CL segment s where its tip is within tip_tol of p: the largest
 /// u . slerp(u0, u1, t) over the stretch of t whose CL tip lies within tip_tol of p (-2 when none does). On a segment
@@ -562,15 +564,15 @@ VerifyResult verify(const nc::Program& nc, const cl::Program& cl, const kin::Kin
     if (global) {
       // After a rapid the cut usually resumes at the next CL segments: try them before a full scan.
       size_t arg_local = cursor;
-      const double best_local = nearest_in(segs, p, cursor, std::min(segs.size(), cursor + 64), arg_local, t);
+      const double best_local = nearest_in(segs, p, cursor, std::min(segs.size(), cursor + kWindowSegs), arg_local, t);
       if (best_local <= options.tip_tolerance_mm) {
         cursor = arg_local;
         return best_local;
       }
     }
     // As far back as ahead: a path that doubles back passes segments a few CL points behind the cursor.
-    size_t lo = global ? 0 : (cursor > 64 ? cursor - 64 : 0);
-    size_t hi = global ? segs.size() : std::min(segs.size(), cursor + 64);
+    size_t lo = global ? 0 : (cursor > kWindowSegs ? cursor - kWindowSegs : 0);
+    size_t hi = global ? segs.size() : std::min(segs.size(), cursor + kWindowSegs);
     double best = std::numeric_limits<double>::infinity();
     size_t arg = cursor;
     double tb = 0;
@@ -655,8 +657,8 @@ VerifyResult verify(const nc::Program& nc, const cl::Program& cl, const kin::Kin
     double dot = slerp(sg.u0, sg.u1, sg.th, sg.sin_th, t).dot(p.axis);
     if (rad2deg(std::acos(std::clamp(dot, -1.0, 1.0))) + slack_deg > options.axis_tolerance_deg) {
       const Vec3 pt = point(p.tip_mm, p.axis);
-      for (std::size_t k = seg > kNeighbourSegs ? seg - kNeighbourSegs : 0;
-           k < std::min(segs.size(), seg + kNeighbourSegs + 1); ++k)
+      for (std::size_t k = seg > kWindowSegs ? seg - kWindowSegs : 0; k < std::min(segs.size(), seg + kWindowSegs + 1);
+           ++k)
         dot = std::max(dot, best_axis_dot_near(segs[k], pt, p.axis, options.tip_tolerance_mm));
     }
     return rad2deg(std::acos(std::clamp(dot, -1.0, 1.0))) + slack_deg;
@@ -673,8 +675,8 @@ VerifyResult verify(const nc::Program& nc, const cl::Program& cl, const kin::Kin
       s_lo = std::min(s_lo, axis_samples[k].seg);
       s_hi = std::max(s_hi, axis_samples[k].seg);
     }
-    s_lo = s_lo > kNeighbourSegs ? s_lo - kNeighbourSegs : 0;
-    s_hi = std::min(segs.size() - 1, s_hi + kNeighbourSegs);
+    s_lo = s_lo > kWindowSegs ? s_lo - kWindowSegs : 0;
+    s_hi = std::min(segs.size() - 1, s_hi + kWindowSegs);
     const kin::Axes qa = to_axes(nc.blocks[bi - 1]), qb = to_axes(nc.blocks[bi]);
     const double slack2_deg = slack_deg * n / n2;
     double worst = 0.0;
