@@ -1,5 +1,6 @@
 // The sim module: recordings (format, errors), the effect library (derivatives, parsing), motion profiles
 // and the simulator.
+#include <fmt/format.h>
 #include <gtest/gtest.h>
 
 #include <cmath>
@@ -122,9 +123,16 @@ TEST(SimEffects, EveryEffectsAutodiffGradientMatchesFiniteDifferences) {
 TEST(SimEffects, ParsingFollowsTheSpecKeysAndRejectsBadInput) {
   const auto m = trunnion();
   auto b = sim::parse_effect("backlash:x:0.012", m);
-  ASSERT_EQ(b->reported().size(), 1u);
+  ASSERT_EQ(b->reported().size(), 3u);
   EXPECT_EQ(b->reported()[0].first, "magnitude_mm");
   EXPECT_DOUBLE_EQ(b->reported()[0].second, 0.012);
+  EXPECT_EQ(b->reported()[1].first, "take_up_mm");  // a screw's play by default: the gap crossed over its own width
+  EXPECT_DOUBLE_EQ(b->reported()[1].second, 0.012);
+  EXPECT_EQ(b->reported()[2].first, "start_opposite");
+  EXPECT_DOUBLE_EQ(b->reported()[2].second, 0.0);
+  EXPECT_NE(error_of([&] { sim::parse_effect("backlash:x:0.01:-0.01", m); }).find("must not be negative"),
+            std::string::npos);
+  EXPECT_NE(error_of([&] { sim::parse_effect("backlash:x:0.01:0.01:2", m); }).find("0 or 1"), std::string::npos);
   auto bc = sim::parse_effect("backlash:c:0.01", m);
   EXPECT_EQ(bc->reported()[0].first, "magnitude_deg");
   auto v = sim::parse_effect("vibration:tip.z:frequency_hz=166.7,amplitude_mm=0.00322", m);
@@ -201,6 +209,64 @@ TEST(SimSimulate, BacklashShowsInTheEncoderAndTheTipWithTheRightSign) {
   so.seed = 3;
   const auto r1 = sim::simulate(tr, m, {}, so), r2 = sim::simulate(tr, m, {}, so);
   EXPECT_EQ(r1.data[static_cast<size_t>(r1.column("tip.y"))], r2.data[static_cast<size_t>(r2.column("tip.y"))]);
+}
+
+// Lost motion is the play of a screw: the axis waits while the command crosses the gap after a reversal. The oracle is
+// the play (hysteresis) operator run sample by sample: y = clamp(y, x - b/2, x + b/2). Moves are longer than the gap,
+// where the effect's closed form (travel since the reversal) is exact. An axis that starts against its first move
+// begins at the other flank.
+TEST(SimEffects, BacklashIsThePlayOfAScrew) {
+  const auto m = trunnion();
+  const double b = 0.02;
+  std::vector<double> t;
+  std::vector<kin::Axes> cmd;
+  const double legs[] = {0.0, 0.5, 0.1, 0.7, 0.3, 0.9};  // x: out and back, each leg longer than the gap
+  for (std::size_t l = 1; l < std::size(legs); ++l)
+    for (int k = 0; k < 200; ++k) {
+      kin::Axes q = kin::Axes::Zero();
+      q[0] = legs[l - 1] + (legs[l] - legs[l - 1]) * k / 200.0;
+      t.push_back(static_cast<double>(t.size()) * 0.01);
+      cmd.push_back(q);
+    }
+  const auto ctx = sim::make_context(t, cmd, {false, false, false, true, true});
+  for (const bool opposite : {false, true}) {
+    auto e = sim::parse_effect(fmt::format("backlash:x:{}:{}:{}", b, b, opposite ? 1 : 0), m);
+    // The first move is positive: against it, the axis rests on the positive flank.
+    double y = cmd[0][0] + (opposite ? 0.5 * b : -0.5 * b);
+    for (std::size_t i = 0; i < cmd.size(); ++i) {
+      const double x = cmd[i][0];
+      y = std::clamp(y, x - 0.5 * b, x + 0.5 * b);
+      if (i > 0) EXPECT_NEAR(e->value(ctx, i, e->p.data()), y - x, 1e-12) << "sample " << i << " opposite " << opposite;
+    }
+  }
+}
+
+// A drift of the tool point (tool.*) moves the tip in the machine frame and ptip by the same vector seen from the
+// part: on the trunnion (A = 0) turned by -C about z. The oracle is that rotation written out.
+TEST(SimSimulate, AToolPointDriftShowsInTipAndInPtipTurnedWithTheTable) {
+  const auto m = trunnion();
+  const std::string nc = "G21 G90 G94\nG0 X20 Y0 Z0 A0 C0\nG1 C90 X30 F600\nG1 C200 Y10\n";
+  sim::ProfileOptions po;
+  po.rate_hz = 100;
+  const auto tr = sim::profile(sim::blocks_from_nc(nc::read_text(nc, "t.ngc", report::axis_letters(m)), m), po);
+  auto e = sim::parse_effect("thermal_drift:tool.y:0.01:2", m);
+  sim::SimulateOptions so;
+  so.channels = {"tip", "ptip"};
+  const auto clean = sim::simulate(tr, m, {}, so), drifted = sim::simulate(tr, m, {e.get()}, so);
+  const auto col = [](const sim::Recording& r, const std::string& c) {
+    return r.data[static_cast<size_t>(r.column(c))];
+  };
+  const auto& cc = col(clean, "cmd.c");
+  const auto ctx = sim::make_context(tr.t, tr.cmd, {false, false, false, true, true});
+  for (std::size_t i = 0; i < tr.t.size(); i += 17) {
+    const double ctx_d = e->value(ctx, i, e->p.data());
+    EXPECT_NEAR(col(drifted, "tip.y")[i] - col(clean, "tip.y")[i], ctx_d, 1e-12);
+    EXPECT_NEAR(col(drifted, "tip.x")[i] - col(clean, "tip.x")[i], 0.0, 1e-12);
+    const double c = cc[i] * 3.14159265358979323846 / 180.0;
+    const double sgn = 1.0;  // machines/trunnion-ac.yaml: C turns about +z
+    EXPECT_NEAR(col(drifted, "ptip.x")[i] - col(clean, "ptip.x")[i], ctx_d * std::sin(sgn * c), 1e-9) << i;
+    EXPECT_NEAR(col(drifted, "ptip.y")[i] - col(clean, "ptip.y")[i], ctx_d * std::cos(sgn * c), 1e-9) << i;
+  }
 }
 
 TEST(SimSimulate, XminiCutFromTheClFileFollowsTheFeed) {

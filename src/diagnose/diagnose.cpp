@@ -174,11 +174,18 @@ struct Fit {
   std::vector<Comp>* comps = nullptr;
   std::vector<int> fitc;                       ///< indices of fitted components
   std::vector<Eigen::Matrix<double, 9, 5>> J;  ///< FK Jacobian per analysis sample
+  std::vector<Eigen::Matrix3d> Rpw;            ///< machine frame -> part frame per analysis sample (tool.* effects)
   std::vector<char> held;                      ///< held-out flag per analysis sample
   std::vector<double> off;                     ///< offset per component (index into comps)
 
   [[nodiscard]] double sens(const Comp& c, const Effect& e, size_t k) const {
-    if (e.scope() == Scope::Channel) return c.name == e.channel ? 1.0 : 0.0;
+    if (e.scope() == Scope::Channel) {
+      if (e.channel.rfind("tool.", 0) != 0) return c.name == e.channel ? 1.0 : 0.0;
+      const int w = e.channel.back() - 'x';  // the tool point moves along W's axis w: in tip as it is, in ptip turned
+      if (c.kind == Kind::Tip) return c.idx == w ? 1.0 : 0.0;
+      if (c.kind == Kind::PTip) return Rpw[k](c.idx, w);
+      return 0.0;
+    }
     if (e.scope() == Scope::Geometric) {
       const auto& g = (*e.geo_sens)[k];
       switch (c.kind) {
@@ -208,7 +215,8 @@ struct Fit {
   }
   /// Does effect e reach component c at all?
   [[nodiscard]] bool reaches(const Comp& c, const Effect& e) const {
-    if (e.scope() == Scope::Channel) return c.name == e.channel;
+    if (e.scope() == Scope::Channel)
+      return e.channel.rfind("tool.", 0) == 0 ? (c.kind == Kind::Tip || c.kind == Kind::PTip) : c.name == e.channel;
     if (c.kind == Kind::Enc) return e.scope() == Scope::Axis && c.idx == e.axis && e.enc_visible;
     return c.kind != Kind::Acc;
   }
@@ -397,7 +405,7 @@ bool plausible(const Effect& e) {
   if (n == "squareness") return a <= 5000;                                    // urad
   if (n == "straightness") return a <= 100;                                   // mm/m^2: 1 mm at 100 mm from the apex
   if (n == "servo_lag") return a <= 0.5;                                      // s
-  if (n == "backlash") return a <= 1.0;                                       // mm or deg
+  if (n == "backlash") return a <= 1.0 && e.p[1] >= 0 && e.p[1] <= 1.0;       // width, take-up: mm or deg
   if (n == "friction_spike") return e.p[1] > 0 && e.p[1] <= 1.0 && a <= 1.0;  // decay, s; peak, mm or deg
   if (n == "thermal_drift") return e.p[1] > 0;
   return true;
@@ -791,11 +799,15 @@ Report diagnose(sim::Recording& rec, const machine::Machine& m, const std::vecto
   const bool need_j =
       std::any_of(comps.begin(), comps.end(), [](const Comp& c) { return c.kind != Kind::Enc && c.kind != Kind::Acc; });
   F.J.assign(ma, Eigen::Matrix<double, 9, 5>::Zero());
+  F.Rpw.assign(ma, Eigen::Matrix3d::Identity());
   if (need_j) {
     const sim::Predictor P(m, L);
     const size_t nt = worker_threads();
     on_workers(nt, [&](size_t w) {
-      for (size_t k = ma * w / nt; k < ma * (w + 1) / nt; ++k) P.jacobian(cmd[ctx.index[k]], F.J[k]);
+      for (size_t k = ma * w / nt; k < ma * (w + 1) / nt; ++k) {
+        P.jacobian(cmd[ctx.index[k]], F.J[k]);
+        F.Rpw[k] = P.part_from_machine(cmd[ctx.index[k]]);
+      }
     });
   }
   F.held.resize(ma);
@@ -864,18 +876,29 @@ Report diagnose(sim::Recording& rec, const machine::Machine& m, const std::vecto
       if ((n == "backlash" || n == "friction_spike") && !reverses[static_cast<size_t>(j)]) continue;
       if (n == "thermal_scale" && rot[static_cast<size_t>(j)]) continue;  // a lead screw's growth
       auto e = sim::make_effect(name, ax, m);
+      std::vector<std::unique_ptr<Effect>> variants;
       if (has_enc(j)) {
         if (has_geom_channel) {
           auto e2 = e->clone();
           e2->enc_visible = !e->enc_visible;
-          protos.push_back(std::move(e2));
+          variants.push_back(std::move(e2));
         } else {
           e->enc_visible = true;
         }
       } else if (!has_geom_channel) {
         continue;
       }
-      protos.push_back(std::move(e));
+      variants.push_back(std::move(e));
+      for (auto& v : variants) {
+        // Lost motion: the axis may also start the recording against its first move (it last moved the other way).
+        if (n == "backlash") {
+          auto v2 = v->clone();
+          const auto keys = v->reported();
+          v2->set_reported({{keys[0].first, 0.0}, {keys[1].first, 0.0}, {"start_opposite", 1.0}});
+          protos.push_back(std::move(v2));
+        }
+        protos.push_back(std::move(v));
+      }
     }
   }
   // Squareness is a property of Cartesian slides; between the legs of a parallel machine it means nothing. Both
@@ -899,6 +922,32 @@ Report diagnose(sim::Recording& rec, const machine::Machine& m, const std::vecto
     if (!hints[static_cast<size_t>(ci)].frequencies_hz.empty())
       protos.push_back(sim::make_effect("vibration", comps[static_cast<size_t>(ci)].name, m));
   }
+  // Spectral peaks for a tool-point vibration along W's axis w: those of tip.w and of every ptip component.
+  const auto tool_hints = [&](char w) {
+    sim::GridHints h;
+    for (int ci : F.fitc) {
+      const Comp& c = comps[static_cast<size_t>(ci)];
+      if ((c.kind == Kind::Tip && c.idx == w - 'x') || c.kind == Kind::PTip)
+        for (const auto& pk : peaks[static_cast<size_t>(ci)]) h.frequencies_hz.push_back(pk.f);
+    }
+    return h;
+  };
+  // The tool point itself drifting or vibrating (a spindle growing with heat): one effect that tip and ptip both see.
+  // Only where it differs from a channel's own: both groups recorded, or ptip alone on a machine whose table turns
+  // (there a drift fixed in W turns in the part frame).
+  const auto fitted = [&](Kind k) {
+    return std::any_of(F.fitc.begin(), F.fitc.end(), [&](int ci) { return comps[static_cast<size_t>(ci)].kind == k; });
+  };
+  const bool table_turns =
+      m.serial && std::any_of(m.serial->table_chain.begin(), m.serial->table_chain.end(), [&](int j) {
+        return m.serial->joints[static_cast<size_t>(j)].type == kin::AxisType::Rotary;
+      });
+  if (fitted(Kind::PTip) && (fitted(Kind::Tip) || table_turns))
+    for (const char* c : {"tool.x", "tool.y", "tool.z"}) {
+      protos.push_back(sim::make_effect("thermal_drift", c, m));
+      if (!tool_hints(std::string(c).back()).frequencies_hz.empty())
+        protos.push_back(sim::make_effect("vibration", c, m));
+    }
 
   // Geometric candidates: one per machine-file parameter of the calibration model, with the channels'
   // sensitivity to it (forward differences at anchor samples, interpolated between them).
@@ -1036,6 +1085,7 @@ Report diagnose(sim::Recording& rec, const machine::Machine& m, const std::vecto
           sim::GridHints h;
           for (size_t ci = 0; ci < comps.size(); ++ci)
             if (pr.scope() == Scope::Channel && comps[ci].name == pr.channel) h = hints[ci];
+          if (pr.scope() == Scope::Channel && pr.channel.rfind("tool.", 0) == 0) h = tool_hints(pr.channel.back());
           res[pi] = screen(F, pr, sidx, cur, h);
         }
       });

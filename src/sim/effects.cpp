@@ -48,7 +48,9 @@ Context make_context(const std::vector<double>& t, const std::vector<kin::Axes>&
     auto& a = c.a[ax];
     auto& d = c.dir[ax];
     auto& s = c.since_rev[ax];
-    q.reserve(m), v.reserve(m), a.reserve(m), d.reserve(m), s.reserve(m);
+    auto& ts = c.travel_since_rev[ax];
+    auto& tr = c.travel[ax];
+    q.reserve(m), v.reserve(m), a.reserve(m), d.reserve(m), s.reserve(m), ts.reserve(m), tr.reserve(m);
     // Direction of the last motion (initially that of the first motion) and time of the last reversal.
     double dir = 0;
     for (size_t i = 1; i < n && dir == 0; ++i) {
@@ -56,20 +58,24 @@ Context make_context(const std::vector<double>& t, const std::vector<kin::Axes>&
       if (std::abs(dq) > 1e-12) dir = dq > 0 ? 1 : -1;
     }
     if (dir == 0) dir = 1;
-    double t_rev = -kInf;
+    double t_rev = -kInf, moved = 0.0, moved_since_rev = kInf;
     for (size_t i = 0; i < n; ++i) {
       if (i > 0) {
         const double dq = cmd[i][ax] - cmd[i - 1][ax];
         if (std::abs(dq) > 1e-12) {
           const double nd = dq > 0 ? 1 : -1;
-          if (nd != dir) t_rev = t[i - 1];
+          if (nd != dir) t_rev = t[i - 1], moved_since_rev = 0.0;
           dir = nd;
         }
+        moved += std::abs(dq);
+        moved_since_rev += std::abs(dq);
       }
       if (i % stride) continue;
       q.push_back(cmd[i][ax]);
       d.push_back(dir);
       s.push_back(t[i] - t_rev);
+      ts.push_back(moved_since_rev);
+      tr.push_back(moved);
       // Velocity and acceleration by central differences (one-sided at the ends).
       const size_t i0 = i > 0 ? i - 1 : i, i1 = i + 1 < n ? i + 1 : i;
       v.push_back(i1 > i0 ? (cmd[i1][ax] - cmd[i0][ax]) / (t[i1] - t[i0]) : 0.0);
@@ -124,26 +130,50 @@ double get(const std::vector<std::pair<std::string, double>>& kv, const std::str
 
 // ---- axis effects -------------------------------------------------------------------------------------
 
-class Backlash : public EffectImpl<Backlash, 1> {
+class Backlash : public EffectImpl<Backlash, 2> {
  public:
   std::string name() const override { return "backlash"; }
   Scope scope() const override { return Scope::Axis; }
-  std::vector<std::string> internal_names() const override { return {"width"}; }
-  std::vector<bool> linear() const override { return {true}; }
+  std::vector<std::string> internal_names() const override { return {"width", "take_up"}; }
+  std::vector<bool> linear() const override { return {true, false}; }
   std::string signature() const override {
     return fmt::format("step in the channels {} moves at every reversal of {}", target, target);
   }
-  /// Lost motion of full width b: the axis trails the command by b/2 against its direction of motion.
+  /// Lost motion of full width b: the axis trails the command by b/2 against its direction of motion. After a
+  /// reversal it crosses the gap while the command travels `take_up` (the play of a screw whose axis waits until the
+  /// nut meets the other flank: take_up = b; longer where the drive winds up first; 0: at once). An axis that starts
+  /// the recording against its first move (`start_opposite`) crosses the gap on that move.
   template <class T>
   T eval(const Context& c, size_t i, const T* pp) const {
-    return -0.5 * c.dir[axis][i] * pp[0];
+    const double s = std::isfinite(c.travel_since_rev[axis][i]) ? c.travel_since_rev[axis][i]
+                     : start_opposite                           ? c.travel[axis][i]
+                                                                : kInf;
+    T f = T(-0.5);
+    if (std::isfinite(s) && pp[1] > T(0.0)) {
+      const T r = T(1.0) - s / pp[1];
+      if (r > T(0.0)) f = f + r;
+    }
+    return c.dir[axis][i] * pp[0] * f;
   }
   std::vector<std::pair<std::string, double>> reported() const override {
-    return {{"magnitude_" + unit_of(rotary), p[0]}};
+    const std::string u = unit_of(rotary);
+    return {{"magnitude_" + u, p[0]}, {"take_up_" + u, p[1]}, {"start_opposite", start_opposite ? 1.0 : 0.0}};
   }
   void set_reported(const std::vector<std::pair<std::string, double>>& kv) override {
-    p[0] = get(kv, "magnitude_" + unit_of(rotary), name());
+    const std::string u = unit_of(rotary);
+    p[0] = get(kv, "magnitude_" + u, name());
+    p[1] = get(kv, "take_up_" + u, name(), std::abs(p[0]));
+    if (!(p[1] >= 0)) throw InputError(fmt::format("effect backlash: take_up_{} must not be negative", u));
+    const double so = get(kv, "start_opposite", name(), 0.0);
+    if (so != 0.0 && so != 1.0) throw InputError("effect backlash: start_opposite must be 0 or 1");
+    start_opposite = so == 1.0;
   }
+  std::vector<std::vector<double>> grid(const Context&, const GridHints&) const override {
+    std::vector<std::vector<double>> g;
+    for (double u : {0.0, 0.002, 0.005, 0.01, 0.02, 0.05, 0.1}) g.push_back({0, u});
+    return g;
+  }
+  bool start_opposite = false;
 };
 
 class ServoLag : public EffectImpl<ServoLag, 1> {
@@ -492,7 +522,9 @@ bool valid_channel(const std::string& ch, const machine::Machine& m) {
   const auto dot = ch.find('.');
   if (dot == std::string::npos) return false;
   const std::string g = ch.substr(0, dot), r = ch.substr(dot + 1);
-  if (g == "tip" || g == "ptip" || g == "dir" || g == "acc") return r == "x" || r == "y" || r == "z";
+  // tool.*: the tool point itself moves (along x, y or z of the machine frame W): tip sees it, and so does ptip,
+  // turned into the part frame (a spindle that grows with heat).
+  if (g == "tip" || g == "ptip" || g == "dir" || g == "acc" || g == "tool") return r == "x" || r == "y" || r == "z";
   if (g == "enc") return m.axis_index(r) >= 0;
   return false;
 }
@@ -525,7 +557,7 @@ std::unique_ptr<Effect> make_effect(const std::string& name, const std::string& 
       if (!valid_channel(target, m))
         throw InputError(
             fmt::format("effect {}: '{}' is not a channel of machine {} (expected tip.x|y|z, ptip.*, "
-                        "dir.*, acc.* or enc.<axis>)",
+                        "dir.*, acc.*, enc.<axis>, or tool.x|y|z for the tool point in tip and ptip)",
                         name, target, m.name));
       e->channel = target;
       return e;

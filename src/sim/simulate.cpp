@@ -226,6 +226,18 @@ void Predictor::fk(const kin::Axes& q, Eigen::Vector3d& tip, Eigen::Vector3d& pt
                     q[0], q[1], q[2], q[3], q[4]));
 }
 
+Eigen::Matrix3d Predictor::part_from_machine(const kin::Axes& q) const {
+  Eigen::Matrix3d R = Eigen::Matrix3d::Identity();
+  if (!m_.serial) return R;
+  // As serial_forward undoes the table chain, base outward.
+  for (const int idx : m_.serial->table_chain) {
+    const auto& j = m_.serial->joints[static_cast<size_t>(idx)];
+    if (j.type != kin::AxisType::Rotary) continue;
+    R = kin::detail::axis_angle<double>(j.direction, q[idx] / kRad2Deg + j.offset).transpose() * R;
+  }
+  return R;
+}
+
 void Predictor::jacobian(const kin::Axes& q, Eigen::Matrix<double, 9, 5>& J) const {
   const double h = 1e-3;
   Eigen::Vector3d t0, p0, d0, t1, p1, d1;
@@ -313,6 +325,16 @@ Recording simulate(const Trajectory& traj, const machine::Machine& m, const std:
     }
     for (size_t i = a; i < b; ++i) truth.fk(actual[i], tip[i], ptip[i], dir[i]);
   });
+  // Effects on the tool point (tool.x|y|z): the tip moves in W, and ptip by the same vector turned into the part frame.
+  for (const Effect* e : effects)
+    if (e->scope() == Scope::Channel && e->channel.rfind("tool.", 0) == 0) {
+      const int c = e->channel.back() - 'x';
+      for (size_t i = 0; i < n; ++i) {
+        const double d = e->value(ctx, i, e->p.data());
+        tip[i][c] += d;
+        ptip[i] += d * truth.part_from_machine(actual[i]).col(c);
+      }
+    }
   std::mt19937_64 rng(o.seed);
   auto sigma_of = [&](const std::string& g) {
     double s = 0;

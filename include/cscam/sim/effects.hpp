@@ -34,6 +34,10 @@ struct Context {
   std::array<std::vector<double>, 5> q, v, a;    ///< position, velocity (/s), acceleration (/s^2)
   std::array<std::vector<double>, 5> dir;        ///< +1 / -1: sign of the axis's last motion
   std::array<std::vector<double>, 5> since_rev;  ///< s since the axis's last reversal; +inf before the first
+  /// Commanded travel (mm or deg) since the axis's last reversal; +inf before the first.
+  std::array<std::vector<double>, 5> travel_since_rev;
+  /// Commanded travel (mm or deg) since the start of the recording (for an axis that starts against its first move).
+  std::array<std::vector<double>, 5> travel;
   std::array<bool, 5> rotary{};
   double t0 = 0, duration = 0;
   std::vector<size_t> index;  ///< row of the full recording each sample comes from

@@ -58,6 +58,9 @@ class Predictor {
   void fk(const kin::Axes& q, Eigen::Vector3d& tip, Eigen::Vector3d& ptip, Eigen::Vector3d& dir) const;
   /// d(tip, ptip, dir)/dq by central differences (rows 0-2 tip, 3-5 ptip, 6-8 dir; per mm or deg).
   void jacobian(const kin::Axes& q, Eigen::Matrix<double, 9, 5>& J) const;
+  /// The rotation taking a vector of the machine frame W into the part frame at q (file units): how a move of the
+  /// tool point in W shows in ptip. The identity on a machine without table-side rotaries.
+  [[nodiscard]] Eigen::Matrix3d part_from_machine(const kin::Axes& q) const;
   [[nodiscard]] const machine::Machine& machine() const { return m_; }
   [[nodiscard]] bool rotary(int i) const { return m_.axes[static_cast<size_t>(i)].rotary(); }
 
