@@ -1429,6 +1429,24 @@ TEST(Cli, PlannerFixedTierIsWrittenInATiltedWorkPlane) {
     }
 }
 
+// Post options out of their range were replaced by the machine's values, silently (a negative tool length, a NaN
+// tolerance): each is an error naming the option, exit 2, and no file.
+TEST(Cli, PostOptionsOutOfRangeAreRefused) {
+  TempDir d;
+  const std::string cl = cscam::test::source_path("examples/groove/groove.cls");
+  for (const auto& [opts, what] : std::vector<std::pair<std::string, std::string>>{
+           {"--tool-length -5", "--tool-length: must be a finite number >= 0, got '-5'"},
+           {"--tolerance -1", "--tolerance: must be a finite number >= 0, got '-1'"},
+           {"--axis-tolerance nan", "--axis-tolerance: must be a finite number >= 0, got 'nan'"},
+           {"--default-feed 0", "--default-feed: must be a finite number > 0, got '0'"}}) {
+    const std::string out = d.file("o.ngc");
+    const auto r = run_command(kCli + " post " + cl + " --machine trunnion-ac " + opts + " -o " + out);
+    EXPECT_EQ(r.status, 2) << opts << "\n" << r.output;
+    EXPECT_NE(r.output.find(what), std::string::npos) << opts << "\n" << r.output;
+    EXPECT_FALSE(fs::exists(out)) << opts;
+  }
+}
+
 // Planner options no machine can use are refused before any work, naming the option: a fine grid once filled 24 GB
 // on a 92-point path; a file given as the SVG folder failed after the program was written.
 TEST(Cli, PlanOptionsNoMachineCanUseAreRefusedFirst) {
@@ -1439,7 +1457,11 @@ TEST(Cli, PlanOptionsNoMachineCanUseAreRefusedFirst) {
            {"--cone 200", "--cone 200: expected 0..90 deg"},
            {"--cone 10 --resolution 400", "--resolution 400: expected a grid step in (0, 30] deg"},
            {"--cone 25 --resolution 0.05", "gives about 785398 grid cells at every CL point"},
-           {"--cone 10 --clearance -3", "--clearance -3: expected a distance >= 0 mm"},
+           {"--cone 10 --clearance -3", "--clearance: must be a finite number >= 0, got '-3'"},
+           {"--cone 10 --resolution 0", "--resolution: must be a finite number > 0, got '0'"},
+           {"--cone 10 --max-step -3", "--max-step: must be a finite number >= 0, got '-3'"},
+           {"--cone 10 --tool-length -50", "--tool-length: must be a finite number >= 0, got '-50'"},
+           {"--cone 10 --tolerance nan", "--tolerance: must be a finite number >= 0, got 'nan'"},
            {"--cone 10 --svg " + afile, "--svg: exists and is not a folder"}}) {
     const std::string out = d.file("o.ngc");
     const auto r = run_command(kCli + " compare " + cl + " --machine trunnion-ac " + opts + " -o " + out);

@@ -30,6 +30,7 @@
 #include "cscam/kin/track.hpp"
 #include "cscam/machine/machine.hpp"
 #include "cscam/nc/reader.hpp"
+#include "cscam/report/letters.hpp"
 #include "cscam/report/verify.hpp"
 #include "rs274_support.hpp"
 #include "test_support.hpp"
@@ -190,6 +191,57 @@ TEST(Post, PointOutsideTheLimitsNamesTheClLine) {
     EXPECT_NE(msg.find("far.cls:4"), std::string::npos) << msg;
     EXPECT_NE(msg.find("x = "), std::string::npos) << msg;
   }
+}
+
+// On a machine whose head carries a rotary, machine coordinates depend on the tool length: a second tool 60 mm longer
+// was posted with the first one's length (its tip 60 mm away, and the gate, told one length, passed it). Tools of
+// different lengths are refused without TCP, naming the tool change; one length, or TCP, is posted. The oracle for the
+// posted one: FK with each tool's own length reaches its CL points.
+TEST(Post, ToolsOfDifferentLengthsOnARotaryHeadNeedTcp) {
+  const auto m = load_machine("head-head-ac");
+  auto cl_text = [](double second_mm) {
+    return fmt::format(
+        "UNITS/MM\nMULTAX/ON\nTLDATA/MILL,10,0,80,0,0\nLOAD/TOOL,1\nFEDRAT/500,MMPM\nGOTO/0,0,10,0.5,0,0.8660254\n"
+        "GOTO/20,0,10,0.5,0,0.8660254\nTLDATA/MILL,6,0,{},0,0\nLOAD/TOOL,2\nGOTO/0,10,10,0.5,0,0.8660254\n"
+        "GOTO/20,10,10,0.5,0,0.8660254\n",
+        second_mm);
+  };
+  auto post_with = [&](const cl::Program& prog, std::optional<bool> tcp) {
+    std::string note;
+    const double L = post::tool_length_for(m, 0, prog, note);
+    const auto k = m.make_kinematics(L);
+    post::Options o;
+    o.tcp = tcp;
+    o.tool_length_mm = L;
+    post::Summary sum;
+    std::ostringstream os;
+    post::write_nc(os, prog, m, *k, post::conventional_axes(prog, m, *k), o, sum);
+    return os.str();
+  };
+  const cl::Program mixed = cl::read_text(cl_text(140), "two.cls");
+  try {
+    post_with(mixed, false);
+    FAIL() << "tools of 80 and 140 mm were posted in machine coordinates";
+  } catch (const InputError& e) {
+    EXPECT_EQ(e.where().line, 8) << e.what();
+    EXPECT_NE(std::string(e.what()).find("--tcp"), std::string::npos) << e.what();
+  }
+  EXPECT_NO_THROW(post_with(mixed, true));
+  const cl::Program same = cl::read_text(cl_text(80), "two.cls");
+  const std::string text = post_with(same, false);
+  const auto k80 = m.make_kinematics(80);
+  const nc::Program nc = nc::read_text(text, "two.ngc", report::axis_letters(m));
+  double worst = 0.0;
+  for (const auto& mv : same.moves) {
+    double best = std::numeric_limits<double>::infinity();
+    for (const auto& b : nc.blocks) {
+      kin::Axes q;
+      for (int j = 0; j < 5; ++j) q[j] = b.axes[static_cast<size_t>(j)];
+      best = std::min(best, (k80->forward(q).tip_mm - mv.tip_in_part_mm).norm());
+    }
+    worst = std::max(worst, best);
+  }
+  EXPECT_LT(worst, tol::kLinearisationMm) << text;
 }
 
 TEST(Post, APlannedSegmentBesideTheSingularAxisIsJudgedByItsConeNotByTheSlerpOfItsAxes) {

@@ -71,6 +71,14 @@ TEST(SimRecording, ErrorsNameTheRowTheColumnOrTheCell) {
   EXPECT_NE(error_of([] { sim::parse_recording("t,cmd.x\n0,1,2\n", "r.csv"); }).find("too many cells"),
             std::string::npos);
   EXPECT_NE(error_of([] { sim::parse_recording("cmd.x\n1\n", "r.csv"); }).find("time column 't'"), std::string::npos);
+  // A spreadsheet's byte-order mark is not part of the first metadata line; a ';'-separated file is named as such.
+  const auto bom = sim::parse_recording("\xEF\xBB\xBF# machine: m\nt,tip.x\n0,1\n", "r.csv");
+  ASSERT_EQ(bom.meta.size(), 1u);
+  EXPECT_EQ(bom.meta[0].first, "machine");
+  EXPECT_NE(error_of([] { sim::parse_recording("t;cmd.x\n0;1\n", "r.csv"); })
+                .find("r.csv:1:2: the header's columns "
+                      "are separated by ';'"),
+            std::string::npos);
   EXPECT_NE(error_of([] {
               sim::parse_recording("t,tip.x\n0,1\n0.1,1e300\n", "r.csv");
             }).find("r.csv:3:5: column tip.x: 1e300 is out of range"),

@@ -21,6 +21,7 @@
 #include "cscam/core/atomic_file.hpp"
 #include "cscam/core/error.hpp"
 #include "plan_cmd.hpp"
+#include "validators.hpp"
 
 namespace fs = std::filesystem;
 
@@ -479,7 +480,8 @@ std::function<int()> add_calib_commands(CLI::App& app) {
   c->add_option("--seed", a->seed, "random seed for --design and the comparison");
   c->add_option("--max-iterations", a->max_iterations, "Levenberg-Marquardt iteration limit (default 100)")
       ->check(CLI::Range(1, 100000));
-  c->add_option("--tool-length", a->tool_length, "tool length, mm (default: recording, then machine file)");
+  c->add_option("--tool-length", a->tool_length, "tool length, mm (default: recording, then machine file)")
+      ->check(cli::kNonNegative);
   return [a, c]() -> int {
     if (!*c) return -1;
     return run_calibrate(*a);

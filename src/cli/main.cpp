@@ -30,6 +30,7 @@
 #include "plan_cmd.hpp"
 #include "sim_cmd.hpp"
 #include "trace_cmd.hpp"
+#include "validators.hpp"
 
 namespace fs = std::filesystem;
 using namespace cscam;
@@ -335,14 +336,18 @@ int main(int argc, char** argv) {
                        "override the machine's dialect (linuxcnc, fanuc, haas, siemens, heidenhain, xmini-joint, "
                        "xmini-cartesian)");
   post_cmd->add_option("--units", pa.units, "force the CL units (mm or inch)");
-  post_cmd->add_option("--tolerance", pa.tolerance, "linearisation tolerance of the tip, mm (0: the machine file's)");
-  post_cmd->add_option("--axis-tolerance", pa.axis_tolerance,
-                       "linearisation tolerance of the tool axis, deg (0: the machine file's)");
-  post_cmd->add_option("--tool-length", pa.tool_length, "gauge-to-tip tool length, mm (0: the machine file's)");
+  post_cmd->add_option("--tolerance", pa.tolerance, "linearisation tolerance of the tip, mm (0: the machine file's)")
+      ->check(cli::kNonNegative);
+  post_cmd
+      ->add_option("--axis-tolerance", pa.axis_tolerance,
+                   "linearisation tolerance of the tool axis, deg (0: the machine file's)")
+      ->check(cli::kNonNegative);
+  post_cmd->add_option("--tool-length", pa.tool_length, "gauge-to-tip tool length, mm (0: the machine file's)")
+      ->check(cli::kNonNegative);
   post_cmd
       ->add_option("--default-feed", pa.default_feed,
                    "feed, mm/min, for cutting moves the CL gives no feed rate for (default: such a CL is an error)")
-      ->check(CLI::PositiveNumber);
+      ->check(cli::kPositive);
   post_cmd->add_flag("--no-linearise", pa.no_linearise, "do not insert points between CL points");
   post_cmd->add_option("--part", pa.parts,
                        "part mesh(es) (STL, OBJ, PLY, ...): the safety gate checks every move against them, as it "
@@ -363,9 +368,11 @@ int main(int argc, char** argv) {
   verify_cmd->add_option("-m,--machine", va.machine, "machine file or bundled machine name")->required();
   verify_cmd->add_option("--cl", va.cl, "the CL file the NC was made from")->required();
   verify_cmd->add_option("--units", va.units, "force the CL units (mm or inch)");
-  verify_cmd->add_option("--tolerance", va.tolerance, "allowed tip deviation, mm");
-  verify_cmd->add_option("--axis-tolerance", va.axis_tolerance, "allowed tool-axis deviation, deg");
-  verify_cmd->add_option("--tool-length", va.tool_length, "tool length, mm (default: from the NC header)");
+  verify_cmd->add_option("--tolerance", va.tolerance, "allowed tip deviation, mm")->check(cli::kPositive);
+  verify_cmd->add_option("--axis-tolerance", va.axis_tolerance, "allowed tool-axis deviation, deg")
+      ->check(cli::kPositive);
+  verify_cmd->add_option("--tool-length", va.tool_length, "tool length, mm (default: from the NC header)")
+      ->check(cli::kPositive);
   verify_cmd
       ->add_option(
           "--cone", va.cone,
@@ -393,11 +400,15 @@ int main(int argc, char** argv) {
   backlash_cmd->add_option("nc", ba.nc, "one or more NC files (compared side by side)")->required();
   backlash_cmd->add_option("-m,--machine", ba.machine, "machine file or bundled machine name")->required();
   backlash_cmd->add_option("--axis", ba.axis, "axis with the play, by its machine-file name (e.g. q2)")->required();
-  backlash_cmd->add_option("--width-mm", ba.width_mm, "full lost-motion width of a linear axis, mm");
-  backlash_cmd->add_option("--width-deg", ba.width_deg, "full lost-motion width of a rotary axis, deg");
-  backlash_cmd->add_option("--tool-length", ba.tool_length, "tool length, mm (default: from the NC header)");
-  backlash_cmd->add_option("--max-step", ba.max_step,
-                           "largest axis step between samples, mm or deg (default: width/10)");
+  backlash_cmd->add_option("--width-mm", ba.width_mm, "full lost-motion width of a linear axis, mm")
+      ->check(cli::kPositive);
+  backlash_cmd->add_option("--width-deg", ba.width_deg, "full lost-motion width of a rotary axis, deg")
+      ->check(cli::kPositive);
+  backlash_cmd->add_option("--tool-length", ba.tool_length, "tool length, mm (default: from the NC header)")
+      ->check(cli::kPositive);
+  backlash_cmd
+      ->add_option("--max-step", ba.max_step, "largest axis step between samples, mm or deg (default: width/10)")
+      ->check(cli::kPositive);
   backlash_cmd->add_flag("--json", ba.json, "print JSON");
 
   auto run_plan_commands = cli::add_plan_commands(app);
@@ -409,7 +420,8 @@ int main(int argc, char** argv) {
   try {
     app.parse(argc, argv);
   } catch (const CLI::ParseError& e) {
-    return app.exit(e);
+    // Help and version exit 0; a bad argument is bad input, as everywhere else: exit 2.
+    return app.exit(e) == 0 ? 0 : 2;
   }
   try {
     if (*post_cmd) return cmd_post(pa);

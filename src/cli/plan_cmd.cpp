@@ -30,6 +30,7 @@
 #include "cscam/report/stats.hpp"
 #include "cscam/report/svg.hpp"
 #include "cscam/report/verify.hpp"
+#include "validators.hpp"
 
 namespace fs = std::filesystem;
 
@@ -657,23 +658,29 @@ void common_options(CLI::App* c, PlanArgs& a) {
   c->add_option("-m,--machine", a.machine, "machine file or bundled machine name")->required();
   c->add_option("--part", a.parts, "part mesh(es) (STL, OBJ, PLY, ...)");
   c->add_option("--fixture", a.fixtures, "fixture mesh(es)");
-  c->add_option("--mesh-scale", a.mesh_scale, "multiply mesh coordinates by this to get mm");
+  c->add_option("--mesh-scale", a.mesh_scale, "multiply mesh coordinates by this to get mm")->check(cli::kPositive);
   c->add_option("--cone", a.cone_deg, "allowed tool-axis deviation from the CL axis, deg (0: exact)");
-  c->add_option("--min-tilt", a.min_tilt_deg, "minimum tilt from the CL axis (ball mills), deg");
-  c->add_option("--resolution", a.resolution_deg, "C-space grid resolution, deg")->check(CLI::PositiveNumber);
+  c->add_option("--min-tilt", a.min_tilt_deg, "minimum tilt from the CL axis (ball mills), deg")
+      ->check(cli::kNonNegative);
+  c->add_option("--resolution", a.resolution_deg, "C-space grid resolution, deg")->check(cli::kPositive);
   c->add_option("--tilt-step", a.tilt_step_deg,
-                "tilt grid inside the cone for the leg (PKM) re-plan, deg (default: resolution)");
+                "tilt grid inside the cone for the leg (PKM) re-plan, deg (default: resolution)")
+      ->check(cli::kPositive);
   c->add_option("--max-step", a.max_step_deg,
                 "largest rotary step per point, deg, in tiers 2-4 (0: 20 grid steps, which tier 4 exceeds only where "
-                "no cell within it follows the CL axis; a value given here is never exceeded)");
-  c->add_option("--clearance", a.clearance_mm, "collision clearance of shank, holder and spindle, mm");
-  c->add_option("--tool-length", a.tool_length, "gauge-to-tip tool length, mm");
-  c->add_option("--tolerance", a.tolerance, "post linearisation tolerance, mm");
+                "no cell within it follows the CL axis; a value given here is never exceeded)")
+      ->check(cli::kNonNegative);
+  c->add_option("--clearance", a.clearance_mm, "collision clearance of shank, holder and spindle, mm")
+      ->check(cli::kNonNegative);
+  c->add_option("--tool-length", a.tool_length, "gauge-to-tip tool length, mm (0: the CL's or the machine file's)")
+      ->check(cli::kNonNegative);
+  c->add_option("--tolerance", a.tolerance, "post linearisation tolerance, mm (0: the machine file's)")
+      ->check(cli::kNonNegative);
   c->add_option("--dialect", a.dialect, "post dialect override");
   c->add_option("--units", a.units, "force CL units (mm or inch)");
   c->add_option("--default-feed", a.default_feed,
                 "feed, mm/min, for cutting moves the CL gives no feed rate for (default: such a CL is an error)")
-      ->check(CLI::PositiveNumber);
+      ->check(cli::kPositive);
   c->add_option("--svg", a.svg_dir, "write C-space and axis pictures into this directory");
   c->add_flag("--no-collision", a.no_collision, "ignore the meshes (to show what the plan would hit)");
   auto* tcp = c->add_flag_function(

@@ -21,6 +21,7 @@
 #include "cscam/report/verify.hpp"
 #include "cscam/sim/simulate.hpp"
 #include "plan_cmd.hpp"
+#include "validators.hpp"
 
 namespace fs = std::filesystem;
 
@@ -251,7 +252,8 @@ std::function<int()> add_sim_commands(CLI::App& app) {
                       "EFFECT:TARGET:PARAMS, e.g. backlash:q2:0.012 or vibration:tip.z:166.7:0.00322");
   sim_cmd->add_option("--noise", sa->noise, "GROUP:SIGMA white measurement noise, e.g. tip:0.001");
   sim_cmd->add_option("--seed", sa->seed, "random seed of the noise");
-  sim_cmd->add_option("--tool-length", sa->tool_length, "tool length, mm (default: NC header or machine)");
+  sim_cmd->add_option("--tool-length", sa->tool_length, "tool length, mm (default: NC header or machine)")
+      ->check(cli::kNonNegative);
   sim_cmd->add_option("--spindle-rpm", sa->rpm, "spindle speed to record in the metadata");
   sim_cmd->add_option("--flutes", sa->flutes, "cutter flutes to record in the metadata");
   sim_cmd->add_option("--note", sa->note, "free text for the metadata");

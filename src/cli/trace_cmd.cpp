@@ -15,6 +15,7 @@
 #include "cscam/report/trace.hpp"
 #include "cscam/report/verify.hpp"
 #include "plan_cmd.hpp"
+#include "validators.hpp"
 
 namespace cscam::cli {
 
@@ -74,9 +75,11 @@ std::function<int()> add_trace_commands(CLI::App& app) {
                   "the program that ran: its header gives machine and tool length; its retracts and plunges along "
                   "the tool axis off the CL path are not compared");
   cmd->add_option("--units", a->units, "force the CL units (mm or inch)");
-  cmd->add_option("--tolerance", a->tolerance, "allowed tip deviation, mm (default: the post's tolerance + slack)");
-  cmd->add_option("--axis-tolerance", a->axis_tolerance, "allowed tool-axis deviation, deg");
-  cmd->add_option("--tool-length", a->tool_length, "tool length, mm (default: NC header, else machine file)");
+  cmd->add_option("--tolerance", a->tolerance, "allowed tip deviation, mm (default: the post's tolerance + slack)")
+      ->check(cli::kPositive);
+  cmd->add_option("--axis-tolerance", a->axis_tolerance, "allowed tool-axis deviation, deg")->check(cli::kPositive);
+  cmd->add_option("--tool-length", a->tool_length, "tool length, mm (default: NC header, else machine file)")
+      ->check(cli::kNonNegative);
   cmd->add_flag("--json", a->json, "print the result as JSON");
   return [cmd, a]() { return *cmd ? cmd_trace(*a) : -1; };
 }

@@ -34,6 +34,36 @@ Linearizer::Settings linearizer_settings(const machine::Machine& m, const Option
 // run. A relative 1e-9 is far below any feed's meaning.
 constexpr double kFeedFloorSlack = 1e-9;
 
+void Sequencer::refuse_mixed_tool_lengths() const {
+  // A rotary in the head turns the tool about the gauge point: in machine coordinates every tool length gives other
+  // axis words, and the program is computed for one. (Under TCP the control applies each tool's own length.)
+  if (cart_ || !m_.serial) return;
+  const bool head_rotary = std::any_of(m_.serial->joints.begin(), m_.serial->joints.end(), [](const auto& j) {
+    return j.type == kin::AxisType::Rotary && j.side == kin::Side::Head;
+  });
+  if (!head_rotary) return;
+  const cl::Tool* first = nullptr;
+  int first_line = 0;
+  for (const cl::Event& e : prog_.events) {
+    if (e.kind != cl::Event::Kind::ToolChange || e.tool_index < 0) continue;
+    const cl::Tool& t = prog_.tools[static_cast<size_t>(e.tool_index)];
+    if (!(t.length_mm > 0)) continue;
+    if (!first) {
+      first = &t, first_line = e.line;
+    } else if (std::abs(t.length_mm - first->length_mm) > 1e-6) {
+      throw InputError(
+          SourceLoc{prog_.file, e.line, 0},
+          fmt::format(
+              "tool {} is {:.3f} mm long and tool {} (line {}) {:.3f} mm: on machine '{}', whose head carries a "
+              "rotary, the machine coordinates depend on the tool length and a program without TCP is "
+              "computed for one length ({:.3f} mm); post each tool's operations separately with its "
+              "--tool-length, or with tool-tip control (--tcp)",
+              t.number, t.length_mm, first->number, first_line, first->length_mm, m_.name,
+              opt_.tool_length_mm > 0 ? opt_.tool_length_mm : m_.default_tool_length_mm));
+    }
+  }
+}
+
 Sequencer::Sequencer(std::ostream& out, const cl::Program& program, const machine::Machine& machine,
                      const kin::Kinematics& kin, const Options& opt, Summary& summary)
     : out_(out),
@@ -61,6 +91,7 @@ Sequencer::Sequencer(std::ostream& out, const cl::Program& program, const machin
     shortest_[static_cast<size_t>(i)] = a.rotary() && a.cyclic && m_.post.rotary_output == "shortest";
   }
   feed_to_file_ = to_inch;
+  refuse_mixed_tool_lengths();
   z_ = traits_.retract_axis;
   safe_z_ = m_.post.safe_z_mm;
   if (z_ >= 0 && std::isnan(safe_z_)) safe_z_ = m_.axes[static_cast<size_t>(z_)].max;

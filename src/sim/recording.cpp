@@ -73,7 +73,8 @@ int Recording::add_column(const std::string& name, std::vector<double> values) {
 Recording parse_recording(const std::string& text, const std::string& name) {
   Recording rec;
   rec.file = name;
-  size_t pos = 0;
+  // A UTF-8 byte-order mark (spreadsheets write one) is not part of the first line.
+  size_t pos = text.rfind("\xEF\xBB\xBF", 0) == 0 ? 3 : 0;
   int line = 0;
   bool header_seen = false;
   while (pos < text.size()) {
@@ -95,6 +96,10 @@ Recording parse_recording(const std::string& text, const std::string& name) {
     }
     if (!header_seen) {
       header_seen = true;
+      if (ln.find(',') == std::string_view::npos && ln.find(';') != std::string_view::npos)
+        throw InputError(SourceLoc{name, line, static_cast<int>(ln.find(';')) + 1},
+                         "the header's columns are separated by ';': a recording separates them by ',' and writes "
+                         "decimals with '.' (shared/spec/recording.md)");
       size_t a = 0;
       std::set<std::string> seen;
       while (true) {
