@@ -244,6 +244,29 @@ TEST(Post, ToolsOfDifferentLengthsOnARotaryHeadNeedTcp) {
   EXPECT_LT(worst, tol::kLinearisationMm) << text;
 }
 
+// A part taller than the machine file's safe Z (250 mm on the trunnion), cut at Z 270 from the CL's own clearance at
+// 290: the post went down to "safe" Z 250 first and travelled there, through the part; between two cuts it "retracted"
+// down to it. The tool now goes up to the safe Z, never down to it. The oracle: the Z word of every block, read back.
+TEST(Post, APartTallerThanTheSafeZIsNeverEnteredByARetract) {
+  const auto m = load_machine("trunnion-ac");
+  const auto k = m.make_kinematics(0);
+  std::string cl = "UNITS/MM\nMULTAX/ON\nFEDRAT/MMPM,800\n";
+  for (const double y : {0.0, 20.0}) {
+    cl += fmt::format("RAPID\nGOTO/-10,{0},290,0,0,1\nGOTO/-10,{0},270,0,0,1\nGOTO/10,{0},270,0,0,1\n", y);
+    cl += fmt::format("RAPID\nGOTO/10,{},290,0,0,1\n", y);
+  }
+  const cl::Program prog = cl::read_text(cl, "tall.cls");
+  post::Options o;
+  post::Summary sum;
+  std::ostringstream os;
+  post::write_nc(os, prog, m, *k, post::conventional_axes(prog, m, *k), o, sum);
+  const nc::Program nc = nc::read_text(os.str(), "tall.ngc", report::axis_letters(m));
+  const int z = m.axis_index("z");
+  double lowest = std::numeric_limits<double>::infinity();
+  for (const auto& b : nc.blocks) lowest = std::min(lowest, b.axes[static_cast<size_t>(z)]);
+  EXPECT_GE(lowest, 270.0 - 1e-9) << os.str();
+}
+
 TEST(Post, APlannedSegmentBesideTheSingularAxisIsJudgedByItsConeNotByTheSlerpOfItsAxes) {
   // Planned (A, C) = (-2, 96) -> (+2, 78) deg on the trunnion: the machine's joint interpolation passes through the
   // vertical, while the slerp of the two planned axes (198 deg apart in azimuth) passes 0.31 deg beside it, just

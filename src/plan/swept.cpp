@@ -1,5 +1,6 @@
 #include "cscam/plan/swept.hpp"
 
+#include <algorithm>
 #include <array>
 #include <cmath>
 #include <cstdint>
@@ -50,7 +51,7 @@ SweptSummary check_program(const cspace::Space& space, const machine::Machine& m
     bool reorients = false;
     std::uint64_t cut_budget = 0;  // queries for a leg out of or into a cut (0: the default)
     if (mv[i].kind == cl::MotionKind::Rapid && turns && z >= 0 && !std::isnan(safe_z)) {
-      up[z] = turned[z] = above[z] = safe_z;
+      up[z] = turned[z] = above[z] = std::max({safe_z, from[z], to[z]});  // never down to it (as the post)
       turned[rp[0]] = to[rp[0]];
       turned[rp[1]] = to[rp[1]];
       reorients = true;

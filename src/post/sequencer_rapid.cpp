@@ -21,14 +21,16 @@ constexpr double kFlipCheckRad = 0.5235987756;  // 30 deg
 // --- Rapid positioning -------------------------------------------------------------------------------------
 
 void Sequencer::emit_safe_z() {
+  // Up to the safe Z, never down to it: a part taller than the machine file's safe Z is cut above it, and a "retract"
+  // down to that plane would drive the tool into the part.
   kin::Axes q = cur_;
-  q[z_] = safe_z_;
+  q[z_] = std::max(safe_z_, cur_[z_]);
   start(BlockSpec::Motion::Rapid);
   if (add_words(q, {z_})) {
     set_mode94();
     emit();
   }
-  cur_[z_] = safe_z_;
+  cur_[z_] = q[z_];
 }
 
 /// Rapid blocks that bring the rotaries written modulo 360 (reached the short way) to q's in steps of less
@@ -81,8 +83,11 @@ void Sequencer::rapid(const kin::Axes& q, const cl::Move& mv) {
   if (rotaries_differ(q) && z_ >= 0) {
     exit_along_axis();
     if (have_state_) emit_safe_z();
+    // The rotaries turn and the tool travels at the safe Z, or higher where the tool already is or is going (the CL's
+    // own clearance above a part taller than the safe Z).
+    const double plane = std::max({safe_z_, q[z_], have_state_ ? cur_[z_] : safe_z_});
     kin::Axes at_safe = have_state_ ? cur_ : q;
-    at_safe[z_] = safe_z_;
+    at_safe[z_] = plane;
     at_safe[rp[0]] = q[rp[0]];
     at_safe[rp[1]] = q[rp[1]];
     check_limits(at_safe, mv);
@@ -98,7 +103,7 @@ void Sequencer::rapid(const kin::Axes& q, const cl::Move& mv) {
     if (add_words(at_safe, {rp[0], rp[1]})) emit();
     if (pending_plane_) work_plane_on(at_safe);  // positioned: the plane, then the approach in it
     kin::Axes above = q;
-    above[z_] = safe_z_;
+    above[z_] = plane;
     start(BlockSpec::Motion::Rapid);
     bool any = false;
     for (int i : lin)
