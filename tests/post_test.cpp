@@ -267,6 +267,56 @@ TEST(Post, APartTallerThanTheSafeZIsNeverEnteredByARetract) {
   EXPECT_GE(lowest, 270.0 - 1e-9) << os.str();
 }
 
+// A reorientation at a fixed tip out of the vertical, with repeated CL points, on the 45-degree head under TCP: the
+// linearizer's split tracked the midpoint from the vertical, where C turns freely, saw a jump, and wrote the whole
+// turn as one block (0.67 deg off the CL's great circle); the gate refused the program. The midpoint is now tracked
+// from the end's branch. The oracle: every block's axis, sampled through its rotary words, against the great circle
+// between the CL axes (brute force), with and without TCP.
+TEST(Post, AReorientationOutOfTheVerticalUnderTcpIsSplitOnTheEndsBranch) {
+  const auto m = load_machine("head-table-bc45");
+  const auto k = m.make_kinematics(post::tool_length_for(m, 0));
+  const cl::Program prog = cl::read_text(
+      "UNITS/MM\nMULTAX/ON\nFEDRAT/1200,MMPM\nRAPID\nGOTO/0,0,20,0,0,1\nGOTO/0,0,0,0,0,1\nGOTO/0,0,0,0,0,1\n"
+      "GOTO/0,0,0,0.2955202,0,0.9553365\nGOTO/0,0,0,0.2955202,0,0.9553365\nGOTO/0,0,0,0.1596702,0.2486717,0.9553365\n",
+      "turn.cls");
+  std::vector<Eigen::Vector3d> arc;  // the CL axes' great circles, finely
+  for (std::size_t i = 1; i < prog.moves.size(); ++i) {
+    const Eigen::Vector3d a = prog.moves[i - 1].axis_in_part.normalized(), b = prog.moves[i].axis_in_part.normalized();
+    const double th = std::acos(std::clamp(a.dot(b), -1.0, 1.0));
+    for (int s = 0; s <= 2000; ++s) {
+      const double t = s / 2000.0;
+      arc.push_back(th < 1e-12 ? a : ((std::sin((1 - t) * th) * a + std::sin(t * th) * b) / std::sin(th)).normalized());
+    }
+  }
+  for (const bool tcp : {false, true}) {
+    post::Options o;
+    o.tcp = tcp;
+    post::Summary sum;
+    std::ostringstream os;
+    post::write_nc(os, prog, m, *k, post::conventional_axes(prog, m, *k), o, sum);
+    const auto g =
+        gate::check(os.str(), "turn.ngc", prog, m, *k, gate::options_for(m, 0, 0, 0), &sum.cl_line_of_nc_line);
+    EXPECT_TRUE(g.ok) << (tcp ? "tcp: " : "") << g.message << "\n" << os.str();
+    const nc::Program nc = nc::read_text(os.str(), "turn.ngc", report::axis_letters(m));
+    const auto rp = k->rotary_pair();
+    double worst = 0.0;
+    for (std::size_t i = 1; i < nc.blocks.size(); ++i) {
+      if (nc.blocks[i].motion != nc::Motion::Linear) continue;
+      for (int s = 0; s <= 20; ++s) {
+        kin::Axes q = kin::Axes::Zero();
+        for (const int r : rp)
+          q[r] = nc.blocks[i - 1].axes[static_cast<size_t>(r)] +
+                 s / 20.0 * (nc.blocks[i].axes[static_cast<size_t>(r)] - nc.blocks[i - 1].axes[static_cast<size_t>(r)]);
+        const Eigen::Vector3d u = k->forward(q).axis.normalized();
+        double best = 180.0;
+        for (const auto& c : arc) best = std::min(best, rad2deg(std::acos(std::clamp(c.dot(u), -1.0, 1.0))));
+        worst = std::max(worst, best);
+      }
+    }
+    EXPECT_LE(worst, gate::options_for(m, 0, 0, 0).axis_tolerance_deg) << (tcp ? "tcp\n" : "") << os.str();
+  }
+}
+
 TEST(Post, APlannedSegmentBesideTheSingularAxisIsJudgedByItsConeNotByTheSlerpOfItsAxes) {
   // Planned (A, C) = (-2, 96) -> (+2, 78) deg on the trunnion: the machine's joint interpolation passes through the
   // vertical, while the slerp of the two planned axes (198 deg apart in azimuth) passes 0.31 deg beside it, just

@@ -213,7 +213,14 @@ void Sequencer::tcp_pieces(const cl::Move& m0, const kin::Axes& q0, const cl::Mo
       bool jumped = false;
       const kin::Posed from{ta, axis(sp.sa)}, to{P0 + sm * (P1 - P0), um};
       ++sum_.ik_calls;
-      if (kin::track_checked(kin_, sp.qa, from, to, qm, jumped) && !jumped) {
+      bool tracked = kin::track_checked(kin_, sp.qa, from, to, qm, jumped) && !jumped;
+      if (!tracked) {
+        // From a singular start (the tool along the primary rotary's axis, which then turns freely) the branch is the
+        // end's: tracked back from there. The halves are judged again like any span.
+        ++sum_.ik_calls;
+        tracked = kin::track_checked(kin_, sp.qb, kin::Posed{tb, axis(sp.sb)}, to, qm, jumped) && !jumped;
+      }
+      if (tracked) {
         check_limits(qm, m1);
         ++sum_.inserted_points;
         stack.push_back({sm, sp.sb, qm, sp.qb, sp.depth + 1});
