@@ -36,6 +36,19 @@ TEST(NcReader, ModalAxesUnitsAndFeedModes) {
   EXPECT_DOUBLE_EQ(p.blocks[3].axes[0], 25.4);  // G20
   EXPECT_DOUBLE_EQ(p.blocks[4].axes[0], 50.8);  // G91 incremental
   EXPECT_EQ(p.blocks[4].line, 10);
+  // In inch, F is inch/min, but a move of the rotaries alone has its F in deg/min (the gate read it as inch/min and
+  // refused a TCP reorientation for an X 25.4 times too fast). Also in a TNC's inch program.
+  const auto q =
+      nc::read_text("G20 G90 G94\nG0 X0 Y0 Z0 B0 C0\nG1 X1. F10.\nG1 B10. F100.\nG1 X2. B20.\n", "i.ngc", xyzbc());
+  ASSERT_EQ(q.blocks.size(), 4u);
+  EXPECT_DOUBLE_EQ(q.blocks[1].feed, 254.0);
+  EXPECT_DOUBLE_EQ(q.blocks[2].feed, 100.0);  // deg/min
+  EXPECT_DOUBLE_EQ(q.blocks[3].feed, 2540.0);
+  const auto h = nc::read_text(
+      "0 BEGIN PGM P INCH\n1 L X+0 Y+0 Z+0 B+0 C+0 R0 FMAX\n2 L X+1 R0 F10\n3 L B+10 R0 F100\n", "i.h", xyzbc());
+  ASSERT_EQ(h.blocks.size(), 3u);
+  EXPECT_DOUBLE_EQ(h.blocks[1].feed, 254.0);
+  EXPECT_DOUBLE_EQ(h.blocks[2].feed, 100.0);
 }
 
 TEST(NcReader, ReadsNxHaasOutput) {

@@ -27,6 +27,18 @@ static_assert(sizeof(Block) <= 128, "nc::Block grew: keep rare members out of li
 
 namespace {
 
+/// A move of the rotary axes alone (no linear axis, nor the tip under TCP, changes; nor an arc).
+bool rotary_only(const Block& from, const Block& to, const AxisLetters& letters) {
+  if (to.arc) return false;
+  bool rotary_moves = false;
+  for (std::size_t a = 0; a < 5; ++a) {
+    const bool moved = std::abs(to.axes[a] - from.axes[a]) > 1e-12;
+    if (moved && !letters.rotary[a]) return false;
+    rotary_moves |= moved;
+  }
+  return rotary_moves;
+}
+
 /// "cone_deg=X" and "cl_units=U" in our header comment (the rest of the line from "cscam tool_length_mm="): a planned
 /// program's cone, and the unit the CL was read in.
 void read_header_cone(std::string_view rest, Program& prog) {
@@ -405,7 +417,8 @@ Program read_heidenhain(const std::string& text, const std::string& name, const 
     b.line = lineno;
     b.motion = rapid ? Motion::Rapid : Motion::Linear;
     b.inverse_time = false;
-    b.feed = feed;
+    // A rotary-only move's F is deg/min in inch programs too (the F word was converted as inch/min).
+    b.feed = inch && rotary_only(state, b, letters) ? feed / kMmPerInch : feed;
     prog.blocks.push_back(b);
     state = b;
   }
@@ -918,7 +931,8 @@ Program read_text(const std::string& text, const std::string& name, const AxisLe
     b.line = lineno;
     b.motion = motion;
     b.inverse_time = g93;
-    b.feed = inch && !g93 ? feed * kMmPerInch : feed;
+    // In inch, F is inch/min, except for a move of the rotaries alone, whose F is deg/min (G20 or not).
+    b.feed = inch && !g93 && !rotary_only(state, b, letters) ? feed * kMmPerInch : feed;
     prog.blocks.push_back(b);
     state = b;
   }
