@@ -317,6 +317,60 @@ TEST(Post, AReorientationOutOfTheVerticalUnderTcpIsSplitOnTheEndsBranch) {
   }
 }
 
+// Under TCP with angle words the control puts the rotaries at the words. The post (and the gate) took them to be the
+// IK solution nearest the control's last state, which out of the vertical (C free) or after a flip is another winding:
+// the first block was slowed 7 to 13 times for a swing that never happens (a dwell mark). The oracle: the machine axes
+// from the words (rotaries as written, linear axes from the tip), and each block's F at least the programmed feed or
+// the fastest one no axis's max_feed forbids, whichever is lower.
+TEST(Post, TcpFeedsAreSlowedOnlyForTheMotionTheControlMakes) {
+  std::string cl = "UNITS/INCHES\nMULTAX/ON\nFEDRAT/IPM,40\nRAPID\nGOTO/0,0,2,0,0,1\nGOTO/0,1,0.2,0,0,1\n";
+  for (int k = 1; k <= 10; ++k) {
+    const double th = deg2rad(0.51 * k);
+    cl += fmt::format("GOTO/{},1,0.2,0,{},{}\n", 0.05 * k, -std::sin(th), std::cos(th));
+  }
+  const cl::Program prog = cl::read_text(cl, "tilt.cls");
+  for (const std::string name : {"haas-umc750", "head-table-bc45"}) {
+    const auto m = load_machine(name);
+    const auto k = m.make_kinematics(post::tool_length_for(m, 0));
+    post::Options o;
+    o.tcp = true;
+    o.dialect = "fanuc";
+    post::Summary sum;
+    std::ostringstream os;
+    post::write_nc(os, prog, m, *k, post::conventional_axes(prog, m, *k), o, sum);
+    const auto g = gate::check(os.str(), "t.ngc", prog, m, *k, gate::options_for(m, 0, 0, 0), &sum.cl_line_of_nc_line);
+    EXPECT_TRUE(g.ok) << name << ": " << g.message;
+    const nc::Program nc = nc::read_text(os.str(), "t.ngc", report::axis_letters(m));
+    const auto rp = k->rotary_pair();
+    auto joints = [&](const nc::Block& b) {
+      kin::Axes q;
+      for (int j = 0; j < 5; ++j) q[j] = b.axes[static_cast<size_t>(j)];
+      Eigen::Vector3d tip, axis;
+      int n = 0;
+      for (int j = 0; j < 5; ++j)
+        if (j != rp[0] && j != rp[1]) tip[n++] = q[j];
+      EXPECT_TRUE(k->tool_axis_at(q[rp[0]], q[rp[1]], tip, axis));
+      EXPECT_TRUE(k->solve_for_rotaries(kin::Posed{tip, axis}, q));
+      return std::make_pair(q, tip);
+    };
+    for (std::size_t i = 1; i < nc.blocks.size(); ++i) {
+      const auto& b = nc.blocks[i];
+      if (b.motion != nc::Motion::Linear || !b.tcp || !nc.blocks[i - 1].tcp) continue;
+      const auto [qa, ta] = joints(nc.blocks[i - 1]);
+      const auto [qb, tb] = joints(b);
+      const double len = (tb - ta).norm();
+      if (len < 1e-6) continue;
+      double need = std::numeric_limits<double>::infinity();
+      for (int j = 0; j < 5; ++j) {
+        const double d =
+            m.axes[static_cast<size_t>(j)].rotary() ? rad2deg(std::abs(qb[j] - qa[j])) : std::abs(qb[j] - qa[j]);
+        if (d > 1e-12) need = std::min(need, m.axes[static_cast<size_t>(j)].max_feed * len / d);
+      }
+      EXPECT_GE(b.feed, std::min(1016.0, need) * (1 - 1e-3)) << name << " NC line " << b.line << "\n" << os.str();
+    }
+  }
+}
+
 TEST(Post, APlannedSegmentBesideTheSingularAxisIsJudgedByItsConeNotByTheSlerpOfItsAxes) {
   // Planned (A, C) = (-2, 96) -> (+2, 78) deg on the trunnion: the machine's joint interpolation passes through the
   // vertical, while the slerp of the two planned axes (198 deg apart in azimuth) passes 0.31 deg beside it, just

@@ -133,6 +133,8 @@ Summary check(const std::string& nc_text, const std::string& nc_name, const cl::
   // A TCP program that cancels TCP for its tilted planes: its machine-word blocks (read as tip words) go exactly to
   // their machine axes (kept by the reader), no IK choice.
   std::size_t next_machine = 0;
+  const bool angle_words = s.tool_tip_control && !ncp.tcp_vectors &&
+                           kinematics.traits().tcp_rotary_words == kin::Traits::TcpRotaryWords::MachineAngles;
   for (size_t bi = 0; bi < ncp.blocks.size(); ++bi) {
     const nc::Block& b = ncp.blocks[bi];
     if (!std::all_of(b.known.begin(), b.known.end(), [](bool k) { return k; })) {
@@ -158,6 +160,23 @@ Summary check(const std::string& nc_text, const std::string& nc_name, const cl::
       const bool machine_words = next_machine < ncp.machine_axes.size() && ncp.machine_axes[next_machine].first == bi;
       if (machine_words) {
         for (int i = 0; i < 5; ++i) sol[i] = ncp.machine_axes[next_machine].second[static_cast<size_t>(i)];
+        if (std::string v = kinematics.check_limits(sol); !v.empty()) {
+          add(Violation::Kind::Limit, b.line, 0, v);
+          continue;
+        }
+      } else if (angle_words) {
+        // The rotary words are the machine's own angles: the control puts the rotaries there (a flip's G0 to the
+        // other branch of the same axis turns them), and only the linear axes follow from the tip.
+        const auto rp = kinematics.rotary_pair();
+        sol = prev;
+        sol[rp[0]] = q[rp[0]];
+        sol[rp[1]] = q[rp[1]];
+        if (!pose.tip_mm.allFinite() || !kinematics.solve_for_rotaries(pose, sol)) {
+          add(Violation::Kind::Limit, b.line, 0,
+              fmt::format("no linear axis values reach tip ({:.4f}, {:.4f}, {:.4f}) with these rotary words",
+                          pose.tip_mm.x(), pose.tip_mm.y(), pose.tip_mm.z()));
+          continue;
+        }
         if (std::string v = kinematics.check_limits(sol); !v.empty()) {
           add(Violation::Kind::Limit, b.line, 0, v);
           continue;

@@ -240,6 +240,12 @@ void Sequencer::track_control(const kin::Axes& v, const Vec3& cl_axis) {
   for (int i = 0; i < 5; ++i)
     if (!m_.axes[static_cast<size_t>(i)].rotary()) tip[k++] = v[i];
   if (!vectors_ && !axis_of_words(v, u)) return;
+  if (!vectors_ && traits_.tcp_rotary_words == kin::Traits::TcpRotaryWords::MachineAngles) {
+    kin::Axes q = ctrl_q_;
+    for (const int r : kin_.rotary_pair()) q[r] = v[r];
+    if (kin_.solve_for_rotaries(kin::Posed{tip, u}, q)) ctrl_q_ = q;
+    return;
+  }
   kin::Axes sol;
   if (kin::nearest_solution(kin_, kin::Posed{tip, u}, ctrl_q_, sol)) ctrl_q_ = sol;
 }
