@@ -683,3 +683,45 @@ TEST(CalibCli, NoCorrectedFileThatPredictsWorseAndAWarningWhenPosesAreBunched) {
   EXPECT_EQ(r3.output.find("cover too little"), std::string::npos) << r3.output;
   fs::remove_all(dir);
 }
+
+// Poses bunched in a small part of the XMINI's volume: the corrected file moved the tip no further in the volume than
+// at the poses, so the old comparison said nothing, but it was 0.09 mm off elsewhere. The parameters' covariance
+// carried to the tip says so. Spread poses: no warning.
+TEST(CalibCli, XminiPosesBunchedInASlabAreFlaggedByTheUncertaintyTheyLeave) {
+  const auto m = load("xmini");
+  const std::vector<double> truth = xmini_truth(*m);
+  const std::string machine = source_path("machines/xmini.yaml");
+  std::vector<std::vector<double>> bunched = m->random_poses(60, 31);
+  for (std::size_t k = 1; k < bunched.size(); ++k)
+    for (std::size_t j = 0; j < bunched[k].size(); ++j)
+      bunched[k][j] = bunched[0][j] + 0.08 * (bunched[k][j] - bunched[0][j]);
+  auto run = [&](const std::vector<std::vector<double>>& poses, const std::string& name) {
+    calib::Sigmas s;
+    s.tip_mm = 0.002;
+    const std::string rec = tmp(name + ".csv");
+    write(rec,
+          calib::format_recording(calib::to_recording(*m, calib::simulate(*m, truth, poses, {"tip"}, s, 5), machine)));
+    return test::run_command(fmt::format("{} calibrate {} --max-iterations 2000", CSCAM_CLI, rec));
+  };
+  const auto slab = run(bunched, "xmini-slab");
+  EXPECT_EQ(slab.status, 0) << slab.output;
+  EXPECT_NE(slab.output.find("uncertain by up to"), std::string::npos) << slab.output;
+  const auto spread = run(m->random_poses(60, 31), "xmini-spread");
+  EXPECT_EQ(spread.status, 0) << spread.output;
+  EXPECT_EQ(spread.output.find("uncertain by up to"), std::string::npos) << spread.output;
+}
+
+// Without sigmas in the recording, outliers are judged against the median pose's residual. With one link length per
+// pose that median is 0.67 of the noise, and three of it flagged 4 % of clean poses; the median is now scaled by what
+// it is for the channels a pose has. The oracle: Gaussian noise, so about 0.3 % beyond three sigmas.
+TEST(CalibIdent, OutlierLimitWithoutSigmasFollowsTheChannelsPerPose) {
+  const auto m = load("pcmm");
+  calib::Sigmas s;
+  s.len_mm = 0.0005;
+  Dataset d = calib::simulate(*m, m->nominal(), m->random_poses(240, 11), {"len"}, s, 3);
+  d.sigma = calib::Sigmas{};  // as read from a recording that gives none
+  calib::Options o;
+  o.free = m->select({"passive"});
+  const calib::Result r = calib::calibrate(*m, d, o);
+  EXPECT_LE(r.outliers.size(), 3u);
+}

@@ -539,6 +539,7 @@ Result calibrate(const Model& model, const Dataset& d, const Options& opt) {
       cov.GetCovarianceBlock(p.data(), p.data(), C.data());
       const double scale = d.sigma.given ? 1.0 : (std::isfinite(res.chi2_reduced) ? res.chi2_reduced : 1.0);
       C *= scale;
+      res.covariance = C;
       for (std::size_t i = 0; i < n; ++i)
         if (is_free[i])
           res.stddev[i] = std::sqrt(std::max(0.0, C(static_cast<Eigen::Index>(i), static_cast<Eigen::Index>(i))));
@@ -577,7 +578,16 @@ Result calibrate(const Model& model, const Dataset& d, const Options& opt) {
     if (!d.sigma.given && !pose_rms.empty()) {
       std::vector<double> sorted = pose_rms;
       std::nth_element(sorted.begin(), sorted.begin() + static_cast<std::ptrdiff_t>(sorted.size() / 2), sorted.end());
-      scale = std::max(sorted[sorted.size() / 2], 1e-300);
+      // The median pose RMS of k unit normals is sqrt(median chi^2_k / k), about (1 - 2/(9k))^(3/2) (Wilson-Hilferty):
+      // 0.67 for one link length per pose, where 3 medians flagged 4 % of clean poses.
+      std::vector<int> counts(d.poses.size());
+      for (std::size_t k = 0; k < d.poses.size(); ++k)
+        counts[k] = static_cast<int>(
+            std::count_if(d.poses[k].meas.begin(), d.poses[k].meas.end(), [](double v) { return !std::isnan(v); }));
+      std::nth_element(counts.begin(), counts.begin() + static_cast<std::ptrdiff_t>(counts.size() / 2), counts.end());
+      const double kc = std::max(1, counts[counts.size() / 2]);
+      const double median_rms = std::pow(1.0 - 2.0 / (9.0 * kc), 1.5);
+      scale = std::max(sorted[sorted.size() / 2] / median_rms, 1e-300);
     }
     for (std::size_t k = 0; k < d.poses.size(); ++k)
       if (pose_rms[k] > 3.0 * scale) res.outliers.push_back({k, d.poses[k].line, pose_rms[k] / scale});

@@ -124,6 +124,7 @@ struct Result {
   SolverSummary summary;
   std::vector<double> estimate;  ///< all parameters (file units)
   std::vector<double> stddev;    ///< per parameter; NaN for fixed ones
+  Eigen::MatrixXd covariance;    ///< of all parameters (file units; zero rows for fixed ones); empty when not computed
   std::vector<std::pair<std::pair<std::size_t, std::size_t>, double>> correlations;  ///< |rho| > 0.9
   double chi2_reduced = 0;  ///< sum (r/sigma)^2 / (m - free): ~1 when the sigmas are right
   ResidualStats before, after;
