@@ -736,6 +736,27 @@ TEST(GeomMeshCheck, OpenBoxIsUntrustedAsASolidNamingTheFile) {
   EXPECT_NE(s.warnings.back().find("open surface: 4 border edges"), std::string::npos);
 }
 
+// A file triangle whose two corners are one point is dropped by the loader (after welding, it names one vertex twice):
+// it was dropped with no word, and the check reported one triangle fewer in and nothing removed. The loader counts it
+// (through the reader's child process) and the check reports it with the other repairs.
+TEST(GeomMeshCheck, ATriangleCollapsedAtLoadIsReported) {
+  const auto dir = std::filesystem::temp_directory_path() / ("cscam_geom_collapsed_" + std::to_string(::getpid()));
+  std::filesystem::create_directories(dir);
+  Mesh box = make_box({0, 0, 0}, {4, 2, 2});
+  box.triangles.emplace_back(0, 0, 6);  // two corners at one point
+  const std::string path = (dir / "box.stl").string();
+  save_stl(box, path);
+  Mesh m = load_mesh(path);
+  EXPECT_EQ(m.triangle_count(), 12u);
+  EXPECT_EQ(m.collapsed_at_load, 1u);
+  const MeshCheckReport r = check_and_repair(m);
+  EXPECT_EQ(r.triangles_in, 13u);
+  EXPECT_EQ(r.repeated_index_faces_removed, 1u);
+  EXPECT_TRUE(std::any_of(r.repairs.begin(), r.repairs.end(),
+                          [](const std::string& s) { return s.find("name one vertex twice") != std::string::npos; }));
+  std::filesystem::remove_all(dir);
+}
+
 TEST(GeomMeshCheck, DegenerateTrianglesAreRemovedWithoutOpeningTheSurface) {
   // A box whose front face has a vertex m in the middle of edge 0-1 (a T-junction), closed by the zero-area
   // triangle (0, 1, m), plus a triangle that names a vertex twice.

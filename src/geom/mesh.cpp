@@ -12,18 +12,18 @@
 #include <array>
 #include <assimp/Importer.hpp>
 #include <bit>
+#include <cctype>
 #include <cerrno>
 #include <chrono>
 #include <cmath>
 #include <cstdint>
 #include <cstdlib>
 #include <cstring>
-#include <cctype>
 #include <filesystem>
 #include <fstream>
 #include <sstream>
-#include <vector>
 #include <unordered_map>
+#include <vector>
 
 #include "cscam/core/atomic_file.hpp"
 #include "cscam/core/error.hpp"
@@ -201,8 +201,8 @@ double Mesh::area_mm2() const {
 
 Mesh box_mesh(const Eigen::Vector3d& lo, const Eigen::Vector3d& hi, const std::string& source) {
   if (!lo.allFinite() || !hi.allFinite() || !((hi - lo).array() > 0.0).all())
-    throw InputError(SourceLoc{source}, fmt::format("box needs min < max on every axis, got min {} max {}",
-                                                    fmt_point(lo), fmt_point(hi)));
+    throw InputError(SourceLoc{source},
+                     fmt::format("box needs min < max on every axis, got min {} max {}", fmt_point(lo), fmt_point(hi)));
   Mesh m;
   m.source = source;
   for (int i = 0; i < 8; ++i)
@@ -379,7 +379,7 @@ Mesh load_mesh_here(const std::string& path, double scale_to_mm, bool require_cl
 
   // Weld across sub-meshes (assimp only joins within one mesh), tolerance relative to the part size.
   const double diag = mesh.bounding_box().diagonal().norm();
-  weld(mesh, std::max(diag * 1e-7, 1e-12));
+  mesh.collapsed_at_load = weld(mesh, std::max(diag * 1e-7, 1e-12));
   if (mesh.triangles.empty()) throw InputError(where, "mesh file contains only degenerate triangles");
 
   if (require_closed) {
@@ -426,6 +426,8 @@ Mesh load_mesh(const std::string& path, double scale_to_mm, bool require_closed)
       for (const auto& v : m.vertices_mm) put(out, v.data(), 3 * sizeof(double));
       put(out, &nt, sizeof nt);
       for (const auto& t : m.triangles) put(out, t.data(), 3 * sizeof(int));
+      const uint64_t collapsed = m.collapsed_at_load;
+      put(out, &collapsed, sizeof collapsed);
     } catch (const InputError& e) {
       out.assign(1, 'E');
       const int32_t line = e.where().line, col = e.where().column;
@@ -517,6 +519,9 @@ Mesh load_mesh(const std::string& path, double scale_to_mm, bool require_closed)
     ok = get(in, at, t[0]) && get(in, at, t[1]) && get(in, at, t[2]);
     mesh.triangles.push_back(t);
   }
+  uint64_t collapsed = 0;
+  ok = ok && get(in, at, collapsed);
+  mesh.collapsed_at_load = static_cast<std::size_t>(collapsed);
   if (!ok || at != in.size())
     throw InputError(where, "the mesh reader (assimp) ended without an answer: the file is malformed");
   return mesh;

@@ -85,7 +85,9 @@ MeshCheckReport check_and_repair(Mesh& mesh, const MeshCheckOptions& options) {
   MeshCheckReport r;
   r.source = mesh.source;
   r.vertices_in = mesh.vertices_mm.size();
-  r.triangles_in = mesh.triangles.size();
+  // Triangles that name one vertex twice once welded were dropped at load: reported here with the others.
+  r.triangles_in = mesh.triangles.size() + mesh.collapsed_at_load;
+  r.repeated_index_faces_removed = mesh.collapsed_at_load;
   const SourceLoc where{mesh.source.empty() ? std::string("mesh") : mesh.source};
   if (mesh.triangles.empty()) {
     r.error = "mesh has no triangles";
@@ -105,10 +107,10 @@ MeshCheckReport check_and_repair(Mesh& mesh, const MeshCheckOptions& options) {
     const auto& tri = mesh.triangles[t];
     for (int k = 0; k < 3; ++k)
       if (tri[k] < 0 || static_cast<std::size_t>(tri[k]) >= points.size())
-        throw InputError(where, fmt::format("triangle {} has vertex index {} out of range [0, {})", t, tri[k],
-                                            points.size()));
-    polygons.push_back({static_cast<std::size_t>(tri[0]), static_cast<std::size_t>(tri[1]),
-                        static_cast<std::size_t>(tri[2])});
+        throw InputError(where,
+                         fmt::format("triangle {} has vertex index {} out of range [0, {})", t, tri[k], points.size()));
+    polygons.push_back(
+        {static_cast<std::size_t>(tri[0]), static_cast<std::size_t>(tri[1]), static_cast<std::size_t>(tri[2])});
   }
   // The input windings, to count the triangles the repair reversed.
   std::map<TriKey, bool> input_winding;
@@ -233,8 +235,7 @@ MeshCheckReport check_and_repair(Mesh& mesh, const MeshCheckOptions& options) {
   if (r.duplicate_vertices_merged)
     r.repairs.push_back(fmt::format("merged {} duplicate vertices", r.duplicate_vertices_merged));
   if (r.repeated_index_faces_removed)
-    r.repairs.push_back(
-        fmt::format("removed {} triangles that name one vertex twice", r.repeated_index_faces_removed));
+    r.repairs.push_back(fmt::format("removed {} triangles that name one vertex twice", r.repeated_index_faces_removed));
   if (r.duplicate_faces_removed)
     r.repairs.push_back(fmt::format("removed {} duplicated triangles", r.duplicate_faces_removed));
   if (r.non_manifold_vertices_split)
@@ -242,7 +243,8 @@ MeshCheckReport check_and_repair(Mesh& mesh, const MeshCheckOptions& options) {
   if (r.border_edges_stitched)
     r.repairs.push_back(fmt::format("stitched {} pairs of border edges", r.border_edges_stitched));
   if (r.degenerate_faces_removed)
-    r.repairs.push_back(fmt::format("removed {} zero-area triangles (edge collapse or flip)", r.degenerate_faces_removed));
+    r.repairs.push_back(
+        fmt::format("removed {} zero-area triangles (edge collapse or flip)", r.degenerate_faces_removed));
   if (r.faces_reoriented)
     r.repairs.push_back(fmt::format("reversed the winding of {} of {} triangles (consistent, outward orientation)",
                                     r.faces_reoriented, r.triangles_out));
@@ -253,13 +255,15 @@ MeshCheckReport check_and_repair(Mesh& mesh, const MeshCheckOptions& options) {
                                      r.components, r.component_overlaps));
 
   if (r.self_intersections > 0) {
-    r.error = fmt::format("the surface crosses itself: {} pairs of triangles of one connected piece intersect "
-                          "(e.g. {}), so inside and outside are undefined",
-                          r.self_intersections, crossing_example);
+    r.error = fmt::format(
+        "the surface crosses itself: {} pairs of triangles of one connected piece intersect "
+        "(e.g. {}), so inside and outside are undefined",
+        r.self_intersections, crossing_example);
   } else if (!r.closed && options.use == MeshUse::Solid) {
-    r.error = fmt::format("the mesh is open after repair: {} border edges (e.g. edge {}); a collision obstacle "
-                          "must be a closed solid",
-                          r.border_edges, border_example);
+    r.error = fmt::format(
+        "the mesh is open after repair: {} border edges (e.g. edge {}); a collision obstacle "
+        "must be a closed solid",
+        r.border_edges, border_example);
   } else if (!options.repair && r.repaired()) {
     std::string what;
     for (const auto& s : r.repairs) what += (what.empty() ? "" : "; ") + s;

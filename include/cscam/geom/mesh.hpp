@@ -19,6 +19,9 @@ struct Mesh {
   std::vector<Eigen::Vector3d> vertices_mm;  ///< vertex positions, mm
   std::vector<Eigen::Vector3i> triangles;    ///< indices into vertices_mm, counter-clockwise seen from outside
   std::string source;                        ///< where it came from (file path or generator name), for messages
+  /// Triangles the loader dropped because two of their corners are one vertex (after welding): counted, so that the
+  /// check's report says so (check_and_repair).
+  std::size_t collapsed_at_load = 0;
 
   /// Number of triangles.
   [[nodiscard]] std::size_t triangle_count() const { return triangles.size(); }
