@@ -179,6 +179,15 @@ TEST(Diagnose, AGlitchOfOneSampleIsLeftOutAndDoesNotHideTheEffect) {
   })) << r.text();
 }
 
+// The noise floor for millimetres (20 nm) was applied to the tool direction too (a unit vector: 20 urad), and a 25 urad
+// drift of dir.x under 2 urad of noise was called noise. A direction's floor is 0.2 urad.
+TEST(Diagnose, ADriftOfTheToolDirectionOfMicroradiansIsFound) {
+  const auto r =
+      run(circle(), trunnion(), {"thermal_drift:dir.x:0.000025:8"}, {"tip", "dir"}, 0.0005, 0, 0, {{"dir", 2e-6}});
+  expect_found(r, "thermal_drift", "dir.x", "drift_mm", 0.000025);
+  EXPECT_NE(r.verdict.find("urad in dir.x"), std::string::npos) << r.verdict;
+}
+
 TEST(Diagnose, Seed000BacklashOnQ2AndToothPassingVibration) {
   const auto r =
       run(xmini_cut(400), xmini(), {"backlash:q2:0.015", "vibration:tip.z:166.67:0.00322"}, {"tip"}, 0.001, 5000, 2);

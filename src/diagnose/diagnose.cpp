@@ -54,6 +54,9 @@ constexpr double kNoiseRefit = 0.9;
 constexpr double kOffsetNoted = 5.0;
 /// No measurement system resolves below this (mm or deg): the floor of the noise estimate.
 constexpr double kNoiseFloor = 2e-5;
+/// The same for a tool direction (a unit vector: radians): 0.2 urad. The floor in mm hid a 25 urad drift of `dir` under
+/// a noise "estimate" of 20 urad per component.
+constexpr double kNoiseFloorDir = 2e-7;
 
 enum class Kind { Tip, PTip, Dir, Enc, Acc };
 
@@ -71,6 +74,8 @@ struct Comp {
 struct Peak {
   double f = 0, amp = 0;
 };
+
+double floor_of(const Comp& c) { return c.kind == Kind::Dir ? kNoiseFloorDir : kNoiseFloor; }
 
 using Clock = std::chrono::steady_clock;
 double secs(Clock::time_point a) { return std::chrono::duration<double>(Clock::now() - a).count(); }
@@ -112,10 +117,10 @@ double median(std::vector<double> v) {
 
 /// White noise of variance s^2 gives E|X_k|^2 = n s^2 and a median of n s^2 ln 2: the noise from the
 /// median of the upper half of the band (smooth effects live at low frequencies, peaks are few).
-double noise_from_spectrum(const std::vector<double>& P, size_t n) {
-  if (P.size() < 8) return kNoiseFloor;
+double noise_from_spectrum(const std::vector<double>& P, size_t n, double floor = kNoiseFloor) {
+  if (P.size() < 8) return floor;
   std::vector<double> hi(P.begin() + static_cast<std::ptrdiff_t>(P.size() / 2), P.end() - 1);
-  return std::max(kNoiseFloor, std::sqrt(median(hi) / (static_cast<double>(n) * std::log(2.0))));
+  return std::max(floor, std::sqrt(median(hi) / (static_cast<double>(n) * std::log(2.0))));
 }
 
 /// Spectral peaks: local maxima far above the local median level, at least a few cycles per run.
@@ -304,7 +309,7 @@ double analysis_noise(const Fit& f, const std::vector<const Effect*>& fx, int ci
   std::vector<double> r(f.ctx->size(), 0.0);
   for (size_t k = 0; k < r.size(); ++k)
     if (!std::isnan(c.res[k])) r[k] = model_residual(f, fx, ci, k);
-  return noise_from_spectrum(periodogram(r), r.size());
+  return noise_from_spectrum(periodogram(r), r.size(), floor_of(c));
 }
 
 /// Held-out RMS of a channel group (vector RMS for tip/ptip/dir) under a model.
@@ -645,11 +650,15 @@ std::string describe(const Effect& e) {
   if (n == "backlash")
     return fmt::format("lost motion of {} on {} at each {} reversal", fmt_value(u, rep[0].second), e.target, e.target);
   if (n == "servo_lag") return fmt::format("servo lag of {:.2f} ms on {}", rep[0].second * 1000, e.target);
+  // A direction (a unit vector) drifts in microradians.
+  auto in_channel = [&](double v) {
+    return e.channel.rfind("dir.", 0) == 0 ? fmt::format("{:.1f} urad", v * 1e6) : fmt_um(v);
+  };
   if (n == "thermal_drift")
-    return fmt::format("thermal drift of {} in {} (time constant {:.0f} s)", fmt_um(rep[0].second), e.target,
+    return fmt::format("thermal drift of {} in {} (time constant {:.0f} s)", in_channel(rep[0].second), e.target,
                        rep[1].second);
   if (n == "vibration")
-    return fmt::format("vibration of {} at {:.1f} Hz in {}{}", fmt_um(rep[1].second), rep[0].second, e.target,
+    return fmt::format("vibration of {} at {:.1f} Hz in {}{}", in_channel(rep[1].second), rep[0].second, e.target,
                        e.note.empty() ? "" : " (" + e.note + ")");
   if (n == "scale") return fmt::format("scale error of {:.1f} ppm on {}", rep[0].second, e.target);
   if (n == "thermal_scale")
@@ -816,7 +825,7 @@ Report diagnose(sim::Recording& rec, const machine::Machine& m, const std::vecto
         for (auto& v : x)
           if (std::isnan(v)) v = 0;
         auto P = periodogram(x);
-        comps[ci].sigma = noise_from_spectrum(P, n);
+        comps[ci].sigma = noise_from_spectrum(P, n, floor_of(comps[ci]));
         peaks[ci] = find_peaks(P, n, fs, duration);
         if (o.keep_plot_data) spectra[ci] = std::move(P);
       }
@@ -1108,8 +1117,8 @@ Report diagnose(sim::Recording& rec, const machine::Machine& m, const std::vecto
     for (int ci : F.fitc) {
       auto& c = comps[static_cast<size_t>(ci)];
       const double a0 = noise0_analysis[static_cast<size_t>(ci)];
-      if (!(a0 > kNoiseFloor)) continue;
-      const double lowered = std::max(kNoiseFloor, noise0[static_cast<size_t>(ci)] * analysis_noise(F, fx, ci) / a0);
+      if (!(a0 > floor_of(c))) continue;
+      const double lowered = std::max(floor_of(c), noise0[static_cast<size_t>(ci)] * analysis_noise(F, fx, ci) / a0);
       if (lowered < kNoiseRefit * c.sigma) c.sigma = lowered, changed = true;
     }
     return changed;
