@@ -204,6 +204,20 @@ TEST(Diagnose, Seed000BacklashOnQ2AndToothPassingVibration) {
     EXPECT_NE(j.find(key), std::string::npos) << key;
 }
 
+// Tooth passing above the Nyquist frequency (6000 rpm x 3 flutes = 300 Hz sampled at 400 Hz): the vibration shows at
+// 100 Hz, which was named after the spindle (6000 rpm = 100 Hz). It is named as the tooth passing it aliases from, and
+// a warning says the recording is too slow to see it as it is. The oracle: the alias |300 - 400| = 100 Hz.
+TEST(Diagnose, ToothPassingAboveNyquistIsRecognisedWhereItAliasesAndWarned) {
+  const auto r = run(xmini_cut(400), xmini(), {"vibration:tip.z:300:0.003"}, {"tip"}, 0.0005, 6000, 3);
+  const auto* v = find(r, "vibration", "tip.z");
+  ASSERT_NE(v, nullptr) << r.text();
+  EXPECT_NEAR(param(*v, "frequency_hz"), 100.0, 0.5) << r.text();
+  EXPECT_EQ(v->effect->note, "tooth_passing") << r.text();
+  EXPECT_TRUE(std::any_of(r.warnings.begin(), r.warnings.end(), [](const std::string& w) {
+    return w.find("tooth-passing frequency 300.0 Hz is above the Nyquist frequency") != std::string::npos;
+  })) << r.text();
+}
+
 TEST(Diagnose, TooLittleDataOrAMissingCommandIsAnError) {
   sim::Recording rec =
       sim::parse_recording("t,cmd.x,cmd.y,cmd.z,cmd.a,cmd.c,tip.x\n0,0,0,0,0,0,0\n0.1,1,0,0,0,0,1\n", "few.csv");
@@ -365,6 +379,28 @@ TEST(Diagnose, ADriftOfTheToolPointSeenInTipAndPtipIsOneFinding) {
                      {{"ptip", 0.0005}});
   expect_found(r, "thermal_drift", "tool.y", "drift_mm", 0.01);
   EXPECT_EQ(r.findings.size(), 1u) << r.text();
+}
+
+// A C axis whose centre is off by 12 um, measured from the part: a constant offset of the tool point turned with the
+// table looks the same, and a "thermal drift" of the tool point with a time constant of 0 s (a constant) took it. A
+// drift's time constant stays above a twentieth of the run: the rotary axis's centre is named. And explanations that
+// need implausible sizes (a wrong machine gave a 28 mm drift, a 44,606 deg cyclic error) are not accepted.
+TEST(Diagnose, AnOffCentreTableIsNotATimelessDriftOfTheToolPoint) {
+  std::vector<std::unique_ptr<sim::Effect>> fx;
+  for (auto& e : sim::parse_effects("geometric:EX0C=0.012", trunnion())) fx.push_back(std::move(e));
+  ASSERT_EQ(fx.size(), 1u);
+  sim::SimulateOptions so;
+  so.channels = {"ptip"};
+  so.noise = {{"ptip", 0.0005}};
+  so.seed = 3;
+  auto rec = sim::simulate(table_turns(360), trunnion(), {fx[0].get()}, so);
+  rec.file = "ecc.csv";
+  const auto r = diagnose::diagnose(rec, trunnion(), {});
+  ASSERT_FALSE(r.findings.empty()) << r.text();
+  EXPECT_EQ(r.findings.front().effect->name(), "geometric") << r.text();
+  for (const auto& f : r.findings)
+    if (f.effect->name() == "thermal_drift")
+      EXPECT_GE(param(f, "time_constant_s"), 0.05 * (rec.data[0].back() - rec.data[0].front()) * 0.999) << r.text();
 }
 
 // Lost motion of 30 um leaks into the upper band of the spectrum and raised the noise estimate of enc.x 4.5x; a

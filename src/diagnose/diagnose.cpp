@@ -54,6 +54,8 @@ constexpr double kNoiseRefit = 0.9;
 constexpr double kOffsetNoted = 5.0;
 /// No measurement system resolves below this (mm or deg): the floor of the noise estimate.
 constexpr double kNoiseFloor = 2e-5;
+/// A thermal drift's time constant stays above this share of the run (see the fit's bounds).
+constexpr double kThermalDriftMinTau = 0.05;
 /// The same for a tool direction (a unit vector: radians): 0.2 urad. The floor in mm hid a 25 urad drift of `dir` under
 /// a noise "estimate" of 20 urad per component.
 constexpr double kNoiseFloorDir = 2e-7;
@@ -431,8 +433,11 @@ void joint_fit(Fit& f, const std::vector<Effect*>& fx, size_t stride = 1) {
       if (names[q] == "tau_s" || names[q] == "decay_s" || names[q] == "period") {
         // A screw that reaches its growth within a tenth of the run is a constant scale error to this recording:
         // thermal_scale keeps its time constant above that, so the two stay apart (the scale has one parameter less).
-        const double floor =
-            e->name() == "thermal_scale" ? std::min(e->p[q], kThermalScaleMinTau * f.ctx->duration) : 0.0;
+        // A drift that completes within a twentieth of the run is a constant to this recording (with the tool point's
+        // drift turned with the table, a constant it shares with a rotary axis's offset centre).
+        const double floor = e->name() == "thermal_scale"   ? std::min(e->p[q], kThermalScaleMinTau * f.ctx->duration)
+                             : e->name() == "thermal_drift" ? std::min(e->p[q], kThermalDriftMinTau * f.ctx->duration)
+                                                            : 0.0;
         prob.SetParameterLowerBound(e->p.data(), static_cast<int>(q), std::max(e->p[q] * 0.05, floor));
         prob.SetParameterUpperBound(
             e->p.data(), static_cast<int>(q),
@@ -461,7 +466,10 @@ bool plausible(const Effect& e) {
   if (n == "servo_lag") return a <= 0.5;                                      // s
   if (n == "backlash") return a <= 1.0 && e.p[1] >= 0 && e.p[1] <= 1.0;       // width, take-up: mm or deg
   if (n == "friction_spike") return e.p[1] > 0 && e.p[1] <= 1.0 && a <= 1.0;  // decay, s; peak, mm or deg
-  if (n == "thermal_drift") return e.p[1] > 0;
+  if (n == "thermal_drift") return e.p[1] > 0 && a <= 1.0;                    // mm over the run (a wrong machine: 28)
+  if (n == "vibration") return std::hypot(e.p[1], e.p[2]) <= 1.0;             // mm amplitude
+  if (n == "geometric") return a <= 1.0;  // mm or deg: linearised at nominal, valid for tens of micrometres
+  if (n == "cyclic") return std::hypot(e.p[1], e.p[2]) <= 1.0;  // mm or deg amplitude
   return true;
 }
 
@@ -581,9 +589,16 @@ Candidate screen(const Fit& f, const Effect& proto, const std::vector<size_t>& s
   return best;
 }
 
-std::string source_of(double f, double rpm, int flutes) {
+/// Where a frequency f lands when sampled at sample_hz (0: not sampled).
+double aliased(double f, double sample_hz) {
+  return sample_hz > 0 && f > 0.5 * sample_hz ? std::abs(f - sample_hz * std::round(f / sample_hz)) : f;
+}
+
+/// What a vibration at f comes from, given the spindle speed and flutes; sampled at sample_hz, a source above the
+/// Nyquist frequency is recognised where it aliases to.
+std::string source_of(double f, double rpm, int flutes, double sample_hz = 0) {
   if (!(rpm > 0)) return "structural";
-  const double fs = rpm / 60.0, ft = flutes > 0 ? fs * flutes : 0;
+  const double fs = aliased(rpm / 60.0, sample_hz), ft = flutes > 0 ? aliased(rpm / 60.0 * flutes, sample_hz) : 0;
   auto near = [&](double base) {
     if (!(base > 0)) return 0;
     const double h = std::round(f / base);
@@ -810,6 +825,15 @@ Report diagnose(sim::Recording& rec, const machine::Machine& m, const std::vecto
     R.rms_before.emplace_back(g, cnt ? std::sqrt(s / static_cast<double>(cnt)) : 0.0);
   }
   R.seconds.emplace_back("simulate_and_subtract", secs(tstage));
+  const double sample_hz = static_cast<double>(n - 1) / std::max(t.back() - t.front(), 1e-12);
+  if (rpm > 0)
+    for (const auto& [what, f] : std::vector<std::pair<std::string, double>>{
+             {"spindle", rpm / 60.0}, {"tooth-passing", flutes > 0 ? rpm / 60.0 * flutes : 0.0}})
+      if (f > 0.5 * sample_hz)
+        R.warnings.push_back(fmt::format(
+            "the {} frequency {:.1f} Hz is above the Nyquist frequency {:.1f} Hz of this recording ({:.1f} samples/s): "
+            "a vibration there shows aliased at {:.1f} Hz (record faster than {:.0f} samples/s to see it as it is)",
+            what, f, 0.5 * sample_hz, sample_hz, aliased(f, sample_hz), 2.0 * f));
   tstage = Clock::now();
 
   // ---- 2. noise first; spectra --------------------------------------------------------------------
@@ -1265,7 +1289,7 @@ Report diagnose(sim::Recording& rec, const machine::Machine& m, const std::vecto
     fd.judged_on_training = event_only[i] != 0;
     if (i < alternatives.size()) fd.alternatives = alternatives[i];
     const bool on_held = !fd.judged_on_training;
-    if (fd.effect->name() == "vibration") fd.effect->note = source_of(fd.effect->p[0], rpm, flutes);
+    if (fd.effect->name() == "vibration") fd.effect->note = source_of(fd.effect->p[0], rpm, flutes, sample_hz);
     // The group where it matters most, and its dominant component. Before/after are judged where the effect
     // acts (its contribution above half the noise), so that a localised effect (spikes at reversals) is judged
     // on the samples it explains, not diluted by the rest of the run.
@@ -1436,7 +1460,7 @@ Report diagnose(sim::Recording& rec, const machine::Machine& m, const std::vecto
       l.t_start = t.front();
       l.t_end = t.back();
       l.rms = pk.amp / std::sqrt(2.0);
-      const std::string src = source_of(pk.f, rpm, flutes);
+      const std::string src = source_of(pk.f, rpm, flutes, sample_hz);
       std::string rel =
           src == "tooth_passing"
               ? fmt::format(" = tooth passing ({} rpm x {} flutes / 60 = {:.1f} Hz{})", rpm, flutes, rpm * flutes / 60,
