@@ -2230,3 +2230,52 @@ TEST(Post, ARetractOnACalibratedMachineRunsAlongItsOwnToolAxis) {
     EXPECT_NE(std::string(e.what()).find("both points are reachable"), std::string::npos) << e.what();
   }
 }
+
+TEST(Post, AFeedMoveReachedFromOffThePathIsApproachedAlongItsAxis) {
+  // The program's first motion a feed move, a tool change followed by one, and a spindle stop and start between two
+  // cuts: the tool is away from the last CL point each time. It used to be a rapid straight onto the first point, and
+  // after a tool change a feed from the safe Z diagonally to the next point, which the gate refused (220 mm off).
+  const char* text = R"(PARTNO OFFPATH
+UNITS/MM
+MULTAX/ON
+CUTTER/10,5
+LOADTL/1
+SPINDL/8000,CLW
+FEDRAT/MMPM,1000
+GOTO/10,0,5,0,0,1
+GOTO/20,0,5,0,0.2,0.9797959
+LOADTL/2
+GOTO/40,10,5,0,0,1
+GOTO/50,10,5,0,0,1
+SPINDL/OFF
+SPINDL/8000,CLW
+GOTO/60,10,5,0.2,0,0.9797959
+FINI
+)";
+  const cl::Program prog = cl::read_text(text, "offpath.cls");
+  for (const char* name : {"trunnion-ac", "haas-umc750", "head-head-ac", "xmini"}) {
+    const auto m = load_machine(name);
+    const auto k = m.kinematics();
+    for (const bool tcp : {false, true}) {
+      const Posted p = post_program(prog, m, *k, true, tcp);
+      const auto g =
+          gate::check(p.text, "offpath.ngc", prog, m, *k, gate::options_for(m, 0, 0, 0), &p.summary.cl_line_of_nc_line);
+      EXPECT_TRUE(g.ok) << name << " tcp " << tcp << ": " << g.message << "\n" << p.text;
+      // Oracle: FK of every block end. A block that ends on a feed CL point is a feed block (G1), never a rapid.
+      const nc::Program nc = nc::read_text(p.text, "offpath.ngc", report::axis_letters(m));
+      if (tcp) continue;  // (the gate reads the TCP words; verify_text reads machine coordinates)
+      const auto vo = verify_text(p.text, prog, m, *k);
+      EXPECT_TRUE(vo.ok) << name << ": " << vo.message;
+      std::size_t rapids_onto_cut = 0;
+      for (const auto& b : nc.blocks) {
+        if (b.motion != nc::Motion::Rapid) continue;
+        kin::Axes q;
+        for (int j = 0; j < 5; ++j) q[j] = b.axes[static_cast<size_t>(j)];
+        const Eigen::Vector3d tip = k->forward(q).tip_mm;
+        for (const auto& mv : prog.moves)
+          if (mv.kind == cl::MotionKind::Feed && (tip - mv.tip_in_part_mm).norm() < 1e-3) ++rapids_onto_cut;
+      }
+      EXPECT_EQ(rapids_onto_cut, 0u) << name << "\n" << p.text;
+    }
+  }
+}

@@ -224,9 +224,12 @@ void Sequencer::run(const std::vector<kin::Axes>& axes) {
     if (cart_) {
       if (!tcp_on_) tool_tip_control_on(mv.line);
       cartesian(mv, axes[i]);
-    } else if (!have_state_ || mv.kind == cl::MotionKind::Rapid) {
+    } else if (!have_state_ || off_path_ || mv.kind == cl::MotionKind::Rapid) {
       pending_plane_ = planes_ && fixed_from(axes, i) && !at_rotary_zero(axes[i]);
-      rapid(axes[i], mv);
+      if (mv.kind == cl::MotionKind::Rapid)
+        rapid(axes[i], mv);
+      else
+        approach(axes[i], mv);
       pending_plane_ = false;
       if (indexed_from(axes, i)) clamp_rotaries();
     } else if (const std::size_t end = arc_end(axes, i); end > 0) {

@@ -46,6 +46,8 @@ inline long long round_half_away(double x) {
 
 /// Feed for cutting moves without one (the CL reader refuses those unless a default is given).
 inline constexpr double kFallbackFeedMmMin = 1000.0;
+/// Rotary changes between two CL points below this are taken as continuing the branch without a check.
+inline constexpr double kFlipCheckRad = 0.5235987756;  // 30 deg
 /// How far inside a linear axis's limit a retract that the travel stops ends, mm.
 inline constexpr double kRetractLimitMarginMm = 1.0;
 
@@ -225,6 +227,9 @@ class Sequencer {
 
   /// Rapid positioning to q; with a rotary change: retract, turn, position, plunge.
   void rapid(const kin::Axes& q, const cl::Move& mv);
+  /// A feed move reached from off the CL path (the program's first motion, or after a tool change): rapid to
+  /// post.singularity.retract_mm above it along the tool axis, then fed along the axis into it.
+  void approach(const kin::Axes& q, const cl::Move& mv);
 
   /// After a cut, before a retract that is not along the tool axis: feeds out along the tool axis first.
   void exit_along_axis();
@@ -402,7 +407,10 @@ class Sequencer {
   cl::Move cart_move_;                    ///< the last CL point posted in Cartesian mode
   std::vector<TcpPiece> tcp_pieces_;
   bool have_state_ = false;
-  bool at_cut_ = false;      ///< the last motion was a feed: the tool may be in the material
+  bool at_cut_ = false;  ///< the last motion was a feed: the tool may be in the material
+  /// The tool left the last CL point by a move the CL did not ask for (up to the safe Z before a tool change, out
+  /// along the axis when the spindle stops): a feed move that follows must be approached, not fed from here.
+  bool off_path_ = false;
   FeedBlock prev_blk_;       ///< the feed block right before last_blk_ (nothing between them), while its corner is open
   FeedBlock last_blk_;       ///< the last feed block written
   std::string mode_;         ///< the blend mode in force after the last block (its words; the header sets the first)

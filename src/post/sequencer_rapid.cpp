@@ -15,9 +15,6 @@
 
 namespace cscam::post::detail {
 
-/// Rotary changes between two CL points below this are taken as continuing the branch without a check.
-constexpr double kFlipCheckRad = 0.5235987756;  // 30 deg
-
 // --- Rapid positioning -------------------------------------------------------------------------------------
 
 void Sequencer::emit_safe_z() {
@@ -30,6 +27,7 @@ void Sequencer::emit_safe_z() {
     set_mode94();
     emit();
   }
+  if (q[z_] > cur_[z_]) off_path_ = true;
   cur_[z_] = q[z_];
 }
 
@@ -118,6 +116,33 @@ void Sequencer::rapid(const kin::Axes& q, const cl::Move& mv) {
   cur_ = q;
   have_state_ = true;
   at_cut_ = false;
+  off_path_ = false;
+}
+
+void Sequencer::approach(const kin::Axes& q, const cl::Move& mv) {
+  // A rapid straight onto a point the CL cuts at would strike the part at rapid speed (a feed from wherever the
+  // tool waits would cut a diagonal the CL never asked for): positioned above it, then fed in along the axis.
+  const kin::Posed at = kin_.forward(q);
+  cl::Move above = mv;
+  above.kind = cl::MotionKind::Rapid;
+  above.tip_in_part_mm = at.tip_mm + m_.post.singularity.retract_mm * at.axis;
+  above.axis_in_part = at.axis;
+  kin::Axes q_above;
+  if (!kin::nearest_solution(kin_, kin::Posed{above.tip_in_part_mm, at.axis}, q, q_above) ||
+      rotary_jump(q_above, q) > kFlipCheckRad || !kin_.check_limits(q_above).empty()) {
+    rapid(q, mv);  // no room above it along the axis: positioned onto it, as the CL's own rapid would be
+    return;
+  }
+  rapid(q_above, above);
+  cl::Move from = above;
+  from.tip_in_part_mm = kin_.forward(q_above).tip_mm;
+  resume_blend_ = false;  // the plunge stops exactly on the point (no blend into the cut); the cut blends again
+  feed_linear(from, q_above, mv, q);
+  stop_exactly_at_last_feed();
+  resume_blend_ = true;
+  at_cut_ = true;
+  cut_move_ = mv;
+  if (cut_move_.feed_mm_per_min <= 0) cut_move_.feed_mm_per_min = kFallbackFeedMmMin;
 }
 
 /// After a cut, before a retract that is not along the tool axis (machine Z up, a tool change, the end):
@@ -139,6 +164,7 @@ void Sequencer::exit_along_axis() {
       rotary_jump(q_up, cur_) > kFlipCheckRad)
     return;  // no room along the axis: the plain retract follows (and the gate checks it against the meshes)
   feed_linear(from, cur_, up, q_up);
+  off_path_ = true;
 }
 
 // --- Branch flips and unwinds between two feed points ------------------------------------------
@@ -372,6 +398,7 @@ void Sequencer::axis_retract(const SourceLoc& where) {
     for (int i = 0; i < 5; ++i)
       if (!m_.axes[static_cast<size_t>(i)].rotary()) v[i] = up[k++];
     emit_g0(v);
+    off_path_ = true;
     track_control(v, cart_axis_);
     cart_tip_ = up;
     kin::Axes q_up = cart_q_;
@@ -379,6 +406,7 @@ void Sequencer::axis_retract(const SourceLoc& where) {
     return;
   }
   emit_g0(pkm_retracted(cur_, where));
+  off_path_ = true;
 }
 
 /// Joint-space rapid to q with a rotary change: retract along the current tool axis, turn to q's tool

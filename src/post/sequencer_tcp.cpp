@@ -67,7 +67,22 @@ void Sequencer::cartesian(const cl::Move& mv, const kin::Axes& q) {
   cur_line_ = mv.line;
   const Vec3 axis = mv.axis_in_part.normalized();
   const kin::Axes v = cartesian_words(mv.tip_in_part_mm, axis, q);
-  if (!have_state_ || mv.kind == cl::MotionKind::Rapid) {
+  // Positioned (rapid) at a CL rapid, and where the tool is off the CL path: at the start, or after a retract.
+  bool position = !have_state_ || off_path_ || mv.kind == cl::MotionKind::Rapid;
+  if (position && mv.kind != cl::MotionKind::Rapid) {
+    // A feed move: positioned above it along the axis, then fed in (as Sequencer::approach); with no room above it,
+    // positioned onto it as a CL rapid would be.
+    cl::Move above = mv;
+    above.kind = cl::MotionKind::Rapid;
+    above.tip_in_part_mm = mv.tip_in_part_mm + m_.post.singularity.retract_mm * axis;
+    kin::Axes q_above;
+    if (kin::nearest_solution(kin_, kin::Posed{above.tip_in_part_mm, axis}, q, q_above) &&
+        rotary_jump(q_above, q) <= kFlipCheckRad && kin_.check_limits(q_above).empty()) {
+      cartesian(above, q_above);
+      position = false;
+    }
+  }
+  if (position) {
     if (axis_retract_ && rotaries_differ(v)) {
       if (have_state_) axis_retract(SourceLoc{prog_.file, mv.line, 0});
       Vec3 above;
@@ -105,7 +120,8 @@ void Sequencer::cartesian(const cl::Move& mv, const kin::Axes& q) {
     tcp_pieces(cart_move_, cart_q_, mv, q);
     for (const auto& pc : tcp_pieces_) emit_tcp_feed(pc.tip, pc.axis, pc.q, feed_mm_min);
   }
-  if (!have_state_ || mv.kind == cl::MotionKind::Rapid) track_control(v, axis);
+  if (position) track_control(v, axis);
+  off_path_ = false;
   cur_ = v;
   cart_q_ = q;
   cart_tip_ = mv.tip_in_part_mm;
