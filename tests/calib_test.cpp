@@ -725,3 +725,20 @@ TEST(CalibIdent, OutlierLimitWithoutSigmasFollowsTheChannelsPerPose) {
   const calib::Result r = calib::calibrate(*m, d, o);
   EXPECT_LE(r.outliers.size(), 3u);
 }
+
+TEST(CalibRecording, ARecordingWithNothingMeasuredIsALocatedError) {
+  // A header without pose rows, and pose rows whose measured cells are all empty: the SVD of the empty Jacobian
+  // crashed (SIGSEGV). Both name the recording's header line.
+  const auto m = load("xmini");
+  const std::string head = "# kind: static\ncmd.q1,cmd.q2,cmd.q3,cmd.c,cmd.a,tip.x,tip.y,tip.z\n";
+  for (const std::string& body : {std::string(), std::string("1,2,3,4,5,,,\n6,7,8,9,10,,,\n")}) {
+    const auto r = calib::parse_recording(head + body, "r.csv");
+    try {
+      (void)calib::dataset_from(r, *m);
+      FAIL() << body;
+    } catch (const InputError& e) {
+      EXPECT_EQ(e.where().line, 2);
+      EXPECT_NE(std::string(e.what()).find("nothing to calibrate"), std::string::npos) << e.what();
+    }
+  }
+}

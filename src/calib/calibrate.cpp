@@ -177,6 +177,12 @@ Dataset dataset_from(const Recording& rec, const Model& model) {
       if (col[c] >= 0) p.meas[c] = rec.data(r, col[c]);
     d.poses.push_back(std::move(p));
   }
+  if (d.measurement_count() == 0)
+    throw InputError(SourceLoc{rec.file, rec.header_line, 0},
+                     rec.rows() == 0 ? std::string("no pose rows: nothing to calibrate from")
+                                     : fmt::format("every measured cell of the {} pose rows is empty: nothing to "
+                                                   "calibrate from",
+                                                   rec.rows()));
   return d;
 }
 
@@ -293,6 +299,7 @@ Identifiability analyse(const Model& model, const Dataset& d, const std::vector<
     std::iota(id.candidates.begin(), id.candidates.end(), 0);
   }
   const Eigen::MatrixXd J = jacobian(model, d, p, id.candidates);
+  if (J.rows() == 0) throw InputError(SourceLoc{d.file}, "no measured values: nothing to calibrate from");
   const auto m = static_cast<Eigen::Index>(id.candidates.size());
   Eigen::VectorXd norm = J.colwise().norm().transpose();
   const double maxnorm = norm.size() ? norm.maxCoeff() : 0.0;
