@@ -641,3 +641,46 @@ TEST(Verify, ArcsInATiltedPlaneBecomeCirclesOfTheMachineAxes) {
         << e.what();
   }
 }
+
+TEST(Verify, APathOutAndBackOverItselfThenOnIsFollowedInOrder) {
+  // 40 segments out along Y, the same 40 back, then 20 mm on along X: the samples at the turning point tie between
+  // the first visit and the return; the walk snapped back to the first visit and the last cut, more than the search
+  // window past it, read as 20 mm off the path. Oracle: the NC blocks are the CL points themselves (IK of each), so
+  // the true deviation is 0; the negative control moves the last cut 1 mm in Y, which must be refused.
+  const auto m = machine::load(test::source_path("machines/trunnion-ac.yaml"));
+  const auto k = m.kinematics();
+  std::vector<Eigen::Vector3d> tips{{20, 0, 60}};
+  for (int i = 0; i <= 40; ++i) tips.emplace_back(20, 0.625 * i, 30);
+  for (int i = 39; i >= 0; --i) tips.emplace_back(20, 0.625 * i, 30);
+  tips.emplace_back(40, 0, 30);
+  for (const double shift : {0.0, 1.0}) {
+    nc::Program nc;
+    cl::Program cl;
+    for (std::size_t b = 0; b < tips.size(); ++b) {
+      cl::Move mv;
+      mv.tip_in_part_mm = tips[b];
+      mv.axis_in_part = Eigen::Vector3d::UnitZ();
+      mv.kind = b == 0 ? cl::MotionKind::Rapid : cl::MotionKind::Feed;
+      mv.line = static_cast<int>(b) + 1;
+      cl.moves.push_back(mv);
+      kin::Axes q;
+      ASSERT_TRUE(kin::nearest_solution(*k, kin::Posed{tips[b], Eigen::Vector3d::UnitZ()}, kin::Axes::Zero(), q));
+      if (b + 1 == tips.size()) q[1] += shift;  // Y of a table machine at A = C = 0
+      nc::Block blk;
+      blk.line = static_cast<int>(b) + 1;
+      blk.motion = b == 0 ? nc::Motion::Rapid : nc::Motion::Linear;
+      blk.feed = 600;
+      for (int i = 0; i < 5; ++i) blk.axes[static_cast<size_t>(i)] = q[i];
+      blk.known.fill(true);
+      nc.blocks.push_back(blk);
+    }
+    const auto r = report::verify(nc, cl, *k, report::verify_options_for(m));
+    if (shift == 0.0) {
+      EXPECT_TRUE(r.ok) << r.message;
+      EXPECT_LT(r.max_tip_deviation_mm, 1e-6) << r.message;
+    } else {
+      EXPECT_FALSE(r.ok) << r.message;
+      EXPECT_GT(r.max_tip_deviation_mm, 0.5) << r.message;
+    }
+  }
+}

@@ -573,9 +573,13 @@ VerifyResult verify(const nc::Program& nc, const cl::Program& cl, const kin::Kin
     // As far back as ahead: a path that doubles back passes segments a few CL points behind the cursor.
     size_t lo = global ? 0 : (cursor > kWindowSegs ? cursor - kWindowSegs : 0);
     size_t hi = global ? segs.size() : std::min(segs.size(), cursor + kWindowSegs);
-    double best = std::numeric_limits<double>::infinity();
-    size_t arg = cursor;
-    double tb = 0;
+    // The NC follows the CL in order: the first segment at or after the cursor within the tolerance is taken before a
+    // nearer one behind it. A path that runs out and back over itself passes its first visit again; snapping back
+    // there (a tie at the turning point) left the cut after it beyond the window (a 20 mm "deviation").
+    const double pass_mm = (1.0 - options.bound_fraction) * options.tip_tolerance_mm;
+    double best = std::numeric_limits<double>::infinity(), best_fwd = best;
+    size_t arg = cursor, arg_fwd = cursor;
+    double tb = 0, tb_fwd = 0;
     for (size_t k = lo; k < hi; ++k) {
       double tk;
       const double d = seg_distance(segs[k], p, tk);
@@ -584,6 +588,16 @@ VerifyResult verify(const nc::Program& nc, const cl::Program& cl, const kin::Kin
         arg = k;
         tb = tk;
       }
+      if (!global && k >= cursor && d <= pass_mm && !(best_fwd <= pass_mm)) {
+        best_fwd = d;
+        arg_fwd = k;
+        tb_fwd = tk;
+      }
+    }
+    if (best_fwd <= pass_mm) {
+      cursor = arg_fwd;
+      t = tb_fwd;
+      return best_fwd;
     }
     cursor = arg;
     t = tb;
