@@ -1029,6 +1029,11 @@ TEST(PostProgram, DwellInsertAdjustRegisterAndCutcomPolicy) {
   EXPECT_NE(s.find("\nG4 F2.500\n"), std::string::npos) << s;
   const auto h = post_program(prog, m, *k, true, std::nullopt, "heidenhain").text;
   EXPECT_NE(h.find(" CYCL DEF 9.1 DWELL 2.500\n"), std::string::npos) << h;
+  // Fanuc: P in milliseconds, no decimal point; Haas: P with a decimal point is seconds.
+  const auto f = post_program(prog, m, *k, true, std::nullopt, "fanuc").text;
+  EXPECT_NE(f.find("\nG4 P2500\n"), std::string::npos) << f;
+  const auto hs = post_program(prog, m, *k, true, std::nullopt, "haas").text;
+  EXPECT_NE(hs.find("\nG4 P2.500\n"), std::string::npos) << hs;
   try {
     cl::read_text("UNITS/MM\nLOAD/TOOL,7,ADJUST,-2\nGOTO/0,0,0\n", "bad.cls");
     FAIL();

@@ -314,6 +314,11 @@ class Fanuc : public Formatter {
     max_sequence_number_ = 99999;  // N1..N99999
   }
   [[nodiscard]] std::string name() const override { return "fanuc"; }
+  // Fanuc's G04 P is milliseconds and takes no decimal point (P2.500 is an alarm or a 2 ms dwell).
+  void dwell(std::string& out, double seconds) override {
+    line_start(out);
+    fmt::format_to(std::back_inserter(out), "G4 P{}\n", std::llround(seconds * 1000.0));
+  }
   void begin(std::string& out) override {
     out += "%\n";
     fmt::format_to(std::back_inserter(out), "O{:0{}d} ({})\n", info_.program_number, program_number_digits(),
@@ -387,6 +392,8 @@ class Haas : public Fanuc {
  public:
   using Fanuc::Fanuc;
   [[nodiscard]] std::string name() const override { return "haas"; }
+  // Haas reads a G04 P with a decimal point as seconds.
+  void dwell(std::string& out, double seconds) override { Formatter::dwell(out, seconds); }
   [[nodiscard]] int program_number_digits() const override { return 5; }
   // G254 dynamic work offset (Haas mill manual): after the rotaries are positioned the control carries the work
   // offset with them; the words stay the machine coordinates of a part at the rotation centre, and X Y Z must all be
