@@ -863,5 +863,18 @@ TEST(ClReader, NumbersReadAheadGiveTheSameProgramAndErrors) {
   }
 }
 
+TEST(ClFeed, AFeedPerRevolutionFollowsTheSpindleSpeed) {
+  // 0.1 mm/rev at 5000 rpm is 500 mm/min; after SPINDL/RPM,2000 the same chip load is 200 mm/min (it stayed 500,
+  // 2.5 times too fast). A per-minute feed does not follow the spindle.
+  const Program p = read_text(
+      "UNITS/MM\nSPINDL/RPM,5000\nFEDRAT/MMPR,0.1\nGOTO/0,0,0\nGOTO/10,0,0\nSPINDL/RPM,2000\nGOTO/20,0,0\n"
+      "FEDRAT/MMPM,300\nSPINDL/RPM,6000\nGOTO/30,0,0\n",
+      "rev.cls");
+  ASSERT_EQ(p.moves.size(), 4u);
+  EXPECT_NEAR(p.moves[1].feed_mm_per_min, 500.0, kExactMm);
+  EXPECT_NEAR(p.moves[2].feed_mm_per_min, 0.1 * 2000.0, kExactMm);
+  EXPECT_NEAR(p.moves[3].feed_mm_per_min, 300.0, kExactMm);
+}
+
 }  // namespace
 }  // namespace cscam::cl

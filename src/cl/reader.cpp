@@ -548,6 +548,7 @@ class AptReader {
   std::vector<Field> fields_;
   Vector3d axis_ = Vector3d::UnitZ();
   double feed_mm_per_min_ = 0.0;
+  double feed_mm_per_rev_ = 0.0;  ///< the FEDRAT/ in force is per revolution (IPR/MMPR): recomputed at each SPINDL/
   double rpm_ = 0.0;
   bool clockwise_ = true;
   bool next_rapid_ = false;
@@ -839,7 +840,10 @@ void AptReader::fedrat(const Statement& st, const Head& h) {
       fail(st, h.keyword_offset,
            "feed per revolution (IPR/MMPR) before any spindle speed: it cannot be converted to a feed per minute "
            "(expected SPINDL/ with an RPM before it)");
+    feed_mm_per_rev_ = feed;
     feed *= rpm_;
+  } else {
+    feed_mm_per_rev_ = 0.0;
   }
   feed_mm_per_min_ = feed;
 }
@@ -870,6 +874,8 @@ void AptReader::spindl(const Statement& st, const Head& h) {
       warn(st, f.offset, fmt::format("SPINDL/ modifier '{}' ignored", f.text));
     }
   }
+  // A feed per revolution follows the spindle: the same chip load at the new speed.
+  if (feed_mm_per_rev_ > 0 && rpm_ > 0) feed_mm_per_min_ = feed_mm_per_rev_ * rpm_;
   push_event(off ? Event::Kind::SpindleOff : Event::Kind::SpindleOn, st.line);
 }
 
