@@ -726,6 +726,26 @@ TEST(CalibIdent, OutlierLimitWithoutSigmasFollowsTheChannelsPerPose) {
   EXPECT_LE(r.outliers.size(), 3u);
 }
 
+TEST(CalibRecording, ThePcmmPassiveLinkIsNamedByTheMachineFile) {
+  // pcmm.link names the passive link, and so the recording's len.<name> column; it was ignored (always len.link).
+  std::ifstream in(source_path("machines/pcmm.yaml"));
+  std::string text((std::istreambuf_iterator<char>(in)), std::istreambuf_iterator<char>());
+  const auto at = text.find("link: link");
+  ASSERT_NE(at, std::string::npos);
+  const std::string path = ::testing::TempDir() + "/pcmm-probe.yaml";
+  { std::ofstream(path) << text.substr(0, at) + "link: probe" + text.substr(at + 10); }
+  const auto m = calib::load_model(path);
+  ASSERT_EQ(m->links().size(), 1u);
+  EXPECT_EQ(m->links()[0], "probe");
+  const std::string head = "# kind: static\ncmd.q1,cmd.q2,cmd.q3,";
+  EXPECT_NO_THROW((void)calib::dataset_from(calib::parse_recording(head + "len.probe\n1,2,3,4\n", "r.csv"), *m));
+  EXPECT_THROW((void)calib::dataset_from(calib::parse_recording(head + "len.link\n1,2,3,4\n", "r.csv"), *m),
+               InputError);
+  const std::string bad = ::testing::TempDir() + "/pcmm-badlink.yaml";
+  { std::ofstream(bad) << text.substr(0, at) + "link: [a, b]" + text.substr(at + 10); }
+  EXPECT_THROW((void)calib::load_model(bad), InputError);
+}
+
 TEST(CalibRecording, ARecordingWithNothingMeasuredIsALocatedError) {
   // A header without pose rows, and pose rows whose measured cells are all empty: the SVD of the empty Jacobian
   // crashed (SIGSEGV). Both name the recording's header line.

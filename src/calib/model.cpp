@@ -8,6 +8,8 @@
 #include <fmt/format.h>
 #include <yaml-cpp/yaml.h>
 
+#include <algorithm>
+#include <cctype>
 #include <cmath>
 #include <fstream>
 #include <random>
@@ -463,12 +465,12 @@ struct PcmmScratch final : Scratch {
 class PcmmCalModel final : public Model {
  public:
   PcmmCalModel(const std::vector<double>& nominal_file_units, const Eigen::Vector3d& tip_S, std::string file,
-               std::string text)
+               std::string text, std::string link_name)
       : tip_S_(tip_S), text_(std::move(text)) {
     file_ = std::move(file);
     axes_ = {"q1", "q2", "q3"};
     rotary_ = {false, false, false};
-    links_ = {"link"};
+    links_ = {std::move(link_name)};  // recordings give its gauge as len.<name>
     const auto& info = kin::pcmm_param_info();
     for (std::size_t i = 0; i < kin::kPcmmParamCount; ++i)
       params_.push_back({std::string(info[i].name), std::string(info[i].group), std::string(info[i].unit),
@@ -561,6 +563,7 @@ std::shared_ptr<Model> load_pcmm(const YAML::Node& root, const std::string& path
   std::vector<double> nominal;
   for (const auto& i : kin::pcmm_param_info()) nominal.push_back(i.nominal);
   Eigen::Vector3d tip(0, 0, -100);
+  std::string link_name = "link";
   for (const auto& kv : pc) {
     const auto k = kv.first.as<std::string>();
     if (k == "parameters") {
@@ -582,11 +585,19 @@ std::shared_ptr<Model> load_pcmm(const YAML::Node& root, const std::string& path
       if (!kv.second.IsSequence() || kv.second.size() != 3)
         fail_at(path, kv.second, "'pcmm.tip_mm': expected [x, y, z]");
       for (int c = 0; c < 3; ++c) tip[c] = kv.second[static_cast<std::size_t>(c)].as<double>();
-    } else if (k != "limits" && k != "link") {
+    } else if (k == "link") {
+      // The passive link's name: the recording's column is len.<name> (a name as a column's suffix).
+      const std::string name = kv.second.IsScalar() ? kv.second.as<std::string>() : std::string();
+      const bool ok = !name.empty() && std::all_of(name.begin(), name.end(), [](char ch) {
+        return std::isalnum(static_cast<unsigned char>(ch)) || ch == '_' || ch == '-';
+      });
+      if (!ok) fail_at(path, kv.second, "'pcmm.link': expected a name (letters, digits, '_' or '-')");
+      link_name = name;
+    } else if (k != "limits") {
       fail_at(path, kv.first, fmt::format("'pcmm.{}': unknown key (expected parameters, tip_mm, limits, link)", k));
     }
   }
-  return std::make_shared<PcmmCalModel>(nominal, tip, path, std::move(text));
+  return std::make_shared<PcmmCalModel>(nominal, tip, path, std::move(text), link_name);
 }
 
 }  // namespace
