@@ -26,6 +26,7 @@
 #include "cscam/plan/plan.hpp"
 #include "cscam/post/post.hpp"
 #include "cscam/report/letters.hpp"
+#include "cscam/report/verify.hpp"
 #include "rs274_support.hpp"
 #include "test_support.hpp"
 
@@ -655,4 +656,37 @@ TEST(Gate, AWalkThatCrossesItselfLaterIsJudgedWhereverItsTipCouldBe) {
   const auto bad = gate::check(tampered, "walk.ngc", prog, m, *k, opt, &p.summary.cl_line_of_nc_line);
   EXPECT_FALSE(bad.ok);
   EXPECT_TRUE(has_kind(bad, gate::Violation::Kind::Deviation, 0)) << bad.message;
+}
+
+// A state change the read-back does not model moves the machine where the gate does not look: a coordinate shift,
+// rotation, scaling or mirror, offset data, a new work offset, a cancelled or changed length offset, a tool change
+// without one. Each, put in front of a cut (as an INSERT/ would), is refused at its own line, and verify fails on it;
+// the same words that change nothing (a cancel, the offset in force, the same H, a tool change with its G43) pass.
+TEST(Gate, AStateChangeTheReadBackDoesNotModelIsRefusedAtItsLine) {
+  Fixture f;
+  const auto lines = lines_of(f.posted.text);
+  const int cut = find_line(lines, "G1", 20);
+  ASSERT_GT(cut, 0);
+  auto with = [&](const std::vector<std::string>& inserted) {
+    auto l = lines;
+    l.insert(l.begin() + (cut - 1), inserted.begin(), inserted.end());
+    return join(l);
+  };
+  for (const std::string w : {"G92 X10.", "G92.3", "G52 X5.", "G68 X0 Y0 R30.", "G51 X0 Y0 P2", "G51.1 X0",
+                              "G10 L2 P1 X5.", "G55", "G54.1 P3", "G49", "G43 H7", "T5 M6"}) {
+    const gate::Summary s = f.run(with({w}));
+    EXPECT_FALSE(s.ok) << w;
+    EXPECT_TRUE(has_kind(s, gate::Violation::Kind::Unreadable, cut)) << w << ": " << s.message;
+    const nc::Program p = nc::read_text(with({w}), "t.ngc", report::axis_letters(f.m));
+    const report::VerifyResult v = report::verify(p, f.prog, *f.k, report::verify_options_for(f.m));
+    EXPECT_FALSE(v.ok) << w;
+    EXPECT_NE(v.message.find(fmt::format("t.ngc:{}:", cut)), std::string::npos) << w << ": " << v.message;
+  }
+  for (const std::vector<std::string> w :
+       {std::vector<std::string>{"G92.1"}, {"G54"}, {"G43 H1"}, {"G69"}, {"T5 M6", "G43 H5"}, {"G4 P1."}})
+    EXPECT_TRUE(f.run(with(w)).ok) << w.front() << ": " << f.run(with(w)).message;
+  // After the last move it changes nothing the gate checks.
+  auto l = lines;
+  l.insert(l.end() - 2, "G92 X0 Y0 Z0");
+  EXPECT_TRUE(f.run(join(l)).ok) << f.run(join(l)).message;
 }

@@ -327,3 +327,30 @@ TEST(NcReader, ToolTipControlIsFollowedBlockByBlock) {
   // a header alone (no TCP word) notes none
   EXPECT_FALSE(nc::read_text("(cartesian: X Y Z = tool tip)\nG0 X1 Y2 Z3 B0 C0\n", "h.nc", xyzbc()).tcp_words);
 }
+
+// The state changes the reader does not model are noted at their lines (Program::unmodelled), in every dialect it
+// reads; their resets, and the first selection of a work offset or length offset, are not. A tool change matters
+// only when a Z word follows it before a new G43 (a Fanuc program positions X Y first, then G43 H Z).
+TEST(NcReader, StateChangesItDoesNotModelAreNotedWithTheirLines) {
+  auto lines_of = [](const std::string& text) {
+    std::vector<int> out;
+    for (const auto& u : nc::read_text(text, "u.nc", xyzbc()).unmodelled) out.push_back(u.line);
+    return out;
+  };
+  using V = std::vector<int>;
+  EXPECT_EQ(lines_of("G54 G49\nT1 M6\nG0 X1 Y2\nG43 H1 Z50\nG1 X2\nG92.1\nG69\nG50.1\nG0 Z9\n"), V{});
+  EXPECT_EQ(lines_of("G54\nG0 X0\nG55\nG1 X1\n"), V{3});
+  EXPECT_EQ(lines_of("G43 H1 Z9\nG49\nG0 X1\nG1 Z0\n"), V{2});       // noted where it was lost, at the Z word
+  EXPECT_EQ(lines_of("G43 H1 Z9\nT2 M6\nG0 X1\nZ5\n"), V{2});        // the tool change without G43
+  EXPECT_EQ(lines_of("G43 H1 Z9\nT2 M6\nG0 X1\nG43 H2 Z5\n"), V{});  // with it
+  EXPECT_EQ(lines_of("G43 H1 Z9\nG43 H3\nG0 X1\n"), V{2});
+  EXPECT_EQ(lines_of("G0 X0\nG52 X5 Y5\nG68 X0 Y0 R9\nG51 P2\nG10 L2 P1 X1\nG92 X0\n"), (V{2, 3, 4, 5, 6}));
+  // G52's and G68's words are their shift and centre, not a position.
+  EXPECT_EQ(nc::read_text("G0 X1\nG52 X5\nG68 X7 Y0 R9\n", "u.nc", xyzbc()).blocks.size(), 1u);
+  // Sinumerik frames (alone: a reset) and Heidenhain's transformation cycles.
+  EXPECT_EQ(lines_of("G54\nTRANS\nROT ; reset\nTRANS X10\nG500\nAROT RPL=30\n"), (V{4, 5, 6}));
+  EXPECT_EQ(
+      lines_of("0 BEGIN PGM P MM\n1 CYCL DEF 7.0 DATUM SHIFT\n2 CYCL DEF 7.1 X+10\n3 TRANS DATUM RESET\n"
+               "4 CYCL DEF 10.0 ROTATION\n5 TRANS DATUM AXIS X+5\n6 CYCL DEF 247 DATUM SETTING\n7 END PGM P MM\n"),
+      (V{2, 5, 6}));
+}

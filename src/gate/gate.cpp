@@ -60,6 +60,14 @@ Summary check(const std::string& nc_text, const std::string& nc_name, const cl::
     s.message = s.violations.front().message;
     return s;
   }
+  // A coordinate shift, rotation or scaling, a new work offset or a lost length offset (an INSERT can bring any of
+  // them) moves the machine where the read-back does not: the moves after it cannot be checked.
+  if (const nc::Program::Unmodelled* u = nc::first_unmodelled_before_motion(ncp)) {
+    add(Violation::Kind::Unreadable, u->line, 0,
+        fmt::format("{}, which the gate does not model: the moves after it cannot be checked", u->what));
+    s.message = s.violations.front().message;
+    return s;
+  }
   s.tool_tip_control = ncp.tcp;  // read_for_machine has scanned the text for the TCP words (uses_tool_tip_control)
   {
     int bad_line = 0;

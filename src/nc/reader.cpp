@@ -347,6 +347,24 @@ Program read_heidenhain(const std::string& text, const std::string& name, const 
     const bool is_l = s.size() >= 2 && s[0] == 'L' && s[1] == ' ';
     // A comment after the block.
     if (const auto sc = s.find(';'); sc != std::string_view::npos) s = trim(s.substr(0, sc));
+    // Coordinate transformations the reader does not model: datum shift (cycle 7, TRANS DATUM), mirror (8), rotation
+    // (10), scaling (11, 26), and the TRANS forms of the newer controls. (Their resets, "TRANS ... RESET", are what
+    // the reader assumes anyway.)
+    if (!is_l) {
+      constexpr std::string_view kCycl = "CYCL DEF ";
+      if (s.rfind(kCycl, 0) == 0) {
+        // The cycle's number; its definition opens with "n" or "n.0" (n.1, n.2 ... carry its values).
+        int n = 0;
+        const auto r = std::from_chars(s.data() + kCycl.size(), s.data() + s.size(), n);
+        const std::string_view after(r.ptr, static_cast<size_t>(s.data() + s.size() - r.ptr));
+        const bool opens = after.empty() || after.front() == ' ' || after.rfind(".0", 0) == 0;
+        if (r.ec == std::errc() && opens && (n == 7 || n == 8 || n == 10 || n == 11 || n == 26))
+          prog.unmodelled.push_back(
+              {lineno, fmt::format("CYCL DEF {} transforms the coordinates", n), prog.blocks.size()});
+      }
+      if (s.rfind("TRANS ", 0) == 0 && s.find("RESET") == std::string_view::npos)
+        prog.unmodelled.push_back({lineno, fmt::format("{} transforms the coordinates", s), prog.blocks.size()});
+    }
     if (!is_l) {  // M128 / M129 on its own line or with other M functions
       for (size_t p = s.find("M128"); p != std::string_view::npos; p = s.find("M128", p + 1))
         prog.tcp = prog.tcp_words = tcp_on = true;
@@ -427,6 +445,12 @@ Program read_heidenhain(const std::string& text, const std::string& name, const 
 
 }  // namespace
 
+const Program::Unmodelled* first_unmodelled_before_motion(const Program& p) {
+  for (const auto& u : p.unmodelled)
+    if (u.blocks_before < p.blocks.size()) return &u;
+  return nullptr;
+}
+
 Program read_text(const std::string& text, const std::string& name, const AxisLetters& letters) {
   if (is_heidenhain(text)) return read_heidenhain(text, name, letters);
   Program prog;
@@ -473,6 +497,13 @@ Program read_text(const std::string& text, const std::string& name, const AxisLe
   std::shared_ptr<const WorkPlane> work_plane;  // the tilted work plane in force (shared by its blocks)
   std::array<bool, 3> plane_given{};            // X, Y, Z given in it: the modal values are plane coordinates
   double feed = 0.0;
+  // What the reader does not model (Program::unmodelled): the work offset selected first, the length offset register
+  // in force (-1 none, -2 one without H) and where it was lost (a G49 or a tool change) before the next motion.
+  int work_offset = 0;
+  int tlo_h = -1;
+  bool uses_length_offset = false;
+  int tlo_lost_line = 0;
+  std::string tlo_lost_why;
   // Tokenising is most of the reading and needs no modal state: the lines ahead are tokenised in parallel, a
   // window at a time (fixed chunks), and read in order below; the window after the one being read is tokenised
   // in the background meanwhile.
@@ -560,6 +591,12 @@ Program read_text(const std::string& text, const std::string& name, const AxisLe
     }
     bool non_modal_skip = false, tcp_word = false, vector_words = false;
     bool plane_def = false, plane_cancel = false;
+    int offset_word = 0;  // G54 ... G59.3, G500 (x10) in this block
+    bool length_offset = false, length_cancel = false, tool_change = false;
+    std::optional<double> h_word;
+    auto unmodelled = [&](std::string what) {
+      prog.unmodelled.push_back({lineno, std::move(what), prog.blocks.size()});
+    };
     std::optional<WorkPlane> cycle_plane;
     bool cycle_seen = false;
     Block b = state;
@@ -648,22 +685,63 @@ Program read_text(const std::string& text, const std::string& name, const AxisLe
           case 280:
           case 300:
           case 530:
-          case 100:
-          case 920:
             non_modal_skip = true;
+            break;
+          case 100:
+            non_modal_skip = true;
+            unmodelled("G10 writes offset or tool data");
+            break;
+          case 920:
+          case 923:  // G92.3 restores a saved shift
+            non_modal_skip = true;
+            unmodelled(fmt::format("G{:g} shifts the coordinate system", v));
+            break;
+          case 921:  // G92.1 / G92.2 cancel a shift: what the reader assumes anyway
+          case 922:
+            non_modal_skip = true;
+            break;
+          case 520:
+            non_modal_skip = true;  // its words are the shift, not a position
+            unmodelled("G52 shifts the coordinate system (local coordinates)");
+            break;
+          case 680:
+            non_modal_skip = true;  // X Y R: the centre and angle of the rotation
+            unmodelled("G68 rotates the coordinate system");
+            break;
+          case 510:
+          case 511:
+            non_modal_skip = true;
+            unmodelled(g10 == 510 ? "G51 scales the coordinates" : "G51.1 mirrors the coordinates");
+            break;
+          case 540:
+          case 541:
+          case 550:
+          case 560:
+          case 570:
+          case 580:
+          case 590:
+          case 591:
+          case 592:
+          case 593:
+          case 5000:  // Sinumerik G500: no settable offset
+            offset_word = g10;
             break;
           case 434:
           case 2340:
             tcp_word = tcp_on = true;
+            length_offset = true;  // with its H word
             break;
           case 435:  // Fanuc tool-tip control with the tool vector I J K
             tcp_word = tcp_on = true;
             g435 = true;
+            length_offset = true;
             break;
           case 430:  // plain length offset: the same modal group, so tool-tip control ends
+          case 440:
           case 490:
             g435 = false;
             tcp_on = false;
+            (g10 == 490 ? length_cancel : length_offset) = true;
             break;
           default:
             break;
@@ -674,7 +752,12 @@ Program read_text(const std::string& text, const std::string& name, const AxisLe
         feed = v;
         return;
       }
+      if (L == 'H') {
+        h_word = v;
+        return;
+      }
       if (L == 'M') {
+        if (v == 6.0) tool_change = true;
         // LinuxCNC's switchable trunnion kinematics: M428 world (TCP) coordinates, M429 identity (joints).
         if (std::lround(v) == 428) tcp_word = tcp_on = true;
         if (std::lround(v) == 429) tcp_on = false;
@@ -733,6 +816,16 @@ Program read_text(const std::string& text, const std::string& name, const AxisLe
         if (id == "TRAORI") tcp_word = tcp_on = true;
         if (id == "TRAFOOF") tcp_on = false;
         if (id == "SUPA") non_modal_skip = true;  // machine coordinates: every frame suppressed for this block
+        if (id == "TRANS" || id == "ATRANS" || id == "CTRANS" || id == "ROT" || id == "AROT" || id == "CROT" ||
+            id == "ROTS" || id == "AROTS" || id == "SCALE" || id == "ASCALE" || id == "MIRROR" || id == "AMIRROR") {
+          // Alone it resets that part of the frame (what the reader assumes anyway); with words it sets one.
+          const auto rest = s.substr(e);
+          const auto first = rest.find_first_not_of(' ');
+          if (first != std::string_view::npos && rest[first] != ';')
+            unmodelled(fmt::format("{} changes the programmable frame", id));
+          i = s.size();  // its words are the frame's, not a position
+          continue;
+        }
         if (id == "CYCLE800") {
           size_t open = e;
           while (open < s.size() && s[open] == ' ') ++open;
@@ -845,6 +938,36 @@ Program read_text(const std::string& text, const std::string& name, const AxisLe
       prog.tcp_vectors = true;
       b.has_vector = true;
       any_axis = true;  // a change of orientation alone is a move
+    }
+    if (offset_word) {
+      auto offset_name = [](int g) {
+        return g % 10 ? fmt::format("G{}.{}", g / 10, g % 10) : fmt::format("G{}", g / 10);
+      };
+      if (work_offset && offset_word != work_offset)
+        unmodelled(
+            fmt::format("the work offset changes from {} to {}", offset_name(work_offset), offset_name(offset_word)));
+      work_offset = offset_word;
+    }
+    if (tool_change && uses_length_offset) {
+      tlo_lost_line = lineno;
+      tlo_lost_why = "a tool change (M6) without a new tool length offset (G43 H) before the next move";
+    }
+    if (length_offset) {
+      uses_length_offset = true;
+      const int h = h_word ? static_cast<int>(std::lround(*h_word)) : -2;
+      if (!tlo_lost_line && tlo_h >= 0 && h >= 0 && h != tlo_h)
+        unmodelled(fmt::format("the tool length offset changes from H{} to H{} without a tool change", tlo_h, h));
+      tlo_h = h;
+      tlo_lost_line = 0;
+    } else if (length_cancel && tlo_h != -1) {
+      tlo_h = -1;
+      tlo_lost_line = lineno;
+      tlo_lost_why = "G49 cancels the tool length offset before more moves";
+    }
+    // A Z word from here is off by the tool length (a move of the other axes alone keeps Z where it is).
+    if (tlo_lost_line && xyz[2] >= 0 && b.words[static_cast<size_t>(xyz[2])] && !non_modal_skip) {
+      prog.unmodelled.push_back({tlo_lost_line, tlo_lost_why, prog.blocks.size()});
+      tlo_lost_line = 0;
     }
     if (non_modal_skip) {
       if (any_axis)

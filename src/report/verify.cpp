@@ -501,6 +501,11 @@ VerifyOptions verify_options_for(const machine::Machine& machine, double toleran
 VerifyResult verify(const nc::Program& nc, const cl::Program& cl, const kin::Kinematics& kinematics,
                     const VerifyOptions& options) {
   VerifyResult r;
+  if (const nc::Program::Unmodelled* u = nc::first_unmodelled_before_motion(nc)) {
+    r.message = fmt::format("FAILED: {}:{}: {}, which verify does not model: the moves after it cannot be checked",
+                            nc.file, u->line, u->what);
+    return r;
+  }
   // The compared point: the tip, or the ball centre of a ball mill (what a tilted plan keeps on the path).
   double ball_r = 0.0;
   if (options.ball_centre)

@@ -118,7 +118,20 @@ struct Program {
     int column = 0;
   };
   std::vector<ForeignWord> foreign_axis_words;
+  /// A state change the reader does not model: a coordinate shift, rotation, scaling or mirror (G92, G52, G68, G51,
+  /// TRANS, CYCL DEF 7 ...), offset data written (G10), a change of work offset, or a tool length offset that is
+  /// cancelled, changed or lost at a tool change. The blocks after it are not where the reader puts them.
+  struct Unmodelled {
+    int line = 0;
+    std::string what;
+    std::size_t blocks_before = 0;  ///< motion blocks read before it: it matters when more follow
+  };
+  std::vector<Unmodelled> unmodelled;
 };
+
+/// The first unmodelled state change that some motion block follows (nullptr if none): a program with one cannot be
+/// checked by reading it back, so it may not be verified or written.
+const Program::Unmodelled* first_unmodelled_before_motion(const Program& p);
 
 /// Reads an NC file. Throws InputError with file:line:column on a malformed word.
 Program read_file(const std::string& path, const AxisLetters& letters);
