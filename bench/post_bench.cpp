@@ -11,6 +11,7 @@
 #include <cstdio>
 #include <filesystem>
 #include <fstream>
+#include <mutex>
 #include <random>
 #include <sstream>
 
@@ -68,13 +69,18 @@ void BM_PostPipeline(benchmark::State& state) {
   co.collision.roles = cscam::geom::kAllRoles;
   const auto space = std::make_shared<const cscam::cspace::Space>(kin, &scene, &tool, co, &head);
   cscam::gate::Options go = cscam::gate::options_for(m, 0, 0, 0);
+  // Every worker's path check, for the count of collision queries and certified samples.
+  auto checks = std::make_shared<std::vector<std::shared_ptr<cscam::cspace::PathCheck>>>();
+  auto checks_mutex = std::make_shared<std::mutex>();
   if (bodies)
-    go.make_collision = [space]() -> cscam::gate::Options::CollisionCheck {
-      auto ws = std::make_shared<cscam::geom::QueryWorkspace>();
-      auto cc = std::make_shared<cscam::cspace::Counters>();
-      return [space, ws, cc](const cscam::kin::Axes& q, bool whole_tool) {
-        return space->collision_at_axes(
-            q, *ws, *cc, whole_tool ? cscam::cspace::SweepMode::Rapid : cscam::cspace::SweepMode::Cutting);
+    go.make_collision = [space, checks, checks_mutex]() -> cscam::gate::Options::CollisionCheck {
+      auto check = std::make_shared<cscam::cspace::PathCheck>(space);
+      {
+        const std::lock_guard<std::mutex> lock(*checks_mutex);
+        checks->push_back(check);
+      }
+      return [check](const cscam::kin::Axes& q, bool whole_tool) {
+        return (*check)(q, whole_tool ? cscam::cspace::SweepMode::Rapid : cscam::cspace::SweepMode::Cutting);
       };
     };
   size_t blocks = 0, inserted = 0, collision_checks = 0, narrowed = 0;
@@ -110,8 +116,15 @@ void BM_PostPipeline(benchmark::State& state) {
   const double it = static_cast<double>(state.iterations());
   state.counters["blocks"] = static_cast<double>(blocks);
   state.counters["inserted"] = static_cast<double>(inserted);
-  state.counters["corners_bounded"] = static_cast<double>(narrowed);  // blends narrowed (G64 P) or made exact
-  state.counters["collision_checks"] = static_cast<double>(collision_checks);
+  state.counters["corners_bounded"] = static_cast<double>(narrowed);           // blends narrowed (G64 P) or made exact
+  state.counters["collision_checks"] = static_cast<double>(collision_checks);  // samples the gate checked
+  double queries = 0, certified = 0;
+  for (const auto& c : *checks) {
+    queries += static_cast<double>(c->counters().collision);
+    certified += static_cast<double>(c->counters().certified);
+  }
+  state.counters["collision_queries"] = queries / it;  // FCL queries (probes and exact checks)
+  state.counters["certified"] = certified / it;        // samples covered by a clearance certificate
   state.counters["read_s"] = t_read / it;
   state.counters["ik_s"] = t_ik / it;
   state.counters["post_s"] = t_post / it;

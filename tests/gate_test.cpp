@@ -56,11 +56,12 @@ Posted post_program(const cl::Program& prog, const machine::Machine& m, const ki
 
 /// The gate's collision check against `space` (which must outlive it): one workspace and counters per worker.
 std::function<gate::Options::CollisionCheck()> collision_against(const cspace::Space& space) {
+  // As the commands do: a path check per worker (the space is the caller's: not owned).
   return [&space]() -> gate::Options::CollisionCheck {
-    auto w = std::make_shared<geom::QueryWorkspace>();
-    auto c = std::make_shared<cspace::Counters>();
-    return [&space, c, w](const kin::Axes& q, bool whole_tool) {
-      return space.collision_at_axes(q, *w, *c, whole_tool ? cspace::SweepMode::Rapid : cspace::SweepMode::Cutting);
+    auto check =
+        std::make_shared<cspace::PathCheck>(std::shared_ptr<const cspace::Space>(std::shared_ptr<void>(), &space));
+    return [check](const kin::Axes& q, bool whole_tool) {
+      return (*check)(q, whole_tool ? cspace::SweepMode::Rapid : cspace::SweepMode::Cutting);
     };
   };
 }

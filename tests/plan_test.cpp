@@ -1725,3 +1725,136 @@ TEST(Planner, TheNearestFeasibleCellClaimIsOnlyAsWideAsTheSearch) {
     if (covered < 90.0) EXPECT_NE(msg.find("reach no farther"), std::string::npos) << msg;
   }
 }
+
+// The gate's collision check along a path (PathCheck: a pose proven free with a margin certifies the poses after it
+// that stay within it, relative to the part and to every machine link) against the exact check of every pose, on
+// random walks in joint space around a block on three machines (their bodies, head meshes on links included), in
+// both modes. It may never call a colliding pose free, and where it finds a collision it is the exact check's; the
+// walks must both collide and be certified, or they prove nothing.
+TEST(CSpace, APathCheckAnswersAsTheExactCheckAtEveryPoseOfAWalk) {
+  constexpr int kWalks = 36, kSteps = 150;
+  constexpr double kStepMm = 0.4, kStepDeg = 0.4;  // largest joint step of the walks' noise
+  // (The fence stands where each machine's holder or head meets it on some walks and not on others.)
+  // Each machine with its head meshes, and without (then the tool alone swings into the fence).
+  struct Case {
+    std::string machine;
+    double fence_x;
+    bool head_meshes;
+  };
+  for (const auto& [name, fence_x, head_meshes] : std::vector<Case>{{"trunnion-ac", 90.0, true},
+                                                                    {"head-head-ac", 110.0, true},
+                                                                    {"head-table-bc45", 110.0, true},
+                                                                    {"trunnion-ac", 90.0, false},
+                                                                    {"head-head-ac", 70.0, false}}) {
+    SCOPED_TRACE(name + (head_meshes ? "" : " (no head meshes)"));
+    const auto m = machine::load(test::source_path("machines/" + name + ".yaml"));
+    const auto k = m.kinematics();
+    const auto tool = geom::ToolShape::from_cutter(10, 5, 30);
+    geom::Scene scene, head, no_head;
+    cspace::add_machine_bodies(m, tool.gauge_length_mm(), scene, head_meshes ? head : no_head);
+    scene.add("block", geom::ObstacleRole::Part, box_mesh({-40, -40, -30}, {40, 40, 0}));
+    // A tall fence beside it, which the holder and the head meet as they turn.
+    scene.add("fence", geom::ObstacleRole::Fixture, box_mesh({fence_x, -60, 0}, {fence_x + 10, 60, 300}));
+    scene.build(false);
+    head.build(false);
+    cspace::Options co;
+    co.check_collision = true;
+    co.collision.roles = geom::kAllRoles;
+    auto space = std::make_shared<const cspace::Space>(k, &scene, &tool, co, &head);
+    cspace::PathCheck path(space);
+    geom::QueryWorkspace ws;
+    cspace::Counters c;
+    std::mt19937 rng(test::kSeed);
+    std::uniform_real_distribution<double> u(-1.0, 1.0);
+    std::size_t free = 0, hits = 0, head_hits = 0;
+    for (int walk = 0; walk < kWalks; ++walk) {
+      const double tilt = deg2rad(40.0) * 0.5 * (1.0 + u(rng)), phi = kPi * u(rng);
+      const kin::Posed start{Vec3(50 * u(rng), 50 * u(rng), 15 + 20 * u(rng)),
+                             Vec3(std::sin(tilt) * std::cos(phi), std::sin(tilt) * std::sin(phi), std::cos(tilt))};
+      kin::Axes q = kin::Axes::Zero();
+      if (!k->solve_for_rotaries(start, q)) continue;
+      kin::Axes drift;
+      for (int j = 0; j < 5; ++j)
+        drift[j] = 0.5 * u(rng) * (k->axes()[static_cast<std::size_t>(j)].rotary() ? deg2rad(kStepDeg) : kStepMm);
+      const cspace::SweepMode mode = walk % 3 == 0 ? cspace::SweepMode::Rapid : cspace::SweepMode::Cutting;
+      // Every other walk turns the tool about its tip (its IK branch nearest the last pose), toward the fence: the
+      // holder and the head swing while the tip barely moves.
+      const bool turning = walk % 2 == 1;
+      kin::Posed pose = start;
+      const Vec3 turn_axis = Vec3::UnitY().cross(start.axis).normalized() * (u(rng) < 0 ? -1.0 : 1.0);
+      std::vector<kin::Solution> branches;
+      for (int s = 0; s < kSteps; ++s) {
+        if (turning) {
+          pose.tip_mm += 0.1 * Vec3(u(rng), u(rng), u(rng));
+          pose.axis = Eigen::AngleAxisd(deg2rad(kStepDeg), turn_axis) * pose.axis;
+          k->inverse_branches(pose, &q, branches);
+          const kin::Axes last = q;
+          double best = std::numeric_limits<double>::infinity();
+          for (const auto& b : branches) {
+            kin::Axes a = b.axes;
+            for (int j = 0; j < 5; ++j)
+              if (k->axes()[static_cast<std::size_t>(j)].rotary())
+                a[j] = last[j] + std::remainder(a[j] - last[j], 2.0 * kPi);
+            if ((a - last).norm() < best) best = (a - last).norm(), q = a;
+          }
+          if (branches.empty()) break;
+        } else {
+          for (int j = 0; j < 5; ++j)
+            q[j] += drift[j] + u(rng) * (k->axes()[static_cast<std::size_t>(j)].rotary() ? deg2rad(kStepDeg) : kStepMm);
+        }
+        const std::string got = path(q, mode), want = space->collision_at_axes(q, ws, c, mode);
+        if (got.empty())
+          ASSERT_TRUE(want.empty()) << "walk " << walk << " step " << s << ": called free, but " << want;
+        else
+          ASSERT_EQ(got, want) << "walk " << walk << " step " << s;
+        ++(want.empty() ? free : hits);
+        head_hits += want.rfind("cutter", 0) != 0 && want.rfind("shank", 0) != 0 && !want.empty();
+      }
+    }
+    EXPECT_GT(hits, 100u);
+    EXPECT_GT(free, 100u);
+    EXPECT_GT(head_hits, 10u) << "the holder or the head must hit something";
+    EXPECT_GT(path.counters().certified, free / 20) << "the certificates must carry the walks";
+  }
+}
+
+// The same, in the case that needs the lever: the tool turns about a fixed tip until its holder meets a wall, first
+// certified far from it with a large margin. The certificate must end before the holder gets there.
+TEST(CSpace, APathCheckCertificateEndsBeforeTheTurningHolderMeetsAWall) {
+  for (const char* name : {"head-head-ac", "trunnion-ac"}) {
+    SCOPED_TRACE(name);
+    const auto m = machine::load(test::source_path(std::string("machines/") + name + ".yaml"));
+    const auto k = m.kinematics();
+    const auto tool = geom::ToolShape::from_cutter(10, 5, 30);
+    geom::Scene scene;
+    scene.add("wall", geom::ObstacleRole::Fixture, box_mesh({40, -100, -50}, {60, 100, 400}));
+    scene.build(false);
+    cspace::Options co;
+    co.check_collision = true;
+    co.collision.roles = geom::kAllRoles;
+    auto space = std::make_shared<const cspace::Space>(k, &scene, &tool, co);
+    geom::QueryWorkspace ws;
+    cspace::Counters c;
+    for (const cspace::SweepMode mode : {cspace::SweepMode::Cutting, cspace::SweepMode::Rapid}) {
+      cspace::PathCheck path(space);
+      kin::Axes q = kin::Axes::Zero();
+      bool hit = false;
+      for (int s = 0; s <= 240 && !hit; ++s) {  // 0.25 deg a step toward the wall, up to 60 deg
+        const double tilt = deg2rad(0.25 * s);
+        const kin::Posed pose{Vec3(0, 0, 0), Vec3(std::sin(tilt), 0, std::cos(tilt))};
+        std::vector<kin::Solution> branches;
+        k->inverse_branches(pose, &q, branches);
+        ASSERT_FALSE(branches.empty());
+        const kin::Axes last = q;
+        double best = std::numeric_limits<double>::infinity();
+        for (const auto& b : branches)
+          if (s == 0 || (b.axes - last).norm() < best) best = (b.axes - last).norm(), q = b.axes;
+        const std::string got = path(q, mode), want = space->collision_at_axes(q, ws, c, mode);
+        ASSERT_EQ(got, want) << "step " << s;
+        hit = !want.empty();
+      }
+      EXPECT_TRUE(hit) << "the holder must reach the wall, or this shows nothing";
+      EXPECT_GT(path.counters().certified, 10u);
+    }
+  }
+}

@@ -328,12 +328,11 @@ gate::Options gate_options(const Setup& s, const PlanArgs& a, double cone_deg) {
     co.collision.roles = geom::kAllRoles;
     auto space =
         std::make_shared<const cspace::Space>(s.kin, &s.scene, s.tool.get(), co, s.has_head ? &s.head : nullptr);
+    // One path check per worker: the gate's samples come in path order, so most are covered by a certificate.
     g.make_collision = [space]() -> gate::Options::CollisionCheck {
-      auto ws = std::make_shared<geom::QueryWorkspace>();
-      auto cc = std::make_shared<cspace::Counters>();
-      return [space, ws, cc](const kin::Axes& q, bool whole_tool) {
-        return space->collision_at_axes(q, *ws, *cc,
-                                        whole_tool ? cspace::SweepMode::Rapid : cspace::SweepMode::Cutting);
+      auto check = std::make_shared<cspace::PathCheck>(space);
+      return [check](const kin::Axes& q, bool whole_tool) {
+        return (*check)(q, whole_tool ? cspace::SweepMode::Rapid : cspace::SweepMode::Cutting);
       };
     };
   }

@@ -593,8 +593,8 @@ bool meshes_apart(const Scene& moving, const Eigen::Isometry3d& moving_in_part, 
   const Scene::Impl& fx = fixed.impl();
   CSCAM_CHECK(mv.built && fx.built, "geom::meshes_apart() before Scene::build()");
   for (const Obstacle& m : mv.obstacles) {
-    if (m.link >= 0) return false;
-    Eigen::AlignedBox3d mbox = transformed_box(m.box, moving_in_part);
+    if (m.link >= 0 && !o.links_in_part) return false;
+    Eigen::AlignedBox3d mbox = transformed_box(m.box, m.link >= 0 ? o.links_in_part[m.link] : moving_in_part);
     mbox.min().array() -= margin_mm;
     mbox.max().array() += margin_mm;
     for (const Obstacle& f : fx.obstacles) {

@@ -203,6 +203,7 @@ class Space {
   [[nodiscard]] Eigen::Vector3d axis_of(double r1, double r2) const;
 
  private:
+  friend class PathCheck;
   std::shared_ptr<const kin::Kinematics> kin_;
   const geom::Scene* scene_;
   const geom::ToolShape* tool_;
@@ -252,6 +253,44 @@ class Space {
   double cutter_reach_mm_ = 0.0;  ///< the same for the cutter body alone (its top plus its checked radius)
   int rot1_ = 0, rot2_ = 0;
   int i1_min_ = 0, i1_max_ = 0, i2_min_ = 0, i2_max_ = 0;
+};
+
+/// The collision check of poses met in order along a path (the safety gate's samples), for one thread: a pose found
+/// free with the tool and head inflated by a margin certifies every later pose whose bodies stay within that margin
+/// of where they were, relative to the part and to every machine link that carries an obstacle. Those poses need no
+/// query. Its answer for every pose is the answer of Space::collision_at_axes() or a proof that it is free.
+class PathCheck {
+ public:
+  explicit PathCheck(std::shared_ptr<const Space> space);
+  /// Empty if the tool and head at axes q are free, else what collides (as Space::collision_at_axes()).
+  [[nodiscard]] std::string operator()(const kin::Axes& q, SweepMode mode);
+  [[nodiscard]] const Counters& counters() const { return counters_; }
+
+ private:
+  static constexpr int kMaxFrames = 7;  // the part and one per machine link
+  static constexpr int kMaxHeads = 7;   // head meshes placed by the head pose, or by one machine link each
+  struct Frames {
+    std::array<Eigen::Vector3d, kMaxFrames> tip, axis;
+    std::array<Eigen::Isometry3d, kMaxFrames * kMaxHeads> head;  // [frame * kMaxHeads + group]
+  };
+  /// The tool (and head) relative to every frame that carries obstacles, for axes q; false if a link or the head
+  /// cannot be placed (then no certificate is used).
+  bool frames_at(const kin::Axes& q, const kin::Posed& pose, Frames& out) const;
+  std::shared_ptr<const Space> space_;
+  geom::QueryWorkspace ws_;
+  Counters counters_;
+  std::array<int, kMaxFrames> frame_link_{};  // -1: the part frame, else the machine link
+  int frames_ = 0;
+  std::array<int, kMaxHeads> head_link_{};  // per group of head meshes: -1 placed by the head pose, else the link
+  std::array<Eigen::AlignedBox3d, kMaxHeads> head_box_;  // per group: the bounding box of its meshes (its own frame)
+  int heads_ = 0;
+  bool usable_ = false;  // certificates are sound for this space
+  bool valid_ = false;
+  int cooldown_ = 0;  // poses left to check exactly after the smallest probe failed
+  SweepMode mode_ = SweepMode::Cutting;
+  double margin_mm_ = 0.0, cutter_margin_mm_ = 0.0;  // of the valid certificate
+  double probe_mm_ = 0.0, cutter_probe_mm_ = 0.0;    // what the next probe asks for
+  Frames at_;                                        // the certified pose
 };
 
 }  // namespace cscam::cspace

@@ -292,8 +292,8 @@ struct Witness {
 
 /// Whether every obstacle of `moving` (placed as in check_meshes()) stays clear of the selected obstacles of `fixed`
 /// under any translation shorter than `margin_mm`: their bounding boxes, the moving one grown by the margin, are
-/// disjoint. A cheap, conservative certificate (false does not mean a collision). Moving obstacles with a link are
-/// not certified (false). Counts no query.
+/// disjoint. A cheap, conservative certificate (false does not mean a collision). A moving obstacle with a link is
+/// placed by options.links_in_part (not certified, false, without them). Counts no query.
 [[nodiscard]] bool meshes_apart(const Scene& moving, const Eigen::Isometry3d& moving_in_part, const Scene& fixed,
                                 const CheckOptions& options, double margin_mm);
 
