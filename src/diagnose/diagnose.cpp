@@ -117,6 +117,88 @@ double median(std::vector<double> v) {
   return *mid;
 }
 
+/// The recording's sampling clock. A control logs on a fixed clock; a recording with rows missing (a logger that
+/// stalls, a dropped packet) keeps the others on that clock. The spectra are taken on that regular grid, each sample
+/// in its own slot and the missing slots left out (zero once the mean is removed, as a missing cell is): the FFT then
+/// sees a vibration at its true frequency and phase, where the mean rate (rows / duration) put 47 Hz at 45.4 Hz. Not a
+/// Lomb-Scargle periodogram: that costs rows x frequencies (10^9 for a 10^5-row recording over its whole band); not
+/// interpolation across the gaps, which smears a vibration that the gap interrupts.
+struct TimeGrid {
+  double dt = 0;                 ///< the sampling interval: the median time step
+  size_t slots = 0;              ///< length of the regular grid
+  std::vector<size_t> slot;      ///< grid slot of every row (kNoSlot: outside the analysed stretch)
+  size_t gaps = 0, missing = 0;  ///< time steps longer than 1.5 intervals, and the rows they leave out
+  double largest_gap_s = 0, largest_gap_at_s = 0;
+  size_t off_grid = 0;        ///< rows more than a quarter interval off their slot (jittered stamps)
+  bool stretch_only = false;  ///< the grid would be mostly empty: only the longest stretch without a gap is used
+  static constexpr size_t kNoSlot = std::numeric_limits<size_t>::max();
+};
+
+TimeGrid time_grid(const std::vector<double>& t) {
+  TimeGrid g;
+  const size_t n = t.size();
+  g.slot.assign(n, TimeGrid::kNoSlot);
+  if (n < 2) return g;
+  std::vector<double> d(n - 1);
+  for (size_t i = 1; i < n; ++i) d[i - 1] = t[i] - t[i - 1];
+  std::vector<double> ds = d;
+  std::nth_element(ds.begin(), ds.begin() + static_cast<std::ptrdiff_t>(ds.size() / 2), ds.end());
+  g.dt = ds[ds.size() / 2];
+  if (!(g.dt > 0)) return g;
+  size_t run_a = 0, best_a = 0, best_b = n;  // the longest stretch without a gap: rows [best_a, best_b)
+  size_t best_len = 0;
+  for (size_t i = 1; i <= n; ++i) {
+    const bool gap = i < n && d[i - 1] > 1.5 * g.dt;
+    if (i < n && gap) {
+      ++g.gaps;
+      g.missing += static_cast<size_t>(std::max(0.0, std::round(d[i - 1] / g.dt) - 1));
+      if (d[i - 1] > g.largest_gap_s) g.largest_gap_s = d[i - 1], g.largest_gap_at_s = t[i - 1];
+    }
+    if (i == n || gap) {
+      if (i - run_a > best_len) best_len = i - run_a, best_a = run_a, best_b = i;
+      run_a = i;
+    }
+  }
+  // The median step is the clock's interval rounded as the file prints it (0.002857 for 1/350 s): over 13000 rows
+  // that rounding adds up to more than an interval. The mean step of the longest stretch without a gap is exact to
+  // the rounding over its length; the whole span in those steps, rounded to whole intervals, then fixes it.
+  if (best_len >= 2) g.dt = (t[best_b - 1] - t[best_a]) / static_cast<double>(best_len - 1);
+  const double whole = std::round((t.back() - t.front()) / g.dt);
+  if (whole >= 1) g.dt = (t.back() - t.front()) / whole;
+  const double span = (t.back() - t.front()) / g.dt;
+  // A grid mostly empty (gaps longer than the data between them) has a spectral window of many side lobes: the
+  // longest regular stretch tells the frequencies better then.
+  size_t a = 0, b = n;
+  if (span > 4.0 * static_cast<double>(n) && best_len >= 64) a = best_a, b = best_b, g.stretch_only = true;
+  for (size_t i = a; i < b; ++i) {
+    const double x = (t[i] - t[a]) / g.dt;
+    g.slot[i] = static_cast<size_t>(std::llround(x));
+    if (std::abs(x - static_cast<double>(g.slot[i])) > 0.25) ++g.off_grid;
+  }
+  g.slots = g.slot[b - 1] + 1;
+  return g;
+}
+
+/// A residual on the grid: mean of the samples present removed, missing slots 0; `present` counts the samples.
+std::vector<double> on_grid(const std::vector<double>& x, const TimeGrid& g, size_t& present) {
+  std::vector<double> y(g.slots, 0.0);
+  std::vector<unsigned> cnt(g.slots, 0);
+  double mean = 0;
+  present = 0;
+  for (size_t i = 0; i < x.size(); ++i)
+    if (g.slot[i] != TimeGrid::kNoSlot && !std::isnan(x[i])) mean += x[i], ++present;
+  if (present == 0) return y;
+  mean /= static_cast<double>(present);
+  for (size_t i = 0; i < x.size(); ++i)
+    if (g.slot[i] != TimeGrid::kNoSlot && !std::isnan(x[i])) y[g.slot[i]] += x[i] - mean, ++cnt[g.slot[i]];
+  size_t used = 0;
+  for (size_t k = 0; k < g.slots; ++k)
+    if (cnt[k] > 1) y[k] /= cnt[k];  // two stamps rounded to one slot (jitter): their mean
+  for (size_t k = 0; k < g.slots; ++k) used += cnt[k] > 0;
+  present = used;
+  return y;
+}
+
 /// White noise of variance s^2 gives E|X_k|^2 = n s^2 and a median of n s^2 ln 2: the noise from the
 /// median of the upper half of the band (smooth effects live at low frequencies, peaks are few).
 double noise_from_spectrum(const std::vector<double>& P, size_t n, double floor = kNoiseFloor) {
@@ -126,7 +208,8 @@ double noise_from_spectrum(const std::vector<double>& P, size_t n, double floor 
 }
 
 /// Spectral peaks: local maxima far above the local median level, at least a few cycles per run.
-std::vector<Peak> find_peaks(const std::vector<double>& P, size_t n, double fs, double duration) {
+/// `n`: the grid's length (frequency k fs / n); `present`: the samples on it (the amplitude: 2 |X_k| / present).
+std::vector<Peak> find_peaks(const std::vector<double>& P, size_t n, size_t present, double fs, double duration) {
   std::vector<Peak> out;
   if (P.size() < 16) return out;
   const double gmed = median(std::vector<double>(P.begin() + 1, P.end()));
@@ -150,7 +233,7 @@ std::vector<Peak> find_peaks(const std::vector<double>& P, size_t n, double fs, 
     const double d = std::abs(den) > 1e-12 ? std::clamp(0.5 * (l - r) / den, -0.5, 0.5) : 0.0;
     Peak pk;
     pk.f = (static_cast<double>(k) + d) * fs / static_cast<double>(n);
-    pk.amp = 2.0 * std::sqrt(P[k]) / static_cast<double>(n);
+    pk.amp = 2.0 * std::sqrt(P[k]) / static_cast<double>(std::max<size_t>(present, 1));
     bool dup = false;
     for (const auto& q : out) dup |= std::abs(q.f - pk.f) < 3 * fs / static_cast<double>(n);
     if (!dup) out.push_back(pk);
@@ -825,7 +908,21 @@ Report diagnose(sim::Recording& rec, const machine::Machine& m, const std::vecto
     R.rms_before.emplace_back(g, cnt ? std::sqrt(s / static_cast<double>(cnt)) : 0.0);
   }
   R.seconds.emplace_back("simulate_and_subtract", secs(tstage));
-  const double sample_hz = static_cast<double>(n - 1) / std::max(t.back() - t.front(), 1e-12);
+  // The sampling rate is the clock's, not rows / duration: with rows missing, the mean rate is lower.
+  const TimeGrid tg = time_grid(t);
+  const double sample_hz = tg.dt > 0 ? 1.0 / tg.dt : static_cast<double>(n - 1) / std::max(t.back() - t.front(), 1e-12);
+  if (tg.gaps > 0)
+    R.warnings.push_back(fmt::format(
+        "time stamps are uneven: {} gap(s) in t where about {} row(s) are missing, the largest {:.4g} s ({:.0f} "
+        "sampling intervals of {:.4g} s) after t = {:.4f} s; spectra are taken on the regular {:.4g} s grid {}",
+        tg.gaps, tg.missing, tg.largest_gap_s, tg.largest_gap_s / tg.dt, tg.dt, tg.largest_gap_at_s, tg.dt,
+        tg.stretch_only ? "of the longest stretch without a gap (the gaps are longer than the data between them)"
+                        : "with the missing rows left out"));
+  if (tg.off_grid > n / 100)
+    R.warnings.push_back(fmt::format(
+        "time stamps are uneven: {} row(s) lie more than a quarter of the {:.4g} s sampling interval off a regular "
+        "clock; spectral frequencies near the Nyquist frequency are blurred",
+        tg.off_grid, tg.dt));
   if (rpm > 0)
     for (const auto& [what, f] : std::vector<std::pair<std::string, double>>{
              {"spindle", rpm / 60.0}, {"tooth-passing", flutes > 0 ? rpm / 60.0 * flutes : 0.0}})
@@ -838,19 +935,20 @@ Report diagnose(sim::Recording& rec, const machine::Machine& m, const std::vecto
 
   // ---- 2. noise first; spectra --------------------------------------------------------------------
   const double duration = t.back() - t.front();
-  const double fs = static_cast<double>(n - 1) / std::max(duration, 1e-12);
+  const double fs = sample_hz;
+  const size_t ngrid = tg.slots;
   std::vector<std::vector<Peak>> peaks(comps.size());
   std::vector<std::vector<double>> spectra(comps.size());
+  std::vector<size_t> spectrum_n(comps.size(), 0);  // samples behind each spectrum (its amplitude scale)
   {
     const size_t nt = worker_threads();
     on_workers(nt, [&](size_t w) {
       for (size_t ci = w; ci < comps.size(); ci += nt) {
-        std::vector<double> x = comps[ci].res_full;
-        for (auto& v : x)
-          if (std::isnan(v)) v = 0;
-        auto P = periodogram(x);
-        comps[ci].sigma = noise_from_spectrum(P, n, floor_of(comps[ci]));
-        peaks[ci] = find_peaks(P, n, fs, duration);
+        size_t present = 0;
+        auto P = periodogram(on_grid(comps[ci].res_full, tg, present));
+        comps[ci].sigma = noise_from_spectrum(P, std::max<size_t>(present, 1), floor_of(comps[ci]));
+        peaks[ci] = find_peaks(P, ngrid, present, fs, duration);
+        spectrum_n[ci] = present;
         if (o.keep_plot_data) spectra[ci] = std::move(P);
       }
     });
@@ -1614,8 +1712,9 @@ Report diagnose(sim::Recording& rec, const machine::Machine& m, const std::vecto
     for (size_t k = 1; k < P.size(); k += fstep) {
       double mx = 0;
       for (size_t q = k; q < std::min(P.size(), k + fstep); ++q) mx = std::max(mx, P[q]);
-      sp.x.push_back(static_cast<double>(k) * fs / static_cast<double>(n));
-      sp.y.push_back(2.0 * std::sqrt(mx) / static_cast<double>(n));
+      sp.x.push_back(static_cast<double>(k) * fs / static_cast<double>(ngrid));
+      sp.y.push_back(2.0 * std::sqrt(mx) /
+                     static_cast<double>(std::max<size_t>(spectrum_n[static_cast<size_t>(mci)], 1)));
     }
     R.plots_spectrum = {sp};
     for (const auto& pk : peaks[static_cast<size_t>(mci)]) R.peak_freqs.push_back(pk.f);

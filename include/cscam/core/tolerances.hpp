@@ -45,4 +45,6 @@ inline constexpr double kCalibRankRel = 1e-7;
 // Diagnosis (tests/diagnose_test.cpp): a recovered effect parameter must lie within this fraction of the truth.
 namespace cscam::tol {
 inline constexpr double kDiagnoseParamRel = 0.2;
+/// A vibration's frequency from a recording with rows missing (the spectrum's bin is 1/duration: 0.04 Hz for 25 s).
+inline constexpr double kDiagnoseFrequencyHz = 0.1;
 }  // namespace cscam::tol
