@@ -547,6 +547,7 @@ bool plausible(const Effect& e) {
   if (n == "squareness") return a <= 5000;                                    // urad
   if (n == "straightness") return a <= 100;                                   // mm/m^2: 1 mm at 100 mm from the apex
   if (n == "servo_lag") return a <= 0.5;                                      // s
+  if (n == "servo_lag_1st") return a <= 0.5 && e.p[1] > 0 && e.p[1] <= 1.0;   // s: steady lag, time constant
   if (n == "backlash") return a <= 1.0 && e.p[1] >= 0 && e.p[1] <= 1.0;       // width, take-up: mm or deg
   if (n == "friction_spike") return e.p[1] > 0 && e.p[1] <= 1.0 && a <= 1.0;  // decay, s; peak, mm or deg
   if (n == "thermal_drift") return e.p[1] > 0 && a <= 1.0;                    // mm over the run (a wrong machine: 28)
@@ -703,6 +704,11 @@ std::string explain(const Effect& e, const std::string& dom) {
   if (n == "servo_lag")
     return fmt::format("{} follows the velocity of {}: following error = velocity x {:.4f} s", dom, e.target,
                        rep[0].second);
+  if (n == "servo_lag_1st")
+    return fmt::format(
+        "{} follows {} as a first-order loop: the following error builds up and dies away with a time constant of "
+        "{:.4f} s and settles at velocity x {:.4f} s",
+        dom, e.target, rep[0].second, rep[1].second);
   if (n == "thermal_drift")
     return fmt::format("{} drifts by {} over the run (time constant {:.0f} s)", dom, fmt_um(rep[0].second),
                        rep[1].second);
@@ -748,6 +754,9 @@ std::string describe(const Effect& e) {
   if (n == "backlash")
     return fmt::format("lost motion of {} on {} at each {} reversal", fmt_value(u, rep[0].second), e.target, e.target);
   if (n == "servo_lag") return fmt::format("servo lag of {:.2f} ms on {}", rep[0].second * 1000, e.target);
+  if (n == "servo_lag_1st")
+    return fmt::format("first-order servo lag on {}: time constant {:.2f} ms (steady lag {:.2f} ms)", e.target,
+                       rep[0].second * 1000, rep[1].second * 1000);
   // A direction (a unit vector) drifts in microradians.
   auto in_channel = [&](double v) {
     return e.channel.rfind("dir.", 0) == 0 ? fmt::format("{:.1f} urad", v * 1e6) : fmt_um(v);
@@ -1050,8 +1059,8 @@ Report diagnose(sim::Recording& rec, const machine::Machine& m, const std::vecto
   }
   for (int j = 0; j < 5; ++j) {
     const std::string ax = m.axes[static_cast<size_t>(j)].name;
-    for (const char* name :
-         {"backlash", "servo_lag", "scale", "cyclic", "friction_spike", "compliance", "thermal_scale"}) {
+    for (const char* name : {"backlash", "servo_lag", "servo_lag_1st", "scale", "cyclic", "friction_spike",
+                             "compliance", "thermal_scale"}) {
       if (!moves[static_cast<size_t>(j)]) break;
       const std::string n = name;
       if ((n == "backlash" || n == "friction_spike") && !reverses[static_cast<size_t>(j)]) continue;
@@ -1336,16 +1345,32 @@ Report diagnose(sim::Recording& rec, const machine::Machine& m, const std::vecto
         if (ok && ms < best_ms) best_ms = ms, bi = pi;
       }
     }
+    // A first-order lag with a time constant too short to show is the plain lag: the time constant must explain what
+    // an effect must explain to count, or the plain lag (one parameter less) is named.
+    if (res[bi].e->name() == "servo_lag_1st") {
+      double ms_1st = 0.0;
+      for (const auto& [pi, ms, what] : refits)
+        if (pi == bi) ms_1st = ms;
+      for (const auto& [pi, ms, what] : refits)
+        if (res[pi].e->name() == "servo_lag" && res[pi].e->target == res[bi].e->target &&
+            res[pi].e->enc_visible == res[bi].e->enc_visible && ms - ms_1st <= thr) {
+          bi = pi;
+          break;
+        }
+    }
     // The others that leave a held-out residual larger by less than an effect must explain to count: the recording
     // cannot tell them from the one chosen.
     std::vector<std::string> same;
     double chosen_ms = 0.0;
     for (const auto& [pi, ms, what] : refits)
       if (pi == bi) chosen_ms = ms;
-    // (Not the chosen effect's own twin, seen or not by the encoder; one line per explanation.)
+    // (Not the chosen effect's own twin, seen or not by the encoder, nor a plain lag's first-order form, which only
+    // generalises it; one line per explanation.)
+    const auto lag = [](const std::string& n) { return n == "servo_lag" || n == "servo_lag_1st"; };
     for (const auto& [pi, ms, what] : refits)
       if (pi != bi && ms - chosen_ms <= thr && held_ms - chosen_ms > thr &&
           (res[pi].e->name() != res[bi].e->name() || res[pi].e->target != res[bi].e->target) &&
+          !(lag(res[pi].e->name()) && lag(res[bi].e->name()) && res[pi].e->target == res[bi].e->target) &&
           std::find(same.begin(), same.end(), what) == same.end())
         same.push_back(what);
     auto trial = model_with(std::move(res[bi].e));

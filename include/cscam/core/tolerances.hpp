@@ -47,4 +47,6 @@ namespace cscam::tol {
 inline constexpr double kDiagnoseParamRel = 0.2;
 /// A vibration's frequency from a recording with rows missing (the spectrum's bin is 1/duration: 0.04 Hz for 25 s).
 inline constexpr double kDiagnoseFrequencyHz = 0.1;
+/// A first-order servo's time constant, relative to the truth (a parameter that enters nonlinearly).
+inline constexpr double kDiagnoseTauRel = 0.1;
 }  // namespace cscam::tol
