@@ -781,3 +781,20 @@ TEST(Diagnose, AFirstOrderServoIsFoundWithItsTimeConstantAndNothingElse) {
       EXPECT_EQ(fd.effect->name(), "servo_lag_1st") << "tau " << tau << ":\n" << r.text();
   }
 }
+
+// A channel that jumps once and stays (a knocked tracker) was named thermal_drift. Oracle: the step injected by
+// simulate, its time and size; a real thermal drift is still thermal_drift, with no step beside it.
+TEST(Diagnose, APermanentStepIsAStepNotADrift) {
+  const auto tr = xmini_cut(50);
+  const double t_jump = tr.t.front() + 0.37 * (tr.t.back() - tr.t.front());
+  const auto r = run(tr, xmini(), {fmt::format("step:tip.z:step_mm=0.012,t_s={}", t_jump)}, {"tip"}, 0.001);
+  const auto* f = find(r, "step", "tip.z");
+  ASSERT_NE(f, nullptr) << r.text();
+  EXPECT_NEAR(param(*f, "step_mm"), 0.012, tol::kDiagnoseParamRel * 0.012) << r.text();
+  EXPECT_NEAR(param(*f, "t_s"), t_jump, tol::kDiagnoseStepTimeS) << r.text();
+  EXPECT_LE(f->heldout_rms_after, 0.5 * f->heldout_rms_before) << r.text();
+  EXPECT_EQ(find(r, "thermal_drift", "tip.z"), nullptr) << r.text();
+  const auto d = run(tr, xmini(), {"thermal_drift:tip.z:0.02:8"}, {"tip"}, 0.001);
+  expect_found(d, "thermal_drift", "tip.z", "drift_mm", 0.02);
+  for (const auto& fd : d.findings) EXPECT_NE(fd.effect->name(), "step") << d.text();
+}

@@ -115,7 +115,8 @@ TEST(SimEffects, EveryEffectsAutodiffGradientMatchesFiniteDifferences) {
                                           "straightness:z,x:0.8:7",
                                           "cross_compliance:z,x:0.004",
                                           "thermal_scale:x:ppm=40,time_constant_s=30",
-                                          "servo_lag_1st:y:tau_s=0.01,lag_s=0.008"};
+                                          "servo_lag_1st:y:tau_s=0.01,lag_s=0.008",
+                                          "step:tip.z:step_mm=0.01,t_s=1.2345"};
   std::mt19937 rng(7);
   for (const auto& s : specs) {
     auto e = sim::parse_effect(s, m);
@@ -350,4 +351,7 @@ TEST(SimEffects, AFirstOrderServoLagFollowsItsClosedForm) {
     ASSERT_DOUBLE_EQ(ey->value(c5, k, ey->p.data()), ey->value(c1, 5 * k, ey->p.data())) << "row " << 5 * k;
   EXPECT_NE(error_of([&] { sim::parse_effect("servo_lag_1st:x:0", m); }).find("tau_s must be positive"),
             std::string::npos);
+  EXPECT_NE(error_of([&] { sim::parse_effect("step:tip.z:step_mm=0.01", m); }).find("'t_s' is missing"),
+            std::string::npos);
+  EXPECT_NE(error_of([&] { sim::parse_effect("step:x:0.01:2", m); }).find("not a channel"), std::string::npos);
 }

@@ -504,6 +504,9 @@ void joint_fit(Fit& f, const std::vector<Effect*>& fx, size_t stride = 1) {
     if (e->name() == "vibration") {  // the frequency comes from the spectrum (the fit subsamples in time)
       prob.SetManifold(e->p.data(), new ceres::SubsetManifold(3, {0}));
     }
+    if (e->name() == "step") {  // the time of the jump comes from the residual (no derivative)
+      prob.SetManifold(e->p.data(), new ceres::SubsetManifold(2, {1}));
+    }
     for (size_t q = 0; q < names.size(); ++q) {
       if (names[q] == "apex") {
         // Within a travel of the second axis's recorded range: an apex far beyond it is a tilted line (squareness or
@@ -551,6 +554,7 @@ bool plausible(const Effect& e) {
   if (n == "backlash") return a <= 1.0 && e.p[1] >= 0 && e.p[1] <= 1.0;       // width, take-up: mm or deg
   if (n == "friction_spike") return e.p[1] > 0 && e.p[1] <= 1.0 && a <= 1.0;  // decay, s; peak, mm or deg
   if (n == "thermal_drift") return e.p[1] > 0 && a <= 1.0;                    // mm over the run (a wrong machine: 28)
+  if (n == "step") return a <= 1.0;                                           // mm
   if (n == "vibration") return std::hypot(e.p[1], e.p[2]) <= 1.0;             // mm amplitude
   if (n == "geometric") return a <= 1.0;  // mm or deg: linearised at nominal, valid for tens of micrometres
   if (n == "cyclic") return std::hypot(e.p[1], e.p[2]) <= 1.0;  // mm or deg amplitude
@@ -712,6 +716,8 @@ std::string explain(const Effect& e, const std::string& dom) {
   if (n == "thermal_drift")
     return fmt::format("{} drifts by {} over the run (time constant {:.0f} s)", dom, fmt_um(rep[0].second),
                        rep[1].second);
+  if (n == "step")
+    return fmt::format("{} jumps by {} at t = {:.3f} s and stays", dom, fmt_um(rep[0].second), rep[1].second);
   if (n == "vibration")
     return fmt::format("sinusoid of {} at {:.1f} Hz in {}{}", fmt_um(rep[1].second), rep[0].second, dom,
                        e.note.empty() ? "" : " (" + e.note + ")");
@@ -764,6 +770,9 @@ std::string describe(const Effect& e) {
   if (n == "thermal_drift")
     return fmt::format("thermal drift of {} in {} (time constant {:.0f} s)", in_channel(rep[0].second), e.target,
                        rep[1].second);
+  if (n == "step")
+    return fmt::format("a permanent step of {} in {} at t = {:.3f} s (knocked, re-seated or slipped)",
+                       in_channel(rep[0].second), e.target, rep[1].second);
   if (n == "vibration")
     return fmt::format("vibration of {} at {:.1f} Hz in {}{}", in_channel(rep[1].second), rep[0].second, e.target,
                        e.note.empty() ? "" : " (" + e.note + ")");
@@ -1108,6 +1117,7 @@ Report diagnose(sim::Recording& rec, const machine::Machine& m, const std::vecto
   std::vector<sim::GridHints> hints(comps.size());
   for (int ci : F.fitc) {
     protos.push_back(sim::make_effect("thermal_drift", comps[static_cast<size_t>(ci)].name, m));
+    protos.push_back(sim::make_effect("step", comps[static_cast<size_t>(ci)].name, m));
     for (const auto& pk : peaks[static_cast<size_t>(ci)]) hints[static_cast<size_t>(ci)].frequencies_hz.push_back(pk.f);
     if (!hints[static_cast<size_t>(ci)].frequencies_hz.empty())
       protos.push_back(sim::make_effect("vibration", comps[static_cast<size_t>(ci)].name, m));
@@ -1266,6 +1276,26 @@ Report diagnose(sim::Recording& rec, const machine::Machine& m, const std::vecto
       v.resize(sidx.size());
       for (size_t s = 0; s < sidx.size(); ++s) v[s] = model_residual(F, fx, ci, sidx[s]);
     }
+    // Where each channel's residual under the current model jumps most: the split of the analysis samples into a
+    // before and an after whose means differ most for their counts (k (n - k) / n (mean_a - mean_b)^2, the
+    // likelihood of one mean shift in white noise). A step's time is the middle of that split.
+    std::vector<double> step_at(comps.size(), kNaN);
+    for (int ci : F.fitc) {
+      std::vector<double> r, tt;
+      for (size_t k = 0; k < ma; ++k)
+        if (!std::isnan(comps[static_cast<size_t>(ci)].res[k]))
+          r.push_back(model_residual(F, fx, ci, k)), tt.push_back(ctx.t[k]);
+      const size_t nr = r.size();
+      if (nr < 4) continue;
+      const double total = std::accumulate(r.begin(), r.end(), 0.0);
+      double cum = 0, best = -1;
+      for (size_t k = 1; k < nr; ++k) {
+        cum += r[k - 1];
+        const double nk = static_cast<double>(k), nn = static_cast<double>(nr);
+        const double d = cum - nk / nn * total, stat = d * d * nn / (nk * (nn - nk));
+        if (stat > best) best = stat, step_at[static_cast<size_t>(ci)] = 0.5 * (tt[k - 1] + tt[k]);
+      }
+    }
     std::vector<Candidate> res(protos.size());
     {
       const size_t nt = worker_threads();
@@ -1274,7 +1304,10 @@ Report diagnose(sim::Recording& rec, const machine::Machine& m, const std::vecto
           const Effect& pr = *protos[pi];
           sim::GridHints h;
           for (size_t ci = 0; ci < comps.size(); ++ci)
-            if (pr.scope() == Scope::Channel && comps[ci].name == pr.channel) h = hints[ci];
+            if (pr.scope() == Scope::Channel && comps[ci].name == pr.channel) {
+              h = hints[ci];
+              if (!std::isnan(step_at[ci])) h.step_times_s = {step_at[ci]};
+            }
           if (pr.scope() == Scope::Channel && pr.channel.rfind("tool.", 0) == 0) h = tool_hints(pr.channel.back());
           res[pi] = screen(F, pr, sidx, cur, h);
         }

@@ -557,6 +557,38 @@ class ThermalDrift : public EffectImpl<ThermalDrift, 2> {
   }
 };
 
+/// A permanent step: the channel jumps once, by step_mm at t_s, and stays (a knocked tracker, a re-seated probe, a
+/// slip). Not a drift: nothing before t_s, all of it at once. t_s enters only through the jump, so its derivative is
+/// zero: the fit holds it where the grid put it (the largest jump of the residual).
+class Step : public EffectImpl<Step, 2> {
+ public:
+  std::string name() const override { return "step"; }
+  Scope scope() const override { return Scope::Channel; }
+  std::vector<std::string> internal_names() const override { return {"step", "t_s"}; }
+  std::vector<bool> linear() const override { return {true, false}; }
+  std::string signature() const override {
+    return fmt::format("{} jumps once and stays (a knocked tracker, a re-seated probe)", target);
+  }
+  template <class T>
+  T eval(const Context& c, size_t i, const T* pp) const {
+    return c.t[i] >= pp[1] ? pp[0] : T(0.0);
+  }
+  std::vector<std::pair<std::string, double>> reported() const override { return {{"step_mm", p[0]}, {"t_s", p[1]}}; }
+  void set_reported(const std::vector<std::pair<std::string, double>>& kv) override {
+    p[0] = get(kv, "step_mm", name());
+    p[1] = get(kv, "t_s", name());
+    if (!std::isfinite(p[1])) throw InputError("effect step: t_s must be a finite time");
+  }
+  /// The times of the residual's largest jumps (hints), or nine times across the run.
+  std::vector<std::vector<double>> grid(const Context& c, const GridHints& h) const override {
+    std::vector<std::vector<double>> g;
+    for (double ts : h.step_times_s) g.push_back({0, ts});
+    if (g.empty())
+      for (int k = 1; k <= 9; ++k) g.push_back({0, c.t0 + 0.1 * k * c.duration});
+    return g;
+  }
+};
+
 class Vibration : public EffectImpl<Vibration, 3> {
  public:
   std::string name() const override { return "vibration"; }
@@ -618,6 +650,7 @@ const std::vector<std::pair<std::string, Factory>>& library() {
       {"servo_lag", [] { return std::make_unique<ServoLag>(); }},
       {"servo_lag_1st", [] { return std::make_unique<ServoLag1st>(); }},
       {"thermal_drift", [] { return std::make_unique<ThermalDrift>(); }},
+      {"step", [] { return std::make_unique<Step>(); }},
       {"vibration", [] { return std::make_unique<Vibration>(); }},
       {"scale", [] { return std::make_unique<Scale>(); }},
       {"squareness", [] { return std::make_unique<Squareness>(); }},

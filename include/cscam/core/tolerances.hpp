@@ -49,4 +49,6 @@ inline constexpr double kDiagnoseParamRel = 0.2;
 inline constexpr double kDiagnoseFrequencyHz = 0.1;
 /// A first-order servo's time constant, relative to the truth (a parameter that enters nonlinearly).
 inline constexpr double kDiagnoseTauRel = 0.1;
+/// A permanent step's time, in seconds (the fit keeps the time of the largest jump at the analysis samples).
+inline constexpr double kDiagnoseStepTimeS = 0.05;
 }  // namespace cscam::tol

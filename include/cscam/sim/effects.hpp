@@ -69,6 +69,7 @@ enum class Scope { Axis, Channel, Geometric };
 /// Hints for the starting grid of nonlinear parameters (e.g. spectral peaks of a channel).
 struct GridHints {
   std::vector<double> frequencies_hz;
+  std::vector<double> step_times_s;  ///< times of the largest jumps of a channel's residual (for `step`)
 };
 
 /// One effect instance: a definition from the library bound to a target, with parameter values.
