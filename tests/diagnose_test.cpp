@@ -780,6 +780,22 @@ TEST(Diagnose, AFirstOrderServoIsFoundWithItsTimeConstantAndNothingElse) {
     for (const auto& fd : r.findings)
       EXPECT_EQ(fd.effect->name(), "servo_lag_1st") << "tau " << tau << ":\n" << r.text();
   }
+  // Fitted on every fifth sample (the stride of a long recording): the filter still runs over every row.
+  auto e = sim::parse_effect("servo_lag_1st:y:tau_s=0.012", trunnion());
+  sim::SimulateOptions so;
+  so.channels = {"tip", "enc"};
+  so.noise = {{"tip", 0.001}, {"enc", 0.0002}};
+  so.seed = 11;
+  auto rec = sim::simulate(circle(), trunnion(), {e.get()}, so);
+  rec.file = "strided.csv";
+  diagnose::Options o;
+  o.max_fit_samples = rec.rows() / 5 + 1;
+  o.max_screen_samples = o.max_fit_samples / 2;
+  const auto r = diagnose::diagnose(rec, trunnion(), {}, o);
+  const auto* f = find(r, "servo_lag_1st", "y");
+  ASSERT_NE(f, nullptr) << r.text();
+  EXPECT_NEAR(param(*f, "tau_s"), 0.012, tol::kDiagnoseTauRel * 0.012) << r.text();
+  EXPECT_EQ(r.findings.size(), 1u) << r.text();
 }
 
 // A channel that jumps once and stays (a knocked tracker) was named thermal_drift. Oracle: the step injected by
