@@ -212,11 +212,20 @@ std::vector<T> first_order_following_error(const std::vector<double>& t, const s
   std::vector<T> e(t.size());
   if (t.empty()) return e;
   e[0] = tau * v[0];
+  // The coefficients depend on the step only: computed again only when it changes (a regular clock: once).
+  double h_prev = -1.0;
+  T a{}, c_v{}, c_dv{};
   for (size_t k = 1; k < t.size(); ++k) {
     const double h = t[k] - t[k - 1];
-    const T x = -h / tau;
-    const T a = exp(x), one_minus_a = -expm1(x);  // 1 - a without cancellation for h << tau
-    e[k] = a * e[k - 1] + tau * one_minus_a * v[k] - (v[k] - v[k - 1]) * (tau * tau * one_minus_a / h - tau * a);
+    if (h != h_prev) {
+      const T x = -h / tau;
+      a = exp(x);
+      const T one_minus_a = -expm1(x);  // 1 - a without cancellation for h << tau
+      c_v = tau * one_minus_a;
+      c_dv = tau * tau * one_minus_a / h - tau * a;
+      h_prev = h;
+    }
+    e[k] = a * e[k - 1] + c_v * v[k] - (v[k] - v[k - 1]) * c_dv;
   }
   return e;
 }
