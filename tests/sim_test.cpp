@@ -103,11 +103,20 @@ TEST(SimEffects, EveryEffectsAutodiffGradientMatchesFiniteDifferences) {
   const auto m = trunnion();
   const auto tr = square_path(m);
   const auto ctx = sim::make_context(tr.t, tr.cmd, {false, false, false, true, true});
-  const std::vector<std::string> specs = {
-      "backlash:x:0.01",        "servo_lag:y:0.004",           "scale:x:30",
-      "squareness:x,y:50",      "cyclic:x:5:0.002:30",         "friction_spike:y:0.005:0.05",
-      "compliance:x:0.001",     "thermal_drift:tip.z:0.02:40", "vibration:tip.z:37.5:0.003:20",
-      "straightness:z,x:0.8:7", "cross_compliance:z,x:0.004",  "thermal_scale:x:ppm=40,time_constant_s=30"};
+  const std::vector<std::string> specs = {"backlash:x:0.01",
+                                          "servo_lag:y:0.004",
+                                          "scale:x:30",
+                                          "squareness:x,y:50",
+                                          "cyclic:x:5:0.002:30",
+                                          "friction_spike:y:0.005:0.05",
+                                          "compliance:x:0.001",
+                                          "thermal_drift:tip.z:0.02:40",
+                                          "vibration:tip.z:37.5:0.003:20",
+                                          "straightness:z,x:0.8:7",
+                                          "cross_compliance:z,x:0.004",
+                                          "thermal_scale:x:ppm=40,time_constant_s=30",
+                                          "servo_lag_1st:y:tau_s=0.01,lag_s=0.008",
+                                          "step:tip.z:step_mm=0.01,t_s=1.2345"};
   std::mt19937 rng(7);
   for (const auto& s : specs) {
     auto e = sim::parse_effect(s, m);
@@ -293,4 +302,56 @@ TEST(SimSimulate, XminiCutFromTheClFileFollowsTheFeed) {
   EXPECT_NEAR(lo, -20.0, 1e-6);
   EXPECT_NEAR(hi, 20.0, 1e-6);
   EXPECT_GT(tr.t.back(), 40.0 / 2.5);  // 40 mm at 150 mm/min at least
+}
+
+// A first-order servo (de/dt = v - e/tau): the recursive filter against closed forms. Oracles: from rest under a
+// constant acceleration A (v = A t, which the central differences give exactly), e = A tau (t - tau (1 - e^(-t/tau)));
+// settled on a sine q = R sin(w t), the axis lags by e = tau v / (1 + i w tau) in complex amplitude. The axis trails:
+// its deviation is -e (lag_s = tau_s). A strided context reads the same full-rate series at its rows.
+TEST(SimEffects, AFirstOrderServoLagFollowsItsClosedForm) {
+  const auto m = trunnion();
+  const double tau = 0.02, A = 300.0, h = 0.002;
+  std::vector<double> t;
+  std::vector<kin::Axes> cmd;
+  for (int k = 0; k <= 400; ++k) {
+    t.push_back(k * h);
+    kin::Axes q{};
+    q[0] = 0.5 * A * t.back() * t.back();
+    cmd.push_back(q);
+  }
+  auto e = sim::parse_effect("servo_lag_1st:x:0.02", m);
+  EXPECT_EQ(e->reported()[0].first, "tau_s");
+  EXPECT_DOUBLE_EQ(e->reported()[1].second, 0.02);  // lag_s = tau_s: a plain loop
+  const auto ctx = sim::make_context(t, cmd, {false, false, false, true, true});
+  // (The first row's one-sided velocity, A h / 2, starts a transient of its own: compared after 15 tau, e^-15 of it.)
+  for (size_t i = 1; i + 1 < ctx.size(); ++i) {
+    const double ti = ctx.t[i], truth = A * tau * (ti - tau * (1.0 - std::exp(-ti / tau)));
+    if (ti < 15 * tau) continue;
+    ASSERT_NEAR(-e->value(ctx, i, e->p.data()), truth, 1e-8 * std::max(1.0, truth)) << "t = " << ti;
+  }
+  // A sine of radius 10 mm at 2 Hz sampled at 1 kHz: after 10 tau the transient is e^-10 of it.
+  const double R = 10.0, w = 2 * 3.14159265358979 * 2.0, h2 = 0.001;
+  t.clear(), cmd.clear();
+  for (int k = 0; k <= 2000; ++k) {
+    t.push_back(k * h2);
+    kin::Axes q{};
+    q[1] = R * std::sin(w * t.back());
+    cmd.push_back(q);
+  }
+  auto ey = sim::parse_effect("servo_lag_1st:y:tau_s=0.02", m);
+  const auto c1 = sim::make_context(t, cmd, {false, false, false, true, true});
+  const auto c5 = sim::make_context(t, cmd, {false, false, false, true, true}, 5);
+  const double amp = R * w * tau / std::sqrt(1 + w * w * tau * tau), ph = std::atan(w * tau);
+  for (size_t i = 0; i < c1.size(); ++i) {
+    if (c1.t[i] < 10 * tau || i + 1 == c1.size()) continue;
+    const double truth = amp * std::cos(w * c1.t[i] - ph);  // e = tau v / (1 + i w tau), v = R w cos(w t)
+    ASSERT_NEAR(-ey->value(c1, i, ey->p.data()), truth, 1e-3 * amp) << "t = " << c1.t[i];
+  }
+  for (size_t k = 0; k < c5.size(); ++k)
+    ASSERT_DOUBLE_EQ(ey->value(c5, k, ey->p.data()), ey->value(c1, 5 * k, ey->p.data())) << "row " << 5 * k;
+  EXPECT_NE(error_of([&] { sim::parse_effect("servo_lag_1st:x:0", m); }).find("tau_s must be positive"),
+            std::string::npos);
+  EXPECT_NE(error_of([&] { sim::parse_effect("step:tip.z:step_mm=0.01", m); }).find("'t_s' is missing"),
+            std::string::npos);
+  EXPECT_NE(error_of([&] { sim::parse_effect("step:x:0.01:2", m); }).find("not a channel"), std::string::npos);
 }

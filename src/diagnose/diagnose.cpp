@@ -117,6 +117,88 @@ double median(std::vector<double> v) {
   return *mid;
 }
 
+/// The recording's sampling clock. A control logs on a fixed clock; a recording with rows missing (a logger that
+/// stalls, a dropped packet) keeps the others on that clock. The spectra are taken on that regular grid, each sample
+/// in its own slot and the missing slots left out (zero once the mean is removed, as a missing cell is): the FFT then
+/// sees a vibration at its true frequency and phase, where the mean rate (rows / duration) put 47 Hz at 45.4 Hz. Not a
+/// Lomb-Scargle periodogram: that costs rows x frequencies (10^9 for a 10^5-row recording over its whole band); not
+/// interpolation across the gaps, which smears a vibration that the gap interrupts.
+struct TimeGrid {
+  double dt = 0;                 ///< the sampling interval: the median time step
+  size_t slots = 0;              ///< length of the regular grid
+  std::vector<size_t> slot;      ///< grid slot of every row (kNoSlot: outside the analysed stretch)
+  size_t gaps = 0, missing = 0;  ///< time steps longer than 1.5 intervals, and the rows they leave out
+  double largest_gap_s = 0, largest_gap_at_s = 0;
+  size_t off_grid = 0;        ///< rows more than a quarter interval off their slot (jittered stamps)
+  bool stretch_only = false;  ///< the grid would be mostly empty: only the longest stretch without a gap is used
+  static constexpr size_t kNoSlot = std::numeric_limits<size_t>::max();
+};
+
+TimeGrid time_grid(const std::vector<double>& t) {
+  TimeGrid g;
+  const size_t n = t.size();
+  g.slot.assign(n, TimeGrid::kNoSlot);
+  if (n < 2) return g;
+  std::vector<double> d(n - 1);
+  for (size_t i = 1; i < n; ++i) d[i - 1] = t[i] - t[i - 1];
+  std::vector<double> ds = d;
+  std::nth_element(ds.begin(), ds.begin() + static_cast<std::ptrdiff_t>(ds.size() / 2), ds.end());
+  g.dt = ds[ds.size() / 2];
+  if (!(g.dt > 0)) return g;
+  size_t run_a = 0, best_a = 0, best_b = n;  // the longest stretch without a gap: rows [best_a, best_b)
+  size_t best_len = 0;
+  for (size_t i = 1; i <= n; ++i) {
+    const bool gap = i < n && d[i - 1] > 1.5 * g.dt;
+    if (i < n && gap) {
+      ++g.gaps;
+      g.missing += static_cast<size_t>(std::max(0.0, std::round(d[i - 1] / g.dt) - 1));
+      if (d[i - 1] > g.largest_gap_s) g.largest_gap_s = d[i - 1], g.largest_gap_at_s = t[i - 1];
+    }
+    if (i == n || gap) {
+      if (i - run_a > best_len) best_len = i - run_a, best_a = run_a, best_b = i;
+      run_a = i;
+    }
+  }
+  // The median step is the clock's interval rounded as the file prints it (0.002857 for 1/350 s): over 13000 rows
+  // that rounding adds up to more than an interval. The mean step of the longest stretch without a gap is exact to
+  // the rounding over its length; the whole span in those steps, rounded to whole intervals, then fixes it.
+  if (best_len >= 2) g.dt = (t[best_b - 1] - t[best_a]) / static_cast<double>(best_len - 1);
+  const double whole = std::round((t.back() - t.front()) / g.dt);
+  if (whole >= 1) g.dt = (t.back() - t.front()) / whole;
+  const double span = (t.back() - t.front()) / g.dt;
+  // A grid mostly empty (gaps longer than the data between them) has a spectral window of many side lobes: the
+  // longest regular stretch tells the frequencies better then.
+  size_t a = 0, b = n;
+  if (span > 4.0 * static_cast<double>(n) && best_len >= 64) a = best_a, b = best_b, g.stretch_only = true;
+  for (size_t i = a; i < b; ++i) {
+    const double x = (t[i] - t[a]) / g.dt;
+    g.slot[i] = static_cast<size_t>(std::llround(x));
+    if (std::abs(x - static_cast<double>(g.slot[i])) > 0.25) ++g.off_grid;
+  }
+  g.slots = g.slot[b - 1] + 1;
+  return g;
+}
+
+/// A residual on the grid: mean of the samples present removed, missing slots 0; `present` counts the samples.
+std::vector<double> on_grid(const std::vector<double>& x, const TimeGrid& g, size_t& present) {
+  std::vector<double> y(g.slots, 0.0);
+  std::vector<unsigned> cnt(g.slots, 0);
+  double mean = 0;
+  present = 0;
+  for (size_t i = 0; i < x.size(); ++i)
+    if (g.slot[i] != TimeGrid::kNoSlot && !std::isnan(x[i])) mean += x[i], ++present;
+  if (present == 0) return y;
+  mean /= static_cast<double>(present);
+  for (size_t i = 0; i < x.size(); ++i)
+    if (g.slot[i] != TimeGrid::kNoSlot && !std::isnan(x[i])) y[g.slot[i]] += x[i] - mean, ++cnt[g.slot[i]];
+  size_t used = 0;
+  for (size_t k = 0; k < g.slots; ++k)
+    if (cnt[k] > 1) y[k] /= cnt[k];  // two stamps rounded to one slot (jitter): their mean
+  for (size_t k = 0; k < g.slots; ++k) used += cnt[k] > 0;
+  present = used;
+  return y;
+}
+
 /// White noise of variance s^2 gives E|X_k|^2 = n s^2 and a median of n s^2 ln 2: the noise from the
 /// median of the upper half of the band (smooth effects live at low frequencies, peaks are few).
 double noise_from_spectrum(const std::vector<double>& P, size_t n, double floor = kNoiseFloor) {
@@ -126,7 +208,8 @@ double noise_from_spectrum(const std::vector<double>& P, size_t n, double floor 
 }
 
 /// Spectral peaks: local maxima far above the local median level, at least a few cycles per run.
-std::vector<Peak> find_peaks(const std::vector<double>& P, size_t n, double fs, double duration) {
+/// `n`: the grid's length (frequency k fs / n); `present`: the samples on it (the amplitude: 2 |X_k| / present).
+std::vector<Peak> find_peaks(const std::vector<double>& P, size_t n, size_t present, double fs, double duration) {
   std::vector<Peak> out;
   if (P.size() < 16) return out;
   const double gmed = median(std::vector<double>(P.begin() + 1, P.end()));
@@ -150,7 +233,7 @@ std::vector<Peak> find_peaks(const std::vector<double>& P, size_t n, double fs, 
     const double d = std::abs(den) > 1e-12 ? std::clamp(0.5 * (l - r) / den, -0.5, 0.5) : 0.0;
     Peak pk;
     pk.f = (static_cast<double>(k) + d) * fs / static_cast<double>(n);
-    pk.amp = 2.0 * std::sqrt(P[k]) / static_cast<double>(n);
+    pk.amp = 2.0 * std::sqrt(P[k]) / static_cast<double>(std::max<size_t>(present, 1));
     bool dup = false;
     for (const auto& q : out) dup |= std::abs(q.f - pk.f) < 3 * fs / static_cast<double>(n);
     if (!dup) out.push_back(pk);
@@ -421,6 +504,9 @@ void joint_fit(Fit& f, const std::vector<Effect*>& fx, size_t stride = 1) {
     if (e->name() == "vibration") {  // the frequency comes from the spectrum (the fit subsamples in time)
       prob.SetManifold(e->p.data(), new ceres::SubsetManifold(3, {0}));
     }
+    if (e->name() == "step") {  // the time of the jump comes from the residual (no derivative)
+      prob.SetManifold(e->p.data(), new ceres::SubsetManifold(2, {1}));
+    }
     for (size_t q = 0; q < names.size(); ++q) {
       if (names[q] == "apex") {
         // Within a travel of the second axis's recorded range: an apex far beyond it is a tilted line (squareness or
@@ -464,9 +550,11 @@ bool plausible(const Effect& e) {
   if (n == "squareness") return a <= 5000;                                    // urad
   if (n == "straightness") return a <= 100;                                   // mm/m^2: 1 mm at 100 mm from the apex
   if (n == "servo_lag") return a <= 0.5;                                      // s
+  if (n == "servo_lag_1st") return a <= 0.5 && e.p[1] > 0 && e.p[1] <= 1.0;   // s: steady lag, time constant
   if (n == "backlash") return a <= 1.0 && e.p[1] >= 0 && e.p[1] <= 1.0;       // width, take-up: mm or deg
   if (n == "friction_spike") return e.p[1] > 0 && e.p[1] <= 1.0 && a <= 1.0;  // decay, s; peak, mm or deg
   if (n == "thermal_drift") return e.p[1] > 0 && a <= 1.0;                    // mm over the run (a wrong machine: 28)
+  if (n == "step") return a <= 1.0;                                           // mm
   if (n == "vibration") return std::hypot(e.p[1], e.p[2]) <= 1.0;             // mm amplitude
   if (n == "geometric") return a <= 1.0;  // mm or deg: linearised at nominal, valid for tens of micrometres
   if (n == "cyclic") return std::hypot(e.p[1], e.p[2]) <= 1.0;  // mm or deg amplitude
@@ -620,9 +708,16 @@ std::string explain(const Effect& e, const std::string& dom) {
   if (n == "servo_lag")
     return fmt::format("{} follows the velocity of {}: following error = velocity x {:.4f} s", dom, e.target,
                        rep[0].second);
+  if (n == "servo_lag_1st")
+    return fmt::format(
+        "{} follows {} as a first-order loop: the following error builds up and dies away with a time constant of "
+        "{:.4f} s and settles at velocity x {:.4f} s",
+        dom, e.target, rep[0].second, rep[1].second);
   if (n == "thermal_drift")
     return fmt::format("{} drifts by {} over the run (time constant {:.0f} s)", dom, fmt_um(rep[0].second),
                        rep[1].second);
+  if (n == "step")
+    return fmt::format("{} jumps by {} at t = {:.3f} s and stays", dom, fmt_um(rep[0].second), rep[1].second);
   if (n == "vibration")
     return fmt::format("sinusoid of {} at {:.1f} Hz in {}{}", fmt_um(rep[1].second), rep[0].second, dom,
                        e.note.empty() ? "" : " (" + e.note + ")");
@@ -665,6 +760,9 @@ std::string describe(const Effect& e) {
   if (n == "backlash")
     return fmt::format("lost motion of {} on {} at each {} reversal", fmt_value(u, rep[0].second), e.target, e.target);
   if (n == "servo_lag") return fmt::format("servo lag of {:.2f} ms on {}", rep[0].second * 1000, e.target);
+  if (n == "servo_lag_1st")
+    return fmt::format("first-order servo lag on {}: time constant {:.2f} ms (steady lag {:.2f} ms)", e.target,
+                       rep[0].second * 1000, rep[1].second * 1000);
   // A direction (a unit vector) drifts in microradians.
   auto in_channel = [&](double v) {
     return e.channel.rfind("dir.", 0) == 0 ? fmt::format("{:.1f} urad", v * 1e6) : fmt_um(v);
@@ -672,6 +770,9 @@ std::string describe(const Effect& e) {
   if (n == "thermal_drift")
     return fmt::format("thermal drift of {} in {} (time constant {:.0f} s)", in_channel(rep[0].second), e.target,
                        rep[1].second);
+  if (n == "step")
+    return fmt::format("a permanent step of {} in {} at t = {:.3f} s (knocked, re-seated or slipped)",
+                       in_channel(rep[0].second), e.target, rep[1].second);
   if (n == "vibration")
     return fmt::format("vibration of {} at {:.1f} Hz in {}{}", in_channel(rep[1].second), rep[0].second, e.target,
                        e.note.empty() ? "" : " (" + e.note + ")");
@@ -825,7 +926,21 @@ Report diagnose(sim::Recording& rec, const machine::Machine& m, const std::vecto
     R.rms_before.emplace_back(g, cnt ? std::sqrt(s / static_cast<double>(cnt)) : 0.0);
   }
   R.seconds.emplace_back("simulate_and_subtract", secs(tstage));
-  const double sample_hz = static_cast<double>(n - 1) / std::max(t.back() - t.front(), 1e-12);
+  // The sampling rate is the clock's, not rows / duration: with rows missing, the mean rate is lower.
+  const TimeGrid tg = time_grid(t);
+  const double sample_hz = tg.dt > 0 ? 1.0 / tg.dt : static_cast<double>(n - 1) / std::max(t.back() - t.front(), 1e-12);
+  if (tg.gaps > 0)
+    R.warnings.push_back(fmt::format(
+        "time stamps are uneven: {} gap(s) in t where about {} row(s) are missing, the largest {:.4g} s ({:.0f} "
+        "sampling intervals of {:.4g} s) after t = {:.4f} s; spectra are taken on the regular {:.4g} s grid {}",
+        tg.gaps, tg.missing, tg.largest_gap_s, tg.largest_gap_s / tg.dt, tg.dt, tg.largest_gap_at_s, tg.dt,
+        tg.stretch_only ? "of the longest stretch without a gap (the gaps are longer than the data between them)"
+                        : "with the missing rows left out"));
+  if (tg.off_grid > n / 100)
+    R.warnings.push_back(fmt::format(
+        "time stamps are uneven: {} row(s) lie more than a quarter of the {:.4g} s sampling interval off a regular "
+        "clock; spectral frequencies near the Nyquist frequency are blurred",
+        tg.off_grid, tg.dt));
   if (rpm > 0)
     for (const auto& [what, f] : std::vector<std::pair<std::string, double>>{
              {"spindle", rpm / 60.0}, {"tooth-passing", flutes > 0 ? rpm / 60.0 * flutes : 0.0}})
@@ -838,19 +953,20 @@ Report diagnose(sim::Recording& rec, const machine::Machine& m, const std::vecto
 
   // ---- 2. noise first; spectra --------------------------------------------------------------------
   const double duration = t.back() - t.front();
-  const double fs = static_cast<double>(n - 1) / std::max(duration, 1e-12);
+  const double fs = sample_hz;
+  const size_t ngrid = tg.slots;
   std::vector<std::vector<Peak>> peaks(comps.size());
   std::vector<std::vector<double>> spectra(comps.size());
+  std::vector<size_t> spectrum_n(comps.size(), 0);  // samples behind each spectrum (its amplitude scale)
   {
     const size_t nt = worker_threads();
     on_workers(nt, [&](size_t w) {
       for (size_t ci = w; ci < comps.size(); ci += nt) {
-        std::vector<double> x = comps[ci].res_full;
-        for (auto& v : x)
-          if (std::isnan(v)) v = 0;
-        auto P = periodogram(x);
-        comps[ci].sigma = noise_from_spectrum(P, n, floor_of(comps[ci]));
-        peaks[ci] = find_peaks(P, n, fs, duration);
+        size_t present = 0;
+        auto P = periodogram(on_grid(comps[ci].res_full, tg, present));
+        comps[ci].sigma = noise_from_spectrum(P, std::max<size_t>(present, 1), floor_of(comps[ci]));
+        peaks[ci] = find_peaks(P, ngrid, present, fs, duration);
+        spectrum_n[ci] = present;
         if (o.keep_plot_data) spectra[ci] = std::move(P);
       }
     });
@@ -952,8 +1068,8 @@ Report diagnose(sim::Recording& rec, const machine::Machine& m, const std::vecto
   }
   for (int j = 0; j < 5; ++j) {
     const std::string ax = m.axes[static_cast<size_t>(j)].name;
-    for (const char* name :
-         {"backlash", "servo_lag", "scale", "cyclic", "friction_spike", "compliance", "thermal_scale"}) {
+    for (const char* name : {"backlash", "servo_lag", "servo_lag_1st", "scale", "cyclic", "friction_spike",
+                             "compliance", "thermal_scale"}) {
       if (!moves[static_cast<size_t>(j)]) break;
       const std::string n = name;
       if ((n == "backlash" || n == "friction_spike") && !reverses[static_cast<size_t>(j)]) continue;
@@ -1001,6 +1117,7 @@ Report diagnose(sim::Recording& rec, const machine::Machine& m, const std::vecto
   std::vector<sim::GridHints> hints(comps.size());
   for (int ci : F.fitc) {
     protos.push_back(sim::make_effect("thermal_drift", comps[static_cast<size_t>(ci)].name, m));
+    protos.push_back(sim::make_effect("step", comps[static_cast<size_t>(ci)].name, m));
     for (const auto& pk : peaks[static_cast<size_t>(ci)]) hints[static_cast<size_t>(ci)].frequencies_hz.push_back(pk.f);
     if (!hints[static_cast<size_t>(ci)].frequencies_hz.empty())
       protos.push_back(sim::make_effect("vibration", comps[static_cast<size_t>(ci)].name, m));
@@ -1159,6 +1276,26 @@ Report diagnose(sim::Recording& rec, const machine::Machine& m, const std::vecto
       v.resize(sidx.size());
       for (size_t s = 0; s < sidx.size(); ++s) v[s] = model_residual(F, fx, ci, sidx[s]);
     }
+    // Where each channel's residual under the current model jumps most: the split of the analysis samples into a
+    // before and an after whose means differ most for their counts (k (n - k) / n (mean_a - mean_b)^2, the
+    // likelihood of one mean shift in white noise). A step's time is the middle of that split.
+    std::vector<double> step_at(comps.size(), kNaN);
+    for (int ci : F.fitc) {
+      std::vector<double> r, tt;
+      for (size_t k = 0; k < ma; ++k)
+        if (!std::isnan(comps[static_cast<size_t>(ci)].res[k]))
+          r.push_back(model_residual(F, fx, ci, k)), tt.push_back(ctx.t[k]);
+      const size_t nr = r.size();
+      if (nr < 4) continue;
+      const double total = std::accumulate(r.begin(), r.end(), 0.0);
+      double cum = 0, best = -1;
+      for (size_t k = 1; k < nr; ++k) {
+        cum += r[k - 1];
+        const double nk = static_cast<double>(k), nn = static_cast<double>(nr);
+        const double d = cum - nk / nn * total, stat = d * d * nn / (nk * (nn - nk));
+        if (stat > best) best = stat, step_at[static_cast<size_t>(ci)] = 0.5 * (tt[k - 1] + tt[k]);
+      }
+    }
     std::vector<Candidate> res(protos.size());
     {
       const size_t nt = worker_threads();
@@ -1167,7 +1304,10 @@ Report diagnose(sim::Recording& rec, const machine::Machine& m, const std::vecto
           const Effect& pr = *protos[pi];
           sim::GridHints h;
           for (size_t ci = 0; ci < comps.size(); ++ci)
-            if (pr.scope() == Scope::Channel && comps[ci].name == pr.channel) h = hints[ci];
+            if (pr.scope() == Scope::Channel && comps[ci].name == pr.channel) {
+              h = hints[ci];
+              if (!std::isnan(step_at[ci])) h.step_times_s = {step_at[ci]};
+            }
           if (pr.scope() == Scope::Channel && pr.channel.rfind("tool.", 0) == 0) h = tool_hints(pr.channel.back());
           res[pi] = screen(F, pr, sidx, cur, h);
         }
@@ -1238,16 +1378,32 @@ Report diagnose(sim::Recording& rec, const machine::Machine& m, const std::vecto
         if (ok && ms < best_ms) best_ms = ms, bi = pi;
       }
     }
+    // A first-order lag with a time constant too short to show is the plain lag: the time constant must explain what
+    // an effect must explain to count, or the plain lag (one parameter less) is named.
+    if (res[bi].e->name() == "servo_lag_1st") {
+      double ms_1st = 0.0;
+      for (const auto& [pi, ms, what] : refits)
+        if (pi == bi) ms_1st = ms;
+      for (const auto& [pi, ms, what] : refits)
+        if (res[pi].e->name() == "servo_lag" && res[pi].e->target == res[bi].e->target &&
+            res[pi].e->enc_visible == res[bi].e->enc_visible && ms - ms_1st <= thr) {
+          bi = pi;
+          break;
+        }
+    }
     // The others that leave a held-out residual larger by less than an effect must explain to count: the recording
     // cannot tell them from the one chosen.
     std::vector<std::string> same;
     double chosen_ms = 0.0;
     for (const auto& [pi, ms, what] : refits)
       if (pi == bi) chosen_ms = ms;
-    // (Not the chosen effect's own twin, seen or not by the encoder; one line per explanation.)
+    // (Not the chosen effect's own twin, seen or not by the encoder, nor a plain lag's first-order form, which only
+    // generalises it; one line per explanation.)
+    const auto lag = [](const std::string& n) { return n == "servo_lag" || n == "servo_lag_1st"; };
     for (const auto& [pi, ms, what] : refits)
       if (pi != bi && ms - chosen_ms <= thr && held_ms - chosen_ms > thr &&
           (res[pi].e->name() != res[bi].e->name() || res[pi].e->target != res[bi].e->target) &&
+          !(lag(res[pi].e->name()) && lag(res[bi].e->name()) && res[pi].e->target == res[bi].e->target) &&
           std::find(same.begin(), same.end(), what) == same.end())
         same.push_back(what);
     auto trial = model_with(std::move(res[bi].e));
@@ -1614,8 +1770,9 @@ Report diagnose(sim::Recording& rec, const machine::Machine& m, const std::vecto
     for (size_t k = 1; k < P.size(); k += fstep) {
       double mx = 0;
       for (size_t q = k; q < std::min(P.size(), k + fstep); ++q) mx = std::max(mx, P[q]);
-      sp.x.push_back(static_cast<double>(k) * fs / static_cast<double>(n));
-      sp.y.push_back(2.0 * std::sqrt(mx) / static_cast<double>(n));
+      sp.x.push_back(static_cast<double>(k) * fs / static_cast<double>(ngrid));
+      sp.y.push_back(2.0 * std::sqrt(mx) /
+                     static_cast<double>(std::max<size_t>(spectrum_n[static_cast<size_t>(mci)], 1)));
     }
     R.plots_spectrum = {sp};
     for (const auto& pk : peaks[static_cast<size_t>(mci)]) R.peak_freqs.push_back(pk.f);

@@ -4,9 +4,11 @@
 #include <fmt/format.h>
 #include <yaml-cpp/yaml.h>
 
+#include <atomic>
 #include <cmath>
 #include <functional>
 #include <map>
+#include <mutex>
 #include <numbers>
 
 #include "cscam/calib/model.hpp"
@@ -33,6 +35,9 @@ Context make_context(const std::vector<double>& t, const std::vector<kin::Axes>&
   CSCAM_CHECK(cmd.size() == n, "make_context: t and cmd differ in length");
   if (stride < 1) stride = 1;
   c.rotary = rotary;
+  static std::atomic<std::uint64_t> next_id{1};
+  c.id = next_id++;
+  c.t_full = t;
   c.t0 = n ? t.front() : 0;
   c.duration = n ? t.back() - t.front() : 0;
   const size_t m = n ? (n - 1) / stride + 1 : 0;
@@ -51,6 +56,8 @@ Context make_context(const std::vector<double>& t, const std::vector<kin::Axes>&
     auto& ts = c.travel_since_rev[ax];
     auto& tr = c.travel[ax];
     q.reserve(m), v.reserve(m), a.reserve(m), d.reserve(m), s.reserve(m), ts.reserve(m), tr.reserve(m);
+    auto& vf = c.v_full[ax];
+    vf.resize(n);
     // Direction of the last motion (initially that of the first motion) and time of the last reversal.
     double dir = 0;
     for (size_t i = 1; i < n && dir == 0; ++i) {
@@ -70,15 +77,17 @@ Context make_context(const std::vector<double>& t, const std::vector<kin::Axes>&
         moved += std::abs(dq);
         moved_since_rev += std::abs(dq);
       }
+      // Velocity by central differences (one-sided at the ends), at every row.
+      const size_t i0 = i > 0 ? i - 1 : i, i1 = i + 1 < n ? i + 1 : i;
+      vf[i] = i1 > i0 ? (cmd[i1][ax] - cmd[i0][ax]) / (t[i1] - t[i0]) : 0.0;
       if (i % stride) continue;
       q.push_back(cmd[i][ax]);
       d.push_back(dir);
       s.push_back(t[i] - t_rev);
       ts.push_back(moved_since_rev);
       tr.push_back(moved);
-      // Velocity and acceleration by central differences (one-sided at the ends).
-      const size_t i0 = i > 0 ? i - 1 : i, i1 = i + 1 < n ? i + 1 : i;
-      v.push_back(i1 > i0 ? (cmd[i1][ax] - cmd[i0][ax]) / (t[i1] - t[i0]) : 0.0);
+      // Acceleration by central differences over the actual steps.
+      v.push_back(vf[i]);
       if (i > 0 && i + 1 < n) {
         const double h0 = t[i] - t[i - 1], h1 = t[i + 1] - t[i];
         a.push_back(2.0 * ((cmd[i + 1][ax] - cmd[i][ax]) / h1 - (cmd[i][ax] - cmd[i - 1][ax]) / h0) / (h0 + h1));
@@ -191,6 +200,118 @@ class ServoLag : public EffectImpl<ServoLag, 1> {
   }
   std::vector<std::pair<std::string, double>> reported() const override { return {{"lag_s", p[0]}}; }
   void set_reported(const std::vector<std::pair<std::string, double>>& kv) override { p[0] = get(kv, "lag_s", name()); }
+};
+
+/// The following error of a first-order servo loop of time constant tau over the commanded velocity v at every row:
+/// de/dt = v - e/tau, at rest (or settled, e = tau v) at the first row. Exact for v linear between rows: over a step
+/// h with a = exp(-h/tau), e1 = a e0 + tau (1 - a) v1 - (v1 - v0) (tau^2 (1 - a) / h - tau a). One pass over the
+/// rows, whatever the analysis stride (a strided filter would miss the speed changes between its samples).
+template <class T>
+std::vector<T> first_order_following_error(const std::vector<double>& t, const std::vector<double>& v, const T& tau) {
+  using std::exp, std::expm1;
+  std::vector<T> e(t.size());
+  if (t.empty()) return e;
+  e[0] = tau * v[0];
+  // The coefficients depend on the step only: computed again only when it changes (a regular clock: once).
+  double h_prev = -1.0;
+  T a{}, c_v{}, c_dv{};
+  for (size_t k = 1; k < t.size(); ++k) {
+    const double h = t[k] - t[k - 1];
+    if (h != h_prev) {
+      const T x = -h / tau;
+      a = exp(x);
+      const T one_minus_a = -expm1(x);  // 1 - a without cancellation for h << tau
+      c_v = tau * one_minus_a;
+      c_dv = tau * tau * one_minus_a / h - tau * a;
+      h_prev = h;
+    }
+    e[k] = a * e[k - 1] + c_v * v[k] - (v[k] - v[k - 1]) * c_dv;
+  }
+  return e;
+}
+
+/// The series a ServoLag1st last computed, per scalar type (double to inject and evaluate, Jet to fit): the fit calls
+/// the effect once per sample with the same parameters, so the filter runs once per parameter value (O(n) per
+/// evaluation, not O(n^2)). Shared by the threads of one fit (a mutex); a copy of the effect starts empty.
+template <class T>
+struct SeriesSlot {
+  std::uint64_t ctx = 0;
+  T tau{};
+  std::shared_ptr<const std::vector<T>> e;
+};
+inline bool same(double a, double b) { return a == b; }
+template <int N>
+bool same(const ceres::Jet<double, N>& a, const ceres::Jet<double, N>& b) {
+  return a.a == b.a && a.v == b.v;
+}
+struct LagCache {
+  std::mutex m;
+  SeriesSlot<double> d;
+  SeriesSlot<ceres::Jet<double, 2>> j;
+  SeriesSlot<double>& slot(double*) { return d; }
+  SeriesSlot<ceres::Jet<double, 2>>& slot(ceres::Jet<double, 2>*) { return j; }
+};
+struct LagCacheHolder {
+  std::unique_ptr<LagCache> c = std::make_unique<LagCache>();
+  LagCacheHolder() = default;
+  LagCacheHolder(const LagCacheHolder&) : c(std::make_unique<LagCache>()) {}
+  LagCacheHolder& operator=(const LagCacheHolder&) {
+    c = std::make_unique<LagCache>();
+    return *this;
+  }
+  LagCacheHolder(LagCacheHolder&&) noexcept = default;
+  LagCacheHolder& operator=(LagCacheHolder&&) noexcept = default;
+  ~LagCacheHolder() = default;
+};
+
+/// A first-order servo: the axis follows its command as a first-order system of time constant tau_s, trailing by the
+/// following error e (de/dt = v - e/tau): e settles at tau v at a constant speed (servo_lag's steady state) and takes
+/// about tau to build up after a start and to die away after a stop. lag_s scales it: a plain loop has lag_s =
+/// tau_s; velocity feed-forward k lowers the steady error to (1 - k) tau v. Deviation -(lag_s / tau_s) e.
+class ServoLag1st : public EffectImpl<ServoLag1st, 2> {
+ public:
+  std::string name() const override { return "servo_lag_1st"; }
+  Scope scope() const override { return Scope::Axis; }
+  std::vector<std::string> internal_names() const override { return {"lag_s", "tau_s"}; }
+  std::vector<bool> linear() const override { return {true, false}; }
+  std::string signature() const override {
+    return fmt::format(
+        "following error of {} that builds up over a time constant after each change of speed (a first-order loop)",
+        target);
+  }
+  template <class T>
+  T eval(const Context& c, size_t i, const T* pp) const {
+    const auto e = series<T>(c, pp[1]);
+    return -(pp[0] / pp[1]) * (*e)[c.index[i]];
+  }
+  std::vector<std::pair<std::string, double>> reported() const override { return {{"tau_s", p[1]}, {"lag_s", p[0]}}; }
+  void set_reported(const std::vector<std::pair<std::string, double>>& kv) override {
+    p[1] = get(kv, "tau_s", name());
+    if (!(p[1] > 0)) throw InputError("effect servo_lag_1st: tau_s must be positive");
+    p[0] = get(kv, "lag_s", name(), p[1]);
+  }
+  std::vector<std::vector<double>> grid(const Context&, const GridHints&) const override {
+    std::vector<std::vector<double>> g;
+    for (double tau : {0.001, 0.002, 0.004, 0.008, 0.015, 0.03, 0.06, 0.12, 0.25}) g.push_back({0, tau});
+    return g;
+  }
+
+ private:
+  template <class T>
+  std::shared_ptr<const std::vector<T>> series(const Context& c, const T& tau) const {
+    CSCAM_CHECK(c.t_full.size() == c.v_full[axis].size() && !c.index.empty() && c.index.back() < c.t_full.size(),
+                "servo_lag_1st: the context has no full-rate velocity (made without make_context)");
+    LagCache& lc = *cache_.c;
+    std::lock_guard<std::mutex> lk(lc.m);
+    auto& s = lc.slot(static_cast<T*>(nullptr));
+    if (!s.e || s.ctx != c.id || c.id == 0 || !same(s.tau, tau)) {
+      s.e = std::make_shared<const std::vector<T>>(first_order_following_error(c.t_full, c.v_full[axis], tau));
+      s.ctx = c.id;
+      s.tau = tau;
+    }
+    return s.e;
+  }
+  LagCacheHolder cache_;
 };
 
 class Scale : public EffectImpl<Scale, 1> {
@@ -445,6 +566,38 @@ class ThermalDrift : public EffectImpl<ThermalDrift, 2> {
   }
 };
 
+/// A permanent step: the channel jumps once, by step_mm at t_s, and stays (a knocked tracker, a re-seated probe, a
+/// slip). Not a drift: nothing before t_s, all of it at once. t_s enters only through the jump, so its derivative is
+/// zero: the fit holds it where the grid put it (the largest jump of the residual).
+class Step : public EffectImpl<Step, 2> {
+ public:
+  std::string name() const override { return "step"; }
+  Scope scope() const override { return Scope::Channel; }
+  std::vector<std::string> internal_names() const override { return {"step", "t_s"}; }
+  std::vector<bool> linear() const override { return {true, false}; }
+  std::string signature() const override {
+    return fmt::format("{} jumps once and stays (a knocked tracker, a re-seated probe)", target);
+  }
+  template <class T>
+  T eval(const Context& c, size_t i, const T* pp) const {
+    return c.t[i] >= pp[1] ? pp[0] : T(0.0);
+  }
+  std::vector<std::pair<std::string, double>> reported() const override { return {{"step_mm", p[0]}, {"t_s", p[1]}}; }
+  void set_reported(const std::vector<std::pair<std::string, double>>& kv) override {
+    p[0] = get(kv, "step_mm", name());
+    p[1] = get(kv, "t_s", name());
+    if (!std::isfinite(p[1])) throw InputError("effect step: t_s must be a finite time");
+  }
+  /// The times of the residual's largest jumps (hints), or nine times across the run.
+  std::vector<std::vector<double>> grid(const Context& c, const GridHints& h) const override {
+    std::vector<std::vector<double>> g;
+    for (double ts : h.step_times_s) g.push_back({0, ts});
+    if (g.empty())
+      for (int k = 1; k <= 9; ++k) g.push_back({0, c.t0 + 0.1 * k * c.duration});
+    return g;
+  }
+};
+
 class Vibration : public EffectImpl<Vibration, 3> {
  public:
   std::string name() const override { return "vibration"; }
@@ -504,7 +657,9 @@ const std::vector<std::pair<std::string, Factory>>& library() {
   static const std::vector<std::pair<std::string, Factory>> lib{
       {"backlash", [] { return std::make_unique<Backlash>(); }},
       {"servo_lag", [] { return std::make_unique<ServoLag>(); }},
+      {"servo_lag_1st", [] { return std::make_unique<ServoLag1st>(); }},
       {"thermal_drift", [] { return std::make_unique<ThermalDrift>(); }},
+      {"step", [] { return std::make_unique<Step>(); }},
       {"vibration", [] { return std::make_unique<Vibration>(); }},
       {"scale", [] { return std::make_unique<Scale>(); }},
       {"squareness", [] { return std::make_unique<Squareness>(); }},

@@ -45,4 +45,10 @@ inline constexpr double kCalibRankRel = 1e-7;
 // Diagnosis (tests/diagnose_test.cpp): a recovered effect parameter must lie within this fraction of the truth.
 namespace cscam::tol {
 inline constexpr double kDiagnoseParamRel = 0.2;
+/// A vibration's frequency from a recording with rows missing (the spectrum's bin is 1/duration: 0.04 Hz for 25 s).
+inline constexpr double kDiagnoseFrequencyHz = 0.1;
+/// A first-order servo's time constant, relative to the truth (a parameter that enters nonlinearly).
+inline constexpr double kDiagnoseTauRel = 0.1;
+/// A permanent step's time, in seconds (the fit keeps the time of the largest jump at the analysis samples).
+inline constexpr double kDiagnoseStepTimeS = 0.05;
 }  // namespace cscam::tol

@@ -14,6 +14,7 @@
 /// Every effect is written once as a template `eval<T>(ctx, i, p)` over an internal parameter vector `p`;
 /// injection evaluates it with doubles, fitting with ceres::Jet (automatic derivatives).
 #include <array>
+#include <cstdint>
 #include <limits>
 #include <memory>
 #include <string>
@@ -41,6 +42,12 @@ struct Context {
   std::array<bool, 5> rotary{};
   double t0 = 0, duration = 0;
   std::vector<size_t> index;  ///< row of the full recording each sample comes from
+  /// Time and commanded velocity at every row of the full recording (not strided): effects with a memory (a
+  /// first-order servo's following error) integrate over these and read the result at `index`.
+  std::vector<double> t_full;
+  std::array<std::vector<double>, 5> v_full;
+  /// Tells contexts apart for effects that cache a series computed over one (0: not made by make_context).
+  std::uint64_t id = 0;
   [[nodiscard]] size_t size() const { return t.size(); }
   /// The recorded range of axis `j` (file units): lo > hi when it has no sample.
   struct Range {
@@ -62,6 +69,7 @@ enum class Scope { Axis, Channel, Geometric };
 /// Hints for the starting grid of nonlinear parameters (e.g. spectral peaks of a channel).
 struct GridHints {
   std::vector<double> frequencies_hz;
+  std::vector<double> step_times_s;  ///< times of the largest jumps of a channel's residual (for `step`)
 };
 
 /// One effect instance: a definition from the library bound to a target, with parameter values.
