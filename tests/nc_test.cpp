@@ -354,3 +354,27 @@ TEST(NcReader, StateChangesItDoesNotModelAreNotedWithTheirLines) {
                "4 CYCL DEF 10.0 ROTATION\n5 TRANS DATUM AXIS X+5\n6 CYCL DEF 247 DATUM SETTING\n7 END PGM P MM\n"),
       (V{2, 5, 6}));
 }
+
+// Dwells: G4 P without a decimal point is milliseconds (Fanuc, Haas), with one seconds, always seconds in our
+// LinuxCNC programs; G4 X / U are seconds and no position; Sinumerik G4 F is seconds and not the feed; G4 S
+// (revolutions) is counted, not timed; Heidenhain cycle 9.
+TEST(NcReader, DwellsAreTimedAndTheirWordsAreNeitherPositionsNorFeeds) {
+  auto read = [](const std::string& t) { return nc::read_text(t, "d.nc", xyzbc()); };
+  EXPECT_DOUBLE_EQ(read("G4 P2500\n").dwell_seconds, 2.5);
+  EXPECT_DOUBLE_EQ(read("N10 G04 P2.5\n").dwell_seconds, 2.5);
+  EXPECT_DOUBLE_EQ(read("(cscam post: machine m dialect linuxcnc strategy s)\nG4 P2\n").dwell_seconds, 2.0);
+  const auto x = read("G1 X5 F100\nG04 X1.5\nG1 Y1\n");
+  EXPECT_DOUBLE_EQ(x.dwell_seconds, 1.5);
+  ASSERT_EQ(x.blocks.size(), 2u);
+  EXPECT_DOUBLE_EQ(x.blocks[1].axes[0], 5.0);
+  const auto f = read("G1 X1 F100\nG4 F2\nG1 X2\nG4 S10\n");
+  EXPECT_DOUBLE_EQ(f.dwell_seconds, 2.0);
+  EXPECT_EQ(f.dwells, 2u);
+  ASSERT_EQ(f.blocks.size(), 2u);
+  EXPECT_DOUBLE_EQ(f.blocks[1].feed, 100.0);
+  const auto h = read("0 BEGIN PGM P MM\n1 CYCL DEF 9.0 DWELL TIME\n2 CYCL DEF 9.1 DWELL 1.25\n3 END PGM P MM\n");
+  EXPECT_EQ(h.dwells, 1u);
+  EXPECT_DOUBLE_EQ(h.dwell_seconds, 1.25);
+  // P elsewhere is no dwell.
+  EXPECT_EQ(read("G64 P0.01\nG1 X1 F10\n").dwells, 0u);
+}

@@ -15,6 +15,7 @@
 #include <iostream>
 #include <limits>
 #include <map>
+#include <nlohmann/json.hpp>
 #include <optional>
 #include <random>
 #include <regex>
@@ -31,6 +32,7 @@
 #include "cscam/machine/machine.hpp"
 #include "cscam/nc/reader.hpp"
 #include "cscam/report/letters.hpp"
+#include "cscam/report/stats.hpp"
 #include "cscam/report/verify.hpp"
 #include "rs274_support.hpp"
 #include "test_support.hpp"
@@ -1039,6 +1041,31 @@ TEST(PostProgram, DwellInsertAdjustRegisterAndCutcomPolicy) {
     FAIL();
   } catch (const InputError& e) {
     EXPECT_NE(std::string(e.what()).find("bad.cls:2:"), std::string::npos) << e.what();
+  }
+}
+
+// A dwell read back in every dialect is the CL's DELAY: its time in the cycle estimate (stats), with Fanuc's P in
+// milliseconds and the others' seconds, and a Sinumerik G4 F that does not become the feed of the moves after it.
+TEST(PostProgram, DwellsReadBackInEveryDialectAreTheClDelays) {
+  const auto m = load_machine("trunnion-ac");
+  const auto k = m.kinematics();
+  const cl::Program prog = cl::read_text(
+      "UNITS/MM\nMULTAX\nCUTTER/6\nLOADTL/1\nFEDRAT/MMPM,1000\nRAPID\nGOTO/0,0,20,0,0,1\nGOTO/0,0,10,0,0,1\n"
+      "DELAY/2.5\nGOTO/20,0,10,0,0,1\nDELAY/0.75\nGOTO/20,20,10,0,0,1\n",
+      "dwell.cls");
+  constexpr double kDwellS = 3.25;
+  for (const char* dialect : {"linuxcnc", "fanuc", "haas", "siemens", "heidenhain"}) {
+    SCOPED_TRACE(dialect);
+    const std::string text = post_program(prog, m, *k, true, std::nullopt, dialect).text;
+    const nc::Program nc = report::read_for_machine(text, "dwell.nc", m);
+    EXPECT_EQ(nc.dwells, 2u);
+    EXPECT_NEAR(nc.dwell_seconds, kDwellS, 1e-9);
+    ASSERT_FALSE(nc.blocks.empty());
+    for (const auto& b : nc.blocks)
+      if (b.motion != nc::Motion::Rapid) EXPECT_DOUBLE_EQ(b.feed, 1000.0) << "line " << b.line;
+    const report::Stats st = report::compute(nc, {"X", "Y", "Z", "A", "C"}, {false, false, false, true, true});
+    EXPECT_NEAR(st.dwell_minutes, kDwellS / 60.0, 1e-12);
+    EXPECT_NEAR(st.json()["cycle_minutes"].get<double>(), st.feed_minutes + st.dwell_minutes, 1e-4);
   }
 }
 

@@ -362,6 +362,16 @@ Program read_heidenhain(const std::string& text, const std::string& name, const 
           prog.unmodelled.push_back(
               {lineno, fmt::format("CYCL DEF {} transforms the coordinates", n), prog.blocks.size()});
       }
+      // Cycle 9's value line: "CYCL DEF 9.1 DWELL 2.5" (seconds).
+      if (constexpr std::string_view kDwell = "CYCL DEF 9.1 DWELL"; s.rfind(kDwell, 0) == 0) {
+        double t = 0;
+        std::string_view v = trim(s.substr(kDwell.size()));
+        if (!v.empty() && v.front() == '+') v.remove_prefix(1);
+        const auto r = std::from_chars(v.data(), v.data() + v.size(), t);
+        if (r.ec != std::errc()) fail(v, "CYCL DEF 9.1 DWELL without a time in seconds");
+        ++prog.dwells;
+        prog.dwell_seconds += std::max(0.0, t);
+      }
       if (s.rfind("TRANS ", 0) == 0 && s.find("RESET") == std::string_view::npos)
         prog.unmodelled.push_back({lineno, fmt::format("{} transforms the coordinates", s), prog.blocks.size()});
     }
@@ -499,6 +509,7 @@ Program read_text(const std::string& text, const std::string& name, const AxisLe
   double feed = 0.0;
   // What the reader does not model (Program::unmodelled): the work offset selected first, the length offset register
   // in force (-1 none, -2 one without H) and where it was lost (a G49 or a tool change) before the next motion.
+  bool p_in_seconds = false;  // G4 P: seconds in a LinuxCNC program
   int work_offset = 0;
   int tlo_h = -1;
   bool uses_length_offset = false;
@@ -589,8 +600,14 @@ Program read_text(const std::string& text, const std::string& name, const AxisLe
         }
       }
     }
+    // Our header names the dialect: a LinuxCNC G4 P is seconds with or without a decimal point.
+    if (lineno == prog.header_line && s.find(" dialect linuxcnc") != std::string_view::npos) p_in_seconds = true;
     bool non_modal_skip = false, tcp_word = false, vector_words = false;
     bool plane_def = false, plane_cancel = false;
+    bool dwell = false;
+    std::optional<double> dwell_s;  // from P, X, U (ISO) or F (Sinumerik) in a G4 block
+    bool dwell_revolutions = false;
+    std::optional<double> f_word;
     int offset_word = 0;  // G54 ... G59.3, G500 (x10) in this block
     bool length_offset = false, length_cancel = false, tool_change = false;
     std::optional<double> h_word;
@@ -687,6 +704,10 @@ Program read_text(const std::string& text, const std::string& name, const AxisLe
           case 530:
             non_modal_skip = true;
             break;
+          case 40:  // dwell: its P, X, U (or F) words are its time, not a position or a feed
+            dwell = true;
+            non_modal_skip = true;
+            break;
           case 100:
             non_modal_skip = true;
             unmodelled("G10 writes offset or tool data");
@@ -749,7 +770,22 @@ Program read_text(const std::string& text, const std::string& name, const AxisLe
         return;
       }
       if (L == 'F') {
-        feed = v;
+        f_word = v;  // the feed, unless this is a dwell (applied after the block's words)
+        return;
+      }
+      if (dwell && (L == 'P' || L == 'X' || L == 'U' || L == 'S')) {
+        // The dwell's time (G4 after its words is not read as one: rare). A P without a decimal point is
+        // milliseconds on Fanuc and Haas; X and U are seconds; S (Sinumerik) is spindle revolutions.
+        if (L == 'S') {
+          dwell_revolutions = true;
+          return;
+        }
+        bool decimal = L != 'P' || p_in_seconds;
+        for (std::size_t k = static_cast<std::size_t>(word_column); k < s.size() && !decimal; ++k) {
+          if (s[k] == '.') decimal = true;
+          if (!is_digit(s[k]) && s[k] != '.' && s[k] != '+' && s[k] != '-' && s[k] != ' ') break;
+        }
+        dwell_s = decimal ? v : v / 1000.0;
         return;
       }
       if (L == 'H') {
@@ -938,6 +974,13 @@ Program read_text(const std::string& text, const std::string& name, const AxisLe
       prog.tcp_vectors = true;
       b.has_vector = true;
       any_axis = true;  // a change of orientation alone is a move
+    }
+    if (dwell) {
+      ++prog.dwells;
+      if (!dwell_s && f_word && !dwell_revolutions) dwell_s = *f_word;  // Sinumerik G4 F: seconds
+      if (dwell_s && !dwell_revolutions) prog.dwell_seconds += std::max(0.0, *dwell_s);
+    } else if (f_word) {
+      feed = *f_word;
     }
     if (offset_word) {
       auto offset_name = [](int g) {

@@ -145,6 +145,7 @@ Stats compute(const nc::Program& program, const std::array<std::string, 5>& name
   st.source = program.file;
   // Cycle time, block by block from the previous block's position.
   st.rapid_time_known = max_feed != nullptr;
+  st.dwell_minutes = program.dwell_seconds / 60.0;
   for (size_t i = 1; i < s.size(); ++i) {
     const nc::Block& b = program.blocks[i];
     double lin2 = 0.0, rot2 = 0.0, rapid_min = 0.0;
@@ -204,7 +205,8 @@ nlohmann::json Stats::json() const {
           {"feed_blocks_by_simultaneous_axes", blocks_by_simultaneous},
           {"feed_minutes", rounded(feed_minutes, 4)},
           {"rapid_minutes", rapid_time_known ? nlohmann::json(rounded(rapid_minutes, 4)) : nlohmann::json()},
-          {"cycle_minutes", rounded(feed_minutes + rapid_minutes, 4)}};
+          {"dwell_minutes", rounded(dwell_minutes, 4)},
+          {"cycle_minutes", rounded(feed_minutes + rapid_minutes + dwell_minutes, 4)}};
 }
 
 std::string Stats::to_json() const { return json().dump(); }
@@ -234,8 +236,8 @@ std::string table(const std::vector<Stats>& cols, const std::vector<std::string>
           [a](const Stats& s) { return fmt::format("{:.3f}", s.axes[a].largest_step); });
   }
   row("cycle time (min)", [](const Stats& s) {
-    return s.rapid_time_known ? fmt::format("{:.2f}", s.feed_minutes + s.rapid_minutes)
-                              : fmt::format("{:.2f}+rapids", s.feed_minutes);
+    return s.rapid_time_known ? fmt::format("{:.2f}", s.feed_minutes + s.rapid_minutes + s.dwell_minutes)
+                              : fmt::format("{:.2f}+rapids", s.feed_minutes + s.dwell_minutes);
   });
   row("cutting segments", [](const Stats& s) { return fmt::format("{}", s.segments.size()); });
   row("max simultaneous axes", [](const Stats& s) {

@@ -127,6 +127,11 @@ struct Program {
     std::size_t blocks_before = 0;  ///< motion blocks read before it: it matters when more follow
   };
   std::vector<Unmodelled> unmodelled;
+  /// Dwells (G4 P / X / U, Sinumerik G4 F, Heidenhain cycle 9): their number and total time, s. ISO G4 P is seconds
+  /// with a decimal point and milliseconds without one (Fanuc, Haas), except in a LinuxCNC program (ours), where it
+  /// is always seconds. A dwell given in spindle revolutions (Sinumerik G4 S) is counted, not timed.
+  std::size_t dwells = 0;
+  double dwell_seconds = 0.0;
 };
 
 /// The first unmodelled state change that some motion block follows (nullptr if none): a program with one cannot be

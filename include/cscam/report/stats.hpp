@@ -37,10 +37,12 @@ struct Stats {
   std::vector<SegmentStat> segments;
   std::array<int, 6> blocks_by_simultaneous{};  ///< feed blocks by number of moving axes (0..5)
   /// Cycle-time estimate (NC programs): feed blocks at their programmed rate (G93: 1/F; G94: length by the
-  /// RS274 rule / F), rapids at the slowest axis' max_feed when the axis rates are known. No acceleration.
+  /// RS274 rule / F), rapids at the slowest axis' max_feed when the axis rates are known, and the dwells. No
+  /// acceleration.
   double feed_minutes = 0.0;
   double rapid_minutes = 0.0;
   bool rapid_time_known = false;
+  double dwell_minutes = 0.0;  ///< the program's dwells (nc::Program::dwell_seconds)
 
   [[nodiscard]] nlohmann::json json() const;
   [[nodiscard]] std::string to_json() const;  ///< json().dump()
