@@ -1525,3 +1525,29 @@ TEST(Cli, APartMeshFarFromThePathIsAWarning) {
   EXPECT_NE(r.output.find("far.stl: the mesh lies"), std::string::npos) << r.output;
   EXPECT_NE(r.output.find("from the CL path"), std::string::npos) << r.output;
 }
+
+// verify applies the machine's own rules as the gate does, not only the CL path: a program that follows the path but
+// feeds an axis above its max_feed, or rapids a rotary past its limit away from the path, fails and names the line.
+TEST(Cli, VerifyRefusesAFeedAboveMaxFeedAndAnAxisPastItsLimit) {
+  TempDir d;
+  const std::string cl = cscam::test::source_path("examples/cl/iso_catia.cls");
+  const std::string nc = d.file("v.ngc");
+  auto r = run_command(kCli + " post " + cl + " --machine trunnion-ac -o " + nc);
+  ASSERT_EQ(r.status, 0) << r.output;
+  r = run_command(kCli + " verify " + nc + " --machine trunnion-ac --cl " + cl + " --json");
+  ASSERT_EQ(r.status, 0) << r.output;
+  EXPECT_TRUE(nlohmann::json::parse(r.output)["limit_and_feed_violations"].empty());
+  std::ifstream in(nc);
+  const std::string text((std::istreambuf_iterator<char>(in)), std::istreambuf_iterator<char>());
+  // Every F word 1000 times larger: the path is the same.
+  const std::string fast = d.file("fast.ngc", std::regex_replace(text, std::regex(R"(F([0-9]+))"), "F$01000"));
+  r = run_command(kCli + " verify " + fast + " --machine trunnion-ac --cl " + cl);
+  EXPECT_EQ(r.status, 1) << r.output;
+  EXPECT_TRUE(std::regex_search(r.output, std::regex(R"(above its max_feed .* at NC line [0-9]+)"))) << r.output;
+  // A last rapid that turns A to 120 deg (its limit is 50): off the path, so only the limits can see it.
+  std::string turned = text;
+  turned.insert(turned.rfind("\nM"), "\nG0 A120.0000");
+  r = run_command(kCli + " verify " + d.file("turned.ngc", turned) + " --machine trunnion-ac --cl " + cl);
+  EXPECT_EQ(r.status, 1) << r.output;
+  EXPECT_NE(r.output.find("outside its limits"), std::string::npos) << r.output;
+}

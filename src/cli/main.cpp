@@ -205,11 +205,41 @@ int cmd_verify(const VerifyArgs& a) {
   }
   if (const std::string why = report::resolve_tool_vectors(ncp, *kin); !why.empty()) throw InputError(why);
   const auto tip_view = report::tool_tip_kinematics(*kin, ncp.tcp_vectors);
-  const auto r = report::verify(ncp, prog, ncp.tcp ? *tip_view : *kin, vo);
-  if (a.json)
-    std::cout << r.json().dump(2) << "\n";
-  else
+  auto r = report::verify(ncp, prog, ncp.tcp ? *tip_view : *kin, vo);
+  // The machine's own rules as the safety gate applies them before a file is written: every block inside the axis
+  // limits (a PKM's passive joints sampled inside the moves) and no axis above its max_feed. A file edited by hand, or
+  // written by another post, can follow the CL path and still break them.
+  std::vector<gate::Violation> broken;
+  {
+    std::ifstream in(a.nc, std::ios::binary);
+    std::stringstream text;
+    text << in.rdbuf();
+    gate::Options go = gate::options_for(m, 0.0, 0.0, cone);
+    go.tip_tolerance_mm = vo.tip_tolerance_mm;
+    go.axis_tolerance_deg = vo.axis_tolerance_deg;
+    const gate::Summary gs = gate::check(text.str(), a.nc, prog, m, *kin, go);
+    for (const auto& v : gs.violations)
+      if (v.kind == gate::Violation::Kind::Limit || v.kind == gate::Violation::Kind::Velocity) broken.push_back(v);
+  }
+  if (!broken.empty()) {
+    if (r.ok) r.message = "FAILED:";
+    r.ok = false;
+    r.message += fmt::format(" {} at NC line {}", broken.front().message, broken.front().nc_line);
+    if (broken.size() > 1) r.message += fmt::format(" ({} more limit or feed violation(s))", broken.size() - 1);
+    r.message += ";";
+  }
+  if (a.json) {
+    nlohmann::json j = r.json();
+    nlohmann::json v = nlohmann::json::array();
+    for (const auto& b : broken)
+      v.push_back({{"kind", b.kind == gate::Violation::Kind::Limit ? "limit" : "feed"},
+                   {"nc_line", b.nc_line},
+                   {"message", b.message}});
+    j["limit_and_feed_violations"] = std::move(v);
+    std::cout << j.dump(2) << "\n";
+  } else {
     std::cout << r.message << "\n";
+  }
   return r.ok ? 0 : 1;
 }
 
