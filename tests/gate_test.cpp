@@ -691,3 +691,34 @@ TEST(Gate, AStateChangeTheReadBackDoesNotModelIsRefusedAtItsLine) {
   l.insert(l.end() - 2, "G92 X0 Y0 Z0");
   EXPECT_TRUE(f.run(join(l)).ok) << f.run(join(l)).message;
 }
+
+// A feed move with the spindle stopped, where the CL cuts with it running, is refused at that move (an M5 from an
+// INSERT, in every dialect); the same M5 followed by an M3 passes, and so does a feed move the CL itself makes with
+// the spindle off (its SPINDL/OFF: the post writes M5 and the CL means it).
+TEST(Gate, AFeedMoveWithTheSpindleStoppedWhereTheClCutsIsRefused) {
+  const auto m = load_machine("trunnion-ac");
+  const auto k = m.kinematics();
+  const std::string head =
+      "UNITS/MM\nMULTAX\nCUTTER/6\nLOADTL/1\nSPINDL/8000,CLW\nFEDRAT/MMPM,1000\nRAPID\n"
+      "GOTO/0,0,20,0,0,1\nGOTO/0,0,10,0,0,1\n";
+  for (const char* dialect : {"linuxcnc", "fanuc", "siemens", "heidenhain"}) {
+    SCOPED_TRACE(dialect);
+    auto run = [&](const std::string& middle) {
+      const cl::Program prog = cl::read_text(head + middle + "GOTO/20,0,10,0,0,1\nGOTO/20,20,10,0,0,1\n", "s.cls");
+      const auto axes = post::conventional_axes(prog, m, *k);
+      post::Options o;
+      o.dialect = dialect;
+      post::Summary sum;
+      std::ostringstream os;
+      post::write_nc(os, prog, m, *k, axes, o, sum);
+      return gate::check(os.str(), "s.nc", prog, m, *k, gate::options_for(m, 0, 0, 0), &sum.cl_line_of_nc_line);
+    };
+    const gate::Summary stopped = run("INSERT/M5\n");
+    EXPECT_FALSE(stopped.ok);
+    ASSERT_FALSE(stopped.violations.empty());
+    EXPECT_NE(stopped.violations.front().message.find("spindle stopped"), std::string::npos) << stopped.message;
+    EXPECT_EQ(stopped.violations.front().cl_line, 11) << stopped.message;  // the GOTO after the INSERT
+    EXPECT_TRUE(run("INSERT/M5\nINSERT/M3\n").ok) << run("INSERT/M5\nINSERT/M3\n").message;
+    EXPECT_TRUE(run("SPINDL/OFF\n").ok) << run("SPINDL/OFF\n").message;
+  }
+}

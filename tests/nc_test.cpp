@@ -378,3 +378,23 @@ TEST(NcReader, DwellsAreTimedAndTheirWordsAreNeitherPositionsNorFeeds) {
   // P elsewhere is no dwell.
   EXPECT_EQ(read("G64 P0.01\nG1 X1 F10\n").dwells, 0u);
 }
+
+// The spindle's stops: an M5 after an M3 / M4 opens one at the next line (its own block's motion runs first), an M3
+// closes it before its block's motion; an M5 before the spindle ever ran is none.
+TEST(NcReader, SpindleStopsCoverTheBlocksReadWhileItIsStopped) {
+  const auto p =
+      nc::read_text("M5\nG0 X0\nS100 M3\nG1 X1 F10\nG1 X2 M5\nG1 X3\nG1 X4\nM4 G1 X5\nX6 M5\n", "s.nc", xyzbc());
+  ASSERT_EQ(p.blocks.size(), 7u);
+  ASSERT_EQ(p.spindle_stops.size(), 2u);
+  EXPECT_EQ(p.spindle_stops[0].line, 5);
+  EXPECT_EQ(p.spindle_stops[0].first_block, 3u);  // G1 X3
+  EXPECT_EQ(p.spindle_stops[0].end_block, 5u);    // up to, not including, the M4 block
+  EXPECT_EQ(p.spindle_stops[1].line, 9);
+  EXPECT_EQ(p.spindle_stops[1].first_block, 7u);  // nothing after it
+  EXPECT_EQ(p.spindle_stops[1].end_block, 7u);
+  const auto h = nc::read_text("0 BEGIN PGM P MM\n1 L X+1 R0 F100 M3\n2 M5\n3 L X+2\n4 L X+3 M3\n5 END PGM P MM\n",
+                               "h.h", xyzbc());
+  ASSERT_EQ(h.spindle_stops.size(), 1u);
+  EXPECT_EQ(h.spindle_stops[0].first_block, 1u);
+  EXPECT_EQ(h.spindle_stops[0].end_block, 2u);
+}

@@ -6,6 +6,7 @@
 #include <cmath>
 #include <filesystem>
 #include <stdexcept>
+#include <unordered_map>
 
 #include "cscam/core/atomic_file.hpp"
 #include "cscam/core/error.hpp"
@@ -67,6 +68,32 @@ Summary check(const std::string& nc_text, const std::string& nc_name, const cl::
         fmt::format("{}, which the gate does not model: the moves after it cannot be checked", u->what));
     s.message = s.violations.front().message;
     return s;
+  }
+  // A feed move with the spindle stopped (an M5 the CL did not ask for, e.g. from an INSERT) where the CL cuts with it
+  // running: the tool would be pushed through the material standing still.
+  if (!ncp.spindle_stops.empty() && cl_line_of_nc_line) {
+    std::unordered_map<int, bool> cl_running;  // CL line of a move -> the spindle runs there
+    bool on = false;
+    std::size_t e = 0;
+    for (std::size_t i = 0; i < cl.moves.size(); ++i) {
+      for (; e < cl.events.size() && cl.events[e].before_move <= i; ++e) {
+        if (cl.events[e].kind == cl::Event::Kind::SpindleOn) on = true;
+        if (cl.events[e].kind == cl::Event::Kind::SpindleOff) on = false;
+      }
+      if (cl.moves[i].kind == cl::MotionKind::Feed) cl_running[cl.moves[i].line] = on;
+    }
+    for (const auto& stop : ncp.spindle_stops)
+      for (std::size_t bi = stop.first_block; bi < stop.end_block && bi < ncp.blocks.size(); ++bi) {
+        const nc::Block& b = ncp.blocks[bi];
+        if (b.motion == nc::Motion::Rapid) continue;
+        const int cl_line = cl_line_of(b.line);
+        if (const auto it = cl_running.find(cl_line); it != cl_running.end() && it->second) {
+          add(Violation::Kind::Limit, b.line, cl_line,
+              fmt::format("feed move with the spindle stopped (M5 at line {}) where the CL cuts with it running",
+                          stop.line));
+          break;
+        }
+      }
   }
   s.tool_tip_control = ncp.tcp;  // read_for_machine has scanned the text for the TCP words (uses_tool_tip_control)
   {

@@ -247,6 +247,39 @@ bool is_heidenhain(const std::string& text) {
   return false;
 }
 
+/// Follows M3 / M4 / M5 into Program::spindle_stops. An M5 takes effect after its block's motion (RS274, Fanuc,
+/// TNC): the stop opens at the next line.
+class SpindleState {
+ public:
+  /// An M word of line `lineno`, read before the line's block (if any) is stored. M3 / M4 act before the motion.
+  void word(int m, int lineno, Program& p) {
+    if (m == 3 || m == 4) {
+      ran_ = true;
+      pending_ = 0;
+      if (open_) p.spindle_stops.back().end_block = p.blocks.size();
+      open_ = false;
+    } else if (m == 5 && ran_) {
+      pending_ = lineno;
+    }
+  }
+  /// At the start of every line: an M5 of an earlier line opens its stop here.
+  void line(Program& p) {
+    if (pending_ && !open_) {
+      p.spindle_stops.push_back({pending_, p.blocks.size(), p.blocks.size()});
+      open_ = true;
+    }
+    pending_ = 0;
+  }
+  void finish(Program& p) {
+    line(p);
+    if (open_) p.spindle_stops.back().end_block = p.blocks.size();
+  }
+
+ private:
+  bool ran_ = false, open_ = false;
+  int pending_ = 0;
+};
+
 /// Heidenhain conversational: "n L X+1.5 Y-2 Z+0 A+0 C+90 R0 F1500 M3" (FMAX: rapid), M128 / FUNCTION TCPM
 /// switch tool-tip control on; TOOL CALL, CYCL DEF, PLANE and the rest carry no position and are skipped.
 Program read_heidenhain(const std::string& text, const std::string& name, const AxisLetters& letters) {
@@ -260,6 +293,7 @@ Program read_heidenhain(const std::string& text, const std::string& name, const 
   Block state;
   bool inch = false;
   bool tcp_on = false;  // tool-tip control in force (FUNCTION TCPM / M128 ... FUNCTION RESET TCPM / M129)
+  SpindleState spindle;
   double feed = 0.0;
   std::string_view all(text);
   size_t pos = 0;
@@ -270,6 +304,7 @@ Program read_heidenhain(const std::string& text, const std::string& name, const 
     const std::string_view raw = all.substr(pos, nl - pos);
     pos = nl + 1;
     ++lineno;
+    spindle.line(prog);
     std::string_view s = trim(raw);
     const auto fail = [&](std::string_view at, const std::string& what) {
       throw InputError(SourceLoc{name, lineno, static_cast<int>(at.data() - raw.data()) + 1}, what);
@@ -375,7 +410,13 @@ Program read_heidenhain(const std::string& text, const std::string& name, const 
       if (s.rfind("TRANS ", 0) == 0 && s.find("RESET") == std::string_view::npos)
         prog.unmodelled.push_back({lineno, fmt::format("{} transforms the coordinates", s), prog.blocks.size()});
     }
-    if (!is_l) {  // M128 / M129 on its own line or with other M functions
+    if (!is_l) {  // M functions on their own line (M128 / M129, the spindle's)
+      for (std::size_t a = 0; a < s.size();) {
+        const std::size_t e = std::min(s.find(' ', a), s.size());
+        if (const std::string_view tok = s.substr(a, e - a); tok == "M3" || tok == "M4" || tok == "M5")
+          spindle.word(tok[1] - '0', lineno, prog);
+        a = e + 1;
+      }
       for (size_t p = s.find("M128"); p != std::string_view::npos; p = s.find("M128", p + 1))
         prog.tcp = prog.tcp_words = tcp_on = true;
       if (s.find("M129") != std::string_view::npos) tcp_on = false;
@@ -402,6 +443,7 @@ Program read_heidenhain(const std::string& text, const std::string& name, const 
       if (L == 'M') {
         if (tok == "M128") prog.tcp = prog.tcp_words = tcp_on = true;
         if (tok == "M129") tcp_on = false;
+        if (tok == "M3" || tok == "M4" || tok == "M5") spindle.word(tok[1] - '0', lineno, prog);
         if (tok == "M91" || tok == "M92") machine_coords = true;  // machine datum: not a work position
         continue;
       }
@@ -450,6 +492,7 @@ Program read_heidenhain(const std::string& text, const std::string& name, const 
     prog.blocks.push_back(b);
     state = b;
   }
+  spindle.finish(prog);
   return prog;
 }
 
@@ -510,6 +553,7 @@ Program read_text(const std::string& text, const std::string& name, const AxisLe
   // What the reader does not model (Program::unmodelled): the work offset selected first, the length offset register
   // in force (-1 none, -2 one without H) and where it was lost (a G49 or a tool change) before the next motion.
   bool p_in_seconds = false;  // G4 P: seconds in a LinuxCNC program
+  SpindleState spindle;
   int work_offset = 0;
   int tlo_h = -1;
   bool uses_length_offset = false;
@@ -600,6 +644,7 @@ Program read_text(const std::string& text, const std::string& name, const AxisLe
         }
       }
     }
+    spindle.line(prog);
     // Our header names the dialect: a LinuxCNC G4 P is seconds with or without a decimal point.
     if (lineno == prog.header_line && s.find(" dialect linuxcnc") != std::string_view::npos) p_in_seconds = true;
     bool non_modal_skip = false, tcp_word = false, vector_words = false;
@@ -794,6 +839,7 @@ Program read_text(const std::string& text, const std::string& name, const AxisLe
       }
       if (L == 'M') {
         if (v == 6.0) tool_change = true;
+        if (v == 3.0 || v == 4.0 || v == 5.0) spindle.word(static_cast<int>(v), lineno, prog);
         // LinuxCNC's switchable trunnion kinematics: M428 world (TCP) coordinates, M429 identity (joints).
         if (std::lround(v) == 428) tcp_word = tcp_on = true;
         if (std::lround(v) == 429) tcp_on = false;
@@ -1102,6 +1148,7 @@ Program read_text(const std::string& text, const std::string& name, const AxisLe
     prog.blocks.push_back(b);
     state = b;
   }
+  spindle.finish(prog);
   return prog;
 }
 

@@ -132,6 +132,13 @@ struct Program {
   /// is always seconds. A dwell given in spindle revolutions (Sinumerik G4 S) is counted, not timed.
   std::size_t dwells = 0;
   double dwell_seconds = 0.0;
+  /// Where the spindle is stopped (M5) after it has run (M3 / M4): the M5's line and the motion blocks read until it
+  /// runs again, [first_block, end_block).
+  struct SpindleStop {
+    int line = 0;
+    std::size_t first_block = 0, end_block = 0;
+  };
+  std::vector<SpindleStop> spindle_stops;
 };
 
 /// The first unmodelled state change that some motion block follows (nullptr if none): a program with one cannot be
