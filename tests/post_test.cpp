@@ -836,7 +836,7 @@ TEST(PostProgram, ShortestWayRotaryIsWrittenModulo360AndReadBackUnwound) {
 TEST(PostProgram, RotariesClampedAroundIndexedStretches) {
   const auto m = machine_with_post("haas-umc750", "  clamp: {b: [M10, M11], c: [M12, M13]}\n");
   const auto k = m.kinematics();
-  // two 3+2 faces: fixed tilt, then another fixed tilt; then a simultaneous stretch
+  // two 3+2 faces: fixed tilt, then another fixed tilt; then a stretch that tilts B alone (C is clamped for it)
   const cl::Program prog = cl::read_text(
       "UNITS/MM\nMULTAX\nFEDRAT/MMPM,1000\nRAPID\nGOTO/0,0,20,0.3,0,0.9539392\nGOTO/20,0,20,0.3,0,0.9539392\n"
       "GOTO/20,20,20,0.3,0,0.9539392\nRAPID\nGOTO/0,60,20,0,0.3,0.9539392\nGOTO/-20,60,20,0,0.3,0.9539392\n"
@@ -849,18 +849,23 @@ TEST(PostProgram, RotariesClampedAroundIndexedStretches) {
     return n;
   };
   EXPECT_EQ(count("\nM10\n"), 2u) << p.text;
-  EXPECT_EQ(count("\nM12\n"), 2u);
+  EXPECT_EQ(count("\nM12\n"), 3u);
   EXPECT_EQ(count("\nM11\n"), 2u);
-  EXPECT_EQ(count("\nM13\n"), 2u);
-  // no rotary word between a clamp and its unclamp
+  EXPECT_EQ(count("\nM13\n"), 3u);
+  // no word of a rotary between its clamp and its unclamp, and the third stretch's B turns while C is clamped
   std::istringstream in(p.text);
   std::string line;
-  bool clamped = false;
+  bool b_clamped = false, c_clamped = false, b_turned_under_c_clamp = false;
   while (std::getline(in, line)) {
-    if (line == "M10") clamped = true;
-    if (line == "M11") clamped = false;
-    if (clamped) EXPECT_FALSE(std::regex_search(line, std::regex(" [BC]-?[0-9]"))) << line;
+    if (line == "M10") b_clamped = true;
+    if (line == "M11") b_clamped = false;
+    if (line == "M12") c_clamped = true;
+    if (line == "M13") c_clamped = false;
+    if (b_clamped) EXPECT_FALSE(std::regex_search(line, std::regex(" B-?[0-9]"))) << line;
+    if (c_clamped) EXPECT_FALSE(std::regex_search(line, std::regex(" C-?[0-9]"))) << line;
+    b_turned_under_c_clamp |= c_clamped && line.rfind("G1", 0) == 0 && std::regex_search(line, std::regex(" B-?[0-9]"));
   }
+  EXPECT_TRUE(b_turned_under_c_clamp) << p.text;
   const auto gs = gate::check(p.text, "faces.ngc", prog, m, *k, gate::options_for(m, 0, 0, 0));
   EXPECT_TRUE(gs.ok) << gs.message << "\n" << p.text;
 }

@@ -231,7 +231,7 @@ void Sequencer::run(const std::vector<kin::Axes>& axes) {
       else
         approach(axes[i], mv);
       pending_plane_ = false;
-      if (indexed_from(axes, i)) clamp_rotaries();
+      if (const unsigned still = indexed_from(axes, i)) clamp_rotaries(still);
     } else if (const std::size_t end = arc_end(axes, i); end > 0) {
       // One G2/G3 for the whole CIRCLE/: its points are checked, not written.
       for (std::size_t k = i + 1; k <= end; ++k) {

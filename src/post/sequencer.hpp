@@ -157,8 +157,9 @@ class Sequencer {
   /// Switches tool-tip control on for the loaded tool (a warning, once, for length register H0).
   void tool_tip_control_on(int cl_line);
 
-  /// Whether the stretch after the rapid at i is 3+2 and clamp codes are given: the rotaries are clamped for it.
-  bool indexed_from(const std::vector<kin::Axes>& axes, size_t i) const;
+  /// The rotaries that have clamp codes and that the feed moves after the rapid at i keep where the rapid put them:
+  /// clamped for that stretch (both in 3+2, one where only the other turns). Bit r: rotary slot r.
+  unsigned indexed_from(const std::vector<kin::Axes>& axes, size_t i) const;
 
   /// Whether the feed moves after the rapid at i keep every rotary where the rapid put it (3+2).
   bool fixed_from(const std::vector<kin::Axes>& axes, size_t i) const;
@@ -190,8 +191,8 @@ class Sequencer {
   /// add_words inside a tilted work plane: the tip in the plane's X Y Z; the rotaries must not turn.
   bool add_plane_words(const kin::Axes& q, std::initializer_list<int> which, bool force);
 
-  /// Clamps every rotary that has clamp codes (for an indexed 3+2 stretch).
-  void clamp_rotaries();
+  /// Clamps the rotaries of `which` (bit r: slot r) that have clamp codes.
+  void clamp_rotaries(unsigned which);
 
   /// Releases the clamped rotaries (before a rotary turns, a tool change, the end).
   void unclamp_rotaries();

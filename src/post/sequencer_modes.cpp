@@ -28,11 +28,17 @@ void Sequencer::tool_tip_control_on(int cl_line) {
 
 // --- Rotary clamps around indexed (3+2) stretches -----------------------------------------------------
 
-/// Whether the stretch of feed moves after the rapid at i keeps every rotary where the rapid put it (and clamp
-/// codes are given).
-bool Sequencer::indexed_from(const std::vector<kin::Axes>& axes, size_t i) const {
-  if (std::all_of(clamp_codes_.begin(), clamp_codes_.end(), [](const auto& c) { return c[0].empty(); })) return false;
-  return fixed_from(axes, i);
+/// The rotaries with clamp codes that the stretch of feed moves after the rapid at i keeps where the rapid put them.
+unsigned Sequencer::indexed_from(const std::vector<kin::Axes>& axes, size_t i) const {
+  unsigned still = 0;
+  for (int r : kin_.rotary_pair())
+    if (!clamp_codes_[static_cast<size_t>(r)][0].empty()) still |= 1u << r;
+  if (still == 0) return 0;
+  size_t j = i + 1;
+  for (; j < axes.size() && prog_.moves[j].kind == cl::MotionKind::Feed && still != 0; ++j)
+    for (int r : kin_.rotary_pair())
+      if (rounded(r, axes[j][r]) != rounded(r, axes[i][r])) still &= ~(1u << r);
+  return j > i + 1 ? still : 0u;
 }
 
 /// Whether the stretch of feed moves after the rapid at i keeps every rotary where the rapid put it (3+2).
@@ -166,10 +172,10 @@ bool Sequencer::add_plane_words(const kin::Axes& q, std::initializer_list<int> w
   return any;
 }
 
-void Sequencer::clamp_rotaries() {
+void Sequencer::clamp_rotaries(unsigned which) {
   for (int r : kin_.rotary_pair()) {
     const auto& c = clamp_codes_[static_cast<size_t>(r)];
-    if (!c[0].empty() && !clamped_[static_cast<size_t>(r)]) {
+    if (((which >> r) & 1u) && !c[0].empty() && !clamped_[static_cast<size_t>(r)]) {
       fmt_->clamp(buf_, c[0]);
       clamped_[static_cast<size_t>(r)] = true;
     }
