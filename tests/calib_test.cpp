@@ -7,6 +7,7 @@
 #include <cmath>
 #include <filesystem>
 #include <fstream>
+#include <functional>
 #include <iostream>
 #include <random>
 #include <sstream>
@@ -26,6 +27,16 @@ using calib::Model;
 using test::source_path;
 
 namespace {
+
+// ---- Levels and tolerances of the write-safeguard, loader and recording tests (one place) ----
+constexpr double kGaugeSigmaMm = 0.001;   // simulated probing noise, and the recording's sigma.ptip
+constexpr double kOutlierMm = 0.06;       // one gross probing error (60 sigma): chi^2 ~ 3600 for ~90 dof
+constexpr double kInjectedEX0CMm = 0.02;  // injected rotary-axis location errors (20 and 10 sigma-ish)
+constexpr double kInjectedEZ0AMm = -0.01;
+constexpr int kNoiseOnlyTrials = 40;      // seeded noise-only recordings of a perfect machine
+constexpr int kNoiseOnlyMaxRewrites = 3;  // at level 0.01 (joint and Bonferroni tests) ~0.8 expected
+constexpr double kChi2TailRel = 1e-10;    // chi^2 tail against its closed forms (dof 1 and 2)
+constexpr double kUnitDirTol = 1e-9;      // |dir| of a simulated direction written with 12 decimals
 
 std::shared_ptr<Model> load(const std::string& name) {
   return calib::load_model(source_path("machines/" + name + ".yaml"));
@@ -761,4 +772,112 @@ TEST(CalibRecording, ARecordingWithNothingMeasuredIsALocatedError) {
       EXPECT_NE(std::string(e.what()).find("nothing to calibrate"), std::string::npos) << e.what();
     }
   }
+}
+
+// ---------------------------------------------------------------------------------------------------
+// What may be written: a fit that agrees with the noise, and a change that the noise does not explain
+// ---------------------------------------------------------------------------------------------------
+
+namespace {
+
+/// A trunnion-ac static recording (ptip, sigma.ptip given) of `truth` at 40 random poses; `outlier_row` >= 0 adds
+/// kOutlierMm to that row's ptip.x. Returns the file line of that row (0 if none).
+int write_trunnion_recording(const std::string& path, const Model& m, const std::vector<double>& truth,
+                             unsigned noise_seed, int outlier_row) {
+  calib::Sigmas s;
+  s.ptip_mm = kGaugeSigmaMm;
+  Dataset d = calib::simulate(m, truth, m.random_poses(40, 3), {"ptip"}, s, noise_seed);
+  std::ofstream o(path);
+  o << "# machine: trunnion-ac\n# kind: static\n# tool_length: 0\n# sigma.ptip: " << kGaugeSigmaMm
+    << "\ncmd.x,cmd.y,cmd.z,cmd.a,cmd.c,ptip.x,ptip.y,ptip.z\n";
+  const int first_row_line = 6;
+  for (std::size_t k = 0; k < d.poses.size(); ++k) {
+    const auto& p = d.poses[k];
+    const double dx = static_cast<int>(k) == outlier_row ? kOutlierMm : 0.0;
+    o << fmt::format("{},{},{},{},{},{:.7f},{:.7f},{:.7f}\n", p.q[0], p.q[1], p.q[2], p.q[3], p.q[4], p.meas[6] + dx,
+                     p.meas[7], p.meas[8]);
+  }
+  return outlier_row >= 0 ? first_row_line + outlier_row : 0;
+}
+
+}  // namespace
+
+TEST(CalibFit, Chi2TailMatchesClosedForms) {
+  for (const double x : {0.01, 0.5, 1.0, 3.84, 10.0, 40.0}) {
+    EXPECT_NEAR(calib::chi2_upper_tail(x, 2.0), std::exp(-x / 2), kChi2TailRel * std::max(1.0, std::exp(-x / 2)));
+    EXPECT_NEAR(calib::chi2_upper_tail(x, 1.0), std::erfc(std::sqrt(x / 2)), kChi2TailRel);
+  }
+  // dof 4: (1 + x/2) exp(-x/2).
+  EXPECT_NEAR(calib::chi2_upper_tail(7.0, 4.0), (1 + 3.5) * std::exp(-3.5), kChi2TailRel);
+}
+
+// An outlier row without a robust loss gave chi^2 ~ 3600 for 86 degrees of freedom, and the corrected file was still
+// written. Now: exit 2, the row named by line, --loss suggested, no file; --write-anyway or --loss huber write it.
+TEST(CalibCli, AFitThatDisagreesWithTheNoiseWritesNoFile) {
+  const auto m = load("trunnion-ac");
+  std::vector<double> truth = m->nominal();
+  truth[m->index("EX0C")] = kInjectedEX0CMm;
+  truth[m->index("EZ0A")] = kInjectedEZ0AMm;
+  const std::string rec = tmp("outlier.csv"), out = tmp("outlier.yaml");
+  // Row 7 is fitted (every 5th row, from the 5th, is held out).
+  const int line = write_trunnion_recording(rec, *m, truth, 7, 7);
+  const std::string cmd = fmt::format("{} calibrate {} --free rotary_a,rotary_c -o {}", CSCAM_CLI, rec, out);
+  std::filesystem::remove(out);
+  auto r = test::run_command(cmd);
+  EXPECT_EQ(r.status, 2) << r.output;
+  EXPECT_NE(r.output.find("does not agree with the measurement noise"), std::string::npos) << r.output;
+  EXPECT_NE(r.output.find(fmt::format("{}:{} (", rec, line)), std::string::npos) << r.output;
+  EXPECT_NE(r.output.find("--loss"), std::string::npos) << r.output;
+  EXPECT_FALSE(std::filesystem::exists(out));
+  r = test::run_command(cmd + " --write-anyway");
+  EXPECT_EQ(r.status, 0) << r.output;
+  EXPECT_TRUE(std::filesystem::exists(out));
+  std::filesystem::remove(out);
+  r = test::run_command(cmd + " --loss huber");
+  EXPECT_EQ(r.status, 0) << r.output;
+  EXPECT_TRUE(std::filesystem::exists(out)) << r.output;
+  // The clean recording: consistent, and written.
+  write_trunnion_recording(rec, *m, truth, 7, -1);
+  std::filesystem::remove(out);
+  r = test::run_command(cmd);
+  EXPECT_EQ(r.status, 0) << r.output;
+  EXPECT_TRUE(std::filesystem::exists(out)) << r.output;
+}
+
+// A perfect machine measured with noise: the "correction" is noise, and no file is written.
+TEST(CalibCli, ANoiseOnlyRecordingWritesNoFile) {
+  const auto m = load("trunnion-ac");
+  const std::string rec = tmp("noise-only.csv"), out = tmp("noise-only.yaml");
+  write_trunnion_recording(rec, *m, m->nominal(), 3, -1);
+  std::filesystem::remove(out);
+  const auto r = test::run_command(fmt::format("{} calibrate {} --free rotary_a,rotary_c -o {}", CSCAM_CLI, rec, out));
+  EXPECT_EQ(r.status, 0) << r.output;
+  EXPECT_NE(r.output.find("no significant correction"), std::string::npos) << r.output;
+  EXPECT_FALSE(std::filesystem::exists(out));
+}
+
+// The significance test at its stated level: over seeded noise-only recordings few changes count as significant,
+// and an injected error always does.
+TEST(CalibFit, NoiseOnlyChangesAreRarelySignificantInjectedOnesAlways) {
+  const auto m = load("trunnion-ac");
+  calib::Sigmas s;
+  s.ptip_mm = kGaugeSigmaMm;
+  calib::Options o;
+  o.free = m->select({"rotary_a", "rotary_c"});
+  std::vector<double> truth = m->nominal();
+  truth[m->index("EX0C")] = kInjectedEX0CMm;
+  truth[m->index("EZ0A")] = kInjectedEZ0AMm;
+  int rewrites = 0;
+  for (int k = 0; k < kNoiseOnlyTrials; ++k) {
+    const auto poses = m->random_poses(40, 100 + static_cast<unsigned>(k));
+    const Dataset noise = calib::simulate(*m, m->nominal(), poses, {"ptip"}, s, 500 + static_cast<unsigned>(k));
+    const calib::Result r = calib::calibrate(*m, noise, o);
+    const calib::WriteCheck w = calib::check_for_writing(*m, noise, r, o.loss);
+    EXPECT_TRUE(w.consistent) << k << ": " << w.inconsistency;
+    rewrites += w.significant ? 1 : 0;
+    const Dataset real = calib::simulate(*m, truth, poses, {"ptip"}, s, 500 + static_cast<unsigned>(k));
+    const calib::Result r2 = calib::calibrate(*m, real, o);
+    EXPECT_TRUE(calib::check_for_writing(*m, real, r2, o.loss).significant) << k;
+  }
+  EXPECT_LE(rewrites, kNoiseOnlyMaxRewrites);
 }
