@@ -881,3 +881,50 @@ TEST(CalibFit, NoiseOnlyChangesAreRarelySignificantInjectedOnesAlways) {
   }
   EXPECT_LE(rewrites, kNoiseOnlyMaxRewrites);
 }
+
+// ---------------------------------------------------------------------------------------------------
+// Loader and recording errors are located
+// ---------------------------------------------------------------------------------------------------
+
+namespace {
+int line_of(const std::string& text, const std::string& what) {
+  const auto at = text.find(what);
+  return at == std::string::npos ? -1 : static_cast<int>(std::count(text.begin(), text.begin() + at, '\n')) + 1;
+}
+std::string error_of(const std::function<void()>& f) {
+  try {
+    f();
+  } catch (const InputError& e) {
+    return e.what();
+  }
+  return "(no error)";
+}
+}  // namespace
+
+// pcmm.yaml without rb3 loaded with rb3 = 250 and said nothing. Every parameter and tip_mm are required.
+TEST(CalibModel, PcmmMissingParameterIsAnErrorAtItsSection) {
+  std::ifstream in(source_path("machines/pcmm.yaml"));
+  std::stringstream ss;
+  ss << in.rdbuf();
+  const std::string text = ss.str();
+  auto without = [&](const std::string& line_start) {
+    std::string t = text;
+    const auto a = t.find(line_start);
+    t.erase(a, t.find('\n', a) - a + 1);
+    return t;
+  };
+  const std::string path = ::testing::TempDir() + "/pcmm-missing.yaml";
+  for (const std::string key : {"rb3", "bz", "gs3"}) {
+    const std::string t = without("    " + key + ":");
+    write(path, t);
+    const std::string e = error_of([&] { (void)calib::load_model(path); });
+    EXPECT_NE(e.find(fmt::format("{}:{}", path, line_of(t, "  parameters:"))), std::string::npos) << e;
+    EXPECT_NE(e.find("missing required parameter(s) " + key), std::string::npos) << e;
+  }
+  const std::string t = without("  tip_mm:");
+  write(path, t);
+  const std::string e = error_of([&] { (void)calib::load_model(path); });
+  EXPECT_NE(e.find(fmt::format("{}:{}", path, line_of(t, "pcmm:\n"))), std::string::npos) << e;
+  EXPECT_NE(e.find("tip_mm"), std::string::npos) << e;
+}
+
