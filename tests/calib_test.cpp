@@ -928,3 +928,33 @@ TEST(CalibModel, PcmmMissingParameterIsAnErrorAtItsSection) {
   EXPECT_NE(e.find("tip_mm"), std::string::npos) << e;
 }
 
+// Metadata errors had no line ("0.5um" was even read as 0.5 mm): each is at its file:line:column.
+TEST(CalibRecording, MetadataErrorsNameLineAndColumn) {
+  const auto m = load("trunnion-ac");
+  const std::string body = "cmd.x,cmd.y,cmd.z,cmd.a,cmd.c,ptip.x,ptip.y,ptip.z\n1,2,3,4,5,6,7,8\n";
+  struct Case {
+    std::string meta, where, says;
+  };
+  const std::vector<Case> cases = {
+      {"# kind: static\n# sigma.ptip: 0.5um\n", "0.5um", "plain number"},
+      {"# kind: static\n# tool_length: 20 mm\n", "20 mm", "plain number"},
+      {"# note: x\n# kind: statik\n", "statik", "expected trajectory or static"},
+      {"# kind: static\n# sigma.ptip: -1\n", "-1", "must be positive"},
+      {"# kind: static\n# sigma.tpi: 0.001\n", "0.001", "unknown sigma"},
+      {"# kind: static\n# sigma.ptip 0.001\n", " 0.001", "a colon after the key"},
+      {"# kind: static\n# kind: static\n", "kind", "given twice"},
+  };
+  for (const auto& c : cases) {
+    const std::string text = c.meta + body;
+    // Oracle: the line and 1-based column of the offending text (on the last metadata line).
+    const std::size_t last = text.rfind("\n# ", text.find("\ncmd.")) + 1;
+    const std::size_t pos = text.find(c.where, last);
+    ASSERT_NE(pos, std::string::npos) << c.meta;
+    const int line = static_cast<int>(std::count(text.begin(), text.begin() + static_cast<long>(pos), '\n')) + 1;
+    const int col = static_cast<int>(pos - last) + 1;
+    const std::string e = error_of([&] { (void)calib::dataset_from(calib::parse_recording(text, "rec.csv"), *m); });
+    EXPECT_NE(e.find(fmt::format("rec.csv:{}:{}", line, col)), std::string::npos) << c.meta << " -> " << e;
+    EXPECT_NE(e.find(c.says), std::string::npos) << c.meta << " -> " << e;
+  }
+}
+

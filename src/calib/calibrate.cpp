@@ -142,16 +142,18 @@ Dataset dataset_from(const Recording& rec, const Model& model) {
   Dataset d;
   d.file = rec.file;
   auto meta = [&](const char* key, double& v) {
-    auto it = rec.meta.find(key);
-    if (it == rec.meta.end()) return;
-    try {
-      v = std::stod(it->second);
-    } catch (const std::exception&) {
-      throw InputError(SourceLoc{rec.file}, fmt::format("metadata '{}': expected a number, got '{}'", key, it->second));
+    if (const auto x = rec.meta_number(key)) {
+      v = *x;
+      d.sigma.given = true;
     }
-    if (!(v > 0)) throw InputError(SourceLoc{rec.file}, fmt::format("metadata '{}': must be positive", key));
-    d.sigma.given = true;
   };
+  // A sigma for a channel family the calibration does not know (sigma.tpi) would be ignored: an error at its line.
+  for (const auto& [k, v] : rec.meta)
+    if (k.rfind("sigma.", 0) == 0 && k != "sigma.tip" && k != "sigma.ptip" && k != "sigma.dir" && k != "sigma.len")
+      throw InputError(rec.meta_loc(k),
+                       fmt::format("metadata '{}': unknown sigma (expected sigma.tip, sigma.ptip, sigma.dir or "
+                                   "sigma.len)",
+                                   k));
   meta("sigma.tip", d.sigma.tip_mm);
   meta("sigma.ptip", d.sigma.ptip_mm);
   meta("sigma.dir", d.sigma.dir);
