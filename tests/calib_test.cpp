@@ -958,3 +958,26 @@ TEST(CalibRecording, MetadataErrorsNameLineAndColumn) {
   }
 }
 
+// `simulate --noise dir:S` added the noise per component and left the tool axis non-unit (|dir| 0.993 - 1.028).
+TEST(CalibCli, SimulatedDirectionNoiseKeepsAUnitVector) {
+  const std::string poses = tmp("dir-poses.csv"), rec = tmp("dir-rec.csv");
+  auto r = test::run_command(
+      fmt::format("{} calibrate --design 20 --machine xmini --channels tip --seed 2 -o {}", CSCAM_CLI, poses));
+  ASSERT_EQ(r.status, 0) << r.output;
+  r =
+      test::run_command(fmt::format("{} simulate {} --machine xmini --channels tip,dir --noise dir:0.01 --decimals 12 "
+                                    "-o {}",
+                                    CSCAM_CLI, poses, rec));
+  ASSERT_EQ(r.status, 0) << r.output;
+  const calib::Recording rr = calib::read_recording(rec);
+  const int x = rr.column("dir.x");
+  ASSERT_GE(x, 0);
+  double spread = 0;
+  for (Eigen::Index i = 0; i < rr.rows(); ++i) {
+    const Eigen::Vector3d d(rr.data(i, x), rr.data(i, x + 1), rr.data(i, x + 2));
+    EXPECT_NEAR(d.norm(), 1.0, kUnitDirTol) << i;
+    spread = std::max(spread, std::abs(d.z()));
+  }
+  EXPECT_GT(spread, 0.0);
+}
+
