@@ -981,3 +981,20 @@ TEST(CalibCli, SimulatedDirectionNoiseKeepsAUnitVector) {
   EXPECT_GT(spread, 0.0);
 }
 
+// docs/calibration.md: with link and tip data the stage frame's rotation about the probe axis is the one null
+// direction, and ths1 (the stage frame's x axis) is held at nominal. The analysis fixed ths3.
+TEST(CalibIdent, PcmmStageFrameConventionHoldsThs1) {
+  const auto m = load("pcmm");
+  calib::Sigmas s;
+  std::vector<double> truth = perturbed(*m, all(*m), 0.5, 41);
+  const Dataset both = calib::simulate(*m, truth, m->random_poses(45, 11), {"len", "tip"}, s, 1);
+  calib::Options o;
+  o.max_iterations = 1000;
+  const calib::Result r = calib::calibrate(*m, both, o);
+  ASSERT_EQ(r.ident.fixed.size(), 1u);
+  EXPECT_EQ(m->params()[r.ident.fixed[0]].name, "ths1");
+  EXPECT_EQ(r.estimate[m->index("ths1")], m->nominal()[m->index("ths1")]);
+  EXPECT_TRUE(std::isfinite(r.stddev[m->index("ths3")]));
+  ASSERT_EQ(r.ident.messages.size(), 1u);
+  EXPECT_EQ(r.ident.messages[0].rfind("ths1 cannot be separated from", 0), 0u) << r.ident.messages[0];
+}

@@ -361,15 +361,19 @@ Identifiability analyse(const Model& model, const Dataset& d, const std::vector<
   }
   // Which parameters to fix: greedily in candidate order (the model lists the parameters a user cares
   // about first, e.g. rotary-axis location errors before part origin and gauge point), keep a column
-  // when it adds a direction the kept ones do not span; the rest are fixed.
+  // when it adds a direction the kept ones do not span; the rest are fixed. Frame conventions (ParamInfo::gauge) go
+  // last, so that they are the ones fixed when the data cannot see them.
   Eigen::MatrixXd Jl(Js.rows(), static_cast<Eigen::Index>(live.size()));
   for (std::size_t j = 0; j < live.size(); ++j)
     Jl.col(static_cast<Eigen::Index>(j)) = Js.col(static_cast<Eigen::Index>(live[j]));
-  std::vector<Eigen::Index> keep, drop;
+  std::vector<Eigen::Index> keep, drop, order;
+  for (int pass = 0; pass < 2; ++pass)
+    for (Eigen::Index j = 0; j < Jl.cols(); ++j)
+      if (model.params()[id.candidates[live[static_cast<std::size_t>(j)]]].gauge == (pass == 1)) order.push_back(j);
   {
     Eigen::MatrixXd Q(Jl.rows(), 0);
     const double thr = std::max(opt.rank_tolerance * smax, 1e-12);
-    for (Eigen::Index j = 0; j < Jl.cols(); ++j) {
+    for (const Eigen::Index j : order) {
       Eigen::VectorXd v = Jl.col(j);
       for (int pass = 0; pass < 2; ++pass) v -= Q * (Q.transpose() * v);  // re-orthogonalised Gram-Schmidt
       if (v.norm() > thr && static_cast<int>(keep.size()) < id.rank) {
@@ -382,6 +386,7 @@ Identifiability analyse(const Model& model, const Dataset& d, const std::vector<
     }
   }
   std::sort(keep.begin(), keep.end());
+  std::sort(drop.begin(), drop.end());
   if (keep.empty()) {
     std::string names;
     for (const std::size_t pi : id.candidates) names += (names.empty() ? "" : ", ") + model.params()[pi].name;

@@ -475,6 +475,8 @@ class PcmmCalModel final : public Model {
     for (std::size_t i = 0; i < kin::kPcmmParamCount; ++i)
       params_.push_back({std::string(info[i].name), std::string(info[i].group), std::string(info[i].unit),
                          nominal_file_units[i], "seed 001 parameter " + std::string(info[i].name)});
+    // A rotation of the stage frame about its normal turns every ths_i alike; joint 1 defines its x axis.
+    params_[index("ths1")].gauge = true;
   }
   std::string kind() const override { return "pcmm"; }
   std::unique_ptr<Scratch> make_scratch() const override { return std::make_unique<PcmmScratch>(); }
