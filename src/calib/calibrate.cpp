@@ -22,6 +22,9 @@ namespace cscam::calib {
 namespace {
 
 constexpr double kNaN = std::numeric_limits<double>::quiet_NaN();
+/// A term of a null-space vector or a trade-off smaller than this (relative to the largest, scaled units) is
+/// rounding of the SVD / QR, not part of the relation.
+constexpr double kNullTermRel = 1e-6;
 
 /// Channel group of channel index c (tip, dir, ptip, len.<link>).
 std::string group_of(const Model& m, std::size_t c) {
@@ -340,7 +343,9 @@ Identifiability analyse(const Model& model, const Dataset& d, const std::vector<
     const double vmax = v.cwiseAbs().maxCoeff();
     std::vector<std::pair<double, std::size_t>> terms;
     for (Eigen::Index j = 0; j < m; ++j)
-      if (std::abs(v[j]) >= 0.1 * vmax) terms.push_back({v[j], id.candidates[static_cast<std::size_t>(j)]});
+      // Every term that is not rounding: dropping the small ones (below 10 % of the largest, in scaled units) left
+      // vectors that are no null direction (the PCMM's stage turn without sx, sy).
+      if (std::abs(v[j]) >= kNullTermRel * vmax) terms.push_back({v[j], id.candidates[static_cast<std::size_t>(j)]});
     std::sort(terms.begin(), terms.end(), [](auto& a, auto& b) { return std::abs(a.first) > std::abs(b.first); });
     // Physical steps (file units), normalised so that the largest is 1.
     std::vector<double> phys;
@@ -406,7 +411,7 @@ Identifiability analyse(const Model& model, const Dataset& d, const std::vector<
     const double cmax = c.size() ? c.cwiseAbs().maxCoeff() : 0.0;
     std::vector<std::pair<double, std::size_t>> terms;
     for (Eigen::Index k = 0; k < c.size(); ++k)
-      if (std::abs(c[k]) >= 0.05 * cmax && std::abs(c[k]) > 1e-6) terms.push_back({c[k], static_cast<std::size_t>(k)});
+      if (std::abs(c[k]) >= kNullTermRel * cmax) terms.push_back({c[k], static_cast<std::size_t>(k)});
     std::sort(terms.begin(), terms.end(), [](auto& a, auto& b) { return std::abs(a.first) > std::abs(b.first); });
     std::string t, names;
     const double nf = norm[static_cast<Eigen::Index>(live[static_cast<std::size_t>(j)])];
