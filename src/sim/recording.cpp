@@ -60,8 +60,8 @@ std::optional<double> Recording::meta_number(const std::string& key, double lo, 
     const auto r = std::from_chars(v.data(), v.data() + v.size(), x);
     if (r.ec != std::errc() || r.ptr != v.data() + v.size() || !std::isfinite(x) || x < lo || x > hi)
       throw InputError(meta_loc(key),
-                       fmt::format("metadata {}: expected a plain number in [{:g}, {:g}] (in the unit the spec "
-                                   "gives, without a unit), got '{}'",
+                       fmt::format("metadata {}: expected a number in [{:g}, {:g}] (in the spec's unit, written "
+                                   "without one), got '{}'",
                                    key, lo, hi, v));
     return x;
   }
