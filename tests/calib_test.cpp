@@ -7,6 +7,7 @@
 #include <cmath>
 #include <filesystem>
 #include <fstream>
+#include <functional>
 #include <iostream>
 #include <random>
 #include <sstream>
@@ -26,6 +27,17 @@ using calib::Model;
 using test::source_path;
 
 namespace {
+
+// ---- Levels and tolerances of the write-safeguard, loader and recording tests (one place) ----
+constexpr double kGaugeSigmaMm = 0.001;   // simulated probing noise, and the recording's sigma.ptip
+constexpr double kOutlierMm = 0.06;       // one gross probing error (60 sigma): chi^2 ~ 3600 for ~90 dof
+constexpr double kInjectedEX0CMm = 0.02;  // injected rotary-axis location errors (20 and 10 sigma-ish)
+constexpr double kInjectedEZ0AMm = -0.01;
+constexpr int kNoiseOnlyTrials = 40;       // seeded noise-only recordings of a perfect machine
+constexpr int kNoiseOnlyMaxRewrites = 3;   // at level 0.01 (joint and Bonferroni tests) ~0.8 expected
+constexpr double kChi2TailRel = 1e-10;     // chi^2 tail against its closed forms (dof 1 and 2)
+constexpr double kUnitDirTol = 1e-9;       // |dir| of a simulated direction written with 12 decimals
+constexpr double kNullRelationRel = 2e-3;  // |J v| / sum |v_i| |J_i| of a printed (4-digit) null relation
 
 std::shared_ptr<Model> load(const std::string& name) {
   return calib::load_model(source_path("machines/" + name + ".yaml"));
@@ -760,5 +772,289 @@ TEST(CalibRecording, ARecordingWithNothingMeasuredIsALocatedError) {
       EXPECT_EQ(e.where().line, 2);
       EXPECT_NE(std::string(e.what()).find("nothing to calibrate"), std::string::npos) << e.what();
     }
+  }
+}
+
+// ---------------------------------------------------------------------------------------------------
+// What may be written: a fit that agrees with the noise, and a change that the noise does not explain
+// ---------------------------------------------------------------------------------------------------
+
+namespace {
+
+/// A trunnion-ac static recording (ptip, sigma.ptip given) of `truth` at 40 random poses; `outlier_row` >= 0 adds
+/// kOutlierMm to that row's ptip.x. Returns the file line of that row (0 if none).
+int write_trunnion_recording(const std::string& path, const Model& m, const std::vector<double>& truth,
+                             unsigned noise_seed, int outlier_row) {
+  calib::Sigmas s;
+  s.ptip_mm = kGaugeSigmaMm;
+  Dataset d = calib::simulate(m, truth, m.random_poses(40, 3), {"ptip"}, s, noise_seed);
+  std::ofstream o(path);
+  o << "# machine: trunnion-ac\n# kind: static\n# tool_length: 0\n# sigma.ptip: " << kGaugeSigmaMm
+    << "\ncmd.x,cmd.y,cmd.z,cmd.a,cmd.c,ptip.x,ptip.y,ptip.z\n";
+  const int first_row_line = 6;
+  for (std::size_t k = 0; k < d.poses.size(); ++k) {
+    const auto& p = d.poses[k];
+    const double dx = static_cast<int>(k) == outlier_row ? kOutlierMm : 0.0;
+    o << fmt::format("{},{},{},{},{},{:.7f},{:.7f},{:.7f}\n", p.q[0], p.q[1], p.q[2], p.q[3], p.q[4], p.meas[6] + dx,
+                     p.meas[7], p.meas[8]);
+  }
+  return outlier_row >= 0 ? first_row_line + outlier_row : 0;
+}
+
+}  // namespace
+
+TEST(CalibFit, Chi2TailMatchesClosedForms) {
+  for (const double x : {0.01, 0.5, 1.0, 3.84, 10.0, 40.0}) {
+    EXPECT_NEAR(calib::chi2_upper_tail(x, 2.0), std::exp(-x / 2), kChi2TailRel * std::max(1.0, std::exp(-x / 2)));
+    EXPECT_NEAR(calib::chi2_upper_tail(x, 1.0), std::erfc(std::sqrt(x / 2)), kChi2TailRel);
+  }
+  // dof 4: (1 + x/2) exp(-x/2).
+  EXPECT_NEAR(calib::chi2_upper_tail(7.0, 4.0), (1 + 3.5) * std::exp(-3.5), kChi2TailRel);
+}
+
+// An outlier row without a robust loss gave chi^2 ~ 3600 for 86 degrees of freedom, and the corrected file was still
+// written. Now: exit 2, the row named by line, --loss suggested, no file; --write-anyway or --loss huber write it.
+TEST(CalibCli, AFitThatDisagreesWithTheNoiseWritesNoFile) {
+  const auto m = load("trunnion-ac");
+  std::vector<double> truth = m->nominal();
+  truth[m->index("EX0C")] = kInjectedEX0CMm;
+  truth[m->index("EZ0A")] = kInjectedEZ0AMm;
+  const std::string rec = tmp("outlier.csv"), out = tmp("outlier.yaml");
+  // Row 7 is fitted (every 5th row, from the 5th, is held out).
+  const int line = write_trunnion_recording(rec, *m, truth, 7, 7);
+  const std::string cmd = fmt::format("{} calibrate {} --free rotary_a,rotary_c -o {}", CSCAM_CLI, rec, out);
+  std::filesystem::remove(out);
+  auto r = test::run_command(cmd);
+  EXPECT_EQ(r.status, 2) << r.output;
+  EXPECT_NE(r.output.find("does not agree with the measurement noise"), std::string::npos) << r.output;
+  EXPECT_NE(r.output.find(fmt::format("{}:{} (", rec, line)), std::string::npos) << r.output;
+  EXPECT_NE(r.output.find("--loss"), std::string::npos) << r.output;
+  EXPECT_FALSE(std::filesystem::exists(out));
+  r = test::run_command(cmd + " --write-anyway");
+  EXPECT_EQ(r.status, 0) << r.output;
+  EXPECT_TRUE(std::filesystem::exists(out));
+  std::filesystem::remove(out);
+  r = test::run_command(cmd + " --loss huber");
+  EXPECT_EQ(r.status, 0) << r.output;
+  EXPECT_TRUE(std::filesystem::exists(out)) << r.output;
+  // The clean recording: consistent, and written.
+  write_trunnion_recording(rec, *m, truth, 7, -1);
+  std::filesystem::remove(out);
+  r = test::run_command(cmd);
+  EXPECT_EQ(r.status, 0) << r.output;
+  EXPECT_TRUE(std::filesystem::exists(out)) << r.output;
+}
+
+// A perfect machine measured with noise: the "correction" is noise, and no file is written.
+TEST(CalibCli, ANoiseOnlyRecordingWritesNoFile) {
+  const auto m = load("trunnion-ac");
+  const std::string rec = tmp("noise-only.csv"), out = tmp("noise-only.yaml");
+  write_trunnion_recording(rec, *m, m->nominal(), 3, -1);
+  std::filesystem::remove(out);
+  const auto r = test::run_command(fmt::format("{} calibrate {} --free rotary_a,rotary_c -o {}", CSCAM_CLI, rec, out));
+  EXPECT_EQ(r.status, 0) << r.output;
+  EXPECT_NE(r.output.find("no significant correction"), std::string::npos) << r.output;
+  EXPECT_FALSE(std::filesystem::exists(out));
+}
+
+// The significance test at its stated level: over seeded noise-only recordings few changes count as significant,
+// and an injected error always does.
+TEST(CalibFit, NoiseOnlyChangesAreRarelySignificantInjectedOnesAlways) {
+  const auto m = load("trunnion-ac");
+  calib::Sigmas s;
+  s.ptip_mm = kGaugeSigmaMm;
+  calib::Options o;
+  o.free = m->select({"rotary_a", "rotary_c"});
+  std::vector<double> truth = m->nominal();
+  truth[m->index("EX0C")] = kInjectedEX0CMm;
+  truth[m->index("EZ0A")] = kInjectedEZ0AMm;
+  int rewrites = 0;
+  for (int k = 0; k < kNoiseOnlyTrials; ++k) {
+    const auto poses = m->random_poses(40, 100 + static_cast<unsigned>(k));
+    const Dataset noise = calib::simulate(*m, m->nominal(), poses, {"ptip"}, s, 500 + static_cast<unsigned>(k));
+    const calib::Result r = calib::calibrate(*m, noise, o);
+    const calib::WriteCheck w = calib::check_for_writing(*m, noise, r, o.loss);
+    EXPECT_TRUE(w.consistent) << k << ": " << w.inconsistency;
+    rewrites += w.significant ? 1 : 0;
+    const Dataset real = calib::simulate(*m, truth, poses, {"ptip"}, s, 500 + static_cast<unsigned>(k));
+    const calib::Result r2 = calib::calibrate(*m, real, o);
+    EXPECT_TRUE(calib::check_for_writing(*m, real, r2, o.loss).significant) << k;
+  }
+  EXPECT_LE(rewrites, kNoiseOnlyMaxRewrites);
+}
+
+// ---------------------------------------------------------------------------------------------------
+// Loader and recording errors are located
+// ---------------------------------------------------------------------------------------------------
+
+namespace {
+int line_of(const std::string& text, const std::string& what) {
+  const auto at = text.find(what);
+  return at == std::string::npos ? -1 : static_cast<int>(std::count(text.begin(), text.begin() + at, '\n')) + 1;
+}
+std::string error_of(const std::function<void()>& f) {
+  try {
+    f();
+  } catch (const InputError& e) {
+    return e.what();
+  }
+  return "(no error)";
+}
+}  // namespace
+
+// pcmm.yaml without rb3 loaded with rb3 = 250 and said nothing. Every parameter and tip_mm are required.
+TEST(CalibModel, PcmmMissingParameterIsAnErrorAtItsSection) {
+  std::ifstream in(source_path("machines/pcmm.yaml"));
+  std::stringstream ss;
+  ss << in.rdbuf();
+  const std::string text = ss.str();
+  auto without = [&](const std::string& line_start) {
+    std::string t = text;
+    const auto a = t.find(line_start);
+    t.erase(a, t.find('\n', a) - a + 1);
+    return t;
+  };
+  const std::string path = ::testing::TempDir() + "/pcmm-missing.yaml";
+  for (const std::string key : {"rb3", "bz", "gs3"}) {
+    const std::string t = without("    " + key + ":");
+    write(path, t);
+    const std::string e = error_of([&] { (void)calib::load_model(path); });
+    EXPECT_NE(e.find(fmt::format("{}:{}", path, line_of(t, "  parameters:"))), std::string::npos) << e;
+    EXPECT_NE(e.find("missing required parameter(s) " + key), std::string::npos) << e;
+  }
+  const std::string t = without("  tip_mm:");
+  write(path, t);
+  const std::string e = error_of([&] { (void)calib::load_model(path); });
+  EXPECT_NE(e.find(fmt::format("{}:{}", path, line_of(t, "pcmm:\n"))), std::string::npos) << e;
+  EXPECT_NE(e.find("tip_mm"), std::string::npos) << e;
+}
+
+// Metadata errors had no line ("0.5um" was even read as 0.5 mm): each is at its file:line:column.
+TEST(CalibRecording, MetadataErrorsNameLineAndColumn) {
+  const auto m = load("trunnion-ac");
+  const std::string body = "cmd.x,cmd.y,cmd.z,cmd.a,cmd.c,ptip.x,ptip.y,ptip.z\n1,2,3,4,5,6,7,8\n";
+  struct Case {
+    std::string meta, where, says;
+  };
+  const std::vector<Case> cases = {
+      {"# kind: static\n# sigma.ptip: 0.5um\n", "0.5um", "plain number"},
+      {"# kind: static\n# tool_length: 20 mm\n", "20 mm", "plain number"},
+      {"# note: x\n# kind: statik\n", "statik", "expected trajectory or static"},
+      {"# kind: static\n# sigma.ptip: -1\n", "-1", "must be positive"},
+      {"# kind: static\n# sigma.tpi: 0.001\n", "0.001", "unknown sigma"},
+      {"# kind: static\n# sigma.ptip 0.001\n", " 0.001", "a colon after the key"},
+      {"# kind: static\n# kind: static\n", "kind", "given twice"},
+  };
+  for (const auto& c : cases) {
+    const std::string text = c.meta + body;
+    // Oracle: the line and 1-based column of the offending text (on the last metadata line).
+    const std::size_t last = text.rfind("\n# ", text.find("\ncmd.")) + 1;
+    const std::size_t pos = text.find(c.where, last);
+    ASSERT_NE(pos, std::string::npos) << c.meta;
+    const int line = static_cast<int>(std::count(text.begin(), text.begin() + static_cast<long>(pos), '\n')) + 1;
+    const int col = static_cast<int>(pos - last) + 1;
+    const std::string e = error_of([&] { (void)calib::dataset_from(calib::parse_recording(text, "rec.csv"), *m); });
+    EXPECT_NE(e.find(fmt::format("rec.csv:{}:{}", line, col)), std::string::npos) << c.meta << " -> " << e;
+    EXPECT_NE(e.find(c.says), std::string::npos) << c.meta << " -> " << e;
+  }
+}
+
+// `simulate --noise dir:S` added the noise per component and left the tool axis non-unit (|dir| 0.993 - 1.028).
+TEST(CalibCli, SimulatedDirectionNoiseKeepsAUnitVector) {
+  const std::string poses = tmp("dir-poses.csv"), rec = tmp("dir-rec.csv");
+  auto r = test::run_command(
+      fmt::format("{} calibrate --design 20 --machine xmini --channels tip --seed 2 -o {}", CSCAM_CLI, poses));
+  ASSERT_EQ(r.status, 0) << r.output;
+  r =
+      test::run_command(fmt::format("{} simulate {} --machine xmini --channels tip,dir --noise dir:0.01 --decimals 12 "
+                                    "-o {}",
+                                    CSCAM_CLI, poses, rec));
+  ASSERT_EQ(r.status, 0) << r.output;
+  const calib::Recording rr = calib::read_recording(rec);
+  const int x = rr.column("dir.x");
+  ASSERT_GE(x, 0);
+  double spread = 0;
+  for (Eigen::Index i = 0; i < rr.rows(); ++i) {
+    const Eigen::Vector3d d(rr.data(i, x), rr.data(i, x + 1), rr.data(i, x + 2));
+    EXPECT_NEAR(d.norm(), 1.0, kUnitDirTol) << i;
+    spread = std::max(spread, std::abs(d.z()));
+  }
+  EXPECT_GT(spread, 0.0);
+}
+
+// docs/calibration.md: with link and tip data the stage frame's rotation about the probe axis is the one null
+// direction, and ths1 (the stage frame's x axis) is held at nominal. The analysis fixed ths3.
+TEST(CalibIdent, PcmmStageFrameConventionHoldsThs1) {
+  const auto m = load("pcmm");
+  calib::Sigmas s;
+  std::vector<double> truth = perturbed(*m, all(*m), 0.5, 41);
+  const Dataset both = calib::simulate(*m, truth, m->random_poses(45, 11), {"len", "tip"}, s, 1);
+  calib::Options o;
+  o.max_iterations = 1000;
+  const calib::Result r = calib::calibrate(*m, both, o);
+  ASSERT_EQ(r.ident.fixed.size(), 1u);
+  EXPECT_EQ(m->params()[r.ident.fixed[0]].name, "ths1");
+  EXPECT_EQ(r.estimate[m->index("ths1")], m->nominal()[m->index("ths1")]);
+  EXPECT_TRUE(std::isfinite(r.stddev[m->index("ths3")]));
+  ASSERT_EQ(r.ident.messages.size(), 1u);
+  EXPECT_EQ(r.ident.messages[0].rfind("ths1 cannot be separated from", 0), 0u) << r.ident.messages[0];
+}
+
+// The link-only parallel CMM: every printed trade-off ("+1 mm of rb3 looks the same as ...") and null-space vector
+// must be a direction the data do not see. Terms below 5 % (10 %) of the largest were dropped, so relations for
+// rb3, zb3, gs3 and vectors without sx, sy were not null directions at all.
+TEST(CalibIdent, PcmmLinkOnlyTradeOffsAreNullDirections) {
+  const auto m = load("pcmm");
+  calib::Sigmas s;
+  const Dataset d = calib::simulate(*m, m->nominal(), m->random_poses(45, 11), {"len"}, s, 1);
+  const calib::Identifiability id = calib::analyse(*m, d, m->nominal(), calib::Options{});
+  ASSERT_EQ(id.messages.size(), 7u);
+  // Oracle: central differences of the predicted link length, parameter by parameter.
+  const std::vector<double> p0 = m->nominal();
+  Eigen::MatrixXd J(static_cast<Eigen::Index>(d.poses.size()), static_cast<Eigen::Index>(m->size()));
+  auto sc = m->make_scratch();
+  std::vector<double> up(10), dn(10);
+  for (std::size_t j = 0; j < m->size(); ++j) {
+    std::vector<double> pp = p0, pm = p0;
+    const double h = 1e-5;
+    pp[j] += h;
+    pm[j] -= h;
+    for (std::size_t k = 0; k < d.poses.size(); ++k) {
+      m->predict_channels(d.poses[k].q.data(), pp.data(), up.data(), sc.get());
+      m->predict_channels(d.poses[k].q.data(), pm.data(), dn.data(), sc.get());
+      J(static_cast<Eigen::Index>(k), static_cast<Eigen::Index>(j)) = (up[9] - dn[9]) / (2 * h);
+    }
+  }
+  auto relative = [&](const std::map<std::string, double>& v) {
+    Eigen::VectorXd x = Eigen::VectorXd::Zero(static_cast<Eigen::Index>(m->size()));
+    double scale = 0;
+    for (const auto& [n, c] : v) {
+      x[static_cast<Eigen::Index>(m->index(n))] = c;
+      scale += std::abs(c) * J.col(static_cast<Eigen::Index>(m->index(n))).norm();
+    }
+    return (J * x).norm() / scale;
+  };
+  for (const std::string& msg : id.messages) {
+    // "<p> cannot be separated from ...: +1 <unit> of <p> looks the same as +a n1 -b n2 ...; fixed at nominal"
+    const std::string fixed = msg.substr(0, msg.find(' '));
+    const auto a = msg.find("looks the same as ");
+    ASSERT_NE(a, std::string::npos) << msg;
+    std::stringstream ts(msg.substr(a + 18, msg.find(';', a) - a - 18));
+    std::map<std::string, double> v{{fixed, 1.0}};
+    double c = 0;
+    std::string n;
+    while (ts >> c >> n) v[n] -= c;
+    EXPECT_LT(relative(v), kNullRelationRel) << msg;
+  }
+  for (const std::string& comb : id.combinations) {
+    // "[+1 deg ths3, -0.761 mm zb2, ...] move together: ..."
+    std::string body = comb.substr(1, comb.find(']') - 1);
+    std::replace(body.begin(), body.end(), ',', ' ');
+    std::stringstream ts(body);
+    std::map<std::string, double> v;
+    double c = 0;
+    std::string unit, n;
+    while (ts >> c >> unit >> n) v[n] += c;
+    EXPECT_LT(relative(v), kNullRelationRel) << comb;
   }
 }

@@ -648,7 +648,7 @@ TEST(Diagnose, BadMetadataAndEmptyMeasurementsAreErrors) {
       diagnose::diagnose(rec, trunnion(), {});
       FAIL() << "expected an error for tool_length " << tl;
     } catch (const InputError& e) {
-      EXPECT_NE(std::string(e.what()).find("tl.csv:3: metadata tool_length: expected a number"), std::string::npos)
+      EXPECT_NE(std::string(e.what()).find("tl.csv:3:16: metadata tool_length: expected a number"), std::string::npos)
           << e.what();
     }
   }

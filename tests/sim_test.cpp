@@ -83,9 +83,9 @@ TEST(SimRecording, ErrorsNameTheRowTheColumnOrTheCell) {
               sim::parse_recording("t,tip.x\n0,1\n0.1,1e300\n", "r.csv");
             }).find("r.csv:3:5: column tip.x: 1e300 is out of range"),
             std::string::npos);
-  // Numeric metadata: a finite number in range, at its line.
+  // Numeric metadata: a finite number in range, at its line and the value's column.
   const auto meta = sim::parse_recording("# machine: m\n# tool_length: inf\nt,tip.x\n0,1\n", "r.csv");
-  EXPECT_NE(error_of([&] { (void)meta.meta_number("tool_length", 0, 1e4); }).find("r.csv:2: metadata tool_length"),
+  EXPECT_NE(error_of([&] { (void)meta.meta_number("tool_length", 0, 1e4); }).find("r.csv:2:16: metadata tool_length"),
             std::string::npos);
   EXPECT_FALSE(meta.meta_number("spindle_rpm", 0, 1e6).has_value());
   const auto m = trunnion();

@@ -15,12 +15,16 @@
 
 #include "cscam/core/error.hpp"
 #include "cscam/core/tolerances.hpp"
+#include "unsupported/Eigen/SpecialFunctions"
 
 namespace cscam::calib {
 
 namespace {
 
 constexpr double kNaN = std::numeric_limits<double>::quiet_NaN();
+/// A term of a null-space vector or a trade-off smaller than this (relative to the largest, scaled units) is
+/// rounding of the SVD / QR, not part of the relation.
+constexpr double kNullTermRel = 1e-6;
 
 /// Channel group of channel index c (tip, dir, ptip, len.<link>).
 std::string group_of(const Model& m, std::size_t c) {
@@ -141,16 +145,18 @@ Dataset dataset_from(const Recording& rec, const Model& model) {
   Dataset d;
   d.file = rec.file;
   auto meta = [&](const char* key, double& v) {
-    auto it = rec.meta.find(key);
-    if (it == rec.meta.end()) return;
-    try {
-      v = std::stod(it->second);
-    } catch (const std::exception&) {
-      throw InputError(SourceLoc{rec.file}, fmt::format("metadata '{}': expected a number, got '{}'", key, it->second));
+    if (const auto x = rec.meta_number(key)) {
+      v = *x;
+      d.sigma.given = true;
     }
-    if (!(v > 0)) throw InputError(SourceLoc{rec.file}, fmt::format("metadata '{}': must be positive", key));
-    d.sigma.given = true;
   };
+  // A sigma for a channel family the calibration does not know (sigma.tpi) would be ignored: an error at its line.
+  for (const auto& [k, v] : rec.meta)
+    if (k.rfind("sigma.", 0) == 0 && k != "sigma.tip" && k != "sigma.ptip" && k != "sigma.dir" && k != "sigma.len")
+      throw InputError(rec.meta_loc(k),
+                       fmt::format("metadata '{}': unknown sigma (expected sigma.tip, sigma.ptip, sigma.dir or "
+                                   "sigma.len)",
+                                   k));
   meta("sigma.tip", d.sigma.tip_mm);
   meta("sigma.ptip", d.sigma.ptip_mm);
   meta("sigma.dir", d.sigma.dir);
@@ -337,7 +343,9 @@ Identifiability analyse(const Model& model, const Dataset& d, const std::vector<
     const double vmax = v.cwiseAbs().maxCoeff();
     std::vector<std::pair<double, std::size_t>> terms;
     for (Eigen::Index j = 0; j < m; ++j)
-      if (std::abs(v[j]) >= 0.1 * vmax) terms.push_back({v[j], id.candidates[static_cast<std::size_t>(j)]});
+      // Every term that is not rounding: dropping the small ones (below 10 % of the largest, in scaled units) left
+      // vectors that are no null direction (the PCMM's stage turn without sx, sy).
+      if (std::abs(v[j]) >= kNullTermRel * vmax) terms.push_back({v[j], id.candidates[static_cast<std::size_t>(j)]});
     std::sort(terms.begin(), terms.end(), [](auto& a, auto& b) { return std::abs(a.first) > std::abs(b.first); });
     // Physical steps (file units), normalised so that the largest is 1.
     std::vector<double> phys;
@@ -358,15 +366,19 @@ Identifiability analyse(const Model& model, const Dataset& d, const std::vector<
   }
   // Which parameters to fix: greedily in candidate order (the model lists the parameters a user cares
   // about first, e.g. rotary-axis location errors before part origin and gauge point), keep a column
-  // when it adds a direction the kept ones do not span; the rest are fixed.
+  // when it adds a direction the kept ones do not span; the rest are fixed. Frame conventions (ParamInfo::gauge) go
+  // last, so that they are the ones fixed when the data cannot see them.
   Eigen::MatrixXd Jl(Js.rows(), static_cast<Eigen::Index>(live.size()));
   for (std::size_t j = 0; j < live.size(); ++j)
     Jl.col(static_cast<Eigen::Index>(j)) = Js.col(static_cast<Eigen::Index>(live[j]));
-  std::vector<Eigen::Index> keep, drop;
+  std::vector<Eigen::Index> keep, drop, order;
+  for (int pass = 0; pass < 2; ++pass)
+    for (Eigen::Index j = 0; j < Jl.cols(); ++j)
+      if (model.params()[id.candidates[live[static_cast<std::size_t>(j)]]].gauge == (pass == 1)) order.push_back(j);
   {
     Eigen::MatrixXd Q(Jl.rows(), 0);
     const double thr = std::max(opt.rank_tolerance * smax, 1e-12);
-    for (Eigen::Index j = 0; j < Jl.cols(); ++j) {
+    for (const Eigen::Index j : order) {
       Eigen::VectorXd v = Jl.col(j);
       for (int pass = 0; pass < 2; ++pass) v -= Q * (Q.transpose() * v);  // re-orthogonalised Gram-Schmidt
       if (v.norm() > thr && static_cast<int>(keep.size()) < id.rank) {
@@ -379,6 +391,7 @@ Identifiability analyse(const Model& model, const Dataset& d, const std::vector<
     }
   }
   std::sort(keep.begin(), keep.end());
+  std::sort(drop.begin(), drop.end());
   if (keep.empty()) {
     std::string names;
     for (const std::size_t pi : id.candidates) names += (names.empty() ? "" : ", ") + model.params()[pi].name;
@@ -398,7 +411,7 @@ Identifiability analyse(const Model& model, const Dataset& d, const std::vector<
     const double cmax = c.size() ? c.cwiseAbs().maxCoeff() : 0.0;
     std::vector<std::pair<double, std::size_t>> terms;
     for (Eigen::Index k = 0; k < c.size(); ++k)
-      if (std::abs(c[k]) >= 0.05 * cmax && std::abs(c[k]) > 1e-6) terms.push_back({c[k], static_cast<std::size_t>(k)});
+      if (std::abs(c[k]) >= kNullTermRel * cmax) terms.push_back({c[k], static_cast<std::size_t>(k)});
     std::sort(terms.begin(), terms.end(), [](auto& a, auto& b) { return std::abs(a.first) > std::abs(b.first); });
     std::string t, names;
     const double nf = norm[static_cast<Eigen::Index>(live[static_cast<std::size_t>(j)])];
@@ -567,19 +580,23 @@ Result calibrate(const Model& model, const Dataset& d, const Options& opt) {
     const std::size_t nch = 9 + model.links().size();
     std::vector<double> out(nch);
     auto scratch = model.make_scratch();
-    std::vector<double> pose_rms(d.poses.size(), 0.0);
+    std::vector<double> pose_rms(d.poses.size(), 0.0), pose_chi2(d.poses.size(), 0.0), pose_dof(d.poses.size(), 0.0);
     for (std::size_t k = 0; k < d.poses.size(); ++k) {
       const auto& pose = d.poses[k];
       model.predict_channels(pose.q.data(), p.data(), out.data(), scratch.get());
       double s2 = 0;
       int cnt = 0;
+      bool dir = false;
       for (std::size_t c = 0; c < nch; ++c)
         if (!std::isnan(pose.meas[c])) {
           const double r = (pose.meas[c] - out[c]) / sigma_of(d.sigma, c);
           s2 += r * r;
           ++cnt;
+          dir = dir || (c >= 3 && c < 6);
         }
       pose_rms[k] = cnt ? std::sqrt(s2 / cnt) : 0.0;
+      pose_chi2[k] = s2;
+      pose_dof[k] = cnt - (dir ? 1 : 0);  // a unit direction has 2 degrees of freedom, not 3
     }
     double scale = 1.0;
     if (!d.sigma.given && !pose_rms.empty()) {
@@ -596,11 +613,112 @@ Result calibrate(const Model& model, const Dataset& d, const Options& opt) {
       const double median_rms = std::pow(1.0 - 2.0 / (9.0 * kc), 1.5);
       scale = std::max(sorted[sorted.size() / 2] / median_rms, 1e-300);
     }
+    const double npose = static_cast<double>(d.poses.size());
+    std::vector<bool> out_pose(d.poses.size(), false);
     for (std::size_t k = 0; k < d.poses.size(); ++k)
-      if (pose_rms[k] > 3.0 * scale) res.outliers.push_back({k, d.poses[k].line, pose_rms[k] / scale});
+      if (pose_rms[k] > 3.0 * scale) {
+        const double z = pose_rms[k] / scale, nk = std::max(pose_dof[k], 1.0);
+        const double p_any = std::min(1.0, npose * chi2_upper_tail(z * z * nk, nk));
+        res.outliers.push_back({k, d.poses[k].line, z, p_any});
+        out_pose[k] = true;
+      }
+    // The fit's chi^2 over the poses it trusts: a robust loss has down-weighted the outliers, so they are left out.
+    double chi2 = 0, m = 0;
+    for (std::size_t k = 0; k < d.poses.size(); ++k) {
+      if (o.loss != Loss::None && out_pose[k]) continue;
+      chi2 += pose_chi2[k];
+      m += pose_dof[k];
+    }
+    res.chi2 = chi2;
+    res.chi2_dof = std::max(0.0, m - static_cast<double>(nfree));
+    res.chi2_p = res.chi2_dof > 0 ? chi2_upper_tail(chi2, res.chi2_dof) : 1.0;
   }
   res.summary.time_s = std::chrono::duration<double>(std::chrono::steady_clock::now() - t0).count();
   return res;
+}
+
+double chi2_upper_tail(double x, double dof) {
+  if (!(dof > 0)) return 1.0;
+  if (!(x > 0)) return 1.0;
+  if (!std::isfinite(x)) return 0.0;
+  return Eigen::numext::igammac(0.5 * dof, 0.5 * x);
+}
+
+WriteCheck check_for_writing(const Model& model, const Dataset& d, const Result& r, Loss loss, double alpha_fit,
+                             double alpha_change) {
+  WriteCheck w;
+  // Consistency with the noise. Without sigmas in the recording the noise is estimated from the residuals, so the
+  // chi^2 says nothing; outliers are still judged against the median pose.
+  std::vector<Result::Outlier> bad;
+  // Exact data without sigmas: the median pose's residual is rounding, and so is every "outlier" against it.
+  const bool rounding = !d.sigma.given && !(r.chi2_reduced > 1e-12);
+  if (loss == Loss::None && !rounding)
+    for (const auto& o : r.outliers)
+      if (o.p_any < alpha_fit) bad.push_back(o);
+  std::sort(bad.begin(), bad.end(), [](auto& a, auto& b) { return a.normalised_rms > b.normalised_rms; });
+  std::string rows;
+  for (std::size_t i = 0; i < bad.size() && i < 5; ++i)
+    rows += fmt::format("{}{}:{} ({:.1f} sigma)", i ? ", " : "", d.file, bad[i].line, bad[i].normalised_rms);
+  if (bad.size() > 5) rows += fmt::format(" and {} more", bad.size() - 5);
+  if (d.sigma.given && r.chi2_p < alpha_fit) {
+    w.consistent = false;
+    w.inconsistency = fmt::format(
+        "chi^2 {:.4g} for {:.0f} degrees of freedom (p = {:.2g} < {:g}): the residuals are larger than the "
+        "recording's sigmas allow",
+        r.chi2, r.chi2_dof, r.chi2_p, alpha_fit);
+    if (rows.empty()) {
+      // Name the poses that contribute most.
+      std::vector<const Result::Outlier*> all;
+      for (const auto& o : r.outliers) all.push_back(&o);
+      std::sort(all.begin(), all.end(), [](auto* a, auto* b) { return a->normalised_rms > b->normalised_rms; });
+      for (std::size_t i = 0; i < all.size() && i < 5; ++i)
+        rows += fmt::format("{}{}:{} ({:.1f} sigma)", i ? ", " : "", d.file, all[i]->line, all[i]->normalised_rms);
+    }
+  }
+  if (!bad.empty() && w.consistent) {
+    w.consistent = false;
+    w.inconsistency = fmt::format("{} outlier pose(s) left at full weight", bad.size());
+  }
+  if (!w.consistent && !rows.empty()) w.inconsistency += "; worst rows: " + rows;
+  // Significance of the change: is any of it more than the noise would move a perfect machine's parameters?
+  const auto& ids = r.ident.identifiable;
+  if (r.covariance.size() > 0 && !ids.empty()) {
+    const auto n = static_cast<Eigen::Index>(ids.size());
+    Eigen::MatrixXd C(n, n);
+    Eigen::VectorXd dv(n);
+    for (Eigen::Index i = 0; i < n; ++i) {
+      dv[i] = r.estimate[ids[static_cast<std::size_t>(i)]] - model.params()[ids[static_cast<std::size_t>(i)]].nominal;
+      for (Eigen::Index j = 0; j < n; ++j)
+        C(i, j) = r.covariance(static_cast<Eigen::Index>(ids[static_cast<std::size_t>(i)]),
+                               static_cast<Eigen::Index>(ids[static_cast<std::size_t>(j)]));
+    }
+    // Scaled to unit diagonal (mm and degrees, strongly correlated): a pseudo-inverse of the correlation matrix.
+    Eigen::VectorXd sd = C.diagonal().cwiseMax(0.0).cwiseSqrt();
+    bool ok = true;
+    for (Eigen::Index i = 0; i < n; ++i) ok = ok && sd[i] > 0 && std::isfinite(sd[i]);
+    if (ok) {
+      const Eigen::VectorXd z = dv.cwiseQuotient(sd);
+      const Eigen::MatrixXd R = sd.cwiseInverse().asDiagonal() * C * sd.cwiseInverse().asDiagonal();
+      Eigen::SelfAdjointEigenSolver<Eigen::MatrixXd> es(R);
+      const Eigen::VectorXd ev = es.eigenvalues();
+      const double emax = ev.maxCoeff();
+      double m2 = 0, rank = 0;
+      const Eigen::VectorXd u = es.eigenvectors().transpose() * z;
+      for (Eigen::Index i = 0; i < n; ++i)
+        if (ev[i] > 1e-12 * emax) {
+          m2 += u[i] * u[i] / ev[i];
+          rank += 1;
+        }
+      w.mahalanobis = m2;
+      w.p_joint = chi2_upper_tail(m2, rank);
+      Eigen::Index imax = 0;
+      w.max_z = z.cwiseAbs().maxCoeff(&imax);
+      w.largest = model.params()[ids[static_cast<std::size_t>(imax)]].name;
+      w.p_max = std::min(1.0, static_cast<double>(n) * chi2_upper_tail(w.max_z * w.max_z, 1.0));
+      w.significant = w.p_joint < alpha_change || w.p_max < alpha_change;
+    }
+  }
+  return w;
 }
 
 std::vector<std::size_t> select_poses(const Model& model, const std::vector<std::vector<double>>& candidates,

@@ -475,6 +475,8 @@ class PcmmCalModel final : public Model {
     for (std::size_t i = 0; i < kin::kPcmmParamCount; ++i)
       params_.push_back({std::string(info[i].name), std::string(info[i].group), std::string(info[i].unit),
                          nominal_file_units[i], "seed 001 parameter " + std::string(info[i].name)});
+    // A rotation of the stage frame about its normal turns every ths_i alike; joint 1 defines its x axis.
+    params_[index("ths1")].gauge = true;
   }
   std::string kind() const override { return "pcmm"; }
   std::unique_ptr<Scratch> make_scratch() const override { return std::make_unique<PcmmScratch>(); }
@@ -564,10 +566,17 @@ std::shared_ptr<Model> load_pcmm(const YAML::Node& root, const std::string& path
   for (const auto& i : kin::pcmm_param_info()) nominal.push_back(i.nominal);
   Eigen::Vector3d tip(0, 0, -100);
   std::string link_name = "link";
+  // Every parameter and the probe tip are geometry: a missing one is an error, not a silent default (the link's
+  // name alone has one).
+  std::vector<bool> given(kin::kPcmmParamCount, false);
+  bool tip_given = false, params_given = false;
+  YAML::Node params_node;
   for (const auto& kv : pc) {
     const auto k = kv.first.as<std::string>();
     if (k == "parameters") {
       if (!kv.second.IsMap()) fail_at(path, kv.second, "'pcmm.parameters': expected a mapping name: value");
+      params_node = kv.first;  // the `parameters:` line, for messages
+      params_given = true;
       for (const auto& pv : kv.second) {
         const auto n = pv.first.as<std::string>();
         std::size_t idx = kin::kPcmmParamCount;
@@ -580,11 +589,22 @@ std::shared_ptr<Model> load_pcmm(const YAML::Node& root, const std::string& path
         } catch (const YAML::Exception&) {
           fail_at(path, pv.second, fmt::format("'pcmm.parameters.{}': expected a number", n));
         }
+        if (!std::isfinite(nominal[idx]))
+          fail_at(path, pv.second, fmt::format("'pcmm.parameters.{}': expected a finite number", n));
+        given[idx] = true;
       }
     } else if (k == "tip_mm") {
       if (!kv.second.IsSequence() || kv.second.size() != 3)
         fail_at(path, kv.second, "'pcmm.tip_mm': expected [x, y, z]");
-      for (int c = 0; c < 3; ++c) tip[c] = kv.second[static_cast<std::size_t>(c)].as<double>();
+      for (std::size_t c = 0; c < 3; ++c) {
+        const YAML::Node v = kv.second[c];
+        try {
+          tip[static_cast<Eigen::Index>(c)] = v.as<double>();
+        } catch (const YAML::Exception&) {
+          fail_at(path, v, "'pcmm.tip_mm': expected [x, y, z] in mm");
+        }
+      }
+      tip_given = true;
     } else if (k == "link") {
       // The passive link's name: the recording's column is len.<name> (a name as a column's suffix).
       const std::string name = kv.second.IsScalar() ? kv.second.as<std::string>() : std::string();
@@ -597,6 +617,20 @@ std::shared_ptr<Model> load_pcmm(const YAML::Node& root, const std::string& path
       fail_at(path, kv.first, fmt::format("'pcmm.{}': unknown key (expected parameters, tip_mm, limits, link)", k));
     }
   }
+  // Located at the line of the section the keys belong in: `pcmm:` or its `parameters:`.
+  YAML::Node pcmm_key;
+  for (const auto& kv : root)
+    if (kv.first.as<std::string>() == "pcmm") pcmm_key = kv.first;
+  if (!params_given)
+    fail_at(path, pcmm_key, "'pcmm.parameters': missing section (the 26 parameters of the parallel CMM, bz ... gs3)");
+  std::string missing;
+  for (std::size_t i = 0; i < kin::kPcmmParamCount; ++i)
+    if (!given[i]) missing += (missing.empty() ? "" : ", ") + std::string(kin::pcmm_param_info()[i].name);
+  if (!missing.empty())
+    fail_at(path, params_node,
+            fmt::format("'pcmm.parameters': missing required parameter(s) {} (every one of the 26 must be given)",
+                        missing));
+  if (!tip_given) fail_at(path, pcmm_key, "'pcmm.tip_mm': missing (the probe tip in the stage frame, [x, y, z] mm)");
   return std::make_shared<PcmmCalModel>(nominal, tip, path, std::move(text), link_name);
 }
 

@@ -23,10 +23,30 @@ std::string Recording::kind() const {
   return it == meta.end() ? std::string() : it->second;
 }
 
-std::optional<double> Recording::tool_length_mm() const {
-  auto it = meta.find("tool_length");
+std::optional<double> Recording::tool_length_mm() const { return meta_number("tool_length", true); }
+
+SourceLoc Recording::meta_loc(const std::string& key) const {
+  const auto it = meta_at.find(key);
+  return it == meta_at.end() ? SourceLoc{file} : it->second;
+}
+
+std::optional<double> Recording::meta_number(const std::string& key, bool zero_ok) const {
+  const auto it = meta.find(key);
   if (it == meta.end()) return std::nullopt;
-  return std::stod(it->second);
+  const std::string& v = it->second;
+  double x = 0;
+  const char* b = v.data();
+  if (!v.empty() && *b == '+') ++b;
+  const auto r = std::from_chars(b, v.data() + v.size(), x);
+  // std::stod read "0.5um" as 0.5 (mm): a unit or any trailing text is an error, not ignored.
+  if (r.ec != std::errc() || r.ptr != v.data() + v.size() || !std::isfinite(x))
+    throw InputError(meta_loc(key),
+                     fmt::format("metadata '{}': expected a plain number{}, got '{}'", key,
+                                 key == "sigma.dir" ? " (unit-vector components)" : " in mm (no unit)", v));
+  if (zero_ok ? !(x >= 0) : !(x > 0))
+    throw InputError(meta_loc(key),
+                     fmt::format("metadata '{}': must be {}, got '{}'", key, zero_ok ? ">= 0" : "positive", v));
+  return x;
 }
 
 int Recording::column(const std::string& name) const {
@@ -90,7 +110,10 @@ Recording parse_recording(const std::string& text, const std::string& name) {
   const sim::Recording s = sim::parse_recording(text, name);
   Recording rec;
   rec.file = name;
-  for (const auto& [k, v] : s.meta) rec.meta[k] = v;
+  for (const auto& [k, v] : s.meta) {
+    rec.meta[k] = v;
+    rec.meta_at[k] = s.meta_loc(k);
+  }
   rec.columns = s.columns;
   rec.line_of_row = s.row_line;
   {
@@ -113,12 +136,7 @@ Recording parse_recording(const std::string& text, const std::string& name) {
       break;
     }
   }
-  if (auto it = rec.meta.find("tool_length"); it != rec.meta.end()) {
-    double v = 0;
-    const auto r = std::from_chars(it->second.data(), it->second.data() + it->second.size(), v);
-    if (r.ec != std::errc() || !(v >= 0))
-      throw InputError(SourceLoc{name}, fmt::format("metadata 'tool_length': expected mm >= 0, got '{}'", it->second));
-  }
+  (void)rec.tool_length_mm();  // a malformed value is an error here, at its line
   const auto rows = static_cast<Eigen::Index>(s.rows());
   rec.data.resize(rows, static_cast<Eigen::Index>(rec.columns.size()));
   for (std::size_t c = 0; c < rec.columns.size(); ++c)

@@ -31,7 +31,7 @@ namespace {
 
 struct CalibArgs {
   std::string rec, machine, out, holdout, svg, loss, free, channels;
-  bool json = false, regularise = false, o3 = false;
+  bool json = false, regularise = false, o3 = false, write_anyway = false;
   int design = 0, candidates = 1000, max_iterations = 100;
   double split = 0.2;
   double tool_length = -1;
@@ -484,6 +484,25 @@ int run_calibrate(const CalibArgs& a) {
     js["finding"] = {{"effect", "geometric"}, {"target", target}, {"parameters", gp}};
   }
 
+  // Whether the fit may become a machine file: residuals that the noise explains, and a change larger than the noise
+  // would make on a perfect machine.
+  const calib::WriteCheck wc = calib::check_for_writing(*model, data, r, opt.loss);
+  t << fmt::format("fit: chi^2 {:.4g} for {:.0f} degrees of freedom, p = {:.3g}{}\n", r.chi2, r.chi2_dof, r.chi2_p,
+                   data.sigma.given ? "" : " (sigmas not given: estimated from the residuals)");
+  t << fmt::format(
+      "change: joint chi^2 {:.4g} (p = {:.3g}); largest |change| / std dev {:.2f} ({}, Bonferroni p = {:.3g})\n",
+      wc.mahalanobis, wc.p_joint, wc.max_z, wc.largest, wc.p_max);
+  js["fit_check"] = {{"chi2", r.chi2},
+                     {"dof", r.chi2_dof},
+                     {"p", r.chi2_p},
+                     {"consistent", wc.consistent},
+                     {"inconsistency", wc.inconsistency},
+                     {"significant", wc.significant},
+                     {"change_chi2", wc.mahalanobis},
+                     {"change_p", wc.p_joint},
+                     {"max_z", wc.max_z},
+                     {"max_z_parameter", wc.largest},
+                     {"max_z_p", wc.p_max}};
   int rc = 0;
   if (!r.summary.converged) {
     t << fmt::format("not converged: Ceres ended with {} ({}); no corrected file written\n", r.summary.termination,
@@ -497,7 +516,27 @@ int run_calibrate(const CalibArgs& a) {
         worse);
     js["refused"] = worse;
     rc = 2;
+  } else if (!wc.consistent && a.out.empty()) {
+    t << "warning: the fit does not agree with the measurement noise: " << wc.inconsistency
+      << " (--loss huber or cauchy down-weights outlier rows)\n";
+  } else if (!wc.consistent && !a.write_anyway) {
+    t << fmt::format(
+        "the fit does not agree with the measurement noise: {}. No corrected file written (a robust loss, --loss "
+        "huber or cauchy, down-weights outlier rows; fix or remove them; or give --write-anyway to write it "
+        "regardless)\n",
+        wc.inconsistency);
+    js["refused"] = wc.inconsistency;
+    rc = 2;
+  } else if (!wc.significant && (a.out.empty() || !a.write_anyway)) {
+    t << fmt::format(
+        "no significant correction; the machine file is consistent with the recording (every change is within what "
+        "the noise allows){}\n",
+        a.out.empty() ? "" : ": no corrected file written (--write-anyway writes it regardless)");
+    js["significant"] = false;
   } else if (!a.out.empty()) {
+    if (!wc.consistent)
+      t << "warning: writing although the fit does not agree with the noise (--write-anyway): " << wc.inconsistency
+        << "\n";
     const std::string text = model->corrected_yaml(r.estimate);
     write_file_atomically(a.out, [&](std::ostream& o) { o << text; });
     t << "wrote " << a.out << "\n";
@@ -530,6 +569,9 @@ std::function<int()> add_calib_commands(CLI::App& app) {
   c->add_flag("--json", a->json, "print one JSON document on stdout (the text report goes to stderr)");
   c->add_option("--svg", a->svg, "folder for residual and singular-value charts");
   c->add_option("--loss", a->loss, "robust loss: huber or cauchy (scale 3 sigma)");
+  c->add_flag("--write-anyway", a->write_anyway,
+              "write the corrected file even when the fit disagrees with the noise (chi^2, outliers) or changes "
+              "nothing significantly");
   c->add_flag("--regularise", a->regularise, "keep unidentifiable parameters free with a prior instead of fixing them");
   c->add_option("--design", a->design, "choose N poses from candidates in the working volume (D-optimal)");
   c->add_flag("--o3", a->o3, "with --design: maximise the smallest singular value instead of log det");

@@ -250,7 +250,9 @@ std::function<int()> add_sim_commands(CLI::App& app) {
   sim_cmd->add_option("--channels", sa->channels, "channel groups: tip,ptip,enc,acc,dir (default tip,enc)");
   sim_cmd->add_option("--inject", sa->inject,
                       "EFFECT:TARGET:PARAMS, e.g. backlash:q2:0.012 or vibration:tip.z:166.7:0.00322");
-  sim_cmd->add_option("--noise", sa->noise, "GROUP:SIGMA white measurement noise, e.g. tip:0.001");
+  sim_cmd->add_option("--noise", sa->noise,
+                      "GROUP:SIGMA white measurement noise, e.g. tip:0.001 (dir: sigma per component of the tool-axis "
+                      "vector, which is then normalised to unit length)");
   sim_cmd->add_option("--seed", sa->seed, "random seed of the noise");
   sim_cmd->add_option("--tool-length", sa->tool_length, "tool length, mm (default: NC header or machine)")
       ->check(cli::kNonNegative);

@@ -17,6 +17,12 @@ namespace cscam::sim {
 namespace {
 constexpr double kNaN = std::numeric_limits<double>::quiet_NaN();
 
+/// Metadata keys of spec/recording.md that no plain comment starts with (not `machine` or `note`, which are words).
+bool is_meta_key(const std::string& k) {
+  static const std::set<std::string> keys{"kind", "tool_length", "spindle_rpm", "flutes"};
+  return keys.count(k) > 0 || k.rfind("sigma.", 0) == 0;
+}
+
 std::string trim(std::string_view s) {
   size_t a = 0, b = s.size();
   while (a < b && (s[a] == ' ' || s[a] == '\t' || s[a] == '\r')) ++a;
@@ -39,6 +45,13 @@ std::optional<std::string> Recording::meta_value(const std::string& key) const {
   return std::nullopt;
 }
 
+SourceLoc Recording::meta_loc(const std::string& key) const {
+  for (size_t i = 0; i < meta.size(); ++i)
+    if (meta[i].first == key)
+      return SourceLoc{file, i < meta_line.size() ? meta_line[i] : 0, i < meta_col.size() ? meta_col[i] : 0};
+  return SourceLoc{file};
+}
+
 std::optional<double> Recording::meta_number(const std::string& key, double lo, double hi) const {
   for (size_t i = 0; i < meta.size(); ++i) {
     if (meta[i].first != key) continue;
@@ -46,8 +59,10 @@ std::optional<double> Recording::meta_number(const std::string& key, double lo, 
     double x = kNaN;
     const auto r = std::from_chars(v.data(), v.data() + v.size(), x);
     if (r.ec != std::errc() || r.ptr != v.data() + v.size() || !std::isfinite(x) || x < lo || x > hi)
-      throw InputError(SourceLoc{file, i < meta_line.size() ? meta_line[i] : 0},
-                       fmt::format("metadata {}: expected a number in [{:g}, {:g}], got '{}'", key, lo, hi, v));
+      throw InputError(meta_loc(key),
+                       fmt::format("metadata {}: expected a number in [{:g}, {:g}] (in the spec's unit, written "
+                                   "without one), got '{}'",
+                                   key, lo, hi, v));
     return x;
   }
   return std::nullopt;
@@ -61,6 +76,7 @@ void Recording::set_meta(const std::string& key, const std::string& value) {
     }
   meta.emplace_back(key, value);
   meta_line.push_back(0);
+  meta_col.push_back(0);
 }
 
 int Recording::add_column(const std::string& name, std::vector<double> values) {
@@ -89,9 +105,27 @@ Recording parse_recording(const std::string& text, const std::string& name) {
       if (header_seen) continue;  // a comment after the header
       const auto body = ln.substr(1);
       const auto colon = body.find(':');
-      if (colon == std::string_view::npos) continue;  // a plain comment
-      rec.meta.emplace_back(trim(body.substr(0, colon)), trim(body.substr(colon + 1)));
+      if (colon == std::string_view::npos) {
+        // A plain comment, unless it starts with a metadata key: a forgotten colon must not drop the entry.
+        const std::string t = trim(body);
+        const std::string first = t.substr(0, t.find_first_of(" \t="));
+        if (is_meta_key(first))
+          throw InputError(SourceLoc{name, line, static_cast<int>(ln.find(first)) + 1 + static_cast<int>(first.size())},
+                           fmt::format("metadata '{}': expected '# {}: value' (a colon after the key)", first, first));
+        continue;
+      }
+      const std::string key = trim(body.substr(0, colon));
+      if (key.empty())
+        throw InputError(SourceLoc{name, line, 2}, "metadata line without a key: expected '# key: value'");
+      for (size_t i = 0; i < rec.meta.size(); ++i)
+        if (rec.meta[i].first == key)
+          throw InputError(SourceLoc{name, line, static_cast<int>(ln.find(key)) + 1},
+                           fmt::format("metadata '{}' given twice (first on line {})", key, rec.meta_line[i]));
+      const auto vpos = body.find_first_not_of(" \t", colon + 1);
+      rec.meta.emplace_back(key, trim(body.substr(colon + 1)));
       rec.meta_line.push_back(line);
+      rec.meta_col.push_back(vpos == std::string_view::npos ? static_cast<int>(ln.size()) + 1
+                                                            : static_cast<int>(vpos) + 2);  // +1 for '#', 1-based
       continue;
     }
     if (!header_seen) {
@@ -156,7 +190,8 @@ Recording parse_recording(const std::string& text, const std::string& name) {
   const int tc = rec.column("t");
   const auto kind = rec.meta_value("kind");
   if (kind && *kind != "trajectory" && *kind != "static")
-    throw InputError(SourceLoc{name}, fmt::format("metadata kind: expected trajectory or static, got '{}'", *kind));
+    throw InputError(rec.meta_loc("kind"),
+                     fmt::format("metadata kind: expected trajectory or static, got '{}'", *kind));
   if (tc < 0 && (!kind || *kind == "trajectory"))
     throw InputError(SourceLoc{name}, "a trajectory recording needs a time column 't'");
   if (tc >= 0) {

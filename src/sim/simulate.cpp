@@ -356,11 +356,11 @@ Recording simulate(const Trajectory& traj, const machine::Machine& m, const std:
     rec.add_column(name, std::move(v));
   };
   const char* xyz[3] = {"x", "y", "z"};
-  auto vec_group = [&](const std::string& g, const std::vector<Eigen::Vector3d>& src) {
+  auto vec_group = [&](const std::string& g, const std::vector<Eigen::Vector3d>& src, double sigma) {
     for (int c = 0; c < 3; ++c) {
       std::vector<double> v(n);
       for (size_t i = 0; i < n; ++i) v[i] = src[i][c];
-      add_channel(g + "." + xyz[c], std::move(v), sigma_of(g));
+      add_channel(g + "." + xyz[c], std::move(v), sigma);
     }
   };
   if (want("enc"))
@@ -376,16 +376,29 @@ Recording simulate(const Trajectory& traj, const machine::Machine& m, const std:
       const int c = e->channel.back() - 'x';
       for (size_t i = 0; i < n; ++i) tip_fx[i][c] += e->value(ctx, i, e->p.data());
     }
-  if (want("tip")) vec_group("tip", tip);
-  if (want("ptip")) vec_group("ptip", ptip);
-  if (want("dir")) vec_group("dir", dir);
+  if (want("tip")) vec_group("tip", tip, sigma_of("tip"));
+  if (want("ptip")) vec_group("ptip", ptip, sigma_of("ptip"));
+  if (want("dir")) {
+    // A measured tool axis is a unit vector: the noise turns it (sigma per component, about sigma rad), and the
+    // result is normalised. Added per component alone, it lengthened the vector and gave it a third, radial error
+    // that no instrument reports and that the calibration's chi^2 (2 degrees of freedom per direction) did not expect.
+    std::vector<Eigen::Vector3d> noisy = dir;
+    if (const double s = sigma_of("dir"); s > 0) {
+      std::normal_distribution<double> nd(0.0, s);
+      for (auto& v : noisy) {
+        for (int c = 0; c < 3; ++c) v[c] += nd(rng);
+        v.normalize();
+      }
+    }
+    vec_group("dir", noisy, 0.0);
+  }
   if (want("acc")) {
     std::vector<Eigen::Vector3d> acc(n, Eigen::Vector3d::Zero());
     for (size_t i = 1; i + 1 < n; ++i) {
       const double h0 = traj.t[i] - traj.t[i - 1], h1 = traj.t[i + 1] - traj.t[i];
       acc[i] = 2.0 * ((tip_fx[i + 1] - tip_fx[i]) / h1 - (tip_fx[i] - tip_fx[i - 1]) / h0) / (h0 + h1) * 1e-3;
     }
-    vec_group("acc", acc);
+    vec_group("acc", acc, sigma_of("acc"));
   }
   return rec;
 }

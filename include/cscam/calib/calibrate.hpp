@@ -127,14 +127,41 @@ struct Result {
   Eigen::MatrixXd covariance;    ///< of all parameters (file units; zero rows for fixed ones); empty when not computed
   std::vector<std::pair<std::pair<std::size_t, std::size_t>, double>> correlations;  ///< |rho| > 0.9
   double chi2_reduced = 0;  ///< sum (r/sigma)^2 / (m - free): ~1 when the sigmas are right
+  /// Sum of squared weighted residuals (not robustified) over the poses the fit trusts: all of them, or with a
+  /// robust loss all but the listed outliers; its degrees of freedom (measurements - free parameters) and
+  /// P(chi^2_dof >= chi2). A tiny p says the residuals are larger than the sigmas allow.
+  double chi2 = 0, chi2_dof = 0, chi2_p = 1;
   ResidualStats before, after;
   struct Outlier {
     std::size_t pose;
     int line;
     double normalised_rms;
+    /// Chance that at least one of the dataset's clean poses lies this far out (per-pose chi^2 tail times the
+    /// number of poses): small = a real outlier, not the largest of many noisy poses.
+    double p_any = 1;
   };
   std::vector<Outlier> outliers;
 };
+
+/// P(X >= x) for X ~ chi^2 with `dof` degrees of freedom.
+double chi2_upper_tail(double x, double dof);
+
+/// Whether a fit may be written as a corrected machine file.
+struct WriteCheck {
+  /// The residuals agree with the noise: with the recording's sigmas, chi2_p >= alpha; and no outlier with
+  /// p_any < alpha is left at full weight (no robust loss).
+  bool consistent = true;
+  std::string inconsistency;  ///< why not, for a person (names the worst rows by line)
+  /// Some change is larger than its uncertainty allows: the joint test (change' C^-1 change ~ chi^2_n) or
+  /// the largest |change| / sigma against its Bonferroni limit, either at level alpha.
+  bool significant = true;
+  double mahalanobis = 0, p_joint = 1;
+  double max_z = 0, p_max = 1;  ///< largest |change| / stddev, and its Bonferroni-corrected p
+  std::string largest;          ///< the parameter of max_z
+};
+/// Judges `r` at level `alpha` (default 1e-3 for consistency and 0.01 for significance).
+WriteCheck check_for_writing(const Model& model, const Dataset& d, const Result& r, Loss loss, double alpha_fit = 1e-3,
+                             double alpha_change = 0.01);
 
 /// Identifiability analysis at parameters `p` (file units) for the candidates in `opt.free`.
 Identifiability analyse(const Model& model, const Dataset& d, const std::vector<double>& p, const Options& opt);

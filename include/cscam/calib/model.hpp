@@ -44,6 +44,9 @@ struct ParamInfo {
   std::string unit;         ///< "mm" or "deg"
   double nominal = 0.0;     ///< value in the machine file as loaded (file units)
   std::string description;  ///< one line for a person
+  /// A frame convention rather than geometry (the PCMM's ths1 names the stage frame's x axis): when the data
+  /// cannot tell it from others, it is the one held at nominal.
+  bool gauge = false;
 };
 
 /// Every channel the model can predict for one pose. Channels the model does not have are NaN.

@@ -10,21 +10,29 @@
 #include <string>
 #include <vector>
 
+#include "cscam/core/error.hpp"
+
 namespace cscam::calib {
 
 /// A recording in memory. Values are in the file's units (mm, deg, s, ...).
 struct Recording {
-  std::string file;                         ///< path or name used in messages
-  std::map<std::string, std::string> meta;  ///< the `# key: value` lines
-  std::vector<std::string> columns;         ///< header, in file order
-  std::vector<int> line_of_row;             ///< 1-based source line of every data row
-  int header_line = 0;                      ///< 1-based line of the header row
-  Eigen::MatrixXd data;                     ///< rows x columns, NaN = not measured
+  std::string file;                          ///< path or name used in messages
+  std::map<std::string, std::string> meta;   ///< the `# key: value` lines
+  std::map<std::string, SourceLoc> meta_at;  ///< where each value is (file, line, column), for messages
+  std::vector<std::string> columns;          ///< header, in file order
+  std::vector<int> line_of_row;              ///< 1-based source line of every data row
+  int header_line = 0;                       ///< 1-based line of the header row
+  Eigen::MatrixXd data;                      ///< rows x columns, NaN = not measured
 
   /// `kind` metadata: "trajectory", "static" or empty when not given.
   [[nodiscard]] std::string kind() const;
   /// `tool_length` metadata in mm, if given.
   [[nodiscard]] std::optional<double> tool_length_mm() const;
+  /// Where a metadata value is (file:line:column), or the file alone when it was not read from one.
+  [[nodiscard]] SourceLoc meta_loc(const std::string& key) const;
+  /// A metadata value as a plain number (no unit; from_chars, the whole value) that is positive (or >= 0 with
+  /// `zero_ok`), if given. @throws InputError at the value's file:line:column otherwise.
+  [[nodiscard]] std::optional<double> meta_number(const std::string& key, bool zero_ok = false) const;
   /// Index of a column by name, or -1.
   [[nodiscard]] int column(const std::string& name) const;
   [[nodiscard]] bool has(const std::string& name) const { return column(name) >= 0; }

@@ -8,6 +8,8 @@
 #include <utility>
 #include <vector>
 
+#include "cscam/core/error.hpp"
+
 namespace cscam::machine {
 struct Machine;
 }
@@ -18,6 +20,7 @@ struct Recording {
   std::string file;                                       ///< where it was read from (messages)
   std::vector<std::pair<std::string, std::string>> meta;  ///< metadata in file order
   std::vector<int> meta_line;                             ///< 1-based file line of each metadata entry (0: set)
+  std::vector<int> meta_col;                              ///< 1-based column of each entry's value (0: set)
   std::vector<std::string> columns;                       ///< header names
   std::vector<std::vector<double>> data;                  ///< data[column][row]; NaN = empty cell
   std::vector<int> row_line;                              ///< 1-based file line of every row
@@ -26,6 +29,8 @@ struct Recording {
   [[nodiscard]] std::size_t rows() const { return data.empty() ? 0 : data.front().size(); }
   [[nodiscard]] int column(const std::string& name) const;  ///< -1 if absent
   [[nodiscard]] std::optional<std::string> meta_value(const std::string& key) const;
+  /// Where a metadata entry's value is (file, line, column), for messages; the file alone when it was set.
+  [[nodiscard]] SourceLoc meta_loc(const std::string& key) const;
   /// A numeric metadata value, if present. @throws InputError naming the file and line when it is not a finite
   /// number in [lo, hi].
   [[nodiscard]] std::optional<double> meta_number(const std::string& key, double lo, double hi) const;
