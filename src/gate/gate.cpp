@@ -71,7 +71,15 @@ Summary check(const std::string& nc_text, const std::string& nc_name, const cl::
   }
   // A feed move with the spindle stopped (an M5 the CL did not ask for, e.g. from an INSERT) where the CL cuts with it
   // running: the tool would be pushed through the material standing still.
-  if (!ncp.spindle_stops.empty() && cl_line_of_nc_line) {
+  // (Only where a stop has feed blocks: a program's last M5 has none.)
+  const bool stopped_feeds =
+      cl_line_of_nc_line &&
+      std::any_of(ncp.spindle_stops.begin(), ncp.spindle_stops.end(), [&](const nc::Program::SpindleStop& st) {
+        for (std::size_t bi = st.first_block; bi < st.end_block && bi < ncp.blocks.size(); ++bi)
+          if (ncp.blocks[bi].motion != nc::Motion::Rapid) return true;
+        return false;
+      });
+  if (stopped_feeds) {
     std::unordered_map<int, bool> cl_running;  // CL line of a move -> the spindle runs there
     bool on = false;
     std::size_t e = 0;
