@@ -24,10 +24,22 @@ namespace fs = std::filesystem;
 
 namespace {
 
+/// One folder per test process, removed when the process ends (ctest runs every test in a process of its own, and
+/// each used to leave its folder behind).
 fs::path temp_dir() {
-  const fs::path d = fs::temp_directory_path() / ("cscam_geom_test_" + std::to_string(::getpid()));
-  fs::create_directories(d);
-  return d;
+  struct Folder {
+    fs::path path;
+    ~Folder() {
+      std::error_code ec;
+      fs::remove_all(path, ec);
+    }
+  };
+  static const Folder folder{[] {
+    const fs::path d = fs::temp_directory_path() / ("cscam_geom_test_" + std::to_string(::getpid()));
+    fs::create_directories(d);
+    return d;
+  }()};
+  return folder.path;
 }
 
 /// Axis-aligned box [lo, hi] as a closed, outward-oriented 12-triangle mesh.
