@@ -1735,7 +1735,8 @@ TEST(CSpace, APathCheckAnswersAsTheExactCheckAtEveryPoseOfAWalk) {
   constexpr int kWalks = 36, kSteps = 150;
   constexpr double kStepMm = 0.4, kStepDeg = 0.4;  // largest joint step of the walks' noise
   // (The fence stands where each machine's holder or head meets it on some walks and not on others.)
-  // Each machine with its head meshes, and without (then the tool alone swings into the fence).
+  // Each machine with its head meshes, and without (then the tool alone swings into the fence). The walks are the same
+  // with every compiler; at these fences each case has hundreds of hits (its holder's or head's at least 55).
   struct Case {
     std::string machine;
     double fence_x;
@@ -1744,7 +1745,7 @@ TEST(CSpace, APathCheckAnswersAsTheExactCheckAtEveryPoseOfAWalk) {
   for (const auto& [name, fence_x, head_meshes] : std::vector<Case>{{"trunnion-ac", 90.0, true},
                                                                     {"head-head-ac", 110.0, true},
                                                                     {"head-table-bc45", 110.0, true},
-                                                                    {"trunnion-ac", 90.0, false},
+                                                                    {"trunnion-ac", 50.0, false},
                                                                     {"head-head-ac", 70.0, false}}) {
     SCOPED_TRACE(name + (head_meshes ? "" : " (no head meshes)"));
     const auto m = machine::load(test::source_path("machines/" + name + ".yaml"));
@@ -1769,7 +1770,9 @@ TEST(CSpace, APathCheckAnswersAsTheExactCheckAtEveryPoseOfAWalk) {
     std::size_t free = 0, hits = 0, head_hits = 0;
     for (int walk = 0; walk < kWalks; ++walk) {
       const double tilt = deg2rad(40.0) * 0.5 * (1.0 + u(rng)), phi = kPi * u(rng);
-      const kin::Posed start{Vec3(50 * u(rng), 50 * u(rng), 15 + 20 * u(rng)),
+      // (Drawn one by one: the order of a call's arguments is the compiler's, and clang's differs from gcc's.)
+      const double x0 = 50 * u(rng), y0 = 50 * u(rng), z0 = 15 + 20 * u(rng);
+      const kin::Posed start{Vec3(x0, y0, z0),
                              Vec3(std::sin(tilt) * std::cos(phi), std::sin(tilt) * std::sin(phi), std::cos(tilt))};
       kin::Axes q = kin::Axes::Zero();
       if (!k->solve_for_rotaries(start, q)) continue;
@@ -1785,7 +1788,8 @@ TEST(CSpace, APathCheckAnswersAsTheExactCheckAtEveryPoseOfAWalk) {
       std::vector<kin::Solution> branches;
       for (int s = 0; s < kSteps; ++s) {
         if (turning) {
-          pose.tip_mm += 0.1 * Vec3(u(rng), u(rng), u(rng));
+          const double dx = u(rng), dy = u(rng), dz = u(rng);
+          pose.tip_mm += 0.1 * Vec3(dx, dy, dz);
           pose.axis = Eigen::AngleAxisd(deg2rad(kStepDeg), turn_axis) * pose.axis;
           k->inverse_branches(pose, &q, branches);
           const kin::Axes last = q;
