@@ -892,14 +892,7 @@ int line_of(const std::string& text, const std::string& what) {
   const auto at = text.find(what);
   return at == std::string::npos ? -1 : static_cast<int>(std::count(text.begin(), text.begin() + at, '\n')) + 1;
 }
-std::string error_of(const std::function<void()>& f) {
-  try {
-    f();
-  } catch (const InputError& e) {
-    return e.what();
-  }
-  return "(no error)";
-}
+using test::error_of;
 }  // namespace
 
 // pcmm.yaml without rb3 loaded with rb3 = 250 and said nothing. Every parameter and tip_mm are required.

@@ -15,6 +15,7 @@
 #include "cscam/sim/effects.hpp"
 #include "cscam/sim/recording.hpp"
 #include "cscam/sim/simulate.hpp"
+#include "test_support.hpp"
 
 using namespace cscam;
 
@@ -22,14 +23,7 @@ namespace {
 
 machine::Machine trunnion() { return machine::load(std::string(CSCAM_SOURCE_DIR) + "/machines/trunnion-ac.yaml"); }
 
-std::string error_of(const std::function<void()>& f) {
-  try {
-    f();
-  } catch (const InputError& e) {
-    return e.what();
-  }
-  return "(no error)";
-}
+using test::error_of;
 
 /// A square on the trunnion at 600 mm/min: every linear axis reverses.
 sim::Trajectory square_path(const machine::Machine& m, double rate = 500) {

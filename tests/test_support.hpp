@@ -1,14 +1,26 @@
 #pragma once
 // Shared test helpers: paths, seeded randomness, and the tolerances (all from cscam/core/tolerances.hpp).
 #include <cstdio>
+#include <functional>
 #include <random>
 #include <string>
 
+#include "cscam/core/error.hpp"
 #include "cscam/core/tolerances.hpp"
 
 namespace cscam::test {
 
 inline std::string source_path(const std::string& rel) { return std::string(CSCAM_SOURCE_DIR) + "/" + rel; }
+
+/// The message of the InputError that f throws, or "(no error)".
+inline std::string error_of(const std::function<void()>& f) {
+  try {
+    f();
+  } catch (const InputError& e) {
+    return e.what();
+  }
+  return "(no error)";
+}
 
 /// Every randomised test draws from this seed so failures reproduce.
 inline constexpr unsigned kSeed = 20261122u;
