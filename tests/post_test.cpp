@@ -195,6 +195,42 @@ TEST(Post, PointOutsideTheLimitsNamesTheClLine) {
   }
 }
 
+// A path that runs along a rotary limit: the trunnion's A reaches +50 deg (its limit) at two points, whose tool vectors
+// lie past it by `past_deg`, as a CL's rounded vector does. A point 3.4e-6 deg past the limit made the post retract and
+// flip both rotaries half a turn, and back. Within tol::kLimitSnapDeg the point is cut at the limit, straight through;
+// the control, 0.01 deg past, is beyond it and still flips (the machine cannot reach that axis on this branch).
+TEST(Post, APointPastARotaryLimitByRoundingIsCutAtTheLimitNotFlipped) {
+  const auto m = load_machine("trunnion-ac");
+  const auto k = m.kinematics();
+  for (const double past_deg : {3.4e-6, 5e-4, 0.01}) {
+    std::ostringstream cl;
+    cl.precision(12);
+    cl << "UNITS/MM\nMULTAX\nCUTTER/10,0\nFEDRAT/MMPM,800\nRAPID\n";
+    const std::array<double, 8> tilt_deg = {45, 47, 49, 50 + past_deg, 50 + past_deg, 49, 47, 45};
+    for (std::size_t i = 0; i < tilt_deg.size(); ++i) {
+      const double t = deg2rad(tilt_deg[i]);
+      const Vec3 u(0.0, std::sin(t), std::cos(t));
+      const Vec3 tip(-20.0 + 5.0 * static_cast<double>(i), 0.0, 60.0);
+      if (i == 0)
+        cl << "GOTO/" << tip.x() << "," << tip.y() + 20 * u.y() << "," << tip.z() + 20 * u.z() << ",0," << u.y() << ","
+           << u.z() << "\n";
+      cl << "GOTO/" << tip.x() << "," << tip.y() << "," << tip.z() << ",0," << u.y() << "," << u.z() << "\n";
+    }
+    const cl::Program prog = cl::read_text(cl.str(), "along_limit.cls");
+    const Posted p = post_program(prog, m, *k);
+    const bool snapped = past_deg <= tol::kLimitSnapDeg;
+    EXPECT_EQ(p.summary.retracts, snapped ? 0u : 1u) << past_deg << "\n" << p.text;
+    if (snapped) {
+      EXPECT_NE(p.text.find("A50.0000"), std::string::npos) << p.text;
+      EXPECT_EQ(p.text.find("A-"), std::string::npos) << p.text;  // never on the flipped branch
+    }
+    // The oracle: back-simulation of the text against the CL (tip and axis, every block sampled).
+    const auto v = verify_text(p.text, prog, m, *k);
+    EXPECT_TRUE(v.ok) << past_deg << ": " << v.message;
+    EXPECT_LE(v.max_axis_deviation_deg, m.post.axis_tolerance_deg);
+  }
+}
+
 // On a machine whose head carries a rotary, machine coordinates depend on the tool length: a second tool 60 mm longer
 // was posted with the first one's length (its tip 60 mm away, and the gate, told one length, passed it). Tools of
 // different lengths are refused without TCP, naming the tool change; one length, or TCP, is posted. The oracle for the

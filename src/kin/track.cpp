@@ -5,6 +5,7 @@
 #include <limits>
 #include <vector>
 
+#include "cscam/core/tolerances.hpp"
 #include "cscam/core/units.hpp"
 
 namespace cscam::kin {
@@ -38,6 +39,31 @@ bool track_rec(const Kinematics& k, const Axes& prev, const Posed& p0, const Pos
   return track_rec(k, qm, mid, p1, depth + 1, out, violation, singular, max_step, jumped, p1_branches);
 }
 
+/// Takes a solution past a rotary limit by at most tol::kLimitSnapDeg to the limit, with the other axes solved again
+/// for the same tip. False (q unchanged) when nothing is that near or the snapped values break a limit.
+bool snap_rotaries_to_limits(const Kinematics& k, Axes& q) {
+  const double eps = deg2rad(tol::kLimitSnapDeg);
+  Axes s = q;
+  bool moved = false;
+  for (std::size_t i = 0; i < k.axes().size(); ++i) {
+    const auto& a = k.axes()[i];
+    double& v = s[static_cast<int>(i)];
+    if (!a.rotary()) continue;
+    if (v > a.max && v <= a.max + eps) {
+      v = a.max;
+      moved = true;
+    } else if (v < a.min && v >= a.min - eps) {
+      v = a.min;
+      moved = true;
+    }
+  }
+  if (!moved) return false;
+  const Posed pose = k.forward(q);
+  if (!k.solve_for_rotaries(pose, s) || !k.check_limits(s).empty()) return false;
+  q = s;
+  return true;
+}
+
 /// The choice of nearest_solution among `sols` (modified: windings adjusted to `near`).
 bool choose_nearest(const Kinematics& k, std::vector<Solution>& sols, const Axes& near, Axes& out,
                     std::string* violation, bool* singular, const std::function<double(const Axes&)>& extra_cost) {
@@ -50,6 +76,7 @@ bool choose_nearest(const Kinematics& k, std::vector<Solution>& sols, const Axes
     k.nearest_winding(s.axes, near);
     // Axis limits after the winding choice, then the limits the axis values do not show (a PKM's passive joints).
     std::string v = k.check_limits(s.axes);
+    if (!v.empty() && snap_rotaries_to_limits(k, s.axes)) v.clear();
     const bool passive = v.empty();
     if (passive) v = k.passive_violation(s.axes);
     if (!v.empty()) {

@@ -22,6 +22,11 @@ inline constexpr double kReachSlackRad = 0.5 * kAxisDeviationRad;
 /// Allowed slack when comparing an axis value to its limit (floating-point noise only).
 inline constexpr double kLimitSlackMm = 1e-7;
 inline constexpr double kLimitSlackDeg = 1e-7;
+/// An IK solution at most this far past a rotary limit is taken at the limit (the linear axes solved again for the same
+/// tip): a CL tool vector printed with 5 or 6 decimals is off by up to about 6e-4 deg, and a path along a limit would
+/// otherwise flip its rotaries wherever rounding put a point beyond it. The tool axis then turns by at most this much,
+/// far inside the axis tolerance that the gate judges.
+inline constexpr double kLimitSnapDeg = 1e-3;
 /// Hysteresis for counting a reversal in statistics.
 inline constexpr double kReversalHysteresisMm = 0.002;
 inline constexpr double kReversalHysteresisDeg = 0.01;
