@@ -758,6 +758,18 @@ TEST(CalibRecording, ThePcmmPassiveLinkIsNamedByTheMachineFile) {
   EXPECT_THROW((void)calib::load_model(bad), InputError);
 }
 
+// A chi^2 tail far out (thousands of degrees of freedom, or a gross outlier) underflows to 0: the report said "p = 0",
+// which is false. A 40-sigma normal tail (erfc) is such a value.
+TEST(CalibReport, APValueBelowWhatDoublesShowIsNotPrintedAsZero) {
+  EXPECT_EQ(calib::p_value_text(0.0), "p < 1e-300");
+  EXPECT_EQ(calib::p_value_text(1e-320), "p < 1e-300");  // subnormal: as good as lost
+  EXPECT_EQ(calib::p_value_text(0.0312), "p = 0.0312");
+  EXPECT_EQ(calib::p_value_text(0.0312, 2), "p = 0.031");
+  EXPECT_EQ(calib::p_value_text(1.0), "p = 1");
+  const double tail = 0.5 * std::erfc(40.0 / std::sqrt(2.0));  // a 40-sigma normal tail: about 3.7e-350, lost
+  EXPECT_EQ(calib::p_value_text(tail), "p < 1e-300");
+}
+
 TEST(CalibRecording, ARecordingWithNothingMeasuredIsALocatedError) {
   // A header without pose rows, and pose rows whose measured cells are all empty: the SVD of the empty Jacobian
   // crashed (SIGSEGV). Both name the recording's header line.

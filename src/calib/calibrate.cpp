@@ -644,6 +644,11 @@ double chi2_upper_tail(double x, double dof) {
   return Eigen::numext::igammac(0.5 * dof, 0.5 * x);
 }
 
+std::string p_value_text(double p, int significant_digits) {
+  if (!(p >= 1e-300)) return std::isnan(p) ? "p = nan" : "p < 1e-300";
+  return fmt::format("p = {:.{}g}", p, significant_digits);
+}
+
 WriteCheck check_for_writing(const Model& model, const Dataset& d, const Result& r, Loss loss, double alpha_fit,
                              double alpha_change) {
   WriteCheck w;
@@ -663,9 +668,9 @@ WriteCheck check_for_writing(const Model& model, const Dataset& d, const Result&
   if (d.sigma.given && r.chi2_p < alpha_fit) {
     w.consistent = false;
     w.inconsistency = fmt::format(
-        "chi^2 {:.4g} for {:.0f} degrees of freedom (p = {:.2g} < {:g}): the residuals are larger than the "
+        "chi^2 {:.4g} for {:.0f} degrees of freedom ({} < {:g}): the residuals are larger than the "
         "recording's sigmas allow",
-        r.chi2, r.chi2_dof, r.chi2_p, alpha_fit);
+        r.chi2, r.chi2_dof, p_value_text(r.chi2_p, 2), alpha_fit);
     if (rows.empty()) {
       // Name the poses that contribute most.
       std::vector<const Result::Outlier*> all;

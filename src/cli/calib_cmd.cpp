@@ -487,11 +487,12 @@ int run_calibrate(const CalibArgs& a) {
   // Whether the fit may become a machine file: residuals that the noise explains, and a change larger than the noise
   // would make on a perfect machine.
   const calib::WriteCheck wc = calib::check_for_writing(*model, data, r, opt.loss);
-  t << fmt::format("fit: chi^2 {:.4g} for {:.0f} degrees of freedom, p = {:.3g}{}\n", r.chi2, r.chi2_dof, r.chi2_p,
+  t << fmt::format("fit: chi^2 {:.4g} for {:.0f} degrees of freedom, {}{}\n", r.chi2, r.chi2_dof,
+                   calib::p_value_text(r.chi2_p),
                    data.sigma.given ? "" : " (sigmas not given: estimated from the residuals)");
-  t << fmt::format(
-      "change: joint chi^2 {:.4g} (p = {:.3g}); largest |change| / std dev {:.2f} ({}, Bonferroni p = {:.3g})\n",
-      wc.mahalanobis, wc.p_joint, wc.max_z, wc.largest, wc.p_max);
+  t << fmt::format("change: joint chi^2 {:.4g} ({}); largest |change| / std dev {:.2f} ({}, Bonferroni {})\n",
+                   wc.mahalanobis, calib::p_value_text(wc.p_joint), wc.max_z, wc.largest,
+                   calib::p_value_text(wc.p_max));
   js["fit_check"] = {{"chi2", r.chi2},
                      {"dof", r.chi2_dof},
                      {"p", r.chi2_p},

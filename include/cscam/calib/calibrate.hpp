@@ -146,6 +146,10 @@ struct Result {
 /// P(X >= x) for X ~ chi^2 with `dof` degrees of freedom.
 double chi2_upper_tail(double x, double dof);
 
+/// "p = 0.0312" for a p-value, or "p < 1e-300" where it is smaller than doubles show (a chi^2 tail of thousands of
+/// degrees of freedom underflows to 0, which is not "p = 0").
+std::string p_value_text(double p, int significant_digits = 3);
+
 /// Whether a fit may be written as a corrected machine file.
 struct WriteCheck {
   /// The residuals agree with the noise: with the recording's sigmas, chi2_p >= alpha; and no outlier with
