@@ -3,6 +3,7 @@
 #include "cscam/plan/plan.hpp"
 
 #include <fcl/fcl.h>
+#include <fmt/format.h>
 #include <gtest/gtest.h>
 
 #include <array>
@@ -91,6 +92,36 @@ TEST(Planner, ConstantAxisIsThreePlusTwo) {
   ASSERT_EQ(p.segments.size(), 1u);
   EXPECT_EQ(p.segments[0].tier, plan::Tier::Fixed2);
   EXPECT_TRUE(p.segments[0].failures.empty());
+}
+
+// Rapid moves between two cuts (retract, traverse, approach) form segments of their own, which were reported as
+// "fixed 2 axes + simultaneous 3 axes" like a 3+2 cut. They are reported as positioning: the oracle is the CL's own
+// motion kinds (a segment is positioning exactly when every one of its moves is a RAPID).
+TEST(Planner, SegmentsOfRapidMovesOnlyAreReportedAsPositioning) {
+  const cl::Program prog = cl::read_text(
+      "UNITS/MM\nMULTAX\nCUTTER/10,0\nFEDRAT/MMPM,800\nRAPID\nGOTO/0,0,80,0,0,1\nRAPID\nGOTO/0,0,60,0,0,1\n"
+      "GOTO/10,0,50,0,0.1,0.994987\nGOTO/20,0,50,0,0.2,0.979796\nRAPID\nGOTO/20,0,80,0,0.2,0.979796\n"
+      "RAPID\nGOTO/30,30,80,0,0,1\nRAPID\nGOTO/30,30,60,0,0,1\nGOTO/20,30,50,0,-0.1,0.994987\n"
+      "GOTO/10,30,50,0,-0.2,0.979796\nRAPID\nGOTO/10,30,80,0,-0.2,0.979796\n",
+      "passes.cls");
+  const auto p = run(prog, 2.0);
+  ASSERT_GE(p.segments.size(), 3u);
+  std::size_t positioning = 0;
+  const std::string text = p.summary();
+  for (std::size_t i = 0; i < p.segments.size(); ++i) {
+    const auto& g = p.segments[i];
+    bool all_rapid = true;
+    for (std::size_t m = g.first_move; m <= g.last_move; ++m)
+      all_rapid = all_rapid && prog.moves[m].kind == cl::MotionKind::Rapid;
+    EXPECT_EQ(g.positioning, all_rapid) << "segment " << i + 1;
+    positioning += all_rapid ? 1 : 0;
+    const std::string head = g.first_line == g.last_line
+                                 ? fmt::format("segment {} (CL line {}): ", i + 1, g.first_line)
+                                 : fmt::format("segment {} (CL lines {}-{}): ", i + 1, g.first_line, g.last_line);
+    const std::string kind = all_rapid ? "positioning (rapid moves only)" : plan::to_string(g.tier);
+    EXPECT_NE(text.find(head + kind), std::string::npos) << head + kind << "\n" << text;
+  }
+  EXPECT_EQ(positioning, 4u) << text;  // lines 6, 12, 14 and 20; the two cuts start at their approach (8, 16)
 }
 
 TEST(Planner, AzimuthSweepAtFixedTiltFixesTheTiltAxis) {

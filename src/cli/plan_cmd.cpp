@@ -468,6 +468,7 @@ std::vector<std::string> segment_reports(const Setup& s, const plan::Plan& p, co
         {{"cl_lines", {seg.first_line, seg.last_line}},
          {"tier", static_cast<int>(seg.tier)},
          {"tier_name", plan::to_string(seg.tier)},
+         {"positioning", seg.positioning},
          {"description", seg.description},
          {"earlier_tiers_failed", std::move(fails)},
          {"axes", std::move(axes)},
@@ -546,7 +547,8 @@ int run_compare(const PlanArgs& a) {
   const std::size_t conv_collisions = hc.n;
   std::string tiers;
   int counts[5] = {0, 0, 0, 0, 0};
-  for (const auto& g : p.segments) ++counts[static_cast<int>(g.tier)];
+  int positioning = 0;  // rapid-only segments (retracts, traverses): they cut nothing, so no tier is counted for them
+  for (const auto& g : p.segments) g.positioning ? ++positioning : ++counts[static_cast<int>(g.tier)];
   tiers = fmt::format("{} / {} / {} / {}", counts[1], counts[2], counts[3], counts[4]);
   std::cout << fmt::format("cone {:.2f} deg, resolution {:.3f} deg, collision {}\n", a.cone_deg, a.resolution_deg,
                            s->opt.cspace.check_collision ? "on" : "off");
@@ -574,6 +576,7 @@ int run_compare(const PlanArgs& a) {
                                conv_axes_cell(hc.swept.uncertified), hp.swept.uncertified);
   }
   std::cout << fmt::format("{:<28}{:>22}{:>22}\n", "segment tiers 1/2/3/4", "-", tiers);
+  if (positioning) std::cout << fmt::format("{:<28}{:>22}{:>22}\n", "positioning segments", "-", positioning);
   std::cout << fmt::format("{:<28}{:>22}{:>22.3f}\n", "time (s)", conv_cell(fmt::format("{:.3f}", conv_s)), p.seconds);
   std::cout << fmt::format(
       "planner queries: {} cells, {} IK, {} stroke, {} collision, {} more for {} swept moves; peak memory {:.0f} MB\n",

@@ -3,6 +3,7 @@
 #include <fmt/format.h>
 #include <sys/resource.h>
 
+#include <algorithm>
 #include <chrono>
 #include <cmath>
 #include <limits>
@@ -105,8 +106,10 @@ std::string Plan::summary() const {
     if (g.reorientation != Reorientation::None)
       reo = std::string("; reorientation into it: ") + to_string(g.reorientation) +
             (g.reorientation_detail.empty() ? "" : ": " + g.reorientation_detail);
-    s += fmt::format("segment {} (CL lines {}-{}): {} — {}{}\n", i + 1, g.first_line, g.last_line, to_string(g.tier),
-                     g.description, reo);
+    const std::string lines = g.first_line == g.last_line ? fmt::format("CL line {}", g.first_line)
+                                                          : fmt::format("CL lines {}-{}", g.first_line, g.last_line);
+    s += fmt::format("segment {} ({}): {} — {}{}\n", i + 1, lines,
+                     g.positioning ? "positioning (rapid moves only)" : to_string(g.tier), g.description, reo);
     for (const auto& f : g.failures)
       s += fmt::format("    tier {} failed at CL line {}: {}\n", static_cast<int>(f.tier), f.line, f.reason());
     if (g.legs.state != Legs::NotCounted) s += "    legs: " + g.legs.text() + "\n";
@@ -261,6 +264,9 @@ Plan Planner::run(const cl::Program& program) const {
     rep.first_line = moves[s].line;
     rep.last_line = moves[e].line;
     rep.tier = c.tier;
+    rep.positioning =
+        std::all_of(moves.begin() + static_cast<std::ptrdiff_t>(s), moves.begin() + static_cast<std::ptrdiff_t>(e) + 1,
+                    [](const cl::Move& mv) { return mv.kind == cl::MotionKind::Rapid; });
     rep.failures = std::move(c.failures);
     rep.description = std::move(c.description);
     if (!opt_.monotone_axes.empty() && cells.layers.size() > 2) {

@@ -110,6 +110,9 @@ struct SegmentReport {
   std::size_t first_move = 0, last_move = 0;
   int first_line = 0, last_line = 0;
   Tier tier = Tier::Shortest;
+  /// Every move of the segment is a rapid (a retract, a traverse or an approach between cuts): it positions the tool
+  /// and cuts nothing, so its tier says little (reported as positioning, not counted with the cutting segments).
+  bool positioning = false;
   std::vector<TierFailure> failures;  ///< one per tier tried before the one reached
   std::string description;            ///< e.g. "fixed B=-22.0 C=1.0"
   /// The reorientation into this segment (retract to the safe plane, rotate, position, plunge), as the post
