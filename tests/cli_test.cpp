@@ -9,6 +9,7 @@
 #include <nlohmann/json.hpp>
 #include <regex>
 #include <sstream>
+#include <tuple>
 
 #include "cscam/cl/program.hpp"
 #include "cscam/geom/mesh.hpp"
@@ -114,6 +115,41 @@ TEST(Cli, NxPathPlannedAtCone10PassesBesideTheVerticalOnTheTrunnion) {
   // where C must swing half a turn) and refused it; the plan is within the cone all along.
   TempDir d;
   plan_and_verify(d, cscam::test::source_path("examples/nx-haas-umc750/variable_axis.cls"), "trunnion-ac", "10");
+}
+
+// Planned programs under tool-tip control. `plan --cone C --tcp` on NX's path was refused by the gate on every bundled
+// machine: (1) the control moves the tip straight between blocks while it turns the axis, so the ball centre (which
+// the plan keeps on the CL path) left it by up to 0.03 mm; (2) beside the vertical the post followed the great circle
+// of two planned axes around the pole (C swinging half a turn) instead of the plan's own way through it, and landed on
+// the other branch. And on a spiral whose head C must unwind between two points (each end's winding beyond the limit
+// at the other), the post turned at the first point only, then fed across the branch change (2.75 mm off the path).
+// The oracles: the gate's back-simulation (exit 0) and an independent `verify` against the CL within the cone.
+TEST(Cli, PlannedProgramsUnderToolTipControlKeepTheBallCentreAndTheBranch) {
+  TempDir d;
+  const std::string nx = cscam::test::source_path("examples/nx-haas-umc750/variable_axis.cls");
+  // The hemisphere spiral of scripts/generate_cl.py: tilting 0 -> 70 deg over 8 turns (C of +-360 deg must unwind).
+  std::ostringstream hemi;
+  hemi.precision(10);
+  hemi << "UNITS/MM\nMULTAX/ON\nCUTTER/6,3\nFEDRAT/MMPM,1500\nRAPID\n";
+  for (int t = 0; t < 600; ++t) {
+    const double th = 70.0 * M_PI / 180.0 * t / 599, ph = 2 * M_PI * 8 * t / 599;
+    const double n[3] = {std::sin(th) * std::cos(ph), std::sin(th) * std::sin(ph), std::cos(th)};
+    hemi << "GOTO/" << 30 * n[0] << "," << 30 * n[1] << "," << 30 * n[2] - 10 << "," << n[0] << "," << n[1] << ","
+         << n[2] << "\n";
+  }
+  const std::string spiral = d.file("hemi.cls", hemi.str());
+  for (const auto& [cl, machine, cone] :
+       {std::tuple{nx, "trunnion-ac", "5"}, std::tuple{nx, "trunnion-ac", "10"}, std::tuple{nx, "head-head-ac", "5"},
+        std::tuple{nx, "head-table-bc45", "5"}, std::tuple{spiral, "head-head-ac", "5"}}) {
+    SCOPED_TRACE(std::string(machine) + " cone " + cone + " " + cl);
+    const std::string nc = d.file(std::string(machine) + "_tcp" + cone + ".ngc");
+    const auto planned =
+        run_command(kCli + " plan " + q(cl) + " --machine " + machine + " --cone " + cone + " --tcp -o " + q(nc));
+    ASSERT_EQ(planned.status, 0) << planned.output;
+    const auto r =
+        run_command(kCli + " verify " + q(nc) + " --machine " + machine + " --cl " + q(cl) + " --cone " + cone);
+    EXPECT_EQ(r.status, 0) << r.output;
+  }
 }
 
 TEST(Cli, ARunOfVerticalPointsIsCrossedAtCone0) {

@@ -332,15 +332,29 @@ class Sequencer {
   /// Posts one CL point under tool-tip control: a rapid (retract, turn, approach) or a feed (flip, pieces).
   void cartesian(const cl::Move& mv, const kin::Axes& q);
 
-  /// Under TCP with machine angles as words: a flip or unwind before mv by retract, turn, plunge.
-  void tcp_reconfigure(const kin::Posed& pose0, const kin::Posed& pose1, const kin::Axes& q1, const cl::Move& mv,
+  /// Under TCP with machine angles as words: a flip or unwind before (or at) mv by retract, turn, plunge; true when it
+  /// cut to mv itself.
+  bool tcp_reconfigure(const kin::Posed& pose0, const kin::Posed& pose1, const kin::Axes& q1, const cl::Move& mv,
                        double feed_mm_min);
+  /// Retract along the tool axis, turn from qa to qb, plunge, at `pose` (tool-tip control).
+  void tcp_turn_at(const kin::Posed& pose, const kin::Axes& qa, const kin::Axes& qb, const cl::Move& mv,
+                   double feed_mm_min);
+  /// The feed m0 -> m1 under tool-tip control, split by tcp_pieces.
+  void tcp_feed(const cl::Move& m0, const kin::Axes& q0, const cl::Move& m1, const kin::Axes& q1, double feed_mm_min,
+                const Linearizer::ClAxes* cl);
 
   /// The tool axis that the words v give, as the control interpolates them.
   bool axis_of_words(const kin::Axes& v, Vec3& axis) const;
 
   /// The pieces of m0 -> m1 under TCP: points inserted where the interpolated words turn the axis out of tolerance.
-  void tcp_pieces(const cl::Move& m0, const kin::Axes& q0, const cl::Move& m1, const kin::Axes& q1);
+  /// The cone reference's CL axes at the ends of the TCP segment into m1 (null: none).
+  const Linearizer::ClAxes* tcp_cl_axes(const cl::Move& m1, Linearizer::ClAxes& ends) const;
+  /// Whether the words' interpolation between the two poses keeps the tool within the cone of the CL axes `cl`.
+  bool words_in_cone(const kin::Posed& pose0, const kin::Axes& q0, const kin::Posed& pose1, const kin::Axes& q1,
+                     const Linearizer::ClAxes& cl) const;
+  /// With `cl` (a planned program's CL axes at the ends), axes within the cone of the CL's are accepted too.
+  void tcp_pieces(const cl::Move& m0, const kin::Axes& q0, const cl::Move& m1, const kin::Axes& q1,
+                  const Linearizer::ClAxes* cl = nullptr);
 
   /// The machine axes the control moves to for the words v (its IK nearest its previous axes, as the gate reads it).
   void track_control(const kin::Axes& v, const Vec3& cl_axis);

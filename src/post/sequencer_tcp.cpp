@@ -2,13 +2,16 @@
 // interpolates; points inserted where its interpolation of the rotary words would turn the tool axis away.
 #include <fmt/format.h>
 
+#include <algorithm>
 #include <array>
 #include <cmath>
 #include <limits>
+#include <optional>
 #include <utility>
 #include <vector>
 
 #include "cscam/core/error.hpp"
+#include "cscam/core/segment.hpp"
 #include "cscam/core/tolerances.hpp"
 #include "cscam/core/units.hpp"
 #include "cscam/kin/track.hpp"
@@ -113,12 +116,17 @@ void Sequencer::cartesian(const cl::Move& mv, const kin::Axes& q) {
     }
   } else {
     const double feed_mm_min = mv.feed_mm_per_min > 0 ? mv.feed_mm_per_min : kFallbackFeedMmMin;
+    Linearizer::ClAxes ends;
+    const Linearizer::ClAxes* cl = tcp_cl_axes(mv, ends);
+    bool reached = false;  // tcp_reconfigure cut to mv itself
     if (!vectors_ && traits_.tcp_rotary_words == kin::Traits::TcpRotaryWords::MachineAngles) {
       const kin::Posed pose0{cart_tip_, cart_axis_}, pose1{mv.tip_in_part_mm, axis};
-      if (!continues_branch(pose0, cart_q_, pose1, q)) tcp_reconfigure(pose0, pose1, q, mv, feed_mm_min);
+      // A planned pair of axis values whose words keep the tool in the cone is the plan's own way between the points,
+      // even where tracking the great circle of the two axes would need another branch (beside the singular pole).
+      if (!continues_branch(pose0, cart_q_, pose1, q) && !(cl && words_in_cone(pose0, cart_q_, pose1, q, *cl)))
+        reached = tcp_reconfigure(pose0, pose1, q, mv, feed_mm_min);
     }
-    tcp_pieces(cart_move_, cart_q_, mv, q);
-    for (const auto& pc : tcp_pieces_) emit_tcp_feed(pc.tip, pc.axis, pc.q, feed_mm_min);
+    if (!reached) tcp_feed(cart_move_, cart_q_, mv, q, feed_mm_min, cl);
   }
   if (position) track_control(v, axis);
   off_path_ = false;
@@ -132,41 +140,82 @@ void Sequencer::cartesian(const cl::Move& mv, const kin::Axes& q) {
 
 /// Under tool-tip control with the machine's rotary angles as words: the axis values at the last point (cart_q_,
 /// pose0) and q1 (at mv) lie on different branches or windings, and the words' linear interpolation would swing
-/// the tool through other orientations on the path. As reconfigure does in machine coordinates: retract along the
-/// tool axis, turn the rotary words there (a rapid; the control holds the tip), plunge back; cart_q_ is then q1's
-/// branch at pose0, from which the cut to mv continues.
-void Sequencer::tcp_reconfigure(const kin::Posed& pose0, const kin::Posed& pose1, const kin::Axes& q1,
+/// the tool. As Sequencer::reconfigure: turns at pose0 to q1's branch followed back there; where q1's branch cannot be
+/// followed back inside the limits, cuts to mv on the current branch and turns there; where neither can (an unwind
+/// forced between two points, each end's winding beyond a limit at the other), turns at pose0 to a branch that runs to
+/// mv inside the limits and again at mv. Returns whether it cut to mv itself (the last two cases).
+bool Sequencer::tcp_reconfigure(const kin::Posed& pose0, const kin::Posed& pose1, const kin::Axes& q1,
                                 const cl::Move& mv, double feed_mm_min) {
-  const SourceLoc where{prog_.file, mv.line, 0};
   const kin::Axes q0 = cart_q_;
-  refuse_if_asked(q0, q1, cart_move_, mv);
+  const cl::Move m0 = cart_move_;
+  refuse_if_asked(q0, q1, m0, mv);
+  auto runs_through = [&](const kin::Axes& qa, kin::Axes& qb) {
+    bool jumped = false;
+    return kin::track_checked(kin_, qa, pose0, pose1, qb, jumped) && !jumped && kin_.check_limits(qb).empty();
+  };
   kin::Axes q0n;
-  if (!branch_back(pose0, pose1, q1, q0n)) q0n = nearest_at_start(pose0, q0, q1, cart_move_, mv);
-  if (rotary_jump(q0, q0n) < 1e-9) return;  // tracking stalled near a singularity: same branch after all
+  if (!branch_back(pose0, pose1, q1, q0n)) {
+    kin::Axes q1p;
+    if (runs_through(q0, q1p) && rotary_jump(q1p, q1) >= kFlipCheckRad) {
+      tcp_feed(m0, q0, mv, q1p, feed_mm_min, nullptr);
+      tcp_turn_at(pose1, q1p, q1, mv, feed_mm_min);
+      return true;
+    }
+    std::vector<kin::Solution> sols;
+    kin_.inverse_all(pose0, &q0, sols);
+    std::sort(sols.begin(), sols.end(), [&](const kin::Solution& a, const kin::Solution& b) {
+      return rotary_jump(q0, a.axes) < rotary_jump(q0, b.axes);
+    });
+    for (const kin::Solution& sol : sols) {
+      if (!sol.feasible() || rotary_jump(q0, sol.axes) < kFlipCheckRad || !runs_through(sol.axes, q1p)) continue;
+      tcp_turn_at(pose0, q0, sol.axes, mv, feed_mm_min);
+      tcp_feed(m0, sol.axes, mv, q1p, feed_mm_min, nullptr);
+      if (rotary_jump(q1p, q1) >= kFlipCheckRad) tcp_turn_at(pose1, q1p, q1, mv, feed_mm_min);
+      return true;
+    }
+    q0n = nearest_at_start(pose0, q0, q1, m0, mv);
+  }
+  if (rotary_jump(q0, q0n) < 1e-9) return false;  // tracking stalled near a singularity: same branch after all
+  tcp_turn_at(pose0, q0, q0n, mv, feed_mm_min);
+  return false;
+}
+
+/// Under tool-tip control: turns the rotaries from qa to qb (the same pose, another branch or winding) at `pose` by
+/// retract along the tool axis, turn, plunge. `mv` is the CL move the turn is made for.
+void Sequencer::tcp_turn_at(const kin::Posed& pose, const kin::Axes& qa, const kin::Axes& qb, const cl::Move& mv,
+                            double feed_mm_min) {
+  const SourceLoc where{prog_.file, mv.line, 0};
   const double d = m_.post.singularity.retract_mm;
-  const Vec3 up = pose0.tip_mm + d * pose0.axis;
-  kin::Axes q_up = q0, qn_up = q0n;
-  if (!kin_.solve_for_rotaries(kin::Posed{up, pose0.axis}, q_up) ||
-      !kin_.solve_for_rotaries(kin::Posed{up, pose0.axis}, qn_up) || !kin_.check_limits(q_up).empty() ||
+  const Vec3 up = pose.tip_mm + d * pose.axis;
+  kin::Axes q_up = qa, qn_up = qb;
+  if (!kin_.solve_for_rotaries(kin::Posed{up, pose.axis}, q_up) ||
+      !kin_.solve_for_rotaries(kin::Posed{up, pose.axis}, qn_up) || !kin_.check_limits(q_up).empty() ||
       !kin_.check_limits(qn_up).empty())
     throw InputError(where, fmt::format("the rotaries must flip or unwind before CL line {} ({}) but the tool cannot "
                                         "retract {:.1f} mm along its axis inside the limits "
                                         "(post.singularity.retract_mm)",
-                                        mv.line, rotary_change(kin_, q0, q0n), d));
+                                        mv.line, rotary_change(kin_, qa, qb), d));
   stop_exactly_at_last_feed();
-  emit_tcp_feed(up, pose0.axis, q_up, feed_mm_min);  // out along the tool axis
-  const kin::Axes v = cartesian_words(up, pose0.axis, qn_up);
+  emit_tcp_feed(up, pose.axis, q_up, feed_mm_min);  // out along the tool axis
+  const kin::Axes v = cartesian_words(up, pose.axis, qn_up);
   emit_g0(v);
-  track_control(v, pose0.axis);
+  track_control(v, pose.axis);
   cart_q_ = qn_up;
   resume_blend_ = false;
-  emit_tcp_feed(pose0.tip_mm, pose0.axis, q0n, feed_mm_min);  // and straight back in
+  emit_tcp_feed(pose.tip_mm, pose.axis, qb, feed_mm_min);  // and straight back in
   resume_blend_ = true;
   ++sum_.retracts;
   sum_.warnings.push_back(
       fmt::format("{}: rotaries flip or unwind before CL line {} ({}): retract {:.1f} mm along "
                   "the tool axis, turn, plunge",
-                  where.str(), mv.line, rotary_change(kin_, q0, q0n), d));
+                  where.str(), mv.line, rotary_change(kin_, qa, qb), d));
+}
+
+/// The feed m0 (at q0) -> m1 (at q1) under tool-tip control, in the pieces tcp_pieces splits it into.
+void Sequencer::tcp_feed(const cl::Move& m0, const kin::Axes& q0, const cl::Move& m1, const kin::Axes& q1,
+                         double feed_mm_min, const Linearizer::ClAxes* cl) {
+  tcp_pieces(m0, q0, m1, q1, cl);
+  for (const auto& pc : tcp_pieces_) emit_tcp_feed(pc.tip, pc.axis, pc.q, feed_mm_min);
 }
 
 /// The tool axis that the words v (tip + rotary words) give, as the control interpolates them.
@@ -184,39 +233,88 @@ bool Sequencer::axis_of_words(const kin::Axes& v, Vec3& axis) const {
   return kin_.tool_axis_at(v[rp[0]], v[rp[1]], tip, axis);
 }
 
+/// The CL axes (the cone reference of a planned program) at the ends of the TCP segment into the program move m1, from
+/// the previous program move where the sequencer last was; null without a cone reference or after an inserted point.
+const Linearizer::ClAxes* Sequencer::tcp_cl_axes(const cl::Move& m1, Linearizer::ClAxes& ends) const {
+  const cl::Program* ref = opt_.cone_reference;
+  const auto& moves = prog_.moves;
+  if (!ref || opt_.cone_deg <= 0 || &m1 <= moves.data() || &m1 >= moves.data() + moves.size()) return nullptr;
+  const auto i = static_cast<std::size_t>(&m1 - moves.data());
+  const cl::Move& m0 = moves[i - 1];
+  if (i >= ref->moves.size() || cart_move_.line != m0.line || cart_move_.tip_in_part_mm != m0.tip_in_part_mm)
+    return nullptr;
+  ends = {ref->moves[i - 1].axis_in_part, ref->moves[i].axis_in_part};
+  return &ends;
+}
+
+/// Whether the control's interpolation of the words from (pose0, q0) to (pose1, q1) keeps the tool axis within the cone
+/// (plus the axis tolerance) of the CL's interpolated axis, sampled finely (the pieces are then judged one by one).
+bool Sequencer::words_in_cone(const kin::Posed& pose0, const kin::Axes& q0, const kin::Posed& pose1,
+                              const kin::Axes& q1, const Linearizer::ClAxes& cl) const {
+  const Slerp cl_axis(cl.from.normalized(), cl.to.normalized());
+  const double cos_cone_tol = std::cos(std::min(kPi, deg2rad(opt_.cone_deg) + tol_axis_rad_));
+  const kin::Axes wa = cartesian_words(pose0.tip_mm, pose0.axis, q0),
+                  wb = cartesian_words(pose1.tip_mm, pose1.axis, q1);
+  constexpr int kSamples = 32;
+  for (int k = 0; k <= kSamples; ++k) {
+    const double t = static_cast<double>(k) / kSamples;
+    Vec3 u;
+    if (!axis_of_words(wa + t * (wb - wa), u)) return false;
+    if (cl_axis.best_dot(u, std::max(0.0, t - 0.25), std::min(1.0, t + 0.25)) < cos_cone_tol) return false;
+  }
+  return true;
+}
+
 /// The linearizer of tool-tip control: the control moves the tip straight (exactly the CL segment) and
 /// interpolates the rotary words linearly; where that turns the axis away from the CL's interpolated axis by
-/// more than the axis tolerance, points are inserted (tip on the segment, axis on the CL's great circle).
-void Sequencer::tcp_pieces(const cl::Move& m0, const kin::Axes& q0, const cl::Move& m1, const kin::Axes& q1) {
+/// more than the axis tolerance, points are inserted (tip on the segment, axis on the CL's great circle). With a cone
+/// reference (`cl`: a planned program's CL axes at the segment's ends), an axis within the cone plus the tolerance of
+/// the CL's own interpolated axis is accepted as well, and an inserted point keeps the rotaries the words pass through:
+/// near a singular orientation the great circle of two planned axes can pass on the other side of the pole from the
+/// words' interpolation, and following it swings the primary half a turn (as Linearizer::axis_ok).
+void Sequencer::tcp_pieces(const cl::Move& m0, const kin::Axes& q0, const cl::Move& m1, const kin::Axes& q1,
+                           const Linearizer::ClAxes* cl) {
   tcp_pieces_.clear();
-  const Vec3 P0 = m0.tip_in_part_mm, P1 = m1.tip_in_part_mm;
   const Slerp axis(m0.axis_in_part.normalized(), m1.axis_in_part.normalized());
+  const std::optional<Slerp> cl_axis =
+      cl ? std::optional<Slerp>(Slerp(cl->from.normalized(), cl->to.normalized())) : std::nullopt;
+  const double cos_cone_tol = std::cos(std::min(kPi, deg2rad(opt_.cone_deg) + tol_axis_rad_));
+  // The controlled points: tips, or ball centres where a plan tilted the tool within a cone and keeps those on the CL
+  // path. The control moves the tip along a straight line between two blocks while it turns the axis, so a ball centre
+  // leaves the straight line by the offset times the axis's departure from its chord: up to 0.03 mm for a 3 mm ball
+  // turned 20 deg in one step. Pieces are split until the centre stays within the tolerance too.
+  const double off = opt_.control_offset_mm;
+  const Vec3 C0 = m0.tip_in_part_mm + off * axis(0.0), C1 = m1.tip_in_part_mm + off * axis(1.0);
+  const Vec3 c01 = C1 - C0;
+  const double L2 = c01.squaredNorm();
   struct Span {
     double sa, sb;
     kin::Axes qa, qb;
+    Vec3 ta, tb, ua, ub;  // tips and axes at the ends
     int depth;
   };
-  std::vector<Span> stack{{0.0, 1.0, q0, q1, 0}};
+  std::vector<Span> stack{{0.0, 1.0, q0, q1, m0.tip_in_part_mm, m1.tip_in_part_mm, axis(0.0), axis(1.0), 0}};
   while (!stack.empty()) {
     const Span sp = stack.back();
     stack.pop_back();
-    const Vec3 ta = P0 + sp.sa * (P1 - P0), tb = P0 + sp.sb * (P1 - P0);
-    const kin::Axes wa = cartesian_words(ta, axis(sp.sa), sp.qa), wb = cartesian_words(tb, axis(sp.sb), sp.qb);
+    const kin::Axes wa = cartesian_words(sp.ta, sp.ua, sp.qa), wb = cartesian_words(sp.tb, sp.ub, sp.qb);
     bool bad = false;
     if (opt_.linearise && sp.depth < opt_.max_subdivision_depth) {
-      const Vec3 ua = axis(sp.sa), ub = axis(sp.sb);
       for (double t : {0.5, 0.25, 0.75}) {
         Vec3 u;
         bool ok = true;
         if (vectors_) {  // the vector on the great circle, as the gate reads it (gnomonic coordinates)
-          ok = ua.z() > 0 && ub.z() > 0;
-          u = Vec3(ua.x() / ua.z() + t * (ub.x() / ub.z() - ua.x() / ua.z()),
-                   ua.y() / ua.z() + t * (ub.y() / ub.z() - ua.y() / ua.z()), 1.0)
+          ok = sp.ua.z() > 0 && sp.ub.z() > 0;
+          u = Vec3(sp.ua.x() / sp.ua.z() + t * (sp.ub.x() / sp.ub.z() - sp.ua.x() / sp.ua.z()),
+                   sp.ua.y() / sp.ua.z() + t * (sp.ub.y() / sp.ub.z() - sp.ua.y() / sp.ua.z()), 1.0)
                   .normalized();
         } else {
           ok = axis_of_words(wa + t * (wb - wa), u);
         }
-        if (!ok || u.dot(axis(sp.sa + t * (sp.sb - sp.sa))) < cos_tol_axis_) {
+        const bool axis_ok = ok && (u.dot(axis(sp.sa + t * (sp.sb - sp.sa))) >= cos_tol_axis_ ||
+                                    (cl_axis && cl_axis->best_dot(u, sp.sa, sp.sb) >= cos_cone_tol));
+        if (!axis_ok ||
+            (off != 0.0 && point_segment_distance(sp.ta + t * (sp.tb - sp.ta) + off * u, C0, c01, L2) > tol_mm_)) {
           bad = true;
           break;
         }
@@ -224,27 +322,43 @@ void Sequencer::tcp_pieces(const cl::Move& m0, const kin::Axes& q0, const cl::Mo
     }
     if (bad) {
       const double sm = 0.5 * (sp.sa + sp.sb);
-      const Vec3 um = axis(sm);
-      kin::Axes qm;
-      bool jumped = false;
-      const kin::Posed from{ta, axis(sp.sa)}, to{P0 + sm * (P1 - P0), um};
-      ++sum_.ik_calls;
-      bool tracked = kin::track_checked(kin_, sp.qa, from, to, qm, jumped) && !jumped;
-      if (!tracked) {
-        // From a singular start (the tool along the primary rotary's axis, which then turns freely) the branch is the
-        // end's: tracked back from there. The halves are judged again like any span.
-        ++sum_.ik_calls;
-        tracked = kin::track_checked(kin_, sp.qb, kin::Posed{tb, axis(sp.sb)}, to, qm, jumped) && !jumped;
+      kin::Axes qm = 0.5 * (sp.qa + sp.qb);
+      Vec3 um = axis(sm), tm = C0 + sm * c01 - off * um;
+      bool placed = false;
+      if (cl_axis && !vectors_) {
+        // The rotaries the words pass through at the middle, if their axis lies in the cone: only the tip is moved
+        // (onto the path with that axis).
+        Vec3 uw;
+        if (axis_of_words(0.5 * (wa + wb), uw) && cl_axis->best_dot(uw, sp.sa, sp.sb) >= cos_cone_tol) {
+          const Vec3 tw = C0 + sm * c01 - off * uw;
+          kin::Axes qw = qm;
+          if (kin_.solve_for_rotaries(kin::Posed{tw, uw}, qw) && kin_.check_limits(qw).empty()) {
+            qm = qw, um = uw, tm = tw;
+            placed = true;
+          }
+        }
       }
-      if (tracked) {
+      if (!placed) {
+        bool jumped = false;
+        const kin::Posed from{sp.ta, sp.ua}, to{tm, um};
+        ++sum_.ik_calls;
+        placed = kin::track_checked(kin_, sp.qa, from, to, qm, jumped) && !jumped;
+        if (!placed) {
+          // From a singular start (the tool along the primary rotary's axis, which then turns freely) the branch is
+          // the end's: tracked back from there. The halves are judged again like any span.
+          ++sum_.ik_calls;
+          placed = kin::track_checked(kin_, sp.qb, kin::Posed{sp.tb, sp.ub}, to, qm, jumped) && !jumped;
+        }
+      }
+      if (placed) {
         check_limits(qm, m1);
         ++sum_.inserted_points;
-        stack.push_back({sm, sp.sb, qm, sp.qb, sp.depth + 1});
-        stack.push_back({sp.sa, sm, sp.qa, qm, sp.depth + 1});
+        stack.push_back({sm, sp.sb, qm, sp.qb, tm, sp.tb, um, sp.ub, sp.depth + 1});
+        stack.push_back({sp.sa, sm, sp.qa, qm, sp.ta, tm, sp.ua, um, sp.depth + 1});
         continue;
       }
     }
-    tcp_pieces_.push_back({tb, axis(sp.sb), sp.qb});
+    tcp_pieces_.push_back({sp.tb, sp.ub, sp.qb});
   }
 }
 
