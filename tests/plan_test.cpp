@@ -124,6 +124,45 @@ TEST(Planner, SegmentsOfRapidMovesOnlyAreReportedAsPositioning) {
   EXPECT_EQ(positioning, 4u) << text;  // lines 6, 12, 14 and 20; the two cuts start at their approach (8, 16)
 }
 
+// A spiral that keeps turning one way: the tool normal to a hemisphere, tilting 0 -> 70 deg over 8 turns, so the
+// trunnion's C (a platter limited only at +-36000 deg) turns 2880 deg one way. The C-space grid held +-360 deg of C
+// (+-720 at cone 0): the plan unwound C by 720 deg (retract, turn, plunge) every second turn at cone 3 and found no
+// path at all at cone 0. The oracles: the conventional post (nearest-solution IK) turns C through the spiral without a
+// jump; the plan must too (no rotary step above 20 deg), and at cone 0 its axes' FK must give the CL axes.
+TEST(Planner, ASpiralKeepsTurningACyclicRotaryInsteadOfUnwindingIt) {
+  const machine::Machine m = trunnion();
+  std::ostringstream o;
+  o.precision(12);
+  o << "UNITS/MM\nMULTAX\nCUTTER/6,3\nFEDRAT/MMPM,1500\n";
+  for (int t = 0; t < 600; ++t) {
+    const double th = deg2rad(70.0) * t / 599, ph = 2 * kPi * 8 * t / 599;
+    const Eigen::Vector3d n(std::sin(th) * std::cos(ph), std::sin(th) * std::sin(ph), std::cos(th));
+    const Eigen::Vector3d tip = 30.0 * n + Eigen::Vector3d(0, 0, 60);
+    o << "GOTO/" << tip.x() << "," << tip.y() << "," << tip.z() << "," << n.x() << "," << n.y() << "," << n.z() << "\n";
+  }
+  const cl::Program prog = cl::read_text(o.str(), "spiral.cls");
+  const auto k = m.kinematics();
+  const auto rp = k->rotary_pair();
+  for (const double cone_deg : {0.0, 3.0}) {
+    SCOPED_TRACE(cone_deg);
+    plan::Options opt;
+    opt.cspace.cone_rad = deg2rad(cone_deg);
+    opt.cspace.check_collision = false;
+    const plan::Plan p = plan::plan_windowed(m, k, nullptr, nullptr, opt, prog);
+    double largest_step = 0.0, c_lo = 0.0, c_hi = 0.0;
+    for (std::size_t i = 1; i < p.axes.size(); ++i) {
+      for (const int r : rp) largest_step = std::max(largest_step, std::abs(p.axes[i][r] - p.axes[i - 1][r]));
+      c_lo = std::min(c_lo, p.axes[i][rp[0]]);
+      c_hi = std::max(c_hi, p.axes[i][rp[0]]);
+    }
+    EXPECT_LT(rad2deg(largest_step), 20.0);
+    EXPECT_GT(rad2deg(c_hi - c_lo), 2800.0);  // C went round the whole spiral
+    if (cone_deg == 0.0)
+      for (std::size_t i = 0; i < p.axes.size(); ++i)
+        EXPECT_GT(k->forward(p.axes[i]).axis.dot(prog.moves[i].axis_in_part.normalized()), std::cos(1e-6)) << i;
+  }
+}
+
 TEST(Planner, AzimuthSweepAtFixedTiltFixesTheTiltAxis) {
   // Tilt 30 deg constant, azimuth 0 -> 90: on an A/C trunnion A = -/+30 fixed, C monotonic.
   const auto p = run(sweep(

@@ -72,20 +72,21 @@ Space::Space(std::shared_ptr<const kin::Kinematics> kinematics, const geom::Scen
   const auto rp = kin_->rotary_pair();
   rot1_ = rp[0];
   rot2_ = rp[1];
-  auto range = [&](int axis, int& lo, int& hi) {
+  auto range = [&](int axis, int& lo, int& hi, const std::array<double, 2>& window) {
     const kin::AxisInfo& a = kin_->axes()[static_cast<size_t>(axis)];
     double mn = a.min, mx = a.max;
     // Exact cells are few, so cone 0 affords more explicit windings of a cyclic axis than the grid does.
     const double span = opt_.cone_rad <= 0 ? 2.0 * opt_.cyclic_span_rad : opt_.cyclic_span_rad;
     if (a.cyclic || mx - mn > 2 * span) {
-      mn = std::max(mn, -span);
-      mx = std::min(mx, span);
+      const bool fitted = std::isfinite(window[0]) && std::isfinite(window[1]) && window[0] < window[1];
+      mn = std::max(mn, fitted ? window[0] : -span);
+      mx = std::min(mx, fitted ? window[1] : span);
     }
     lo = static_cast<int>(std::ceil(mn / opt_.resolution_rad - 1e-9));
     hi = static_cast<int>(std::floor(mx / opt_.resolution_rad + 1e-9));
   };
-  range(rot1_, i1_min_, i1_max_);
-  range(rot2_, i2_min_, i2_max_);
+  range(rot1_, i1_min_, i1_max_, opt_.cyclic_window_rad[0]);
+  range(rot2_, i2_min_, i2_max_, opt_.cyclic_window_rad[1]);
   // A serial machine's axis is R(primary) v(secondary): one factor per grid row and column instead of two rotation
   // matrices per cell (the flood fill of a cone near the singular axis visits thousands of cells per point).
   tip_free_axis_ = kin_->axis_factors(0.0, 0.0, nullptr, nullptr);

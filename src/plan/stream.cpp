@@ -4,8 +4,10 @@
 #include <sys/resource.h>
 
 #include <algorithm>
+#include <array>
 #include <chrono>
 #include <cmath>
+#include <exception>
 #include <limits>
 #include <map>
 #include <optional>
@@ -14,9 +16,14 @@
 
 #include "cscam/core/error.hpp"
 #include "cscam/core/tolerances.hpp"
+#include "cscam/core/units.hpp"
 #include "cscam/kin/track.hpp"
 
 namespace cscam::plan {
+
+namespace {
+constexpr double kInfinity = std::numeric_limits<double>::infinity();
+}  // namespace
 
 std::size_t effective_window(std::size_t moves, const WindowOptions& w) {
   const std::size_t n = w.window > 0 ? w.window : (moves > w.auto_above ? w.auto_window : 0);
@@ -159,9 +166,104 @@ struct Parts {
 
 }  // namespace
 
+void fit_cyclic_windows(const kin::Kinematics& kin, const cl::Program& program, cspace::Options& options) {
+  const auto rp = kin.rotary_pair();
+  const auto& ax = kin.axes();
+  // Around the track, the cells a cone may need: half a turn each way (near the singular axis the cone spans every
+  // primary angle) and the largest default rotary step.
+  constexpr double kMargin = kPi + 20.0 * kPi / 180.0;
+  // As cspace::Space bounds the grid of such an axis by default.
+  const double span = options.cone_rad <= 0 ? 2.0 * options.cyclic_span_rad : options.cyclic_span_rad;
+  std::array<bool, 2> wide{};
+  for (int j = 0; j < 2; ++j) {
+    const kin::AxisInfo& a = ax[static_cast<std::size_t>(rp[static_cast<std::size_t>(j)])];
+    wide[static_cast<std::size_t>(j)] = (a.cyclic || a.max - a.min > 2 * span) && (a.max > span || a.min < -span);
+  }
+  if (!wide[0] && !wide[1]) return;
+  // The windings a conventional post would turn through: every CL axis by the IK solution nearest the last.
+  std::array<double, 2> lo{kInfinity, kInfinity}, hi{-kInfinity, -kInfinity};
+  kin::Axes q = kin::Axes::Zero(), out;
+  for (const cl::Move& mv : program.moves) {
+    if (!kin::nearest_solution(kin, kin::Posed{mv.tip_in_part_mm, mv.axis_in_part.normalized()}, q, out))
+      continue;  // unreachable: the planner names it
+    q = out;
+    for (std::size_t j = 0; j < 2; ++j) {
+      lo[j] = std::min(lo[j], q[rp[j]]);
+      hi[j] = std::max(hi[j], q[rp[j]]);
+    }
+  }
+  for (std::size_t j = 0; j < 2; ++j)
+    if (wide[j] && std::isfinite(lo[j]) && (lo[j] < -span || hi[j] > span))
+      options.cyclic_window_rad[j] = {std::min(-span, lo[j] - kMargin), std::max(span, hi[j] + kMargin)};
+}
+
+namespace {
+
+/// Steps of half a turn or more of a cyclic rotary between consecutive moves of a plan: unwinds (the post turns
+/// them with a retract).
+std::size_t cyclic_unwinds(const kin::Kinematics& kin, const Plan& p) {
+  std::size_t n = 0;
+  for (const int r : kin.rotary_pair()) {
+    if (!kin.axes()[static_cast<std::size_t>(r)].cyclic) continue;
+    for (std::size_t i = 1; i < p.axes.size(); ++i) n += std::abs(p.axes[i][r] - p.axes[i - 1][r]) >= kPi ? 1 : 0;
+  }
+  return n;
+}
+
+Plan plan_windowed_on(const machine::Machine& machine, std::shared_ptr<const kin::Kinematics> kinematics,
+                      const geom::Scene* scene, const geom::ToolShape* tool, const Options& options,
+                      const cl::Program& program, const WindowOptions& w, const geom::Scene* head);
+
+}  // namespace
+
 Plan plan_windowed(const machine::Machine& machine, std::shared_ptr<const kin::Kinematics> kinematics,
                    const geom::Scene* scene, const geom::ToolShape* tool, const Options& options,
                    const cl::Program& program, const WindowOptions& w, const geom::Scene* head) {
+  const auto t0 = std::chrono::steady_clock::now();
+  const auto& cw = options.cspace.cyclic_window_rad;
+  if (std::isfinite(cw[0][0]) || std::isfinite(cw[1][0]))  // the caller's grid
+    return plan_windowed_on(machine, kinematics, scene, tool, options, program, w, head);
+  // The default grid holds a cyclic rotary within +-cyclic_span. Where the plan on it has to unwind such a rotary (or
+  // finds no path, at cone 0, where a spiral leaves it), the program is planned again on the windings it needs, and
+  // that plan is kept if it unwinds less. A plan without unwinds is not redone: more windings of the same
+  // orientations crowd tier 4's beam (NX's path at cone 5: 4 % more rotary travel).
+  std::optional<Plan> first;
+  std::exception_ptr first_error;
+  try {
+    first = plan_windowed_on(machine, kinematics, scene, tool, options, program, w, head);
+  } catch (const InputError&) {
+    first_error = std::current_exception();
+  }
+  const std::size_t unwinds = first ? cyclic_unwinds(*kinematics, *first) : 0;
+  if (first && unwinds == 0) return std::move(*first);
+  Options wide = options;
+  fit_cyclic_windows(*kinematics, program, wide.cspace);
+  if (!std::isfinite(wide.cspace.cyclic_window_rad[0][0]) && !std::isfinite(wide.cspace.cyclic_window_rad[1][0])) {
+    if (first_error) std::rethrow_exception(first_error);
+    return std::move(*first);
+  }
+  try {
+    Plan second = plan_windowed_on(machine, kinematics, scene, tool, wide, program, w, head);
+    if (!first || cyclic_unwinds(*kinematics, second) < unwinds) {
+      if (first) {
+        second.counters += first->counters;  // the work of both plans
+        second.peak_memory_mb = std::max(second.peak_memory_mb, first->peak_memory_mb);
+      }
+      second.seconds = std::chrono::duration<double>(std::chrono::steady_clock::now() - t0).count();
+      return second;
+    }
+  } catch (const InputError&) {
+    if (first_error) std::rethrow_exception(first_error);
+  }
+  first->seconds = std::chrono::duration<double>(std::chrono::steady_clock::now() - t0).count();
+  return std::move(*first);
+}
+
+namespace {
+
+Plan plan_windowed_on(const machine::Machine& machine, std::shared_ptr<const kin::Kinematics> kinematics,
+                      const geom::Scene* scene, const geom::ToolShape* tool, const Options& options,
+                      const cl::Program& program, const WindowOptions& w, const geom::Scene* head) {
   const auto t0 = std::chrono::steady_clock::now();
   const std::size_t window = effective_window(program.moves.size(), w);
   std::unique_ptr<cspace::Space> space;  // for the cell counts and the orientation pre-pass
@@ -307,5 +409,7 @@ Plan plan_windowed(const machine::Machine& machine, std::shared_ptr<const kin::K
   if (getrusage(RUSAGE_SELF, &ru) == 0) out.peak_memory_mb = static_cast<double>(ru.ru_maxrss) / 1024.0;
   return out;
 }
+
+}  // namespace
 
 }  // namespace cscam::plan

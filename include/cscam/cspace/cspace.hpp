@@ -29,8 +29,15 @@ struct Options {
   double ball_radius_mm = 0.0;
   bool check_collision = true;
   geom::CheckOptions collision;
-  /// Range of a cyclic rotary in the grid (explicit windings), rad: [-cyclic_span, +cyclic_span].
+  /// Range of a cyclic rotary in the grid (explicit windings), rad: [-cyclic_span, +cyclic_span] (twice that at cone
+  /// 0).
   double cyclic_span_rad = 2.0 * 3.14159265358979323846;
+  /// Where finite: the grid range of the primary [0] and secondary [1] rotary, rad, in place of +-cyclic_span_rad for a
+  /// cyclic (or very wide) axis, within its limits. plan::fit_cyclic_windows sets it to the windings a program needs,
+  /// so that a path that keeps turning one way (a spiral) is not unwound every turn or two.
+  std::array<std::array<double, 2>, 2> cyclic_window_rad{
+      {{std::numeric_limits<double>::quiet_NaN(), std::numeric_limits<double>::quiet_NaN()},
+       {std::numeric_limits<double>::quiet_NaN(), std::numeric_limits<double>::quiet_NaN()}}};
 };
 
 /// One cell: rotary values (unwrapped, rad) and its lazily computed status.

@@ -40,6 +40,16 @@ struct WindowOptions {
                                                                                const std::vector<double>& cost,
                                                                                double budget);
 
+/// The grid windows of the cyclic (or very wide) rotaries that `program` needs: its CL axes followed by the IK solution
+/// nearest the last (every winding continuous, as a conventional post turns) give each such rotary's range; where
+/// that range leaves the default +-cyclic_span_rad (twice that at cone 0), the window is the range widened by half a
+/// turn and 20 deg each way (every primary angle a cone beside the singular axis can need), never narrower than the
+/// default. Sets options.cyclic_window_rad for those axes only. Without it a
+/// spiral that keeps turning C one way was unwound (retract, turn 720 deg, plunge) every second turn on a machine whose
+/// C turns without end. plan_windowed plans again on these windows where its plan on the default grid unwinds a cyclic
+/// rotary or finds no path, unless the caller set a window.
+void fit_cyclic_windows(const kin::Kinematics& kin, const cl::Program& program, cspace::Options& options);
+
 /// Plans `program` as Planner::run does, in windows of `w.window` moves (see WindowOptions). Each window is a
 /// Planner::run on its moves; a window after the first starts with the previous window's last move pinned to the
 /// rotaries chosen there, so no rotary jumps at a join, and every move between points is checked (swept) by exactly
