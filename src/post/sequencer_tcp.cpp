@@ -395,8 +395,14 @@ void Sequencer::emit_tcp_feed(const Vec3& tip, const Vec3& axis, const kin::Axes
     // is: near a singularity it may turn a rotary much more than the plan).
     const kin::Axes ctrl_before = ctrl_q_;
     track_control(v, axis);
-    const double minutes =
-        std::max(block_minutes(cart_q_, q, programmed), block_minutes(ctrl_before, ctrl_q_, programmed));
+    double minutes = std::max(block_minutes(cart_q_, q, programmed), block_minutes(ctrl_before, ctrl_q_, programmed));
+    if (traits_.tcp_rotary_words == kin::Traits::TcpRotaryWords::VirtualWrist) {
+      // The control interpolates the virtual wrist words themselves: beside the pole their C swings with the tool
+      // vector's azimuth while the machine's own wrist hardly moves (the XMINI's at a 0.06 deg tilt: 87 deg per mm).
+      kin::Axes words_from = v;
+      for (const int r : kin_.rotary_pair()) words_from[r] = cur_[r];
+      minutes = std::max(minutes, block_minutes(words_from, v, programmed));
+    }
     const double f = minutes > programmed * (1.0 + 1e-9) ? word_length(cur_, v) / minutes : feed_mm_min * feed_to_file_;
     emit_per_minute(f);
   }
