@@ -495,6 +495,7 @@ VerifyOptions verify_options_for(const machine::Machine& machine, double toleran
   vo.axis_tolerance_deg =
       (axis_tolerance_deg > 0 ? axis_tolerance_deg : machine.post.axis_tolerance_deg) + tol::kVerifySlackDeg + cone_deg;
   vo.ball_centre = cone_deg > 0;
+  vo.cone_deg = cone_deg;
   return vo;
 }
 
@@ -951,8 +952,14 @@ VerifyResult verify(const nc::Program& nc, const cl::Program& cl, const kin::Kin
       if (!(best2 <= tip_budget_mm * tip_budget_mm)) scan(near_hi, hi);
       if (best2 > options.tip_tolerance_mm * options.tip_tolerance_mm)  // lost the thread (e.g. after a long
         scan(0, nc_feed_points.size());                                 // rapid): search globally
-      const double best = std::sqrt(best2);
+      double best = std::sqrt(best2);
       c = arg;
+      if (options.cone_deg > 0.0) {
+        // An approach or retract along the CL axis, which a planned program runs along its own axis.
+        const Vec3 d = s.p1 - s.p0;
+        if (s.th < 1e-9 && d.norm() > 0.0 && d.cross(s.u0).norm() <= 1e-6 * d.norm())
+          best = std::max(0.0, best - 2.0 * d.norm() * std::sin(0.5 * deg2rad(options.cone_deg)));
+      }
       if (best > r.max_uncovered_cl_mm) {
         r.max_uncovered_cl_mm = best;
         r.max_uncovered_cl_line = s.line;

@@ -29,6 +29,10 @@ struct VerifyOptions {
   /// Compare ball centres (tip + r axis) instead of tips when the CL tool is a ball mill: a planner that
   /// tilts a ball mill keeps the centre on the CL path and moves the tip.
   bool ball_centre = false;
+  /// The cone (deg) a planned program's axes keep to the CL's. A CL feed move along its own tool axis (an approach or
+  /// a retract) may then run along the planned axis instead, as the planner re-places it: its end point counts as
+  /// reached within 2 d sin(cone / 2) more (d: the move's length).
+  double cone_deg = 0.0;
 };
 
 struct VerifyResult {
@@ -42,7 +46,8 @@ struct VerifyResult {
   int max_tip_cl_line = 0;
   double max_axis_deviation_deg = 0.0;
   int max_axis_nc_line = 0;
-  double max_uncovered_cl_mm = 0.0;  ///< largest distance from a CL feed point to the NC path
+  /// Largest distance from a CL feed point to the NC path (beyond what the cone allows an axial approach or retract).
+  double max_uncovered_cl_mm = 0.0;
   int max_uncovered_cl_line = 0;
   [[nodiscard]] nlohmann::json json() const;
   [[nodiscard]] std::string to_json() const;  ///< json().dump()
