@@ -177,6 +177,23 @@ TEST(Cli, VerifyAcceptsAnAxialRetractThatThePlanReplacedAlongItsAxis) {
   EXPECT_NE(r.output.find("CL point at line 95 not reached"), std::string::npos) << r.output;
 }
 
+// The XMINI under tool-tip control along X, vertical (examples/xmini/seed000_x_cut.cls): where its wrist turns C half a
+// turn at the pole, the virtual wrist words go C90 -> C270 at A0, which leaves the tool vector vertical (u(C, A) at
+// A = 0 is z whatever C). The back-simulation bounded the vector's motion between samples by |dA| + |dC| and refused
+// the program (0.022 deg against 0.02); the bound is |dA| + sin|A| |dC| (its second derivative likewise), checked
+// against finite differences of u in the derivation. The oracle: the program is accepted and verify finds the axis
+// exactly vertical.
+TEST(Cli, TheXminiWristTurningAtThePoleUnderTcpIsNotAnAxisDeviation) {
+  TempDir d;
+  const std::string cl = cscam::test::source_path("examples/xmini/seed000_x_cut.cls");
+  const std::string nc = d.file("x_cut_tcp.ngc");
+  const auto posted = run_command(kCli + " post " + q(cl) + " --machine xmini --tcp -o " + q(nc));
+  ASSERT_EQ(posted.status, 0) << posted.output;
+  const auto r = run_command(kCli + " verify " + q(nc) + " --machine xmini --cl " + q(cl));
+  EXPECT_EQ(r.status, 0) << r.output;
+  EXPECT_NE(r.output.find("max axis deviation 0.0000 deg"), std::string::npos) << r.output;
+}
+
 TEST(Cli, ARunOfVerticalPointsIsCrossedAtCone0) {
   // Three consecutive CL points along the vertical (the primary rotary is free there) between points tilted the
   // same way: at cone 0 every point of the run must be offered the primaries of the regular points on both sides,

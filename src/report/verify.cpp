@@ -189,8 +189,14 @@ class TipWordsKinematics final : public kin::Kinematics {
     if (gnomonic_) return false;
     const auto rp = k_.rotary_pair();
     if (virtual_wrist_) {
-      out.axis_rate_rad = std::abs(qb[rp[0]] - qa[rp[0]]) + std::abs(qb[rp[1]] - qa[rp[1]]);
-      out.axis_accel = out.axis_rate_rad * out.axis_rate_rad;
+      // u = sin A w(C) + cos A z, w(C) a horizontal unit vector: |u'| <= |dA| + |sin A| |dC| and
+      // |u''| <= dA^2 + 2 |dA| |dC| + |sin A| dC^2 (t in [0, 1]). A turn of C weighs only by sin A: at the pole the
+      // vector does not move whatever C does (the XMINI's wrist flipping C half a turn there was judged 0.022 deg off).
+      const double dc = std::abs(qb[rp[0]] - qa[rp[0]]), da = std::abs(qb[rp[1]] - qa[rp[1]]);
+      const double a_max = std::max(std::abs(qa[rp[1]]), std::abs(qb[rp[1]]));  // A is linear in t: |A| peaks at an end
+      const double s = a_max >= 0.5 * kPi ? 1.0 : std::sin(a_max);
+      out.axis_rate_rad = da + s * dc;
+      out.axis_accel = da * da + 2.0 * da * dc + s * dc * dc;
     } else if (!k_.motion_bound(qa, qb, out)) {  // its axis bound depends on the rotaries only
       return false;
     }
