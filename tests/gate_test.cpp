@@ -365,6 +365,22 @@ TEST(Gate, RefusesARapidThroughThePart) {
   const auto bad = gate::check(join(lines), "g.ngc", planned.program, m, *k, opt, nullptr);
   ASSERT_FALSE(bad.ok);
   EXPECT_TRUE(has_kind(bad, gate::Violation::Kind::Collision, last_g0 + 1)) << bad.message;
+  // Refused on the way to disk, with what to do: the colliding move is none of the CL's (a retract or exit the post
+  // adds goes post.singularity.retract_mm along the axis, then along Z), and nothing is written.
+  {
+    const std::string path =
+        (std::filesystem::temp_directory_path() / ("cscam_gate_hint_" + std::to_string(::getpid()) + ".ngc")).string();
+    try {
+      gate::write_checked(path, join(lines), planned.program, m, *k, opt, nullptr);
+      ADD_FAILURE() << "a colliding program was written";
+    } catch (const InputError& e) {
+      const std::string msg = e.what();
+      EXPECT_NE(msg.find("rapid move collides"), std::string::npos) << msg;
+      EXPECT_NE(msg.find("a move the post added, not a CL move"), std::string::npos) << msg;
+      EXPECT_NE(msg.find("post.singularity.retract_mm"), std::string::npos) << msg;
+    }
+    EXPECT_FALSE(std::filesystem::exists(path));
+  }
 
   // Feed moves are checked too, not only the CL points: a feed block inserted in the middle of the cut that
   // dives 20 mm through the floor and the next block back up. Its end and its inside collide; the CL points

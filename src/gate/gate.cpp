@@ -497,6 +497,12 @@ Summary write_checked(const std::string& path, const std::string& nc_text, const
     }
     const Violation& v = s.violations.front();
     std::string where = v.cl_line ? fmt::format(" (from {})", SourceLoc{cl.file, v.cl_line, 0}.str()) : std::string();
+    if (!v.cl_line && v.kind == Violation::Kind::Collision)
+      where = fmt::format(
+          " (a move the post added, not a CL move: its retracts and exits go {:g} mm along the tool axis "
+          "(post.singularity.retract_mm), then along Z to the safe height (post.safe_z_mm); a retract along the tool "
+          "axis in the CL, clear of the part, avoids it)",
+          machine.post.singularity.retract_mm);
     std::string more;
     for (size_t i = 1; i < s.violations.size() && i < 5; ++i) {
       const Violation& w = s.violations[i];
