@@ -245,6 +245,26 @@ class Sequencer {
   bool continues_branch(const kin::Posed& pose0, const kin::Axes& q0, const kin::Posed& pose1,
                         const kin::Axes& q1) const;
 
+  /// How a flip or unwind between pose0 (q0) and pose1 (q1) is made, by both reconfigure and tcp_reconfigure.
+  struct Turns {
+    enum class Kind {
+      None,         ///< tracking stalled near a singularity: the same branch after all
+      AtStart,      ///< turn at pose0 to `start` (q1's branch there), then the feed to q1
+      CutThenTurn,  ///< feed to pose1 on q0's branch (arriving at `end`), turn there to q1
+      BothEnds,     ///< turn at pose0 to `start`, feed to pose1 (arriving at `end`), turn there to q1 if it differs
+    };
+    Kind kind = Kind::None;
+    kin::Axes start, end;
+    bool turn_at_end = false;
+  };
+  /// The turns for a flip or unwind between m0 and m1 (errors: the machine file refuses flips, or no axis values
+  /// inside the limits hold the tool at m0). Where q1's branch runs back to m0 inside the limits, turns there; where
+  /// it cannot (the limit that forces the turn is on q1's side), cuts to m1 on q0's branch and turns there; where
+  /// neither can (an unwind forced between two points, each end's winding beyond a limit at the other), turns at m0
+  /// to a branch that runs to m1 inside the limits and again at m1.
+  Turns plan_turns(const kin::Posed& pose0, const kin::Axes& q0, const kin::Posed& pose1, const kin::Axes& q1,
+                   const cl::Move& m0, const cl::Move& m1) const;
+
   /// A flip or unwind between m0 and m1: turns to q1's branch; returns the axes the feed to m1 continues from.
   std::optional<kin::Axes> reconfigure(const kin::Posed& pose0, const kin::Axes& q0, const kin::Posed& pose1,
                                        const kin::Axes& q1, const cl::Move& m0, const cl::Move& m1, double feed_mm_min);

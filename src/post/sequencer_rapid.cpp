@@ -180,28 +180,19 @@ bool Sequencer::continues_branch(const kin::Posed& pose0, const kin::Axes& q0, c
   return !jumped && rotary_jump(tracked, q1) < 1e-6;
 }
 
-/// q0 (at m0) and q1 (at m1) lie on different branches or windings: a rotary limit or the branch rule
-/// forces a flip or an unwind. Turns to q1's branch at m0 and returns the axis values there, from which the feed to
-/// q1 continues. Where q1's branch cannot be followed back to m0 inside the limits (the limit that forces the turn
-/// is on q1's side of it), cuts to m1 on q0's branch and turns there; where neither can (an unwind forced between
-/// two points, each end's winding beyond a limit at the other), turns at m0 to a branch that runs to m1 inside the
-/// limits and again at m1. Returns nothing in those two cases (m1 is reached with q1).
-std::optional<kin::Axes> Sequencer::reconfigure(const kin::Posed& pose0, const kin::Axes& q0, const kin::Posed& pose1,
-                                                const kin::Axes& q1, const cl::Move& m0, const cl::Move& m1,
-                                                double feed_mm_min) {
+Sequencer::Turns Sequencer::plan_turns(const kin::Posed& pose0, const kin::Axes& q0, const kin::Posed& pose1,
+                                       const kin::Axes& q1, const cl::Move& m0, const cl::Move& m1) const {
   refuse_if_asked(q0, q1, m0, m1);
   // The branch that starts at qa on pose0 and runs continuously to pose1 inside the limits, there.
   auto runs_through = [&](const kin::Axes& qa, kin::Axes& qb) {
     bool jumped = false;
     return kin::track_checked(kin_, qa, pose0, pose1, qb, jumped) && !jumped && kin_.check_limits(qb).empty();
   };
-  kin::Axes q0n;
-  if (!branch_back(pose0, pose1, q1, q0n)) {
-    kin::Axes q1p;
-    if (runs_through(q0, q1p) && rotary_jump(q1p, q1) >= kFlipCheckRad) {
-      feed_linear(m0, q0, m1, q1p);
-      turn_at(m1, pose1, q1p, q1, m1, feed_mm_min);
-      return std::nullopt;
+  Turns t;
+  if (!branch_back(pose0, pose1, q1, t.start)) {
+    if (runs_through(q0, t.end) && rotary_jump(t.end, q1) >= kFlipCheckRad) {
+      t.kind = Turns::Kind::CutThenTurn;
+      return t;
     }
     std::vector<kin::Solution> sols;
     kin_.inverse_all(pose0, &q0, sols);
@@ -209,17 +200,42 @@ std::optional<kin::Axes> Sequencer::reconfigure(const kin::Posed& pose0, const k
       return rotary_jump(q0, a.axes) < rotary_jump(q0, b.axes);
     });
     for (const kin::Solution& sol : sols) {
-      if (!sol.feasible() || rotary_jump(q0, sol.axes) < kFlipCheckRad || !runs_through(sol.axes, q1p)) continue;
-      turn_at(m0, pose0, q0, sol.axes, m1, feed_mm_min);
-      feed_linear(m0, sol.axes, m1, q1p);
-      if (rotary_jump(q1p, q1) >= kFlipCheckRad) turn_at(m1, pose1, q1p, q1, m1, feed_mm_min);
-      return std::nullopt;
+      if (!sol.feasible() || rotary_jump(q0, sol.axes) < kFlipCheckRad || !runs_through(sol.axes, t.end)) continue;
+      t.kind = Turns::Kind::BothEnds;
+      t.start = sol.axes;
+      t.turn_at_end = rotary_jump(t.end, q1) >= kFlipCheckRad;
+      return t;
     }
-    q0n = nearest_at_start(pose0, q0, q1, m0, m1);
+    t.start = nearest_at_start(pose0, q0, q1, m0, m1);
   }
-  if (rotary_jump(q0, q0n) < 1e-9) return q0;  // tracking stalled near a singularity: same branch after all
-  turn_at(m0, pose0, q0, q0n, m1, feed_mm_min);
-  return q0n;
+  t.kind = rotary_jump(q0, t.start) < 1e-9 ? Turns::Kind::None : Turns::Kind::AtStart;
+  return t;
+}
+
+/// q0 (at m0) and q1 (at m1) lie on different branches or windings: a rotary limit or the branch rule
+/// forces a flip or an unwind, made as plan_turns says. Returns the axis values at m0 from which the feed to q1
+/// continues, or nothing where m1 was reached here (with q1).
+std::optional<kin::Axes> Sequencer::reconfigure(const kin::Posed& pose0, const kin::Axes& q0, const kin::Posed& pose1,
+                                                const kin::Axes& q1, const cl::Move& m0, const cl::Move& m1,
+                                                double feed_mm_min) {
+  const Turns t = plan_turns(pose0, q0, pose1, q1, m0, m1);
+  switch (t.kind) {
+    case Turns::Kind::None:
+      return q0;
+    case Turns::Kind::AtStart:
+      turn_at(m0, pose0, q0, t.start, m1, feed_mm_min);
+      return t.start;
+    case Turns::Kind::CutThenTurn:
+      feed_linear(m0, q0, m1, t.end);
+      turn_at(m1, pose1, t.end, q1, m1, feed_mm_min);
+      return std::nullopt;
+    case Turns::Kind::BothEnds:
+      turn_at(m0, pose0, q0, t.start, m1, feed_mm_min);
+      feed_linear(m0, t.start, m1, t.end);
+      if (t.turn_at_end) turn_at(m1, pose1, t.end, q1, m1, feed_mm_min);
+      return std::nullopt;
+  }
+  return q0;
 }
 
 /// An error when the machine file says the post must not flip (post.singularity.flip: refuse).

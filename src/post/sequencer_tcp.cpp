@@ -139,44 +139,29 @@ void Sequencer::cartesian(const cl::Move& mv, const kin::Axes& q) {
 }
 
 /// Under tool-tip control with the machine's rotary angles as words: the axis values at the last point (cart_q_,
-/// pose0) and q1 (at mv) lie on different branches or windings, and the words' linear interpolation would swing
-/// the tool. As Sequencer::reconfigure: turns at pose0 to q1's branch followed back there; where q1's branch cannot be
-/// followed back inside the limits, cuts to mv on the current branch and turns there; where neither can (an unwind
-/// forced between two points, each end's winding beyond a limit at the other), turns at pose0 to a branch that runs to
-/// mv inside the limits and again at mv. Returns whether it cut to mv itself (the last two cases).
+/// pose0) and q1 (at mv) lie on different branches or windings, and the words' linear interpolation would swing the
+/// tool. Makes the turns plan_turns says, as Sequencer::reconfigure does. Returns whether it cut to mv itself.
 bool Sequencer::tcp_reconfigure(const kin::Posed& pose0, const kin::Posed& pose1, const kin::Axes& q1,
                                 const cl::Move& mv, double feed_mm_min) {
   const kin::Axes q0 = cart_q_;
   const cl::Move m0 = cart_move_;
-  refuse_if_asked(q0, q1, m0, mv);
-  auto runs_through = [&](const kin::Axes& qa, kin::Axes& qb) {
-    bool jumped = false;
-    return kin::track_checked(kin_, qa, pose0, pose1, qb, jumped) && !jumped && kin_.check_limits(qb).empty();
-  };
-  kin::Axes q0n;
-  if (!branch_back(pose0, pose1, q1, q0n)) {
-    kin::Axes q1p;
-    if (runs_through(q0, q1p) && rotary_jump(q1p, q1) >= kFlipCheckRad) {
-      tcp_feed(m0, q0, mv, q1p, feed_mm_min, nullptr);
-      tcp_turn_at(pose1, q1p, q1, mv, feed_mm_min);
+  const Turns t = plan_turns(pose0, q0, pose1, q1, m0, mv);
+  switch (t.kind) {
+    case Turns::Kind::None:
+      return false;
+    case Turns::Kind::AtStart:
+      tcp_turn_at(pose0, q0, t.start, mv, feed_mm_min);
+      return false;
+    case Turns::Kind::CutThenTurn:
+      tcp_feed(m0, q0, mv, t.end, feed_mm_min, nullptr);
+      tcp_turn_at(pose1, t.end, q1, mv, feed_mm_min);
       return true;
-    }
-    std::vector<kin::Solution> sols;
-    kin_.inverse_all(pose0, &q0, sols);
-    std::sort(sols.begin(), sols.end(), [&](const kin::Solution& a, const kin::Solution& b) {
-      return rotary_jump(q0, a.axes) < rotary_jump(q0, b.axes);
-    });
-    for (const kin::Solution& sol : sols) {
-      if (!sol.feasible() || rotary_jump(q0, sol.axes) < kFlipCheckRad || !runs_through(sol.axes, q1p)) continue;
-      tcp_turn_at(pose0, q0, sol.axes, mv, feed_mm_min);
-      tcp_feed(m0, sol.axes, mv, q1p, feed_mm_min, nullptr);
-      if (rotary_jump(q1p, q1) >= kFlipCheckRad) tcp_turn_at(pose1, q1p, q1, mv, feed_mm_min);
+    case Turns::Kind::BothEnds:
+      tcp_turn_at(pose0, q0, t.start, mv, feed_mm_min);
+      tcp_feed(m0, t.start, mv, t.end, feed_mm_min, nullptr);
+      if (t.turn_at_end) tcp_turn_at(pose1, t.end, q1, mv, feed_mm_min);
       return true;
-    }
-    q0n = nearest_at_start(pose0, q0, q1, m0, mv);
   }
-  if (rotary_jump(q0, q0n) < 1e-9) return false;  // tracking stalled near a singularity: same branch after all
-  tcp_turn_at(pose0, q0, q0n, mv, feed_mm_min);
   return false;
 }
 
