@@ -210,13 +210,13 @@ std::size_t cyclic_unwinds(const kin::Kinematics& kin, const Plan& p) {
   return n;
 }
 
-Plan plan_windowed_on(const machine::Machine& machine, std::shared_ptr<const kin::Kinematics> kinematics,
+Plan plan_windowed_on(const machine::Machine& machine, const std::shared_ptr<const kin::Kinematics>& kinematics,
                       const geom::Scene* scene, const geom::ToolShape* tool, const Options& options,
                       const cl::Program& program, const WindowOptions& w, const geom::Scene* head);
 
 }  // namespace
 
-Plan plan_windowed(const machine::Machine& machine, std::shared_ptr<const kin::Kinematics> kinematics,
+Plan plan_windowed(const machine::Machine& machine, const std::shared_ptr<const kin::Kinematics>& kinematics,
                    const geom::Scene* scene, const geom::ToolShape* tool, const Options& options,
                    const cl::Program& program, const WindowOptions& w, const geom::Scene* head) {
   const auto t0 = std::chrono::steady_clock::now();
@@ -261,7 +261,7 @@ Plan plan_windowed(const machine::Machine& machine, std::shared_ptr<const kin::K
 
 namespace {
 
-Plan plan_windowed_on(const machine::Machine& machine, std::shared_ptr<const kin::Kinematics> kinematics,
+Plan plan_windowed_on(const machine::Machine& machine, const std::shared_ptr<const kin::Kinematics>& kinematics,
                       const geom::Scene* scene, const geom::ToolShape* tool, const Options& options,
                       const cl::Program& program, const WindowOptions& w, const geom::Scene* head) {
   const auto t0 = std::chrono::steady_clock::now();

@@ -278,7 +278,8 @@ class PathCheck {
   static constexpr int kMaxHeads = 7;   // head meshes placed by the head pose, or by one machine link each
   struct Frames {
     std::array<Eigen::Vector3d, kMaxFrames> tip, axis;
-    std::array<Eigen::Isometry3d, kMaxFrames * kMaxHeads> head;  // [frame * kMaxHeads + group]
+    std::array<Eigen::Isometry3d, static_cast<std::size_t>(kMaxFrames) * kMaxHeads>
+        head;  // [frame * kMaxHeads + group]
   };
   /// The tool (and head) relative to every frame that carries obstacles, for axes q; false if a link or the head
   /// cannot be placed (then no certificate is used).

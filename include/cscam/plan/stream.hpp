@@ -57,7 +57,7 @@ void fit_cyclic_windows(const kin::Kinematics& kin, const cl::Program& program, 
 /// (both rotaries fixed, one fixed and the other monotonic, both monotonic, or shortest path). Counters, swept
 /// results, warnings and replaced moves are merged; `seconds` and `peak_memory_mb` cover the whole run.
 /// Throws InputError as Planner::run does (the CL line of the point that failed).
-Plan plan_windowed(const machine::Machine& machine, std::shared_ptr<const kin::Kinematics> kinematics,
+Plan plan_windowed(const machine::Machine& machine, const std::shared_ptr<const kin::Kinematics>& kinematics,
                    const geom::Scene* scene, const geom::ToolShape* tool, const Options& options,
                    const cl::Program& program, const WindowOptions& w = {}, const geom::Scene* head = nullptr);
 
