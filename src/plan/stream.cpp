@@ -199,13 +199,15 @@ void fit_cyclic_windows(const kin::Kinematics& kin, const cl::Program& program, 
 
 namespace {
 
-/// Steps of half a turn or more of a cyclic rotary between consecutive moves of a plan: unwinds (the post turns
-/// them with a retract).
+/// Steps of half a turn or more of a cyclic rotary into a feed move of a plan: unwinds on the part (the post turns them
+/// with a retract). A turn into a rapid (between two cuts) is a reorientation, which the post makes above the part.
 std::size_t cyclic_unwinds(const kin::Kinematics& kin, const Plan& p) {
   std::size_t n = 0;
+  const auto& moves = p.program.moves;
   for (const int r : kin.rotary_pair()) {
     if (!kin.axes()[static_cast<std::size_t>(r)].cyclic) continue;
-    for (std::size_t i = 1; i < p.axes.size(); ++i) n += std::abs(p.axes[i][r] - p.axes[i - 1][r]) >= kPi ? 1 : 0;
+    for (std::size_t i = 1; i < p.axes.size() && i < moves.size(); ++i)
+      n += moves[i].kind != cl::MotionKind::Rapid && std::abs(p.axes[i][r] - p.axes[i - 1][r]) >= kPi ? 1 : 0;
   }
   return n;
 }
