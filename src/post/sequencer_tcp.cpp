@@ -221,15 +221,11 @@ bool Sequencer::axis_of_words(const kin::Axes& v, Vec3& axis) const {
 /// The CL axes (the cone reference of a planned program) at the ends of the TCP segment into the program move m1, from
 /// the previous program move where the sequencer last was; null without a cone reference or after an inserted point.
 const Linearizer::ClAxes* Sequencer::tcp_cl_axes(const cl::Move& m1, Linearizer::ClAxes& ends) const {
-  const cl::Program* ref = opt_.cone_reference;
   const auto& moves = prog_.moves;
-  if (!ref || opt_.cone_deg <= 0 || &m1 <= moves.data() || &m1 >= moves.data() + moves.size()) return nullptr;
-  const auto i = static_cast<std::size_t>(&m1 - moves.data());
-  const cl::Move& m0 = moves[i - 1];
-  if (i >= ref->moves.size() || cart_move_.line != m0.line || cart_move_.tip_in_part_mm != m0.tip_in_part_mm)
-    return nullptr;
-  ends = {ref->moves[i - 1].axis_in_part, ref->moves[i].axis_in_part};
-  return &ends;
+  if (opt_.cone_deg <= 0 || &m1 <= moves.data() || &m1 >= moves.data() + moves.size()) return nullptr;
+  const cl::Move& m0 = *(&m1 - 1);
+  if (cart_move_.line != m0.line || cart_move_.tip_in_part_mm != m0.tip_in_part_mm) return nullptr;
+  return cl_axes(m0, m1, ends);  // the same lookup as the machine-coordinate feeds'
 }
 
 /// Whether the control's interpolation of the words from (pose0, q0) to (pose1, q1) keeps the tool axis within the cone
