@@ -1650,6 +1650,46 @@ TEST(PlannerTiers, ANarrowBeamThatDeadEndsIsWidenedBeforeAnyStepLeavesTheBound) 
   EXPECT_GE(shortest, 1) << p.summary();
 }
 
+TEST(PlannerTiers, TheBeamWidthTradesEvaluationsForTravelAndEveryWidthKeepsTheCone) {
+  // plan::Options::beam_states: every width plans a path whose tool axes stay in the cone (oracle: FK of the planned
+  // axes against the CL axis) with steps within the bound; a narrow start that dead-ends is widened (beam 4 on NX's
+  // path); a wider beam evaluates more cells and finds no more travel.
+  const auto m = machine::load(test::source_path("machines/haas-umc750.yaml"));
+  const cl::Program prog = cl::read_file(test::source_path("examples/nx-haas-umc750/variable_axis.cls"));
+  const auto kin = m.kinematics();
+  const auto rp = kin->rotary_pair();
+  std::map<std::size_t, std::pair<double, std::uint64_t>> by_width;  // travel (rad), cells evaluated
+  for (const std::size_t width : {std::size_t{4}, std::size_t{64}, std::size_t{1024}}) {
+    plan::Options o;
+    o.cspace.cone_rad = deg2rad(5.0);
+    o.cspace.check_collision = false;
+    o.beam_states = width;
+    const plan::Plan p = plan::Planner(m, kin, nullptr, nullptr, o).run(prog);
+    double travel = 0.0;
+    for (const auto& seg : p.segments) {
+      EXPECT_EQ(seg.description.find("except into"), std::string::npos) << width << ": " << seg.description;
+      for (std::size_t i = seg.first_move; i <= seg.last_move; ++i) {
+        const auto& mv = prog.moves[i];
+        if (mv.kind == cl::MotionKind::Rapid) continue;
+        const Eigen::Vector3d axis = kin->forward(p.axes[i]).axis;
+        EXPECT_LE(std::acos(std::clamp(axis.dot(mv.axis_in_part.normalized()), -1.0, 1.0)),
+                  o.cspace.cone_rad + tol::kRoundTripRad)
+            << "beam " << width << ", CL line " << mv.line;
+        if (i == seg.first_move) continue;
+        for (int r : rp) {
+          const double step = std::abs(p.axes[i][r] - p.axes[i - 1][r]);
+          EXPECT_LE(step, 20.0 * o.cspace.resolution_rad + 1e-9) << "beam " << width << ", CL line " << mv.line;
+          travel += step;
+        }
+      }
+    }
+    by_width[width] = {travel, p.counters.ik};
+  }
+  EXPECT_LT(by_width[64].second, by_width[1024].second);
+  EXPECT_LE(by_width[1024].first, by_width[64].first + 1e-9);
+  EXPECT_LE(by_width[64].first, by_width[4].first + 1e-9);
+}
+
 TEST(PlannerIssue11, IntervalReachBoundHoldsOnRandomMovesOfEverySerialMachine) {
   // The swept check's second-order bound: over a sub-interval of a straight joint move, no point of a body within
   // the lever of the tip leaves its middle position by more than interval_reach_bound. Oracle: dense sampling of the

@@ -221,6 +221,7 @@ void add_scene(Setup& s, const PlanArgs& a, const std::vector<cl::Tool>& tools, 
   o.cspace.min_tilt_rad = deg2rad(a.min_tilt_deg);
   o.cspace.resolution_rad = deg2rad(a.resolution_deg);
   o.max_step_rad = deg2rad(a.max_step_deg);
+  o.beam_states = a.beam;
   o.tilt_step_rad = deg2rad(a.tilt_step_deg);
   o.cspace.collision.clearance_mm = a.clearance_mm;
   {
@@ -672,6 +673,11 @@ void common_options(CLI::App* c, PlanArgs& a) {
                 "largest rotary step per point, deg, in tiers 2-4 (0: 20 grid steps, which tier 4 exceeds only where "
                 "no cell within it follows the CL axis; a value given here is never exceeded)")
       ->check(cli::kNonNegative);
+  c->add_option("--beam", a.beam,
+                fmt::format("tier 4 (shortest path): states kept per point at first, widened 4x up to {} where the "
+                            "search dead-ends; wider finds slightly less rotary travel, slower",
+                            plan::Options::kWidestBeam))
+      ->check(CLI::Range(std::size_t{1}, plan::Options::kWidestBeam));
   c->add_option("--clearance", a.clearance_mm, "collision clearance of shank, holder and spindle, mm")
       ->check(cli::kNonNegative);
   c->add_option("--tool-length", a.tool_length, "gauge-to-tip tool length, mm (0: the CL's or the machine file's)")

@@ -9,6 +9,7 @@
 #include "cscam/cl/program.hpp"
 #include "cscam/core/units.hpp"
 #include "cscam/gate/gate.hpp"
+#include "cscam/plan/plan.hpp"
 #include "cscam/post/post.hpp"
 
 namespace cscam::cli {
@@ -25,6 +26,7 @@ struct PlanArgs {
   std::optional<bool> tcp;           ///< tool-tip control on/off; unset: the machine's post.tcp
   std::string work_plane;            ///< tilted | machine for 3+2 segments; empty: the machine's post.work_plane
   std::size_t window = 0;            ///< plan in windows of this many moves; 0: automatic (above 50,000 moves)
+  std::size_t beam = plan::Options{}.beam_states;  ///< tier 4's first beam width (states per point)
 };
 
 /// What plan_and_write did.

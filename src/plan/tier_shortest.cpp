@@ -350,9 +350,9 @@ bool tier_shortest(const SegmentView& v, SegmentCells& d, TierOutcome& out) {
   const double max_step = max_rotary_step(v);  // the bound tiers 2 and 3 hold too
   // The beam: states kept per point. Where it dead-ends within the step bound it is widened (a bounded path can run
   // through states a narrow beam dropped: NX's path on the 45-degree head needs 1024); only the widest beam may step
-  // beyond the bound (below). 64 first: on the hard benchmark it costs 0.8 % more rotary travel than 256 and evaluates
-  // half the cells.
-  constexpr std::array<std::size_t, 2> kBeams{256, 1024};
+  // beyond the bound (below).
+  std::vector<std::size_t> beams{std::clamp<std::size_t>(opt.beam_states, 1, Options::kWidestBeam)};
+  while (beams.back() < Options::kWidestBeam) beams.push_back(std::min(Options::kWidestBeam, 4 * beams.back()));
   if (v.exact) {
     std::size_t fl = 0;
     Why w;
@@ -368,7 +368,7 @@ bool tier_shortest(const SegmentView& v, SegmentCells& d, TierOutcome& out) {
     return true;
   }
   LayeredDp<State> dp;
-  std::size_t beam_at = 0;  // index in kBeams
+  std::size_t beam_at = 0;  // index in beams
   // Resume where the swept flags first differ from the last pass's (a pass that went through, on the same lists).
   std::size_t k0 = 0;
   std::size_t rejoin_from = n;  // past the last layer whose flag changed, the old pass may be rejoined
@@ -389,11 +389,12 @@ bool tier_shortest(const SegmentView& v, SegmentCells& d, TierOutcome& out) {
   d.last_shortest.reset();
   std::size_t built = 0;
   for (;; ++beam_at, k0 = 0, rejoin_from = n) {
-    const bool widest = beam_at + 1 == kBeams.size();
+    const bool widest = beam_at + 1 >= beams.size();
     built = dp.forward_rejoin(
         k0, rejoin_from, n,
         [&](std::size_t k, const auto& prev, std::vector<State>& S) {
-          return beam_layer(v, d, prev, k, max_step, kBeams[beam_at], widest && opt.max_step_rad <= 0, S);
+          return beam_layer(v, d, prev, k, max_step, beams[std::min(beam_at, beams.size() - 1)],
+                            widest && opt.max_step_rad <= 0, S);
         },
         [](const State& a, const State& b) { return a.cell == b.cell; });
     if (built == n || widest) break;
