@@ -993,6 +993,33 @@ TEST(Cli, SimulateRefusesACsvThatIsNotAPoseList) {
   EXPECT_FALSE(fs::exists(d.path / "o.csv"));
 }
 
+TEST(Cli, SimulateNamesTheLineOfABadPoseList) {
+  // A pose list's errors at the line that holds them: a missing axis column at the header (line 3, after two metadata
+  // lines), a pose beyond a stroke at its row, and the wrong kind at its metadata value. No file is written.
+  TempDir d;
+  struct Case {
+    std::string text, where, what;
+  };
+  const std::vector<Case> cases = {
+      {"# kind: static\n# note: x\ncmd.x,cmd.y,cmd.z,cmd.a\n0,0,0,0\n", "p.csv:3:", "missing column cmd.c"},
+      {"# kind: static\ncmd.x,cmd.y,cmd.z,cmd.a,cmd.c\n0,0,0,-100,0\n# a comment\n1,2,3,50.01,0\n",
+       "p.csv:5:", "a = 50.0100 deg outside its limits"},
+      {"# note: y\n# kind: trajectory\nt,cmd.x\n0,0\n", "p.csv:2:", "static pose list"},
+  };
+  for (const Case& c : cases) {
+    const std::string poses = d.file("p.csv", c.text);
+    const auto r = run_command(kCli + " simulate " + poses + " --machine trunnion-ac -o " + d.file("o.csv"));
+    EXPECT_NE(r.status, 0) << r.output;
+    EXPECT_NE(r.output.find(c.where), std::string::npos) << r.output;
+    EXPECT_NE(r.output.find(c.what), std::string::npos) << r.output;
+    EXPECT_FALSE(fs::exists(d.path / "o.csv"));
+  }
+  // At the limits themselves (within the slack) the poses are measured.
+  const std::string ok = d.file("p.csv", "# kind: static\ncmd.x,cmd.y,cmd.z,cmd.a,cmd.c\n0,0,0,-100,0\n1,2,3,50,7\n");
+  const auto r = run_command(kCli + " simulate " + ok + " --machine trunnion-ac -o " + d.file("o.csv"));
+  EXPECT_EQ(r.status, 0) << r.output;
+}
+
 // Determinism: the parallel parts (simulate, diagnose) partition work by index, so their files are
 // byte-identical at any thread count.
 TEST(Cli, SimulateAndDiagnoseAreByteIdenticalAtAnyThreadCount) {

@@ -111,15 +111,17 @@ int cmd_simulate(const SimArgs& a) {
     // machine (its effects, geometric deviations included) and write a static recording.
     sim::Recording poses = sim::read_recording(a.program);
     if (poses.meta_value("kind").value_or("") != "static")
-      throw InputError(SourceLoc{a.program, 1, 0},
+      throw InputError(poses.meta_value("kind") ? poses.meta_loc("kind") : SourceLoc{a.program, 1, 0},
                        "a CSV input must be a static pose list ('# kind: static' with cmd.<axis> columns)");
     sim::Trajectory tr;
+    const auto kin = m.kinematics();
     std::vector<int> col(5);
     for (size_t j = 0; j < 5; ++j) {
       col[j] = poses.column("cmd." + m.axes[j].name);
       if (col[j] < 0)
-        throw InputError(SourceLoc{a.program, 1, 0}, fmt::format("missing column cmd.{} for axis {} of machine {}",
-                                                                 m.axes[j].name, m.axes[j].name, m.name));
+        throw InputError(
+            SourceLoc{a.program, poses.header_line, 0},
+            fmt::format("missing column cmd.{} for axis {} of machine {}", m.axes[j].name, m.axes[j].name, m.name));
     }
     for (size_t i = 0; i < poses.rows(); ++i) {
       kin::Axes q;
@@ -129,6 +131,14 @@ int cmd_simulate(const SimArgs& a) {
           throw InputError(SourceLoc{a.program, poses.row_line[i], 0},
                            fmt::format("cmd.{} is empty: every pose needs every axis", m.axes[j].name));
       }
+      // A pose beyond a stroke cannot be measured: simulating it anyway would hand calibration a pose that no
+      // machine of this file can take.
+      kin::Axes q_model = q;
+      for (int j = 0; j < 5; ++j)
+        if (m.axes[static_cast<std::size_t>(j)].rotary()) q_model[j] = deg2rad(q[j]);
+      if (const std::string beyond = kin->check_limits(q_model); !beyond.empty())
+        throw InputError(SourceLoc{a.program, poses.row_line[i], 0},
+                         fmt::format("pose {} is beyond the machine's limits: {}", i + 1, beyond));
       tr.t.push_back(static_cast<double>(i));
       tr.cmd.push_back(q);
     }

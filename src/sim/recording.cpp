@@ -130,6 +130,7 @@ Recording parse_recording(const std::string& text, const std::string& name) {
     }
     if (!header_seen) {
       header_seen = true;
+      rec.header_line = line;
       if (ln.find(',') == std::string_view::npos && ln.find(';') != std::string_view::npos)
         throw InputError(SourceLoc{name, line, static_cast<int>(ln.find(';')) + 1},
                          "the header's columns are separated by ';': a recording separates them by ',' and writes "
@@ -239,7 +240,7 @@ void write_recording(std::ostream& os, const Recording& rec, int decimals) {
 void validate_against(Recording& rec, const machine::Machine& m) {
   for (const auto& ax : m.axes)
     if (rec.column("cmd." + ax.name) < 0)
-      throw InputError(SourceLoc{rec.file, rec.row_line.empty() ? 0 : rec.row_line.front() - 1},
+      throw InputError(SourceLoc{rec.file, rec.header_line},
                        fmt::format("missing column 'cmd.{}' (machine {} has axis {}; every machine axis needs its "
                                    "commanded position)",
                                    ax.name, m.name, ax.name));

@@ -22,6 +22,7 @@ struct Recording {
   std::vector<int> meta_line;                             ///< 1-based file line of each metadata entry (0: set)
   std::vector<int> meta_col;                              ///< 1-based column of each entry's value (0: set)
   std::vector<std::string> columns;                       ///< header names
+  int header_line = 0;                                    ///< 1-based file line of the header (0: built in memory)
   std::vector<std::vector<double>> data;                  ///< data[column][row]; NaN = empty cell
   std::vector<int> row_line;                              ///< 1-based file line of every row
   std::vector<std::string> warnings;                      ///< e.g. unknown columns
