@@ -1020,6 +1020,33 @@ TEST(Cli, SimulateNamesTheLineOfABadPoseList) {
   EXPECT_EQ(r.status, 0) << r.output;
 }
 
+TEST(Cli, SimulateTellsNcFromClByContentWhereTheExtensionDoesNot) {
+  // A Siemens .mpf and a Heidenhain .h are programs, a CL file saved as .txt is CL. Oracle: the same program under its
+  // usual extension (.ngc, .cls) gives the same recording, byte for byte.
+  TempDir d;
+  const std::string cl = cscam::test::source_path("examples/xmini/seed000_x_cut.cls");
+  auto read = [](const std::string& f) {
+    std::ifstream in(f);
+    return std::string(std::istreambuf_iterator<char>(in), {});
+  };
+  auto simulate = [&](const std::string& in, const std::string& out) {
+    const auto r = run_command(kCli + " simulate " + in + " --machine trunnion-ac --rate 50 -o " + out);
+    EXPECT_EQ(r.status, 0) << in << ": " << r.output;
+    return read(out);
+  };
+  const std::string as_txt = d.file("cut.txt", read(cl));
+  EXPECT_EQ(simulate(cl, d.file("a.csv")), simulate(as_txt, d.file("b.csv")));
+  for (const char* dialect : {"siemens", "heidenhain", "fanuc"}) {
+    const std::string ngc = d.file("p.ngc");
+    const auto r =
+        run_command(kCli + " post " + cl + " --machine trunnion-ac --no-tcp --dialect " + dialect + " -o " + ngc);
+    ASSERT_EQ(r.status, 0) << r.output;
+    const std::string other =
+        d.file(std::string("p.") + (std::string(dialect) == "heidenhain" ? "h" : "mpf"), read(ngc));
+    EXPECT_EQ(simulate(ngc, d.file("c.csv")), simulate(other, d.file("e.csv"))) << dialect;
+  }
+}
+
 // Determinism: the parallel parts (simulate, diagnose) partition work by index, so their files are
 // byte-identical at any thread count.
 TEST(Cli, SimulateAndDiagnoseAreByteIdenticalAtAnyThreadCount) {

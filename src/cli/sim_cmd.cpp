@@ -4,6 +4,7 @@
 
 #include <fmt/format.h>
 
+#include <cctype>
 #include <chrono>
 #include <cmath>
 #include <filesystem>
@@ -11,6 +12,7 @@
 #include <iostream>
 #include <memory>
 #include <sstream>
+#include <string_view>
 
 #include "cscam/core/atomic_file.hpp"
 #include "cscam/core/error.hpp"
@@ -52,10 +54,34 @@ std::vector<std::string> split(const std::string& s, char sep) {
   return out;
 }
 
+/// Whether `path` holds NC (G-code) rather than CL data. By the extension where it is one of the usual ones; otherwise
+/// (a Siemens .mpf, a Heidenhain .h, a .txt) by the first statement: a CL file's are `KEYWORD/...`, `$$` comments or
+/// bare keywords such as MULTAX and FINI, and anything else is taken for NC, whose reader names any line it cannot
+/// read.
 bool is_nc(const std::string& path) {
   std::string ext = fs::path(path).extension().string();
   for (auto& c : ext) c = static_cast<char>(std::tolower(static_cast<unsigned char>(c)));
-  return ext == ".ngc" || ext == ".nc" || ext == ".tap" || ext == ".gcode" || ext == ".cnc";
+  if (ext == ".ngc" || ext == ".nc" || ext == ".tap" || ext == ".gcode" || ext == ".cnc") return true;
+  if (ext == ".cls" || ext == ".cl" || ext == ".apt" || ext == ".aptsource" || ext == ".clsf") return false;
+  std::ifstream in(path);
+  std::string line;
+  for (int n = 0; n < 200 && std::getline(in, line); ++n) {
+    const std::size_t b = line.find_first_not_of(" \t\r");
+    if (b == std::string::npos) continue;
+    const std::string_view st = std::string_view(line).substr(b);
+    if (st.rfind("$$", 0) == 0) return false;
+    std::size_t k = 0;
+    while (k < st.size() && (std::isalpha(static_cast<unsigned char>(st[k])) != 0 || st[k] == '_')) ++k;
+    if (k == 0) return true;  // '%', ';', '(', a digit: G-code
+    std::size_t after = k;
+    while (after < st.size() && (st[after] == ' ' || st[after] == '\t')) ++after;
+    if (after < st.size() && st[after] == '/') return false;  // GOTO/, TLDATA/, TOOL PATH/ (after its first word)
+    std::string word(st.substr(0, k));
+    for (auto& c : word) c = static_cast<char>(std::toupper(static_cast<unsigned char>(c)));
+    if (word == "TOOL") return st.find("PATH/") == std::string_view::npos;  // NX's TOOL PATH/; Heidenhain's TOOL CALL
+    return !(word == "MULTAX" || word == "FINI" || word == "PARTNO" || word == "RAPID" || word == "PPRINT");
+  }
+  return true;
 }
 
 std::string read_text(const std::string& path) {
@@ -249,9 +275,11 @@ std::function<int()> add_sim_commands(CLI::App& app) {
   auto* sim_cmd =
       app.add_subcommand("simulate", "Simulate a program on a machine with injected effects: write a recording");
   sim_cmd
-      ->add_option("program", sa->program,
-                   "NC file (.ngc/.nc/.tap), CL file (posted with the conventional strategy), or a static pose list "
-                   "(.csv, kind: static) to measure")
+      ->add_option(
+          "program", sa->program,
+          "NC file (.ngc, .nc, .tap; other extensions such as .mpf or .h are told from CL by their content), CL "
+          "file (posted with the conventional strategy), or a static pose list "
+          "(.csv, kind: static) to measure")
       ->required();
   sim_cmd->add_option("-m,--machine", sa->machine, "machine file or bundled machine name")->required();
   sim_cmd->add_option("-o,--output", sa->out, "recording to write (CSV, spec/recording.md)");
