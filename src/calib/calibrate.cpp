@@ -41,6 +41,36 @@ double sigma_of(const Sigmas& s, std::size_t c) {
   return s.len_mm;
 }
 
+/// Per pose of d under the parameters p: the RMS and the sum of squares of its residuals in sigmas, and its degrees of
+/// freedom (a unit direction has 2, not 3).
+void normalised_pose_residuals(const Model& model, const Dataset& d, const std::vector<double>& p,
+                               std::vector<double>& pose_rms, std::vector<double>& pose_chi2,
+                               std::vector<double>& pose_dof) {
+  const std::size_t nch = 9 + model.links().size();
+  std::vector<double> out(nch);
+  auto scratch = model.make_scratch();
+  pose_rms.assign(d.poses.size(), 0.0);
+  pose_chi2.assign(d.poses.size(), 0.0);
+  pose_dof.assign(d.poses.size(), 0.0);
+  for (std::size_t k = 0; k < d.poses.size(); ++k) {
+    const auto& pose = d.poses[k];
+    model.predict_channels(pose.q.data(), p.data(), out.data(), scratch.get());
+    double s2 = 0;
+    int cnt = 0;
+    bool dir = false;
+    for (std::size_t c = 0; c < nch; ++c)
+      if (!std::isnan(pose.meas[c])) {
+        const double r = (pose.meas[c] - out[c]) / sigma_of(d.sigma, c);
+        s2 += r * r;
+        ++cnt;
+        dir = dir || (c >= 3 && c < 6);
+      }
+    pose_rms[k] = cnt ? std::sqrt(s2 / cnt) : 0.0;
+    pose_chi2[k] = s2;
+    pose_dof[k] = cnt - (dir ? 1 : 0);
+  }
+}
+
 /// Residuals of one pose: (measured - predicted) / sigma for every measured channel.
 struct PoseResidual {
   const Model* model;
@@ -577,27 +607,8 @@ Result calibrate(const Model& model, const Dataset& d, const Options& opt) {
   // Outlier poses: normalised RMS residual above 3 (3 sigma per channel). Without sigmas in the recording the scale
   // is the median pose's: rescaled by the reduced chi^2, gross outliers raise their own limit and hide.
   {
-    const std::size_t nch = 9 + model.links().size();
-    std::vector<double> out(nch);
-    auto scratch = model.make_scratch();
-    std::vector<double> pose_rms(d.poses.size(), 0.0), pose_chi2(d.poses.size(), 0.0), pose_dof(d.poses.size(), 0.0);
-    for (std::size_t k = 0; k < d.poses.size(); ++k) {
-      const auto& pose = d.poses[k];
-      model.predict_channels(pose.q.data(), p.data(), out.data(), scratch.get());
-      double s2 = 0;
-      int cnt = 0;
-      bool dir = false;
-      for (std::size_t c = 0; c < nch; ++c)
-        if (!std::isnan(pose.meas[c])) {
-          const double r = (pose.meas[c] - out[c]) / sigma_of(d.sigma, c);
-          s2 += r * r;
-          ++cnt;
-          dir = dir || (c >= 3 && c < 6);
-        }
-      pose_rms[k] = cnt ? std::sqrt(s2 / cnt) : 0.0;
-      pose_chi2[k] = s2;
-      pose_dof[k] = cnt - (dir ? 1 : 0);  // a unit direction has 2 degrees of freedom, not 3
-    }
+    std::vector<double> pose_rms, pose_chi2, pose_dof;
+    normalised_pose_residuals(model, d, p, pose_rms, pose_chi2, pose_dof);
     double scale = 1.0;
     if (!d.sigma.given && !pose_rms.empty()) {
       std::vector<double> sorted = pose_rms;
@@ -613,6 +624,7 @@ Result calibrate(const Model& model, const Dataset& d, const Options& opt) {
       const double median_rms = std::pow(1.0 - 2.0 / (9.0 * kc), 1.5);
       scale = std::max(sorted[sorted.size() / 2] / median_rms, 1e-300);
     }
+    res.residual_scale = scale;
     const double npose = static_cast<double>(d.poses.size());
     std::vector<bool> out_pose(d.poses.size(), false);
     for (std::size_t k = 0; k < d.poses.size(); ++k)
@@ -635,6 +647,20 @@ Result calibrate(const Model& model, const Dataset& d, const Options& opt) {
   }
   res.summary.time_s = std::chrono::duration<double>(std::chrono::steady_clock::now() - t0).count();
   return res;
+}
+
+std::vector<Result::Outlier> heldout_outliers(const Model& model, const Dataset& d, const std::vector<double>& p,
+                                              const Result& r) {
+  std::vector<double> pose_rms, pose_chi2, pose_dof;
+  normalised_pose_residuals(model, d, p, pose_rms, pose_chi2, pose_dof);
+  std::vector<Result::Outlier> out;
+  const double npose = static_cast<double>(d.poses.size()), scale = r.residual_scale;
+  for (std::size_t k = 0; k < d.poses.size(); ++k)
+    if (pose_rms[k] > 3.0 * scale) {
+      const double z = pose_rms[k] / scale, nk = std::max(pose_dof[k], 1.0);
+      out.push_back({k, d.poses[k].line, z, std::min(1.0, npose * chi2_upper_tail(z * z * nk, nk))});
+    }
+  return out;
 }
 
 double chi2_upper_tail(double x, double dof) {

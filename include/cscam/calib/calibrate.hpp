@@ -141,7 +141,17 @@ struct Result {
     double p_any = 1;
   };
   std::vector<Outlier> outliers;
+  /// What the outlier rule divides a pose's normalised RMS residual by: 1 where the recording gives its sigmas,
+  /// otherwise the noise level estimated from the median pose (so that other poses, e.g. held-out ones, can be judged
+  /// by the same rule: heldout_outliers).
+  double residual_scale = 1.0;
 };
+
+/// Poses of `d` (e.g. held out of the fit) that the parameters `p` predict worse than the fit's noise allows, by the
+/// rule the fit's own poses are judged by: normalised RMS residual above 3 x `r.residual_scale`, with its chance
+/// among d's poses (p_any). Such a pose did not pull the fit: a bad measurement, or an effect the model lacks there.
+std::vector<Result::Outlier> heldout_outliers(const Model& model, const Dataset& d, const std::vector<double>& p,
+                                              const Result& r);
 
 /// P(X >= x) for X ~ chi^2 with `dof` degrees of freedom.
 double chi2_upper_tail(double x, double dof);
