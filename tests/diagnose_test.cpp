@@ -814,3 +814,34 @@ TEST(Diagnose, APermanentStepIsAStepNotADrift) {
   expect_found(d, "thermal_drift", "tip.z", "drift_mm", 0.02);
   for (const auto& fd : d.findings) EXPECT_NE(fd.effect->name(), "step") << d.text();
 }
+
+// A tracker whose samples run late against the command: the tip lags every moving axis alike while the encoders do
+// not. The verdict says it is most likely the measurement's delay; a servo lag on two axes that the encoders see is
+// not called that. Oracle: the delay applied to the recording (a shift of the tip columns by whole rows).
+TEST(Diagnose, TheSameLagOnEveryAxisUnseenByTheEncodersIsCalledALatency) {
+  constexpr double kRate = 1000, kDelayS = 0.005;
+  sim::SimulateOptions so;
+  so.channels = {"tip", "enc"};
+  so.noise = {{"tip", 0.0005}, {"enc", 0.0001}};
+  so.seed = 9;
+  auto rec = sim::simulate(circle(kRate), trunnion(), {}, so);
+  const auto shift = static_cast<std::size_t>(std::lround(kDelayS * kRate));
+  for (const char* c : {"tip.x", "tip.y", "tip.z"}) {
+    auto& col = rec.data[static_cast<std::size_t>(rec.column(c))];
+    for (std::size_t i = col.size(); i-- > shift;) col[i] = col[i - shift];
+    for (std::size_t i = 0; i < shift; ++i) col[i] = std::nan("");
+  }
+  rec.file = "late.csv";
+  const auto r = diagnose::diagnose(rec, trunnion(), {});
+  EXPECT_NE(r.verdict.find("the measurement itself runs 5.0"), std::string::npos) << r.text();
+  for (const char* axis : {"x", "y"}) {
+    const diagnose::Finding* f = find(r, "servo_lag_1st", axis);
+    if (!f) f = find(r, "servo_lag", axis);
+    ASSERT_NE(f, nullptr) << axis << ":\n" << r.text();
+    EXPECT_NE(f->explains.find("does not see it"), std::string::npos) << r.text();
+  }
+  // Servos that lag: the encoders see it, and nothing is said of a latency.
+  const auto servo = run(circle(), trunnion(), {"servo_lag:x:0.005", "servo_lag:y:0.005"}, {"tip", "enc"}, 0.001);
+  EXPECT_EQ(servo.verdict.find("runs"), std::string::npos) << servo.text();
+  EXPECT_EQ(servo.text().find("does not see it"), std::string::npos) << servo.text();
+}

@@ -698,6 +698,15 @@ std::string source_of(double f, double rpm, int flutes, double sample_hz = 0) {
   return "structural";
 }
 
+/// A following error: servo_lag or servo_lag_1st.
+bool is_lag(const Effect& e) { return e.name() == "servo_lag" || e.name() == "servo_lag_1st"; }
+
+/// The steady following error per unit velocity of a lag effect, s.
+double steady_lag_s(const Effect& e) {
+  const auto rep = e.reported();
+  return e.name() == "servo_lag_1st" ? rep[1].second : rep[0].second;
+}
+
 std::string explain(const Effect& e, const std::string& dom) {
   const auto rep = e.reported();
   const std::string u = e.rotary ? "deg" : "mm";
@@ -1486,6 +1495,10 @@ Report diagnose(sim::Recording& rec, const machine::Machine& m, const std::vecto
       if (s > domv) domv = s, dom = c.name;
     }
     fd.explains = explain(*fd.effect, dom);
+    if (is_lag(*fd.effect) && !fd.effect->enc_visible && has_enc(fd.effect->axis))
+      fd.explains += fmt::format(
+          "; enc.{} does not see it: the lag lies between the axis's scale and the tool, or in the measurement itself",
+          fd.effect->target);
     if (fd.effect->name() == "cyclic") {
       // A period longer than the travel recorded is a curve the recording cannot close: it stands in for a slope or
       // a bow over that travel as much as for a periodic error.
@@ -1698,11 +1711,33 @@ Report diagnose(sim::Recording& rec, const machine::Machine& m, const std::vecto
         parts += fmt::format(" (or as well: {}; this recording cannot tell them apart)",
                              fmt::join(fd.alternatives, "; or "));
     }
+    // The same lag on several axes that their encoders do not see is most likely one delay of the measurement (a
+    // tracker's or a probe's latency against the command's clock), not as many servos lagging alike.
+    std::string latency;
+    std::vector<const Finding*> lags;
+    for (const auto& fd : R.findings)
+      if (is_lag(*fd.effect) && !fd.effect->enc_visible && has_enc(fd.effect->axis)) lags.push_back(&fd);
+    if (lags.size() >= 2) {
+      double lo = std::numeric_limits<double>::infinity(), hi = 0;
+      std::string axes;
+      for (const Finding* fd : lags) {
+        const double lag_s = steady_lag_s(*fd->effect);
+        lo = std::min(lo, lag_s);
+        hi = std::max(hi, lag_s);
+        axes += (axes.empty() ? "" : ", ") + fd->effect->target;
+      }
+      if (lo > 0 && hi <= 1.1 * lo)
+        latency = fmt::format(
+            "; the same lag of {:.2f} ms on {}, which their encoders do not see: most likely the measurement itself "
+            "runs {:.2f} ms late (a latency of the tracker or probe against the command), not the servos",
+            0.5 * (lo + hi) * 1000, axes, 0.5 * (lo + hi) * 1000);
+    }
     const auto& top = R.findings.front();
     R.verdict =
         fmt::format("missing physics: {}; modelled, the {} RMS of {} falls from {} to {}", parts,
                     top.judged_on_training ? "training-block" : "held-out", top.group,
                     fmt_group(m, top.group, top.heldout_rms_before), fmt_group(m, top.group, top.heldout_rms_after));
+    R.verdict += latency;
     if (R.residual_above_noise)
       R.verdict += fmt::format(
           "; what is left is still above the noise ({}): an effect outside the library, or one modelled only in part",
