@@ -1690,6 +1690,54 @@ TEST(PlannerTiers, TheBeamWidthTradesEvaluationsForTravelAndEveryWidthKeepsTheCo
   EXPECT_LE(by_width[64].first, by_width[4].first + 1e-9);
 }
 
+TEST(Planner, APositioningSegmentTakesANeighbourOrientationInsteadOfTurningToItsOwn) {
+  // Two cuts tilted +-10 deg about Y; vertical rapids before, between and after them, each a segment of its own (the
+  // next move is a rapid again). At cone 15 each vertical axis is within the cone of its neighbours' orientations: the
+  // first rapid takes the first cut's (the next segment's), the others the cut before theirs (the previous
+  // segment's). Oracle: the planned rotaries, and FK of every planned pose within the cone of its CL axis. At cone 5
+  // neither orientation is within the cone of a vertical rapid: they keep orientations of their own.
+  const auto m = machine::load(test::source_path("machines/trunnion-ac.yaml"));
+  const auto kin = m.kinematics();
+  const auto rp = kin->rotary_pair();
+  const double s10 = std::sin(deg2rad(10.0)), c10 = std::cos(deg2rad(10.0));
+  const std::string text = fmt::format(
+      "UNITS/MM\nMULTAX\nCUTTER/10,5\nFEDRAT/MMPM,1000\n"
+      "RAPID\nGOTO/0,0,60,0,0,1\n"
+      "RAPID\nGOTO/0,0,10,{0},0,{1}\nGOTO/0,0,5,{0},0,{1}\nGOTO/20,0,5,{0},0,{1}\nGOTO/40,0,5,{0},0,{1}\n"
+      "RAPID\nGOTO/40,0,60,0,0,1\n"
+      "RAPID\nGOTO/40,20,10,{2},0,{1}\nGOTO/40,20,5,{2},0,{1}\nGOTO/20,20,5,{2},0,{1}\nGOTO/0,20,5,{2},0,{1}\n"
+      "RAPID\nGOTO/0,20,60,0,0,1\n",
+      s10, c10, -s10);
+  const cl::Program prog = cl::read_text(text, "rapids.cls");
+  for (const double cone : {15.0, 5.0}) {
+    plan::Options o;
+    o.cspace.cone_rad = deg2rad(cone);
+    o.cspace.check_collision = false;
+    const plan::Plan p = plan::Planner(m, kin, nullptr, nullptr, o).run(prog);
+    ASSERT_EQ(p.segments.size(), 5u) << p.summary();
+    for (std::size_t i = 0; i < prog.moves.size(); ++i) {
+      const Eigen::Vector3d axis = kin->forward(p.axes[i]).axis;
+      EXPECT_LE(std::acos(std::clamp(axis.dot(prog.moves[i].axis_in_part.normalized()), -1.0, 1.0)),
+                o.cspace.cone_rad + tol::kRoundTripRad)
+          << "cone " << cone << ", move " << i;
+    }
+    auto same = [&](std::size_t a, std::size_t b) {
+      return std::abs(p.axes[a][rp[0]] - p.axes[b][rp[0]]) < 1e-12 &&
+             std::abs(p.axes[a][rp[1]] - p.axes[b][rp[1]]) < 1e-12;
+    };
+    const auto& seg = p.segments;
+    ASSERT_TRUE(seg[0].positioning && seg[2].positioning && seg[4].positioning) << p.summary();
+    const bool wide = cone > 10;
+    EXPECT_EQ(same(seg[0].first_move, seg[1].first_move), wide) << "cone " << cone << "\n" << p.summary();
+    EXPECT_EQ(same(seg[2].first_move, seg[1].last_move), wide) << "cone " << cone << "\n" << p.summary();
+    EXPECT_EQ(same(seg[4].first_move, seg[3].last_move), wide) << "cone " << cone << "\n" << p.summary();
+    if (wide) {
+      EXPECT_NE(seg[0].description.find("the next segment's orientation"), std::string::npos) << p.summary();
+      EXPECT_NE(seg[2].description.find("the previous segment's orientation"), std::string::npos) << p.summary();
+    }
+  }
+}
+
 TEST(PlannerIssue11, IntervalReachBoundHoldsOnRandomMovesOfEverySerialMachine) {
   // The swept check's second-order bound: over a sub-interval of a straight joint move, no point of a body within
   // the lever of the tip leaves its middle position by more than interval_reach_bound. Oracle: dense sampling of the

@@ -237,6 +237,80 @@ void mark_clear_reorientations(const kin::Kinematics& kin, Plan& plan) {
   }
 }
 
+/// A segment of rapid moves only cuts nothing, yet the cascade gives it an orientation of its own (the CL's, near
+/// home): the tool then turned into it and out again for the next cut. Where the orientation the previous segment
+/// ends with, else the one the next segment starts with, suits every point of it (in the cone, inside the strokes, no
+/// collision at the point), it takes that one. Skipped: a segment whose moves were re-placed along a neighbour's axis
+/// (already that neighbour's), and, in windowed planning, a pinned first move or a last move that the next window
+/// continues. The moves between points are checked afterwards, with every other move (check_program): those into,
+/// inside and out of a changed segment lose the certificates its own swept check gave them (swept_ok).
+void adopt_neighbour_orientations(const cspace::Space& space, const kin::Kinematics& kin, const Options& opt,
+                                  const cl::Program& program,
+                                  const std::vector<std::pair<std::size_t, std::size_t>>& segs, Plan& plan,
+                                  std::vector<char>& swept_ok) {
+  const auto rp = kin.rotary_pair();
+  const double res = space.options().resolution_rad;
+  geom::QueryWorkspace ws;
+  for (std::size_t g = 0; g < segs.size() && g < plan.segments.size(); ++g) {
+    SegmentReport& rep = plan.segments[g];
+    const auto [s, e] = segs[g];
+    if (!rep.positioning) continue;
+    if (rep.approach_moves_replaced > 0) {
+      // A single rapid re-placed along the previous point's chosen axis (a retract) has that point's rotaries: the
+      // cascade's description named its own.
+      if (e == s && s > 0 && plan.axes[s][rp[0]] == plan.axes[s - 1][rp[0]] &&
+          plan.axes[s][rp[1]] == plan.axes[s - 1][rp[1]])
+        rep.description = fmt::format(
+            "rotaries fixed at {} = {:.3f} deg, {} = {:.3f} deg (along the previous segment's last tool axis)",
+            kin.axes()[static_cast<std::size_t>(rp[0])].name, rad2deg(plan.axes[s][rp[0]]),
+            kin.axes()[static_cast<std::size_t>(rp[1])].name, rad2deg(plan.axes[s][rp[1]]));
+      continue;
+    }
+    if (s == 0 && opt.start_rotaries && opt.start_is_join) continue;
+    if (opt.continues && e + 1 == program.moves.size()) continue;
+    struct Candidate {
+      std::size_t from;
+      const char* which;
+    };
+    std::vector<Candidate> candidates;
+    if (g > 0) candidates.push_back({segs[g - 1].second, "previous"});
+    if (g + 1 < segs.size()) candidates.push_back({segs[g + 1].first, "next"});
+    for (const Candidate& cand : candidates) {
+      const double r1 = plan.axes[cand.from][rp[0]], r2 = plan.axes[cand.from][rp[1]];
+      if (plan.axes[s][rp[0]] == r1 && plan.axes[s][rp[1]] == r2) break;  // already there
+      std::vector<kin::Axes> axes;
+      for (std::size_t m = s; m <= e; ++m) {
+        const kin::Posed cl{program.moves[m].tip_in_part_mm, program.moves[m].axis_in_part.normalized()};
+        cspace::Cell cell;
+        cell.r1 = r1;
+        cell.r2 = r2;
+        cell.i1 = static_cast<int>(std::lround(r1 / res));
+        cell.i2 = static_cast<int>(std::lround(r2 / res));
+        if (!space.in_cone(cl, r1, r2, &cell.orient_err)) break;
+        space.evaluate(cl, cell, ws, plan.counters);
+        if (cell.status != cspace::Status::Feasible) break;
+        axes.push_back(cell.axes);
+      }
+      if (axes.size() != e - s + 1) continue;
+      // The moves into, inside and out of the segment lose their swept certificates.
+      for (std::size_t m = s; m <= std::min(e + 1, program.moves.size() - 1); ++m) swept_ok[m] = 0;
+      for (std::size_t m = s; m <= e; ++m) {
+        plan.axes[m] = axes[m - s];
+        const kin::Posed tp = kin.forward(axes[m - s]);
+        plan.program.moves[m].tip_in_part_mm = tp.tip_mm;
+        plan.program.moves[m].axis_in_part = tp.axis;
+      }
+      const auto& names = kin.axes();
+      rep.description = fmt::format(
+          "rotaries fixed at {} = {:.3f} deg, {} = {:.3f} deg (the {} segment's orientation: no turn of its "
+          "own)",
+          names[static_cast<std::size_t>(rp[0])].name, rad2deg(r1), names[static_cast<std::size_t>(rp[1])].name,
+          rad2deg(r2), cand.which);
+      break;
+    }
+  }
+}
+
 }  // namespace
 
 Plan Planner::run(const cl::Program& program) const {
@@ -280,6 +354,7 @@ Plan Planner::run(const cl::Program& program) const {
     rep.approach_moves_replaced = replace_approach_retract(*kin_, opt_, program, s, e, plan, swept_ok);
     plan.segments.push_back(std::move(rep));
   }
+  adopt_neighbour_orientations(space_, *kin_, opt_, program, segs, plan, swept_ok);
   // Every move between points, checked swept: feed blocks, approach and retract, and the reorientation into each
   // segment as the post performs it.
   plan.swept = check_program(space_, machine_, plan.program, plan.axes, plan.counters, &swept_ok);
