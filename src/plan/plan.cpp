@@ -10,7 +10,9 @@
 #include <utility>
 
 #include "cscam/core/error.hpp"
+#include "cscam/core/tolerances.hpp"
 #include "cscam/core/units.hpp"
+#include "cscam/kin/track.hpp"
 #include "detail/search.hpp"
 
 namespace cscam::plan {
@@ -247,7 +249,7 @@ void mark_clear_reorientations(const kin::Kinematics& kin, Plan& plan) {
 void adopt_neighbour_orientations(const cspace::Space& space, const kin::Kinematics& kin, const Options& opt,
                                   const cl::Program& program,
                                   const std::vector<std::pair<std::size_t, std::size_t>>& segs, Plan& plan,
-                                  std::vector<char>& swept_ok) {
+                                  std::vector<char>& swept_ok, double retract_plane_z) {
   const auto rp = kin.rotary_pair();
   const double res = space.options().resolution_rad;
   geom::QueryWorkspace ws;
@@ -289,6 +291,12 @@ void adopt_neighbour_orientations(const cspace::Space& space, const kin::Kinemat
         if (!space.in_cone(cl, r1, r2, &cell.orient_err)) break;
         space.evaluate(cl, cell, ws, plan.counters);
         if (cell.status != cspace::Status::Feasible) break;
+        // Without a Z axis the post retracts along the tool axis at both ends of a segment (as the cascade's cells
+        // were chosen to allow): the new orientation must allow it too.
+        kin::Axes up;
+        if (std::isfinite(retract_plane_z) && (m == s || m == e) &&
+            !kin::retract_along_axis(kin, cell.axes, retract_plane_z, tol::kLimitSlackMm, up))
+          break;
         axes.push_back(cell.axes);
       }
       if (axes.size() != e - s + 1) continue;
@@ -354,7 +362,7 @@ Plan Planner::run(const cl::Program& program) const {
     rep.approach_moves_replaced = replace_approach_retract(*kin_, opt_, program, s, e, plan, swept_ok);
     plan.segments.push_back(std::move(rep));
   }
-  adopt_neighbour_orientations(space_, *kin_, opt_, program, segs, plan, swept_ok);
+  adopt_neighbour_orientations(space_, *kin_, opt_, program, segs, plan, swept_ok, retract_plane_z);
   // Every move between points, checked swept: feed blocks, approach and retract, and the reorientation into each
   // segment as the post performs it.
   plan.swept = check_program(space_, machine_, plan.program, plan.axes, plan.counters, &swept_ok);
