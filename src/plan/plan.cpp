@@ -252,6 +252,11 @@ void adopt_neighbour_orientations(const cspace::Space& space, const kin::Kinemat
                                   std::vector<char>& swept_ok, double retract_plane_z) {
   const auto rp = kin.rotary_pair();
   const double res = space.options().resolution_rad;
+  auto fixed_at = [&](double r1, double r2, const std::string& why) {
+    return fmt::format("rotaries fixed at {} = {:.3f} deg, {} = {:.3f} deg ({})",
+                       kin.axes()[static_cast<std::size_t>(rp[0])].name, rad2deg(r1),
+                       kin.axes()[static_cast<std::size_t>(rp[1])].name, rad2deg(r2), why);
+  };
   geom::QueryWorkspace ws;
   for (std::size_t g = 0; g < segs.size() && g < plan.segments.size(); ++g) {
     SegmentReport& rep = plan.segments[g];
@@ -262,10 +267,8 @@ void adopt_neighbour_orientations(const cspace::Space& space, const kin::Kinemat
       // cascade's description named its own.
       if (e == s && s > 0 && plan.axes[s][rp[0]] == plan.axes[s - 1][rp[0]] &&
           plan.axes[s][rp[1]] == plan.axes[s - 1][rp[1]])
-        rep.description = fmt::format(
-            "rotaries fixed at {} = {:.3f} deg, {} = {:.3f} deg (along the previous segment's last tool axis)",
-            kin.axes()[static_cast<std::size_t>(rp[0])].name, rad2deg(plan.axes[s][rp[0]]),
-            kin.axes()[static_cast<std::size_t>(rp[1])].name, rad2deg(plan.axes[s][rp[1]]));
+        rep.description =
+            fixed_at(plan.axes[s][rp[0]], plan.axes[s][rp[1]], "along the previous segment's last tool axis");
       continue;
     }
     if (s == 0 && opt.start_rotaries && opt.start_is_join) continue;
@@ -308,12 +311,7 @@ void adopt_neighbour_orientations(const cspace::Space& space, const kin::Kinemat
         plan.program.moves[m].tip_in_part_mm = tp.tip_mm;
         plan.program.moves[m].axis_in_part = tp.axis;
       }
-      const auto& names = kin.axes();
-      rep.description = fmt::format(
-          "rotaries fixed at {} = {:.3f} deg, {} = {:.3f} deg (the {} segment's orientation: no turn of its "
-          "own)",
-          names[static_cast<std::size_t>(rp[0])].name, rad2deg(r1), names[static_cast<std::size_t>(rp[1])].name,
-          rad2deg(r2), cand.which);
+      rep.description = fixed_at(r1, r2, fmt::format("the {} segment's orientation: no turn of its own", cand.which));
       break;
     }
   }
