@@ -649,6 +649,8 @@ Result calibrate(const Model& model, const Dataset& d, const Options& opt) {
   return res;
 }
 
+bool noise_is_rounding(const Dataset& d, const Result& r) { return !d.sigma.given && !(r.chi2_reduced > 1e-12); }
+
 std::vector<Result::Outlier> heldout_outliers(const Model& model, const Dataset& d, const std::vector<double>& p,
                                               const Result& r) {
   std::vector<double> pose_rms, pose_chi2, pose_dof;
@@ -681,9 +683,7 @@ WriteCheck check_for_writing(const Model& model, const Dataset& d, const Result&
   // Consistency with the noise. Without sigmas in the recording the noise is estimated from the residuals, so the
   // chi^2 says nothing; outliers are still judged against the median pose.
   std::vector<Result::Outlier> bad;
-  // Exact data without sigmas: the median pose's residual is rounding, and so is every "outlier" against it.
-  const bool rounding = !d.sigma.given && !(r.chi2_reduced > 1e-12);
-  if (loss == Loss::None && !rounding)
+  if (loss == Loss::None && !noise_is_rounding(d, r))
     for (const auto& o : r.outliers)
       if (o.p_any < alpha_fit) bad.push_back(o);
   std::sort(bad.begin(), bad.end(), [](auto& a, auto& b) { return a.normalised_rms > b.normalised_rms; });

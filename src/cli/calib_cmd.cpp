@@ -316,8 +316,7 @@ int run_calibrate(const CalibArgs& a) {
     // measurement, or an effect the model lacks there): by the rule the fitted poses are judged by, and only where
     // both sets give their noise the same way (sigmas in both files, or in neither). Not on exact data, whose noise
     // is rounding.
-    const bool rounding = !data.sigma.given && !(r.chi2_reduced > 1e-12);
-    if (hold->sigma.given == data.sigma.given && !rounding)
+    if (hold->sigma.given == data.sigma.given && !calib::noise_is_rounding(data, r))
       for (const auto& o : calib::heldout_outliers(*model, *hold, r.estimate, r))
         if (o.p_any < kHeldOutAlpha) heldout_bad.push_back(o);
     if (!heldout_bad.empty()) {

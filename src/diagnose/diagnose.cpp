@@ -1061,6 +1061,8 @@ Report diagnose(sim::Recording& rec, const machine::Machine& m, const std::vecto
   auto has_enc = [&](int j) {
     return std::any_of(comps.begin(), comps.end(), [&](const Comp& c) { return c.kind == Kind::Enc && c.idx == j; });
   };
+  // A following error that the axis's own recorded encoder does not see.
+  auto unseen_lag = [&](const Effect& e) { return is_lag(e) && !e.enc_visible && has_enc(e.axis); };
   const bool has_geom_channel = std::any_of(comps.begin(), comps.end(), [](const Comp& c) {
     return c.kind == Kind::Tip || c.kind == Kind::PTip || c.kind == Kind::Dir;
   });
@@ -1495,7 +1497,7 @@ Report diagnose(sim::Recording& rec, const machine::Machine& m, const std::vecto
       if (s > domv) domv = s, dom = c.name;
     }
     fd.explains = explain(*fd.effect, dom);
-    if (is_lag(*fd.effect) && !fd.effect->enc_visible && has_enc(fd.effect->axis))
+    if (unseen_lag(*fd.effect))
       fd.explains += fmt::format(
           "; enc.{} does not see it: the lag lies between the axis's scale and the tool, or in the measurement itself",
           fd.effect->target);
@@ -1716,7 +1718,7 @@ Report diagnose(sim::Recording& rec, const machine::Machine& m, const std::vecto
     std::string latency;
     std::vector<const Finding*> lags;
     for (const auto& fd : R.findings)
-      if (is_lag(*fd.effect) && !fd.effect->enc_visible && has_enc(fd.effect->axis)) lags.push_back(&fd);
+      if (unseen_lag(*fd.effect)) lags.push_back(&fd);
     if (lags.size() >= 2) {
       double lo = std::numeric_limits<double>::infinity(), hi = 0;
       std::string axes;

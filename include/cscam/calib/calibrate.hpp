@@ -147,6 +147,9 @@ struct Result {
   double residual_scale = 1.0;
 };
 
+/// Exact data without sigmas: the fit's noise estimate is rounding, and every "outlier" judged against it is too.
+bool noise_is_rounding(const Dataset& d, const Result& r);
+
 /// Poses of `d` (e.g. held out of the fit) that the parameters `p` predict worse than the fit's noise allows, by the
 /// rule the fit's own poses are judged by: normalised RMS residual above 3 x `r.residual_scale`, with its chance
 /// among d's poses (p_any). Such a pose did not pull the fit: a bad measurement, or an effect the model lacks there.
