@@ -1980,6 +1980,75 @@ TEST(CSpace, APathCheckAnswersAsTheExactCheckAtEveryPoseOfAWalk) {
   }
 }
 
+// Retracts, approaches and 3+2 cuts hold the rotaries: there a certificate is carried by the linear axes' changes
+// alone (kin::Traits::linear_axes_translate), without FK. Straight rotary-free runs through a fence, in both modes,
+// against the exact check at every pose: never free where it collides, the exact check's hit where it finds one, and
+// most of the certified poses carried that way. A PKM's legs turn its platform: it never claims the trait.
+TEST(CSpace, APathCheckCarriesACertificateAlongARotaryFreeMoveAndStopsAtTheFence) {
+  for (const char* name : {"trunnion-ac", "head-head-ac", "head-table-bc45"}) {
+    SCOPED_TRACE(name);
+    const auto m = machine::load(test::source_path(std::string("machines/") + name + ".yaml"));
+    const auto k = m.kinematics();
+    ASSERT_TRUE(k->traits().linear_axes_translate);
+    const auto tool = geom::ToolShape::from_cutter(10, 5, 30);
+    geom::Scene scene, head;
+    cspace::add_machine_bodies(m, tool.gauge_length_mm(), scene, head);
+    scene.add("block", geom::ObstacleRole::Part, box_mesh({-40, -40, -30}, {40, 40, 0}));
+    scene.add("fence", geom::ObstacleRole::Fixture, box_mesh({120, -60, 0}, {130, 60, 300}));
+    scene.build(false);
+    head.build(false);
+    cspace::Options co;
+    co.check_collision = true;
+    co.collision.roles = geom::kAllRoles;
+    auto space = std::make_shared<const cspace::Space>(k, &scene, &tool, co, &head);
+    geom::QueryWorkspace ws;
+    cspace::Counters c;
+    std::mt19937 rng(test::kSeed);
+    std::uniform_real_distribution<double> u(-1.0, 1.0);
+    std::size_t free = 0, hits = 0;
+    cspace::Counters carried;
+    for (int run = 0; run < 24; ++run) {
+      const double tilt = deg2rad(20.0) * 0.5 * (1.0 + u(rng)), phi = kPi * u(rng);
+      const double x0 = 20 * u(rng), y0 = 20 * u(rng), z0 = 60 + 20 * u(rng);
+      const kin::Posed start{Vec3(x0, y0, z0),
+                             Vec3(std::sin(tilt) * std::cos(phi), std::sin(tilt) * std::sin(phi), std::cos(tilt))};
+      kin::Axes q = kin::Axes::Zero();
+      if (!k->solve_for_rotaries(start, q)) continue;
+      if (!space->collision_at_axes(q, ws, c, cspace::SweepMode::Rapid).empty()) continue;
+      // Toward the fence (+x in the part) or down to the block, in machine words: a straight run of the linear axes,
+      // up to the first pose that collides (where the gate stops).
+      kin::Axes goal = q;
+      const Vec3 dir = run % 3 == 0 ? Vec3(0.2 * u(rng), 0.2 * u(rng), -1.0) : Vec3(1.0, 0.2 * u(rng), -0.2);
+      const kin::Posed far{start.tip_mm + 200.0 * dir, start.axis};
+      if (!k->solve_for_rotaries(far, goal)) continue;
+      cspace::PathCheck path(space);
+      const cspace::SweepMode mode = run % 2 == 0 ? cspace::SweepMode::Rapid : cspace::SweepMode::Cutting;
+      constexpr int kSteps = 400;  // 0.5 mm apart
+      for (int s = 0; s <= kSteps; ++s) {
+        const kin::Axes qs = q + (static_cast<double>(s) / kSteps) * (goal - q);
+        const std::string got = path(qs, mode), want = space->collision_at_axes(qs, ws, c, mode);
+        if (got.empty())
+          ASSERT_TRUE(want.empty()) << "run " << run << " step " << s << ": called free, but " << want;
+        else
+          ASSERT_EQ(got, want) << "run " << run << " step " << s;
+        if (!want.empty()) {
+          ++hits;
+          break;
+        }
+        ++free;
+      }
+      carried += path.counters();
+    }
+    EXPECT_GT(hits, 12u) << "the runs must reach the fence or the block, or this shows nothing";
+    EXPECT_GT(free, 1000u);
+    EXPECT_GT(carried.certified, free / 4) << "the certificates must carry the runs";
+    EXPECT_GT(carried.translated, carried.certified / 2) << "most certified poses must need no FK";
+    EXPECT_LE(carried.translated, carried.certified);
+  }
+  const auto xmini = machine::load(test::source_path("machines/xmini.yaml"));
+  EXPECT_FALSE(xmini.kinematics()->traits().linear_axes_translate);
+}
+
 // The same, in the case that needs the lever: the tool turns about a fixed tip until its holder meets a wall, first
 // certified far from it with a large margin. The certificate must end before the holder gets there.
 TEST(CSpace, APathCheckCertificateEndsBeforeTheTurningHolderMeetsAWall) {

@@ -20,6 +20,7 @@ Counters& Counters::operator+=(const Counters& o) {
   collision += o.collision;
   cache_hits += o.cache_hits;
   certified += o.certified;
+  translated += o.translated;
   witnessed += o.witnessed;
   swept += o.swept;
   swept_queries += o.swept_queries;

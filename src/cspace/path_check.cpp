@@ -53,6 +53,9 @@ PathCheck::PathCheck(std::shared_ptr<const Space> space) : space_(std::move(spac
     }
   probe_mm_ = kBodyMarginCapMm;
   cutter_probe_mm_ = kRapidSweepMarginCapMm;
+  translate_ = sp.kin_->traits().linear_axes_translate;
+  const auto& axes = sp.kin_->axes();
+  for (std::size_t i = 0; i < rotary_.size() && i < axes.size(); ++i) rotary_[i] = axes[i].rotary();
 }
 
 bool PathCheck::frames_at(const kin::Axes& q, const kin::Posed& pose, Frames& out) const {
@@ -83,6 +86,23 @@ bool PathCheck::frames_at(const kin::Axes& q, const kin::Posed& pose, Frames& ou
 std::string PathCheck::operator()(const kin::Axes& q, SweepMode mode) {
   const Space& sp = *space_;
   if (!sp.checks_collision()) return {};
+  if (valid_ && translate_ && mode == mode_) {
+    // The rotaries where the certificate was taken: every body has only been translated, by at most the sum of the
+    // linear axes' changes (a retract, an approach, a 3+2 cut), relative to the part and to every link.
+    double moved_mm = 0.0;
+    bool turned = false;
+    for (int i = 0; i < 5; ++i) {
+      if (rotary_[static_cast<std::size_t>(i)])
+        turned = turned || q[i] != at_q_[i];
+      else
+        moved_mm += std::abs(q[i] - at_q_[i]);
+    }
+    if (!turned && moved_mm <= std::min(margin_mm_, cutter_margin_mm_)) {
+      ++counters_.certified;
+      ++counters_.translated;
+      return {};
+    }
+  }
   const kin::Posed pose = sp.kin_->forward(q);
   Frames now;
   // (After a failed smallest probe, the poses of the cool-down are checked exactly: no frames needed.)
@@ -133,6 +153,7 @@ std::string PathCheck::operator()(const kin::Axes& q, SweepMode mode) {
       margin_mm_ = probe_mm_;
       cutter_margin_mm_ = cutter_probe_mm_;
       at_ = now;
+      at_q_ = q;
       probe_mm_ = std::min(kBodyMarginCapMm, 2.0 * probe_mm_);
       cutter_probe_mm_ = std::min(kRapidSweepMarginCapMm, 2.0 * cutter_probe_mm_);
       return {};

@@ -283,6 +283,7 @@ Summary check(const std::string& nc_text, const std::string& nc_name, const cl::
     // be checked at every block end), and at the end of every run of checked blocks (a chunk's end included: the next
     // chunk goes on from there). An arc is sampled on its own points from its start.
     const double step = std::max(options.collision_step, 1e-6);
+    const bool translate = kinematics.traits().linear_axes_translate;
     auto body = [&](const tbb::blocked_range<std::size_t>& r) {
       const Options::CollisionCheck collides = options.make_collision();
       std::vector<double> at;  // fractions of a block to check
@@ -304,6 +305,9 @@ Summary check(const std::string& nc_text, const std::string& nc_name, const cl::
           const bool rapid = b.motion == nc::Motion::Rapid;
           Eigen::Vector3d tip_a = Eigen::Vector3d::Zero(), tip_b = tip_a;
           if (rapid) tip_a = kinematics.forward(qa).tip_mm, tip_b = kinematics.forward(qb).tip_mm;
+          bool straight_rapid = rapid && translate;
+          for (int i = 0; i < 5 && straight_rapid; ++i)
+            straight_rapid = !letters_rotary[static_cast<std::size_t>(i)] || qa[i] == qb[i];
           at.clear();
           if (rapid) {
             const int n = std::clamp(static_cast<int>(std::ceil(span / step)), 2, 20000);
@@ -329,7 +333,9 @@ Summary check(const std::string& nc_text, const std::string& nc_name, const cl::
             ++chunk_checks[c];
             bool whole_tool = false;
             if (rapid) {
-              const Eigen::Vector3d tip = kinematics.forward(q).tip_mm;
+              // With the rotaries held on such a machine the tip moves on the straight line between the ends.
+              const Eigen::Vector3d tip =
+                  straight_rapid ? Eigen::Vector3d(tip_a + t * (tip_b - tip_a)) : kinematics.forward(q).tip_mm;
               whole_tool = std::min((tip - tip_a).norm(), (tip - tip_b).norm()) > options.rapid_contact_mm;
             }
             if (std::string hit = collides(q, whole_tool); !hit.empty()) {

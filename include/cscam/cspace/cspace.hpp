@@ -60,6 +60,7 @@ struct Counters {
   std::uint64_t collision = 0;  ///< collision queries
   std::uint64_t cache_hits = 0;
   std::uint64_t certified = 0;      ///< collision queries skipped by a clearance certificate
+  std::uint64_t translated = 0;     ///< of those, poses certified from the linear axes' changes alone (no FK)
   std::uint64_t witnessed = 0;      ///< collision queries replaced by the previous contact's one-triangle test
   std::uint64_t swept = 0;          ///< swept (between-point) moves checked
   std::uint64_t swept_queries = 0;  ///< collision queries those swept checks made (not in `collision`)
@@ -295,6 +296,11 @@ class PathCheck {
   bool usable_ = false;  // certificates are sound for this space
   bool valid_ = false;
   int cooldown_ = 0;  // poses left to check exactly after the smallest probe failed
+  // Linear axes translate (kin::Traits::linear_axes_translate): a pose with the certified pose's rotaries has moved
+  // every body by at most the sum of its linear axes' changes, relative to every frame, and needs no FK.
+  bool translate_ = false;
+  std::array<bool, 5> rotary_{};
+  kin::Axes at_q_ = kin::Axes::Zero();  // the certified pose's axes
   SweepMode mode_ = SweepMode::Cutting;
   double margin_mm_ = 0.0, cutter_margin_mm_ = 0.0;  // of the valid certificate
   double probe_mm_ = 0.0, cutter_probe_mm_ = 0.0;    // what the next probe asks for

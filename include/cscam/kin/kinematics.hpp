@@ -28,6 +28,10 @@ struct Traits {
   /// FK is an iterative solve warm-started from the calling thread's previous call (the XMINI's Newton): its last
   /// digits depend on call order, so callers that promise the same numbers at any thread count evaluate it in order.
   bool forward_depends_on_call_order = false;
+  /// The linear axes are prismatic joints of unit direction in a chain: with the rotaries held, a change of the
+  /// linear axes by d translates every link relative to every other, by at most sum |d_i| mm. A check can then bound
+  /// a rotary-free move's motion without FK (a serial machine; not a PKM, whose legs turn its platform).
+  bool linear_axes_translate = false;
 };
 
 /// Bounds on how the tool moves along the straight joint-space move qa -> qb, q(t) = qa + t (qb - qa), t in

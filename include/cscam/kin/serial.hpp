@@ -118,6 +118,12 @@ class SerialKinematics final : public Kinematics {
 
   [[nodiscard]] const std::vector<AxisInfo>& axes() const override { return axes_; }
   [[nodiscard]] std::array<int, 2> rotary_pair() const override { return rot_; }
+  /// The default traits, and linear axes that translate (three prismatic joints of unit direction).
+  [[nodiscard]] Traits traits() const override {
+    Traits t = Kinematics::traits();
+    t.linear_axes_translate = true;
+    return t;
+  }
   /// serial_forward's arithmetic, operation for operation, on steps laid out once (no chain lists, the products
   /// of each rotary's direction components taken once): FK is most of the post's and the gate's work.
   [[nodiscard]] Posed forward(const Axes& q) const override;
