@@ -845,3 +845,62 @@ TEST(Diagnose, TheSameLagOnEveryAxisUnseenByTheEncodersIsCalledALatency) {
   EXPECT_EQ(servo.verdict.find("runs"), std::string::npos) << servo.text();
   EXPECT_EQ(servo.text().find("does not see it"), std::string::npos) << servo.text();
 }
+
+// Growth that follows a recorded temperature (a spindle that warms and then cools within the run): named
+// thermal_growth of that sensor, with its coefficient, and not a drift in time, which cannot turn back. With the
+// temperature recorded but no growth nothing is found. The effect keeps its sensor through the machine file's
+// `effects:` section, and simulating it without that sensor's readings is an error. Oracle: the coefficient injected.
+TEST(Diagnose, GrowthThatFollowsARecordedTemperatureIsNamedWithItsSensor) {
+  const auto tr = circle(100);
+  sim::SimulateOptions::Temperature spindle{"spindle", {}, {}};
+  const double T = tr.t.back() - tr.t.front();
+  for (int k = 0; k <= 40; ++k) {
+    const double t = tr.t.front() + T * k / 40.0;
+    spindle.t.push_back(t);
+    spindle.deg_c.push_back(21.0 + 9.0 * std::pow(std::sin(3.14159265358979 * k / 40.0), 2));
+  }
+  auto simulate = [&](const std::vector<std::string>& inject, unsigned seed) {
+    std::vector<std::unique_ptr<sim::Effect>> fx;
+    std::vector<const sim::Effect*> v;
+    for (const auto& s : inject) fx.push_back(sim::parse_effect(s, trunnion())), v.push_back(fx.back().get());
+    sim::SimulateOptions so;
+    so.channels = {"tip", "enc"};
+    so.noise = {{"tip", 0.0005}, {"enc", 0.0001}};
+    so.seed = seed;
+    so.temperatures = {spindle};
+    auto rec = sim::simulate(tr, trunnion(), v, so);
+    rec.file = "warm.csv";
+    return rec;
+  };
+  auto rec = simulate({"thermal_growth:tip.z:mm_per_degC=0.0015,sensor=spindle"}, 21);
+  ASSERT_GE(rec.column("temp.spindle"), 0);
+  const auto r = diagnose::diagnose(rec, trunnion(), {});
+  expect_found(r, "thermal_growth", "tip.z", "mm_per_degC", 0.0015);
+  const diagnose::Finding* f = find(r, "thermal_growth", "tip.z");
+  ASSERT_NE(f, nullptr);
+  EXPECT_EQ(f->effect->note, "spindle");
+  EXPECT_EQ(find(r, "thermal_drift", "tip.z"), nullptr) << r.text();
+  EXPECT_NE(r.verdict.find("temp.spindle"), std::string::npos) << r.text();
+
+  auto quiet = simulate({}, 22);
+  const auto q = diagnose::diagnose(quiet, trunnion(), {});
+  EXPECT_TRUE(q.findings.empty()) << q.text();
+
+  // The machine file's effects section keeps the sensor, and the loaded effect gives the same deviation.
+  const auto path = std::filesystem::temp_directory_path() / fmt::format("cscam_growth_{}.yaml", ::getpid());
+  {
+    std::ifstream in(std::string(CSCAM_SOURCE_DIR) + "/machines/trunnion-ac.yaml");
+    std::ofstream out(path);
+    out << in.rdbuf() << "\n" << sim::effects_yaml({f->effect.get()});
+  }
+  const auto loaded = sim::load_machine_effects(path.string(), trunnion());
+  std::filesystem::remove(path);
+  ASSERT_EQ(loaded.size(), 1u);
+  EXPECT_EQ(loaded[0]->note, "spindle");
+  EXPECT_NEAR(loaded[0]->p[0], f->effect->p[0], 1e-9);
+
+  // Without the sensor's readings there is nothing to follow: an error, not a silent zero.
+  const auto e = sim::parse_effect("thermal_growth:tip.z:mm_per_degC=0.0015,sensor=spindle", trunnion());
+  sim::SimulateOptions bare;
+  EXPECT_THROW((void)sim::simulate(tr, trunnion(), {e.get()}, bare), InputError);
+}

@@ -37,6 +37,7 @@ struct SimArgs {
   int flutes = 0, decimals = 6;
   unsigned seed = 1;
   std::vector<std::string> inject, noise;
+  std::string temperatures;
 };
 
 struct DiagArgs {
@@ -126,6 +127,29 @@ int cmd_simulate(const SimArgs& a) {
   so.flutes = a.flutes;
   so.note = a.note;
   so.machine_ref = a.machine;
+  if (!a.temperatures.empty()) {
+    // Any recording-style CSV with t and temp.<sensor> columns (a real run's, to replay its temperatures).
+    const sim::Recording tr = sim::read_recording(a.temperatures);
+    const int tc = tr.column("t");
+    if (tc < 0) throw InputError(SourceLoc{a.temperatures}, "--temperatures: the file has no 't' column");
+    for (std::size_t c = 0; c < tr.columns.size(); ++c) {
+      if (tr.columns[c].rfind("temp.", 0) != 0) continue;
+      sim::SimulateOptions::Temperature tp;
+      tp.sensor = tr.columns[c].substr(5);
+      for (std::size_t r = 0; r < tr.rows(); ++r) {
+        const double tv = tr.data[static_cast<std::size_t>(tc)][r], v = tr.data[c][r];
+        if (std::isnan(tv) || std::isnan(v)) continue;  // not measured at that row
+        tp.t.push_back(tv);
+        tp.deg_c.push_back(v);
+      }
+      if (tp.t.empty())
+        throw InputError(SourceLoc{a.temperatures},
+                         fmt::format("--temperatures: column {} has no readings", tr.columns[c]));
+      so.temperatures.push_back(std::move(tp));
+    }
+    if (so.temperatures.empty())
+      throw InputError(SourceLoc{a.temperatures}, "--temperatures: the file has no temp.<sensor> column");
+  }
   sim::ProfileOptions po;
   po.rate_hz = a.rate;
   po.accel = a.accel;
@@ -292,6 +316,9 @@ std::function<int()> add_sim_commands(CLI::App& app) {
                       "GROUP:SIGMA white measurement noise, e.g. tip:0.001 (dir: sigma per component of the tool-axis "
                       "vector, which is then normalised to unit length)");
   sim_cmd->add_option("--seed", sa->seed, "random seed of the noise");
+  sim_cmd->add_option("--temperatures", sa->temperatures,
+                      "CSV with columns t and temp.<sensor> (e.g. a real run's recording): recorded in the output, "
+                      "and followed by thermal_growth effects (thermal_growth:tip.z:mm_per_degC=0.002,sensor=spindle)");
   sim_cmd->add_option("--tool-length", sa->tool_length, "tool length, mm (default: NC header or machine)")
       ->check(cli::kNonNegative);
   sim_cmd->add_option("--spindle-rpm", sa->rpm, "spindle speed to record in the metadata");

@@ -727,6 +727,8 @@ std::string explain(const Effect& e, const std::string& dom) {
                        rep[1].second);
   if (n == "step")
     return fmt::format("{} jumps by {} at t = {:.3f} s and stays", dom, fmt_um(rep[0].second), rep[1].second);
+  if (n == "thermal_growth")
+    return fmt::format("{} follows temperature temp.{}: {} per degree C", dom, e.note, fmt_um(rep[0].second));
   if (n == "vibration")
     return fmt::format("sinusoid of {} at {:.1f} Hz in {}{}", fmt_um(rep[1].second), rep[0].second, dom,
                        e.note.empty() ? "" : " (" + e.note + ")");
@@ -782,6 +784,9 @@ std::string describe(const Effect& e) {
   if (n == "step")
     return fmt::format("a permanent step of {} in {} at t = {:.3f} s (knocked, re-seated or slipped)",
                        in_channel(rep[0].second), e.target, rep[1].second);
+  if (n == "thermal_growth")
+    return fmt::format("thermal growth of {} per degree C of temp.{} in {}", in_channel(rep[0].second), e.note,
+                       e.target);
   if (n == "vibration")
     return fmt::format("vibration of {} at {:.1f} Hz in {}{}", in_channel(rep[1].second), rep[0].second, e.target,
                        e.note.empty() ? "" : " (" + e.note + ")");
@@ -993,7 +998,38 @@ Report diagnose(sim::Recording& rec, const machine::Machine& m, const std::vecto
   std::array<bool, 5> rot{};
   for (int j = 0; j < 5; ++j) rot[j] = m.axes[static_cast<size_t>(j)].rotary();
   const size_t stride = std::max<size_t>(1, (n + o.max_fit_samples - 1) / o.max_fit_samples);
-  const Context ctx = sim::make_context(t, cmd, rot, stride);
+  const Context ctx = [&] {
+    Context c = sim::make_context(t, cmd, rot, stride);
+    // Recorded temperatures (temp.<sensor>), for thermal_growth: the rise since the first reading at every analysis
+    // sample, a gap interpolated between the readings around it (held before the first and after the last).
+    for (std::size_t col = 0; col < rec.columns.size(); ++col) {
+      if (rec.columns[col].rfind("temp.", 0) != 0) continue;
+      const auto& v = rec.data[col];
+      std::vector<std::size_t> known;
+      for (std::size_t r = 0; r < v.size(); ++r)
+        if (std::isfinite(v[r])) known.push_back(r);
+      if (known.size() < 2) continue;
+      std::vector<double> rise(c.size());
+      std::size_t kk = 0;
+      for (std::size_t k = 0; k < c.size(); ++k) {
+        const std::size_t row = c.index[k];
+        while (kk + 1 < known.size() && known[kk + 1] <= row) ++kk;
+        double deg = v[known[kk]];
+        if (row < known.front()) {
+          deg = v[known.front()];
+        } else if (kk + 1 < known.size() && row > known[kk]) {
+          const std::size_t a = known[kk], b = known[kk + 1];
+          const double f = (t[row] - t[a]) / (t[b] - t[a]);
+          deg = (1 - f) * v[a] + f * v[b];
+        }
+        rise[k] = deg - v[known.front()];
+      }
+      double lo = rise.front(), hi = rise.front();
+      for (const double x : rise) lo = std::min(lo, x), hi = std::max(hi, x);
+      if (hi - lo > 0) c.temp_rise.emplace_back(rec.columns[col].substr(5), std::move(rise));
+    }
+    return c;
+  }();
   const size_t ma = ctx.size();
   for (auto& c : comps) {
     c.res.resize(ma);
@@ -1126,7 +1162,17 @@ Report diagnose(sim::Recording& rec, const machine::Machine& m, const std::vecto
         protos.push_back(sim::make_effect("straightness", pair, m));
       }
   std::vector<sim::GridHints> hints(comps.size());
+  // Growth that follows a recorded temperature, on every fitted channel, per sensor whose reading changes.
+  auto growth = [&](const std::string& channel) {
+    for (const auto& [sensor, rise] : ctx.temp_rise) {
+      auto e = sim::make_effect("thermal_growth", channel, m);
+      e->note = sensor;
+      protos.push_back(std::move(e));
+    }
+  };
   for (int ci : F.fitc) {
+    const Comp& c = comps[static_cast<size_t>(ci)];
+    if (c.kind == Kind::Tip || c.kind == Kind::PTip) growth(c.name);
     protos.push_back(sim::make_effect("thermal_drift", comps[static_cast<size_t>(ci)].name, m));
     protos.push_back(sim::make_effect("step", comps[static_cast<size_t>(ci)].name, m));
     for (const auto& pk : peaks[static_cast<size_t>(ci)]) hints[static_cast<size_t>(ci)].frequencies_hz.push_back(pk.f);
@@ -1156,6 +1202,7 @@ Report diagnose(sim::Recording& rec, const machine::Machine& m, const std::vecto
   if (fitted(Kind::PTip) && (fitted(Kind::Tip) || table_turns))
     for (const char* c : {"tool.x", "tool.y", "tool.z"}) {
       protos.push_back(sim::make_effect("thermal_drift", c, m));
+      growth(c);
       if (!tool_hints(std::string(c).back()).frequencies_hz.empty())
         protos.push_back(sim::make_effect("vibration", c, m));
     }
@@ -1867,6 +1914,7 @@ std::string Report::to_json() const {
     nlohmann::ordered_json p = nlohmann::ordered_json::object();
     for (const auto& [k, v] : f.effect->reported()) p[k] = v;
     if (f.effect->name() == "vibration" && !f.effect->note.empty()) p["source"] = f.effect->note;
+    if (f.effect->name() == "thermal_growth") p["sensor"] = "temp." + f.effect->note;
     nlohmann::ordered_json fj;
     fj["effect"] = f.effect->name();
     fj["target"] = f.effect->target;

@@ -598,6 +598,32 @@ class Step : public EffectImpl<Step, 2> {
   }
 };
 
+/// Thermal growth that follows a recorded temperature: k (mm per degC) times the rise of sensor `note` since the start
+/// (a spindle that grows as it warms and shrinks as it cools, a column in the sun). Unlike thermal_drift it need not
+/// be monotonic in time: it goes where the temperature goes. Needs the recording's temp.<sensor> column.
+class ThermalGrowth : public EffectImpl<ThermalGrowth, 1> {
+ public:
+  std::string name() const override { return "thermal_growth"; }
+  Scope scope() const override { return Scope::Channel; }
+  std::vector<std::string> internal_names() const override { return {"mm_per_degC"}; }
+  std::vector<bool> linear() const override { return {true}; }
+  std::string signature() const override {
+    return fmt::format("{} follows the temperature temp.{} (growth per degree)", target, note);
+  }
+  template <class T>
+  T eval(const Context& c, size_t i, const T* pp) const {
+    const std::vector<double>* rise = c.temperature(note);
+    return rise && i < rise->size() ? pp[0] * (*rise)[i] : T(0.0);
+  }
+  std::vector<std::pair<std::string, double>> reported() const override { return {{"mm_per_degC", p[0]}}; }
+  void set_reported(const std::vector<std::pair<std::string, double>>& kv) override {
+    p[0] = get(kv, "mm_per_degC", name());
+  }
+  /// Linear in its one parameter: a single start.
+  std::vector<std::vector<double>> grid(const Context&, const GridHints&) const override { return {{0.0}}; }
+  std::string source() const override { return note.empty() ? std::string() : "temp." + note; }
+};
+
 class Vibration : public EffectImpl<Vibration, 3> {
  public:
   std::string name() const override { return "vibration"; }
@@ -659,6 +685,7 @@ const std::vector<std::pair<std::string, Factory>>& library() {
       {"servo_lag", [] { return std::make_unique<ServoLag>(); }},
       {"servo_lag_1st", [] { return std::make_unique<ServoLag1st>(); }},
       {"thermal_drift", [] { return std::make_unique<ThermalDrift>(); }},
+      {"thermal_growth", [] { return std::make_unique<ThermalGrowth>(); }},
       {"step", [] { return std::make_unique<Step>(); }},
       {"vibration", [] { return std::make_unique<Vibration>(); }},
       {"scale", [] { return std::make_unique<Scale>(); }},
@@ -826,6 +853,11 @@ std::unique_ptr<Effect> parse_effect(const std::string& spec, const machine::Mac
       if (eq == std::string::npos)
         throw InputError(fmt::format("--inject '{}': expected key=value, got '{}'", spec, item));
       const std::string key = item.substr(0, eq);
+      if (key == "sensor" && name == "thermal_growth") {  // the one text parameter: the temp.<sensor> it follows
+        e->note = item.substr(eq + 1);
+        a = b + 1;
+        continue;
+      }
       bool known = false;
       for (const auto& [k, v] : keys) known |= k == key;
       if (!known) {
@@ -884,6 +916,11 @@ std::vector<std::unique_ptr<Effect>> load_machine_effects(const std::string& mac
         for (const auto& p : item["parameters"]) kv.emplace_back(p.first.as<std::string>(), p.second.as<double>());
       e->set_reported(kv);
       if (item["enc_visible"]) e->enc_visible = item["enc_visible"].as<bool>();
+      if (e->name() == "thermal_growth") {
+        if (!item["sensor"])
+          throw InputError("effects: thermal_growth needs 'sensor' (the temp.<sensor> column it follows)");
+        e->note = item["sensor"].as<std::string>();
+      }
     } catch (const InputError& ex) {
       throw InputError(where, ex.message());
     } catch (const YAML::Exception& ex) {
@@ -899,6 +936,7 @@ std::string effects_yaml(const std::vector<const Effect*>& effects) {
   for (const Effect* e : effects) {
     s += fmt::format("  - effect: {}\n    target: \"{}\"\n", e->name(), e->target);
     if (e->scope() == Scope::Axis) s += fmt::format("    enc_visible: {}\n", e->enc_visible ? "true" : "false");
+    if (e->name() == "thermal_growth") s += fmt::format("    sensor: \"{}\"\n", e->note);
     if (e->scope() == Scope::Geometric)
       s += fmt::format("    # deviation from the nominal {} {} (the corrected value is {:.9g})\n", e->nominal, e->unit,
                        e->nominal + e->p[0]);

@@ -260,7 +260,36 @@ Recording simulate(const Trajectory& traj, const machine::Machine& m, const std:
   const Predictor truth(truth_machine ? *truth_machine : m, L);
   std::array<bool, 5> rot{};
   for (int i = 0; i < 5; ++i) rot[i] = m.axes[static_cast<size_t>(i)].rotary();
-  const Context ctx = make_context(traj.t, traj.cmd, rot, 1);
+  Context ctx = make_context(traj.t, traj.cmd, rot, 1);
+  // Recorded temperatures at the samples (interpolated, held past their ends), and their rise for thermal_growth.
+  std::vector<std::pair<std::string, std::vector<double>>> temps;
+  for (const auto& tp : o.temperatures) {
+    if (tp.t.empty() || tp.t.size() != tp.deg_c.size())
+      throw InputError(
+          fmt::format("temperature {}: no readings (or times and readings of different counts)", tp.sensor));
+    std::vector<double> at(n);
+    size_t k = 0;
+    for (size_t i = 0; i < n; ++i) {
+      const double ti = traj.t[i];
+      while (k + 1 < tp.t.size() && tp.t[k + 1] <= ti) ++k;
+      if (ti <= tp.t.front() || k + 1 >= tp.t.size()) {
+        at[i] = ti <= tp.t.front() ? tp.deg_c.front() : tp.deg_c.back();
+        continue;
+      }
+      const double f = (ti - tp.t[k]) / (tp.t[k + 1] - tp.t[k]);
+      at[i] = (1 - f) * tp.deg_c[k] + f * tp.deg_c[k + 1];
+    }
+    std::vector<double> rise(n);
+    for (size_t i = 0; i < n; ++i) rise[i] = at[i] - at.front();
+    ctx.temp_rise.emplace_back(tp.sensor, std::move(rise));
+    temps.emplace_back(tp.sensor, std::move(at));
+  }
+  for (const Effect* e : effects)
+    if (e->name() == "thermal_growth" && !ctx.temperature(e->note))
+      throw InputError(fmt::format(
+          "effect thermal_growth on {}: it follows temperature sensor '{}', which this simulation has no readings of "
+          "(give them with --temperatures FILE.csv: columns t and temp.{})",
+          e->target, e->note, e->note.empty() ? "<sensor>" : e->note));
 
   std::vector<kin::Axes> actual(traj.cmd), enc(traj.cmd);
   for (const Effect* e : effects) {
@@ -376,6 +405,7 @@ Recording simulate(const Trajectory& traj, const machine::Machine& m, const std:
       const int c = e->channel.back() - 'x';
       for (size_t i = 0; i < n; ++i) tip_fx[i][c] += e->value(ctx, i, e->p.data());
     }
+  for (auto& [sensor, deg_c] : temps) rec.add_column("temp." + sensor, std::move(deg_c));
   if (want("tip")) vec_group("tip", tip, sigma_of("tip"));
   if (want("ptip")) vec_group("ptip", ptip, sigma_of("ptip"));
   if (want("dir")) {

@@ -84,6 +84,13 @@ struct SimulateOptions {
   int flutes = 0;
   std::string machine_ref;  ///< what to write in the `machine` metadata
   std::string note;
+  /// Temperatures to record (`temp.<sensor>`) and for thermal_growth effects to follow: per sensor, times (s) and
+  /// readings (degC), interpolated linearly at the samples (held beyond their ends).
+  struct Temperature {
+    std::string sensor;
+    std::vector<double> t, deg_c;
+  };
+  std::vector<Temperature> temperatures;
 };
 
 /// Applies effects (axis effects through FK, channel effects added) to a commanded trajectory and
