@@ -904,3 +904,37 @@ TEST(Diagnose, GrowthThatFollowsARecordedTemperatureIsNamedWithItsSensor) {
   sim::SimulateOptions bare;
   EXPECT_THROW((void)sim::simulate(tr, trunnion(), {e.get()}, bare), InputError);
 }
+
+// X's screw expands with the bed's recorded temperature, which rises 8 degC and falls back within the raster
+// (11.5 ppm per degC: 9 um at X = 100 mm at the peak). Named against that sensor, not as thermal_scale (which only
+// rises with time) or a plain scale; X's encoder on the motor does not see it. A second, unrelated sensor whose reading
+// changes too is not taken for it. Oracle: the coefficient injected.
+TEST(Diagnose, ExpansionOfTheXScrewWithARecordedTemperature) {
+  const auto tr = raster();
+  sim::SimulateOptions::Temperature bed{"bed", {}, {}}, hall{"hall", {}, {}};
+  const double T = tr.t.back() - tr.t.front();
+  for (int k = 0; k <= 60; ++k) {
+    const double t = tr.t.front() + T * k / 60.0;
+    bed.t.push_back(t);
+    bed.deg_c.push_back(20.0 + 8.0 * std::pow(std::sin(3.14159265358979 * k / 60.0), 2));
+    hall.t.push_back(t);
+    hall.deg_c.push_back(22.0 + 1.5 * k / 60.0);
+  }
+  const auto fx = sim::parse_effect("thermal_expansion:x:ppm_per_degC=11.5,sensor=bed", trunnion());
+  sim::SimulateOptions so;
+  so.channels = {"tip", "enc"};
+  so.noise = {{"tip", 0.0005}, {"enc", 0.0001}};
+  so.seed = 23;
+  so.temperatures = {bed, hall};
+  auto rec = sim::simulate(tr, trunnion(), {fx.get()}, so);
+  rec.file = "bed.csv";
+  const auto r = diagnose::diagnose(rec, trunnion(), {});
+  expect_found(r, "thermal_expansion", "x", "ppm_per_degC", 11.5);
+  const diagnose::Finding* f = find(r, "thermal_expansion", "x");
+  ASSERT_NE(f, nullptr);
+  EXPECT_EQ(f->effect->note, "bed") << r.text();
+  EXPECT_FALSE(f->effect->enc_visible) << r.text();
+  EXPECT_EQ(r.findings.size(), 1U) << r.text();
+  EXPECT_EQ(find(r, "thermal_scale", "x"), nullptr) << r.text();
+  EXPECT_THROW((void)sim::parse_effect("thermal_expansion:c:ppm_per_degC=10,sensor=bed", trunnion()), InputError);
+}

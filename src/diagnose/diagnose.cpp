@@ -554,6 +554,8 @@ bool plausible(const Effect& e) {
   if (n == "backlash") return a <= 1.0 && e.p[1] >= 0 && e.p[1] <= 1.0;       // width, take-up: mm or deg
   if (n == "friction_spike") return e.p[1] > 0 && e.p[1] <= 1.0 && a <= 1.0;  // decay, s; peak, mm or deg
   if (n == "thermal_drift") return e.p[1] > 0 && a <= 1.0;                    // mm over the run (a wrong machine: 28)
+  if (n == "thermal_growth") return a <= 0.1;                                 // mm/degC (steel: 0.012 per metre)
+  if (n == "thermal_expansion") return a <= 100;                              // ppm/degC (steel 12, aluminium 23)
   if (n == "step") return a <= 1.0;                                           // mm
   if (n == "vibration") return std::hypot(e.p[1], e.p[2]) <= 1.0;             // mm amplitude
   if (n == "geometric") return a <= 1.0;  // mm or deg: linearised at nominal, valid for tens of micrometres
@@ -729,6 +731,10 @@ std::string explain(const Effect& e, const std::string& dom) {
     return fmt::format("{} jumps by {} at t = {:.3f} s and stays", dom, fmt_um(rep[0].second), rep[1].second);
   if (n == "thermal_growth")
     return fmt::format("{} follows temperature temp.{}: {} per degree C", dom, e.note, fmt_um(rep[0].second));
+  if (n == "thermal_expansion")
+    return fmt::format(
+        "error in {} growing with the position of {} and with temperature temp.{} ({:.2f} ppm per degree C)", dom,
+        e.target, e.note, rep[0].second);
   if (n == "vibration")
     return fmt::format("sinusoid of {} at {:.1f} Hz in {}{}", fmt_um(rep[1].second), rep[0].second, dom,
                        e.note.empty() ? "" : " (" + e.note + ")");
@@ -787,6 +793,9 @@ std::string describe(const Effect& e) {
   if (n == "thermal_growth")
     return fmt::format("thermal growth of {} per degree C of temp.{} in {}", in_channel(rep[0].second), e.note,
                        e.target);
+  if (n == "thermal_expansion")
+    return fmt::format("thermal expansion of {}'s screw: {:.2f} ppm per degree C of temp.{}", e.target, rep[0].second,
+                       e.note);
   if (n == "vibration")
     return fmt::format("vibration of {} at {:.1f} Hz in {}{}", in_channel(rep[1].second), rep[0].second, e.target,
                        e.note.empty() ? "" : " (" + e.note + ")");
@@ -1115,13 +1124,21 @@ Report diagnose(sim::Recording& rec, const machine::Machine& m, const std::vecto
   }
   for (int j = 0; j < 5; ++j) {
     const std::string ax = m.axes[static_cast<size_t>(j)].name;
-    for (const char* name : {"backlash", "servo_lag", "servo_lag_1st", "scale", "cyclic", "friction_spike",
-                             "compliance", "thermal_scale"}) {
+    // A slide's growth with a recorded temperature: one candidate per sensor (the loop below takes them one by one).
+    std::vector<std::string> names{"backlash", "servo_lag",      "servo_lag_1st", "scale",
+                                   "cyclic",   "friction_spike", "compliance",    "thermal_scale"};
+    std::vector<std::string> sensors(names.size());
+    for (const auto& [sensor, rise] : ctx.temp_rise) {
+      names.emplace_back("thermal_expansion");
+      sensors.push_back(sensor);
+    }
+    for (std::size_t ni = 0; ni < names.size(); ++ni) {
       if (!moves[static_cast<size_t>(j)]) break;
-      const std::string n = name;
+      const std::string& n = names[ni];
       if ((n == "backlash" || n == "friction_spike") && !reverses[static_cast<size_t>(j)]) continue;
-      if (n == "thermal_scale" && rot[static_cast<size_t>(j)]) continue;  // a lead screw's growth
-      auto e = sim::make_effect(name, ax, m);
+      if ((n == "thermal_scale" || n == "thermal_expansion") && rot[static_cast<size_t>(j)]) continue;  // a screw's
+      auto e = sim::make_effect(n, ax, m);
+      e->note = sensors[ni];
       std::vector<std::unique_ptr<Effect>> variants;
       if (has_enc(j)) {
         if (has_geom_channel) {
@@ -1914,7 +1931,8 @@ std::string Report::to_json() const {
     nlohmann::ordered_json p = nlohmann::ordered_json::object();
     for (const auto& [k, v] : f.effect->reported()) p[k] = v;
     if (f.effect->name() == "vibration" && !f.effect->note.empty()) p["source"] = f.effect->note;
-    if (f.effect->name() == "thermal_growth") p["sensor"] = "temp." + f.effect->note;
+    if (f.effect->name() == "thermal_growth" || f.effect->name() == "thermal_expansion")
+      p["sensor"] = "temp." + f.effect->note;
     nlohmann::ordered_json fj;
     fj["effect"] = f.effect->name();
     fj["target"] = f.effect->target;

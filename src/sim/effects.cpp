@@ -535,6 +535,31 @@ class ThermalScale : public EffectImpl<ThermalScale, 2> {
   }
 };
 
+/// A lead screw (or the slide's structure) that expands with a recorded temperature: the error grows with the
+/// position and with the rise of sensor `note` since the start, q ppm_per_degC 1e-6 (T(t) - T(t0)). thermal_scale's
+/// warming in time, where the temperature was recorded: it follows a run that warms and cools.
+class ThermalExpansion : public EffectImpl<ThermalExpansion, 1> {
+ public:
+  std::string name() const override { return "thermal_expansion"; }
+  Scope scope() const override { return Scope::Axis; }
+  std::vector<std::string> internal_names() const override { return {"ppm_per_degC"}; }
+  std::vector<bool> linear() const override { return {true}; }
+  std::string signature() const override {
+    return fmt::format("error proportional to the position of {} and to the rise of temp.{}", target, note);
+  }
+  template <class T>
+  T eval(const Context& c, size_t i, const T* pp) const {
+    const std::vector<double>* rise = c.temperature(note);
+    return rise && i < rise->size() ? c.q[axis][i] * 1e-6 * pp[0] * (*rise)[i] : T(0.0);
+  }
+  std::vector<std::pair<std::string, double>> reported() const override { return {{"ppm_per_degC", p[0]}}; }
+  void set_reported(const std::vector<std::pair<std::string, double>>& kv) override {
+    p[0] = get(kv, "ppm_per_degC", name());
+  }
+  std::vector<std::vector<double>> grid(const Context&, const GridHints&) const override { return {{0.0}}; }
+  std::string source() const override { return note.empty() ? std::string() : "temp." + note; }
+};
+
 // ---- channel effects ----------------------------------------------------------------------------------
 
 class ThermalDrift : public EffectImpl<ThermalDrift, 2> {
@@ -696,6 +721,7 @@ const std::vector<std::pair<std::string, Factory>>& library() {
       {"compliance", [] { return std::make_unique<Compliance>(); }},
       {"cross_compliance", [] { return std::make_unique<CrossCompliance>(); }},
       {"thermal_scale", [] { return std::make_unique<ThermalScale>(); }},
+      {"thermal_expansion", [] { return std::make_unique<ThermalExpansion>(); }},
   };
   return lib;
 }
@@ -769,7 +795,10 @@ std::unique_ptr<Effect> make_effect(const std::string& name, const std::string& 
       e->axis = m.axis_index(target);
       if (e->axis < 0) throw InputError(fmt::format("effect {}: machine {} has no axis '{}'", name, m.name, target));
       // Errors of the encoder's own scale or of the structure are invisible to the axis's encoder.
-      e->enc_visible = !(name == "scale" || name == "cyclic" || name == "thermal_scale");
+      e->enc_visible = !(name == "scale" || name == "cyclic" || name == "thermal_scale" || name == "thermal_expansion");
+      if ((name == "thermal_scale" || name == "thermal_expansion") && m.axes[static_cast<size_t>(e->axis)].rotary())
+        throw InputError(fmt::format("effect {}: '{}' of machine {} is a rotary; {} is the growth of a linear slide",
+                                     name, target, m.name, name));
     }
     e->rotary = m.axes[static_cast<size_t>(e->axis)].rotary();
     return e;
@@ -853,7 +882,8 @@ std::unique_ptr<Effect> parse_effect(const std::string& spec, const machine::Mac
       if (eq == std::string::npos)
         throw InputError(fmt::format("--inject '{}': expected key=value, got '{}'", spec, item));
       const std::string key = item.substr(0, eq);
-      if (key == "sensor" && name == "thermal_growth") {  // the one text parameter: the temp.<sensor> it follows
+      if (key == "sensor" && (name == "thermal_growth" ||
+                              name == "thermal_expansion")) {  // the one text parameter: the temp.<sensor> it follows
         e->note = item.substr(eq + 1);
         a = b + 1;
         continue;
@@ -916,9 +946,9 @@ std::vector<std::unique_ptr<Effect>> load_machine_effects(const std::string& mac
         for (const auto& p : item["parameters"]) kv.emplace_back(p.first.as<std::string>(), p.second.as<double>());
       e->set_reported(kv);
       if (item["enc_visible"]) e->enc_visible = item["enc_visible"].as<bool>();
-      if (e->name() == "thermal_growth") {
+      if (e->name() == "thermal_growth" || e->name() == "thermal_expansion") {
         if (!item["sensor"])
-          throw InputError("effects: thermal_growth needs 'sensor' (the temp.<sensor> column it follows)");
+          throw InputError(fmt::format("effects: {} needs 'sensor' (the temp.<sensor> column it follows)", e->name()));
         e->note = item["sensor"].as<std::string>();
       }
     } catch (const InputError& ex) {
@@ -936,7 +966,8 @@ std::string effects_yaml(const std::vector<const Effect*>& effects) {
   for (const Effect* e : effects) {
     s += fmt::format("  - effect: {}\n    target: \"{}\"\n", e->name(), e->target);
     if (e->scope() == Scope::Axis) s += fmt::format("    enc_visible: {}\n", e->enc_visible ? "true" : "false");
-    if (e->name() == "thermal_growth") s += fmt::format("    sensor: \"{}\"\n", e->note);
+    if (e->name() == "thermal_growth" || e->name() == "thermal_expansion")
+      s += fmt::format("    sensor: \"{}\"\n", e->note);
     if (e->scope() == Scope::Geometric)
       s += fmt::format("    # deviation from the nominal {} {} (the corrected value is {:.9g})\n", e->nominal, e->unit,
                        e->nominal + e->p[0]);

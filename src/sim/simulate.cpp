@@ -285,11 +285,11 @@ Recording simulate(const Trajectory& traj, const machine::Machine& m, const std:
     temps.emplace_back(tp.sensor, std::move(at));
   }
   for (const Effect* e : effects)
-    if (e->name() == "thermal_growth" && !ctx.temperature(e->note))
-      throw InputError(fmt::format(
-          "effect thermal_growth on {}: it follows temperature sensor '{}', which this simulation has no readings of "
-          "(give them with --temperatures FILE.csv: columns t and temp.{})",
-          e->target, e->note, e->note.empty() ? "<sensor>" : e->note));
+    if ((e->name() == "thermal_growth" || e->name() == "thermal_expansion") && !ctx.temperature(e->note))
+      throw InputError(
+          fmt::format("effect {} on {}: it follows temperature sensor '{}', which this simulation has no readings of "
+                      "(give them with --temperatures FILE.csv: columns t and temp.{})",
+                      e->name(), e->target, e->note, e->note.empty() ? "<sensor>" : e->note));
 
   std::vector<kin::Axes> actual(traj.cmd), enc(traj.cmd);
   for (const Effect* e : effects) {
