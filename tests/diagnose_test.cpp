@@ -552,6 +552,9 @@ TEST(Diagnose, CommittedExamples) {
   const auto ra = diag("raster_scale_squareness.csv", trunnion());
   expect_found(ra, "scale", "x", "ppm", 40);
   expect_found(ra, "squareness", "x,y", "angle_urad", 60);
+  const auto th = diag("raster_thermal.csv", trunnion());
+  expect_found(th, "thermal_expansion", "y", "ppm_per_degC", 12);
+  EXPECT_EQ(find(th, "thermal_expansion", "y")->effect->note, "bed") << th.text();
   EXPECT_TRUE(diag("clean.csv", trunnion()).findings.empty());
 }
 

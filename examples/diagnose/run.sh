@@ -30,11 +30,15 @@ sim $D/circle.ngc -m $T -o $D/ballbar.csv --rate 250 --channels tip --inject bac
 # 6. Scale and squareness from a raster.
 sim $D/raster.ngc -m $T -o $D/raster_scale_squareness.csv --rate 25 --channels tip --inject scale:x:40 \
   --inject squareness:x,y:60 --noise tip:0.0005 --seed 6
-# 7. Clean: noise only.
+# 7. A screw that expands with the recorded bed temperature (which rises and falls within the run), beside an unrelated
+#    spindle temperature that rises steadily.
+sim $D/raster.ngc -m $T -o $D/raster_thermal.csv --rate 25 --channels tip,enc --temperatures $D/raster_temperatures.csv \
+  --inject thermal_expansion:y:ppm_per_degC=12,sensor=bed --noise tip:0.0005 --noise enc:0.0001 --seed 8
+# 8. Clean: noise only.
 sim $D/circle.ngc -m $T -o $D/clean.csv --rate 100 --channels tip,enc --noise tip:0.001 --noise enc:0.0002 --seed 7
 
 mkdir -p out/diagnose
-for r in seed000_xmini servo_lag thermal_drift two_effects ballbar raster_scale_squareness clean; do
+for r in seed000_xmini servo_lag thermal_drift two_effects ballbar raster_scale_squareness raster_thermal clean; do
   echo "== $r"
   "$B/cscam" diagnose $D/$r.csv --json > out/diagnose/$r.json
   "$B/cscam" diagnose $D/$r.csv --svg out/diagnose/$r --write-model out/diagnose/$r.machine.yaml | tail -n +1
