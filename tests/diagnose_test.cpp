@@ -579,6 +579,20 @@ TEST(DiagnoseCli, BadInputAndJson) {
   std::string out;
   EXPECT_NE(run_cli("diagnose " + (dir / "bad.csv").string(), out), 0);
   EXPECT_NE(out.find("bad.csv:5: row 3: time is not strictly increasing"), std::string::npos) << out;
+  // A recording whose machine is a project-relative path (machines/trunnion-ac.yaml), copied elsewhere and read from
+  // another folder: the bundled machine of that name. A name that no folder holds is still an error.
+  fs::copy_file(std::string(CSCAM_SOURCE_DIR) + "/examples/diagnose/servo_lag.csv", dir / "copied.csv",
+                fs::copy_options::overwrite_existing);
+  EXPECT_EQ(run_cli("diagnose " + (dir / "copied.csv").string(), out), 0) << out;
+  EXPECT_NE(out.find("servo lag of 2.0"), std::string::npos) << out;
+  {
+    std::ifstream in(dir / "copied.csv");
+    std::string text((std::istreambuf_iterator<char>(in)), {});
+    text.replace(text.find("trunnion-ac.yaml"), 16, "no-such-mill.yaml");
+    std::ofstream(dir / "unknown.csv") << text;
+  }
+  EXPECT_NE(run_cli("diagnose " + (dir / "unknown.csv").string(), out), 0);
+  EXPECT_NE(out.find("no-such-mill.yaml: machine file not found"), std::string::npos) << out;
   EXPECT_NE(run_cli("diagnose " + (dir / "nocmd.csv").string(), out), 0);
   EXPECT_NE(out.find("missing column 'cmd.c'"), std::string::npos) << out;
   EXPECT_NE(run_cli("simulate " + std::string(CSCAM_SOURCE_DIR) + "/examples/diagnose/circle.ngc -m trunnion-ac -o " +

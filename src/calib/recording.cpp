@@ -55,16 +55,6 @@ int Recording::column(const std::string& name) const {
   return -1;
 }
 
-std::string Recording::machine_path() const {
-  auto it = meta.find("machine");
-  if (it == meta.end() || it->second.empty()) return {};
-  const fs::path m(it->second);
-  if (m.is_absolute()) return m.string();
-  const fs::path beside = fs::path(file).parent_path() / m;
-  if (fs::exists(beside)) return beside.string();
-  return m.string();
-}
-
 namespace {
 
 std::string trim(std::string s) {

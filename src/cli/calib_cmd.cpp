@@ -211,7 +211,10 @@ int run_calibrate(const CalibArgs& a) {
   std::optional<calib::Recording> rec;
   if (!a.rec.empty()) rec = calib::read_recording(a.rec);
   std::string mpath = a.machine;
-  if (mpath.empty() && rec) mpath = rec->machine_path();
+  if (mpath.empty() && rec) {
+    const auto it = rec->meta.find("machine");
+    if (it != rec->meta.end() && !it->second.empty()) mpath = resolve_recorded_machine(a.rec, it->second);
+  }
   if (mpath.empty())
     throw InputError(SourceLoc{a.rec}, "no machine: give --machine or a '# machine:' line in the recording");
   mpath = resolve_machine(mpath);

@@ -74,6 +74,23 @@ std::string resolve_machine(const std::string& arg) {
   throw InputError(SourceLoc{arg}, fmt::format("machine file not found (neither a path nor a bundled machine in {})",
                                                CSCAM_MACHINES_DIR));
 }
+
+std::string resolve_recorded_machine(const std::string& recording_file, const std::string& named) {
+  // The spec's order: beside the recording, then the working directory (or a bundled name).
+  const fs::path beside = fs::path(recording_file).parent_path() / named;
+  if (fs::exists(beside)) return beside.string();
+  if (fs::exists(named) || fs::path(named).is_absolute() || fs::path(named).extension() != ".yaml")
+    return resolve_machine(named);
+  // A path relative to a project root (`machines/xmini.yaml`, written where the recording was made) read from
+  // elsewhere: relative to a folder above the recording's, else the bundled machine of that file name.
+  std::error_code ec;
+  for (fs::path dir = fs::absolute(recording_file, ec).parent_path(); !ec && dir.has_relative_path();
+       dir = dir.parent_path())
+    if (const fs::path up = dir / named; fs::exists(up)) return up.string();
+  for (const std::string& d : {std::string(CSCAM_MACHINES_DIR), std::string(CSCAM_INSTALLED_MACHINES_DIR)})
+    if (const fs::path bundled = fs::path(d) / fs::path(named).filename(); fs::exists(bundled)) return bundled.string();
+  return resolve_machine(named);
+}
 }  // namespace cscam::cli
 
 namespace {

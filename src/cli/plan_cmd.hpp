@@ -65,5 +65,9 @@ cl::Program read_cl_as_posted(const std::string& cl_path, const std::string& uni
 
 /// A machine by path or by bundled name (shared with main.cpp).
 std::string resolve_machine(const std::string& arg);
+/// The machine a recording names (`# machine:`): beside the recording, in the working directory, in a folder above the
+/// recording's (a project-relative path such as machines/xmini.yaml read from elsewhere), else the bundled machine of
+/// that file name. Throws InputError naming it when none holds it.
+std::string resolve_recorded_machine(const std::string& recording_file, const std::string& named);
 
 }  // namespace cscam::cli

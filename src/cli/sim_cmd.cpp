@@ -235,9 +235,7 @@ std::string machine_for_recording(const sim::Recording& rec, const std::string& 
   if (!opt.empty()) return resolve_machine(opt);
   const auto mm = rec.meta_value("machine");
   if (!mm) throw InputError(SourceLoc{rec.file}, "the recording names no machine (# machine: ...): give --machine");
-  const fs::path rel = fs::path(rec.file).parent_path() / *mm;
-  if (fs::exists(rel)) return rel.string();
-  return resolve_machine(*mm);
+  return resolve_recorded_machine(rec.file, *mm);
 }
 
 int cmd_diagnose(const DiagArgs& a) {

@@ -37,9 +37,6 @@ struct Recording {
   [[nodiscard]] int column(const std::string& name) const;
   [[nodiscard]] bool has(const std::string& name) const { return column(name) >= 0; }
   [[nodiscard]] Eigen::Index rows() const { return data.rows(); }
-  /// The `machine` metadata resolved as the spec says (relative: first against the recording's
-  /// folder, then the working directory); empty if absent.
-  [[nodiscard]] std::string machine_path() const;
 };
 
 /// Reads a recording file with the sim module's reader (sim::read_recording), then adds the
