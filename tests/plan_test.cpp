@@ -1884,6 +1884,32 @@ TEST(Planner, TheNearestFeasibleCellClaimIsOnlyAsWideAsTheSearch) {
   }
 }
 
+namespace {
+
+/// A machine's bodies (its head meshes too, if asked), a block at the part origin and a tall fence at x = fence_x mm
+/// beside it, with a D10 ball mill: the scene of the path checks below. Held by pointer: the space points into it.
+struct FenceScene {
+  geom::ToolShape tool = geom::ToolShape::from_cutter(10, 5, 30);
+  geom::Scene scene, head;
+  std::shared_ptr<const cspace::Space> space;
+};
+std::unique_ptr<FenceScene> fence_scene(const machine::Machine& m, double fence_x, bool head_meshes) {
+  auto f = std::make_unique<FenceScene>();
+  geom::Scene no_head;
+  cspace::add_machine_bodies(m, f->tool.gauge_length_mm(), f->scene, head_meshes ? f->head : no_head);
+  f->scene.add("block", geom::ObstacleRole::Part, box_mesh({-40, -40, -30}, {40, 40, 0}));
+  f->scene.add("fence", geom::ObstacleRole::Fixture, box_mesh({fence_x, -60, 0}, {fence_x + 10, 60, 300}));
+  f->scene.build(false);
+  f->head.build(false);
+  cspace::Options co;
+  co.check_collision = true;
+  co.collision.roles = geom::kAllRoles;
+  f->space = std::make_shared<const cspace::Space>(m.kinematics(), &f->scene, &f->tool, co, &f->head);
+  return f;
+}
+
+}  // namespace
+
 // The gate's collision check along a path (PathCheck: a pose proven free with a margin certifies the poses after it
 // that stay within it, relative to the part and to every machine link) against the exact check of every pose, on
 // random walks in joint space around a block on three machines (their bodies, head meshes on links included), in
@@ -1908,18 +1934,9 @@ TEST(CSpace, APathCheckAnswersAsTheExactCheckAtEveryPoseOfAWalk) {
     SCOPED_TRACE(name + (head_meshes ? "" : " (no head meshes)"));
     const auto m = machine::load(test::source_path("machines/" + name + ".yaml"));
     const auto k = m.kinematics();
-    const auto tool = geom::ToolShape::from_cutter(10, 5, 30);
-    geom::Scene scene, head, no_head;
-    cspace::add_machine_bodies(m, tool.gauge_length_mm(), scene, head_meshes ? head : no_head);
-    scene.add("block", geom::ObstacleRole::Part, box_mesh({-40, -40, -30}, {40, 40, 0}));
-    // A tall fence beside it, which the holder and the head meet as they turn.
-    scene.add("fence", geom::ObstacleRole::Fixture, box_mesh({fence_x, -60, 0}, {fence_x + 10, 60, 300}));
-    scene.build(false);
-    head.build(false);
-    cspace::Options co;
-    co.check_collision = true;
-    co.collision.roles = geom::kAllRoles;
-    auto space = std::make_shared<const cspace::Space>(k, &scene, &tool, co, &head);
+    // The fence stands where the holder and the head meet it as they turn.
+    const auto fs = fence_scene(m, fence_x, head_meshes);
+    const auto& space = fs->space;
     cspace::PathCheck path(space);
     geom::QueryWorkspace ws;
     cspace::Counters c;
@@ -1990,17 +2007,8 @@ TEST(CSpace, APathCheckCarriesACertificateAlongARotaryFreeMoveAndStopsAtTheFence
     const auto m = machine::load(test::source_path(std::string("machines/") + name + ".yaml"));
     const auto k = m.kinematics();
     ASSERT_TRUE(k->traits().linear_axes_translate);
-    const auto tool = geom::ToolShape::from_cutter(10, 5, 30);
-    geom::Scene scene, head;
-    cspace::add_machine_bodies(m, tool.gauge_length_mm(), scene, head);
-    scene.add("block", geom::ObstacleRole::Part, box_mesh({-40, -40, -30}, {40, 40, 0}));
-    scene.add("fence", geom::ObstacleRole::Fixture, box_mesh({120, -60, 0}, {130, 60, 300}));
-    scene.build(false);
-    head.build(false);
-    cspace::Options co;
-    co.check_collision = true;
-    co.collision.roles = geom::kAllRoles;
-    auto space = std::make_shared<const cspace::Space>(k, &scene, &tool, co, &head);
+    const auto fs = fence_scene(m, 120.0, true);
+    const auto& space = fs->space;
     geom::QueryWorkspace ws;
     cspace::Counters c;
     std::mt19937 rng(test::kSeed);
