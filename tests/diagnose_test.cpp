@@ -915,6 +915,13 @@ TEST(Diagnose, GrowthThatFollowsARecordedTemperatureIsNamedWithItsSensor) {
   ASSERT_EQ(loaded.size(), 1u);
   EXPECT_EQ(loaded[0]->note, "spindle");
   EXPECT_NEAR(loaded[0]->p[0], f->effect->p[0], 1e-9);
+  // With the written model the same recording has nothing left to explain; one without that temperature cannot be
+  // diagnosed against it.
+  const auto explained = diagnose::diagnose(rec, trunnion(), {loaded[0].get()});
+  EXPECT_TRUE(explained.findings.empty()) << explained.text();
+  auto no_temp = rec;
+  no_temp.columns[static_cast<std::size_t>(no_temp.column("temp.spindle"))] = "temp.hall";
+  EXPECT_THROW((void)diagnose::diagnose(no_temp, trunnion(), {loaded[0].get()}), InputError);
 
   // Without the sensor's readings there is nothing to follow: an error, not a silent zero.
   const auto e = sim::parse_effect("thermal_growth:tip.z:mm_per_degC=0.0015,sensor=spindle", trunnion());

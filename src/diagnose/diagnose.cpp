@@ -925,6 +925,23 @@ Report diagnose(sim::Recording& rec, const machine::Machine& m, const std::vecto
   so.channels.erase(so.channels.begin(), so.channels.begin() + 2);  // drop the defaults ("tip", "enc")
   so.channels.emplace_back("enc");
   so.tool_length_mm = L;
+  // The recording's own temperatures, for known effects that follow one (thermal_growth, thermal_expansion).
+  for (std::size_t col = 0; col < rec.columns.size(); ++col) {
+    if (rec.columns[col].rfind("temp.", 0) != 0) continue;
+    sim::SimulateOptions::Temperature tp;
+    tp.sensor = rec.columns[col].substr(5);
+    for (std::size_t r = 0; r < n; ++r)
+      if (std::isfinite(rec.data[col][r])) tp.t.push_back(t[r]), tp.deg_c.push_back(rec.data[col][r]);
+    if (!tp.t.empty()) so.temperatures.push_back(std::move(tp));
+  }
+  for (const sim::Effect* e : known)
+    if ((e->name() == "thermal_growth" || e->name() == "thermal_expansion") &&
+        std::none_of(so.temperatures.begin(), so.temperatures.end(),
+                     [&](const sim::SimulateOptions::Temperature& tp) { return tp.sensor == e->note; }))
+      throw InputError(SourceLoc{rec.file},
+                       fmt::format("the machine's {} on {} follows temperature temp.{}, which this recording has no "
+                                   "readings of: record that column, or diagnose against the machine without it",
+                                   e->name(), e->target, e->note));
   const sim::Recording pred = sim::simulate(traj, m, known, so);
   for (auto& c : comps) {
     const auto& meas = rec.data[static_cast<size_t>(c.col)];
