@@ -1026,33 +1026,14 @@ Report diagnose(sim::Recording& rec, const machine::Machine& m, const std::vecto
   const size_t stride = std::max<size_t>(1, (n + o.max_fit_samples - 1) / o.max_fit_samples);
   const Context ctx = [&] {
     Context c = sim::make_context(t, cmd, rot, stride);
-    // Recorded temperatures (temp.<sensor>), for thermal_growth: the rise since the first reading at every analysis
-    // sample, a gap interpolated between the readings around it (held before the first and after the last).
-    for (std::size_t col = 0; col < rec.columns.size(); ++col) {
-      if (rec.columns[col].rfind("temp.", 0) != 0) continue;
-      const auto& v = rec.data[col];
-      std::vector<std::size_t> known;
-      for (std::size_t r = 0; r < v.size(); ++r)
-        if (std::isfinite(v[r])) known.push_back(r);
-      if (known.size() < 2) continue;
-      std::vector<double> rise(c.size());
-      std::size_t kk = 0;
-      for (std::size_t k = 0; k < c.size(); ++k) {
-        const std::size_t row = c.index[k];
-        while (kk + 1 < known.size() && known[kk + 1] <= row) ++kk;
-        double deg = v[known[kk]];
-        if (row < known.front()) {
-          deg = v[known.front()];
-        } else if (kk + 1 < known.size() && row > known[kk]) {
-          const std::size_t a = known[kk], b = known[kk + 1];
-          const double f = (t[row] - t[a]) / (t[b] - t[a]);
-          deg = (1 - f) * v[a] + f * v[b];
-        }
-        rise[k] = deg - v[known.front()];
-      }
-      double lo = rise.front(), hi = rise.front();
-      for (const double x : rise) lo = std::min(lo, x), hi = std::max(hi, x);
-      if (hi - lo > 0) c.temp_rise.emplace_back(rec.columns[col].substr(5), std::move(rise));
+    // The recorded temperatures' rise since the start at every analysis sample (thermal_growth, thermal_expansion),
+    // for each sensor whose reading changes.
+    for (const auto& tp : so.temperatures) {
+      std::vector<double> rise = sim::temperature_at(tp, c.t);
+      const double t0 = rise.front();
+      for (double& x : rise) x -= t0;
+      if (std::any_of(rise.begin(), rise.end(), [](double x) { return x != 0.0; }))
+        c.temp_rise.emplace_back(tp.sensor, std::move(rise));
     }
     return c;
   }();

@@ -253,6 +253,26 @@ void Predictor::jacobian(const kin::Axes& q, Eigen::Matrix<double, 9, 5>& J) con
   }
 }
 
+std::vector<double> temperature_at(const SimulateOptions::Temperature& readings, const std::vector<double>& t) {
+  const auto& rt = readings.t;
+  const auto& deg = readings.deg_c;
+  if (rt.empty() || rt.size() != deg.size())
+    throw InputError(
+        fmt::format("temperature {}: no readings (or times and readings of different counts)", readings.sensor));
+  std::vector<double> at(t.size());
+  std::size_t k = 0;
+  for (std::size_t i = 0; i < t.size(); ++i) {
+    while (k + 1 < rt.size() && rt[k + 1] <= t[i]) ++k;
+    if (t[i] <= rt.front() || k + 1 >= rt.size()) {
+      at[i] = t[i] <= rt.front() ? deg.front() : deg.back();
+      continue;
+    }
+    const double f = (t[i] - rt[k]) / (rt[k + 1] - rt[k]);
+    at[i] = (1 - f) * deg[k] + f * deg[k + 1];
+  }
+  return at;
+}
+
 Recording simulate(const Trajectory& traj, const machine::Machine& m, const std::vector<const Effect*>& effects,
                    const SimulateOptions& o, const machine::Machine* truth_machine) {
   const size_t n = traj.t.size();
@@ -264,21 +284,7 @@ Recording simulate(const Trajectory& traj, const machine::Machine& m, const std:
   // Recorded temperatures at the samples (interpolated, held past their ends), and their rise for thermal_growth.
   std::vector<std::pair<std::string, std::vector<double>>> temps;
   for (const auto& tp : o.temperatures) {
-    if (tp.t.empty() || tp.t.size() != tp.deg_c.size())
-      throw InputError(
-          fmt::format("temperature {}: no readings (or times and readings of different counts)", tp.sensor));
-    std::vector<double> at(n);
-    size_t k = 0;
-    for (size_t i = 0; i < n; ++i) {
-      const double ti = traj.t[i];
-      while (k + 1 < tp.t.size() && tp.t[k + 1] <= ti) ++k;
-      if (ti <= tp.t.front() || k + 1 >= tp.t.size()) {
-        at[i] = ti <= tp.t.front() ? tp.deg_c.front() : tp.deg_c.back();
-        continue;
-      }
-      const double f = (ti - tp.t[k]) / (tp.t[k + 1] - tp.t[k]);
-      at[i] = (1 - f) * tp.deg_c[k] + f * tp.deg_c[k + 1];
-    }
+    std::vector<double> at = temperature_at(tp, traj.t);
     std::vector<double> rise(n);
     for (size_t i = 0; i < n; ++i) rise[i] = at[i] - at.front();
     ctx.temp_rise.emplace_back(tp.sensor, std::move(rise));

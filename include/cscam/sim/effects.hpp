@@ -49,7 +49,7 @@ struct Context {
   /// Tells contexts apart for effects that cache a series computed over one (0: not made by make_context).
   std::uint64_t id = 0;
   /// Recorded temperatures (`temp.<sensor>` columns) at the samples: the rise since the first reading, degC, per
-  /// sensor name (without `temp.`). Filled by whoever has the recording (diagnose); empty otherwise.
+  /// sensor name (without `temp.`). Filled by whoever has the readings (simulate, diagnose); empty otherwise.
   std::vector<std::pair<std::string, std::vector<double>>> temp_rise;
   /// temp_rise of `sensor`, or null if it was not recorded.
   [[nodiscard]] const std::vector<double>* temperature(const std::string& sensor) const {
@@ -113,7 +113,7 @@ class Effect {
   std::string channel;  ///< channel component (channel scope), e.g. "tip.z"
   bool enc_visible = true;
   std::vector<double> p;  ///< internal parameters
-  std::string note;       ///< e.g. "tooth_passing" for a vibration; the sensor of a thermal_growth
+  std::string note;       ///< e.g. "tooth_passing" for a vibration; the sensor a thermal_growth or _expansion follows
   /// Geometric scope: d(tip[3], ptip[3], dir[3]) / d(parameter) per context sample, and the parameter's
   /// nominal value and unit (file units).
   std::shared_ptr<const std::vector<std::array<double, 9>>> geo_sens;

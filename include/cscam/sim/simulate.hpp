@@ -93,6 +93,9 @@ struct SimulateOptions {
   std::vector<Temperature> temperatures;
 };
 
+/// A sensor's readings at times `t` (s): linear between readings, the first and last held beyond them.
+std::vector<double> temperature_at(const SimulateOptions::Temperature& readings, const std::vector<double>& t);
+
 /// Applies effects (axis effects through FK, channel effects added) to a commanded trajectory and
 /// returns the recording (cmd.* always; the chosen channels). `truth_machine`, if given, is the machine
 /// the data come from (geometric deviations); predictions in diagnose use the nominal one.
