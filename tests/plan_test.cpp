@@ -2097,3 +2097,29 @@ TEST(CSpace, APathCheckCertificateEndsBeforeTheTurningHolderMeetsAWall) {
     }
   }
 }
+
+// NX's zigzag (a vertical tool, a part sized for the Haas) on the trunnion: at C = 0 the cutter stands in the +x cradle
+// arm, and the table must turn the path away. Every winding of that turn is the same orientation; the plan takes the
+// one nearest home, as tier 1 orders them, also where windows (here by the cell budget) pre-plan the first segment's
+// orientation: that pre-pass took the cells in listed order, C -317 deg for 43, a 317 deg turn of the table.
+// Oracle: |C| <= 180 deg at every move, A = 0, and C = 0 is not it.
+TEST(PlannerWindows, AFixedOrientationTakesTheWindingNearestHome) {
+  const machine::Machine m = trunnion();
+  const cl::Program prog = cl::read_file(test::source_path("examples/nx-haas-umc750/zigzag_smoothed.cls"));
+  const auto tool = geom::ToolShape::from_cutter(prog.tools.front().diameter_mm, prog.tools.front().corner_radius_mm,
+                                                 prog.tools.front().length_mm > 0 ? prog.tools.front().length_mm : 50);
+  geom::Scene scene, head;
+  cspace::add_machine_bodies(m, tool.gauge_length_mm(), scene, head);
+  scene.build(false);
+  plan::Options o;
+  o.cspace.cone_rad = deg2rad(10.0);
+  o.cspace.check_collision = true;
+  const plan::Plan p = plan::plan_windowed(m, m.kinematics(), &scene, &tool, o, prog, plan::WindowOptions{});
+  ASSERT_GT(p.windows, 1u) << "the cell budget must split it, or the pre-pass is not exercised";
+  for (std::size_t i = 0; i < p.axes.size(); ++i) {
+    EXPECT_LE(std::abs(rad2deg(p.axes[i][4])), 180.0) << "move " << i;
+    EXPECT_NEAR(p.axes[i][3], 0.0, 1e-9) << "move " << i;
+  }
+  EXPECT_GT(std::abs(rad2deg(p.axes.front()[4])), 5.0) << "C = 0 puts the cutter in the cradle arm";
+  EXPECT_EQ(p.swept.collisions, 0u);
+}

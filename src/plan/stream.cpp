@@ -131,6 +131,21 @@ std::optional<std::array<double, 2>> fixed_orientation(const cspace::Space& sp, 
   sp.enumerate(pose(s), cells, cap, c);
   std::size_t hard = s;  // the point that rejected the last candidate's orientation
   geom::QueryWorkspace ws;
+  auto feasible_along = [&](const cspace::Cell& cell) {
+    cspace::Certificate cert;
+    bool ok = true;
+    for (std::size_t m = s; m <= e && ok; ++m) {
+      cspace::Cell x = cell;
+      x.status = cspace::Status::Unknown;
+      sp.evaluate(pose(m), x, ws, c, &cert);
+      ok = x.status == cspace::Status::Feasible;
+      // At the segment's ends a machine without a Z axis retracts along the tool axis (the planner's own rule there).
+      kin::Axes up;
+      if (ok && (m == s || m == e) && std::isfinite(retract_plane_z_mm))
+        ok = kin::retract_along_axis(sp.kinematics(), x.axes, retract_plane_z_mm, tol::kLimitSlackMm, up);
+    }
+    return ok;
+  };
   for (const cspace::Cell& cell : cells) {
     double dot = 0;
     if (!sp.in_cone_cos(pose(hard), cell.r1, cell.r2, dot)) continue;
@@ -142,18 +157,18 @@ std::optional<std::array<double, 2>> fixed_orientation(const cspace::Space& sp, 
       }
     if (!ok) continue;
     if (tries-- <= 0) break;
-    cspace::Certificate cert;
-    for (std::size_t m = s; m <= e && ok; ++m) {
-      cspace::Cell x = cell;
-      x.status = cspace::Status::Unknown;
-      sp.evaluate(pose(m), x, ws, c, &cert);
-      ok = x.status == cspace::Status::Feasible;
-      // At the segment's ends a machine without a Z axis retracts along the tool axis (the planner's own rule there).
-      kin::Axes up;
-      if (ok && (m == s || m == e) && std::isfinite(retract_plane_z_mm))
-        ok = kin::retract_along_axis(sp.kinematics(), x.axes, retract_plane_z_mm, tol::kLimitSlackMm, up);
-    }
-    if (ok) return std::array<double, 2>{cell.r1, cell.r2};
+    if (!feasible_along(cell)) continue;
+    // Every winding of this orientation is as good (the listing orders by the angle to the CL axis, where windings
+    // tie): the one nearest home, as tier 1 takes it (the program's first segment is entered from there), if the grid
+    // has it and it holds along the segment too. In listed order a vertical tool on a table's C took -317 deg for 43.
+    const cspace::Cell* nearest = &cell;
+    for (const cspace::Cell& w : cells)
+      if (std::abs(std::remainder(w.r1 - cell.r1, 2.0 * kPi)) < 1e-9 &&
+          std::abs(std::remainder(w.r2 - cell.r2, 2.0 * kPi)) < 1e-9 &&
+          std::abs(w.r1) + std::abs(w.r2) < std::abs(nearest->r1) + std::abs(nearest->r2) - 1e-9)
+        nearest = &w;
+    if (nearest != &cell && feasible_along(*nearest)) return std::array<double, 2>{nearest->r1, nearest->r2};
+    return std::array<double, 2>{cell.r1, cell.r2};
   }
   return std::nullopt;
 }
