@@ -601,6 +601,16 @@ TEST(DiagnoseCli, BadInputAndJson) {
             0);
   EXPECT_NE(out.find("unknown effect 'wobble'"), std::string::npos) << out;
   EXPECT_FALSE(fs::exists(dir / "x.csv"));  // nothing partial
+  // Temperatures: a file without temp.<sensor> columns, and an effect that follows a sensor with no readings.
+  std::ofstream(dir / "notemp.csv") << "t,x\n0,1\n1,2\n";
+  const std::string circle_cmd = "simulate " + std::string(CSCAM_SOURCE_DIR) +
+                                 "/examples/diagnose/circle.ngc -m trunnion-ac -o " + (dir / "x.csv").string();
+  EXPECT_NE(run_cli(circle_cmd + " --temperatures " + (dir / "notemp.csv").string(), out), 0);
+  EXPECT_NE(out.find("notemp.csv: --temperatures: the file has no temp.<sensor> column"), std::string::npos) << out;
+  EXPECT_NE(run_cli(circle_cmd + " --inject thermal_growth:tip.z:mm_per_degC=0.001,sensor=bed", out), 0);
+  EXPECT_NE(out.find("follows temperature sensor 'bed', which this simulation has no readings of"), std::string::npos)
+      << out;
+  EXPECT_FALSE(fs::exists(dir / "x.csv"));
   const std::string circle_on_trunnion = "simulate " + std::string(CSCAM_SOURCE_DIR) +
                                          "/examples/diagnose/circle.ngc -m trunnion-ac -o " + (dir / "x.csv").string();
   EXPECT_NE(run_cli(circle_on_trunnion + " --noise tip:nan", out), 0);
