@@ -935,7 +935,7 @@ Report diagnose(sim::Recording& rec, const machine::Machine& m, const std::vecto
     if (!tp.t.empty()) so.temperatures.push_back(std::move(tp));
   }
   for (const sim::Effect* e : known)
-    if ((e->name() == "thermal_growth" || e->name() == "thermal_expansion") &&
+    if (e->follows_temperature() &&
         std::none_of(so.temperatures.begin(), so.temperatures.end(),
                      [&](const sim::SimulateOptions::Temperature& tp) { return tp.sensor == e->note; }))
       throw InputError(SourceLoc{rec.file},
@@ -1929,8 +1929,7 @@ std::string Report::to_json() const {
     nlohmann::ordered_json p = nlohmann::ordered_json::object();
     for (const auto& [k, v] : f.effect->reported()) p[k] = v;
     if (f.effect->name() == "vibration" && !f.effect->note.empty()) p["source"] = f.effect->note;
-    if (f.effect->name() == "thermal_growth" || f.effect->name() == "thermal_expansion")
-      p["sensor"] = "temp." + f.effect->note;
+    if (f.effect->follows_temperature()) p["sensor"] = "temp." + f.effect->note;
     nlohmann::ordered_json fj;
     fj["effect"] = f.effect->name();
     fj["target"] = f.effect->target;

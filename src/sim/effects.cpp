@@ -558,6 +558,7 @@ class ThermalExpansion : public EffectImpl<ThermalExpansion, 1> {
   }
   std::vector<std::vector<double>> grid(const Context&, const GridHints&) const override { return {{0.0}}; }
   std::string source() const override { return note.empty() ? std::string() : "temp." + note; }
+  bool follows_temperature() const override { return true; }
 };
 
 // ---- channel effects ----------------------------------------------------------------------------------
@@ -647,6 +648,7 @@ class ThermalGrowth : public EffectImpl<ThermalGrowth, 1> {
   /// Linear in its one parameter: a single start.
   std::vector<std::vector<double>> grid(const Context&, const GridHints&) const override { return {{0.0}}; }
   std::string source() const override { return note.empty() ? std::string() : "temp." + note; }
+  bool follows_temperature() const override { return true; }
 };
 
 class Vibration : public EffectImpl<Vibration, 3> {
@@ -882,8 +884,7 @@ std::unique_ptr<Effect> parse_effect(const std::string& spec, const machine::Mac
       if (eq == std::string::npos)
         throw InputError(fmt::format("--inject '{}': expected key=value, got '{}'", spec, item));
       const std::string key = item.substr(0, eq);
-      if (key == "sensor" && (name == "thermal_growth" ||
-                              name == "thermal_expansion")) {  // the one text parameter: the temp.<sensor> it follows
+      if (key == "sensor" && e->follows_temperature()) {  // the one text parameter: the temp.<sensor> it follows
         e->note = item.substr(eq + 1);
         a = b + 1;
         continue;
@@ -946,7 +947,7 @@ std::vector<std::unique_ptr<Effect>> load_machine_effects(const std::string& mac
         for (const auto& p : item["parameters"]) kv.emplace_back(p.first.as<std::string>(), p.second.as<double>());
       e->set_reported(kv);
       if (item["enc_visible"]) e->enc_visible = item["enc_visible"].as<bool>();
-      if (e->name() == "thermal_growth" || e->name() == "thermal_expansion") {
+      if (e->follows_temperature()) {
         if (!item["sensor"])
           throw InputError(fmt::format("effects: {} needs 'sensor' (the temp.<sensor> column it follows)", e->name()));
         e->note = item["sensor"].as<std::string>();
@@ -966,8 +967,7 @@ std::string effects_yaml(const std::vector<const Effect*>& effects) {
   for (const Effect* e : effects) {
     s += fmt::format("  - effect: {}\n    target: \"{}\"\n", e->name(), e->target);
     if (e->scope() == Scope::Axis) s += fmt::format("    enc_visible: {}\n", e->enc_visible ? "true" : "false");
-    if (e->name() == "thermal_growth" || e->name() == "thermal_expansion")
-      s += fmt::format("    sensor: \"{}\"\n", e->note);
+    if (e->follows_temperature()) s += fmt::format("    sensor: \"{}\"\n", e->note);
     if (e->scope() == Scope::Geometric)
       s += fmt::format("    # deviation from the nominal {} {} (the corrected value is {:.9g})\n", e->nominal, e->unit,
                        e->nominal + e->p[0]);

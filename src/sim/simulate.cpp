@@ -291,7 +291,7 @@ Recording simulate(const Trajectory& traj, const machine::Machine& m, const std:
     temps.emplace_back(tp.sensor, std::move(at));
   }
   for (const Effect* e : effects)
-    if ((e->name() == "thermal_growth" || e->name() == "thermal_expansion") && !ctx.temperature(e->note))
+    if (e->follows_temperature() && !ctx.temperature(e->note))
       throw InputError(
           fmt::format("effect {} on {}: it follows temperature sensor '{}', which this simulation has no readings of "
                       "(give them with --temperatures FILE.csv: columns t and temp.{})",

@@ -104,6 +104,8 @@ class Effect {
   [[nodiscard]] virtual std::vector<std::vector<double>> grid(const Context& ctx, const GridHints& hints) const;
   /// Extra text for the report (e.g. the source of a vibration); empty if none.
   [[nodiscard]] virtual std::string source() const { return {}; }
+  /// The effect follows a recorded temperature, that of sensor `note` (temp.<note>): it needs its readings.
+  [[nodiscard]] virtual bool follows_temperature() const { return false; }
   [[nodiscard]] virtual std::unique_ptr<Effect> clone() const = 0;
 
   std::string target;  ///< as in the report: axis name, "x,y", or channel (tip.z)
