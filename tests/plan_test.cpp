@@ -2123,3 +2123,51 @@ TEST(PlannerWindows, AFixedOrientationTakesTheWindingNearestHome) {
   EXPECT_GT(std::abs(rad2deg(p.axes.front()[4])), 5.0) << "C = 0 puts the cutter in the cradle arm";
   EXPECT_EQ(p.swept.collisions, 0u);
 }
+
+// A vertical tool along a line beside the trunnion's +x cradle arm: at C = 0 the cutter stands in the arm, and the
+// whole line needs C of about 25 deg either way. Unwindowed, tier 1 finds one orientation. In windows (of 20 and 7
+// moves) the segment starts inside a window, after a short first segment of 5 or 12 moves, and runs on through
+// several: the windows must keep the one orientation that suits all of it, not each take the nearest that suits their
+// own points and then turn. (Before, only the program's first segment got an orientation for its whole length, and
+// only among its 16 nearest candidates: C up to about 8 deg here, all in the arm.)
+TEST(PlannerWindows, ASegmentThatStartsInsideAWindowKeepsOneOrientationForAllOfIt) {
+  const machine::Machine m = trunnion();
+  const auto tool = geom::ToolShape::from_cutter(10, 5, 30);
+  geom::Scene scene, head;
+  cspace::add_machine_bodies(m, tool.gauge_length_mm(), scene, head);
+  scene.build(false);
+  plan::Options o;
+  o.cspace.cone_rad = deg2rad(10.0);
+  o.cspace.check_collision = true;
+  for (const int first_len : {5, 12}) {
+    std::ostringstream cl;
+    cl << "UNITS/MM\nMULTAX\nCUTTER/10,5,30\nFEDRAT/MMPM,1000\nRAPID\nGOTO/0,0,30,0,0,1\n";
+    for (int i = 0; i < first_len; ++i) cl << "GOTO/" << i << ",0,5,0,0,1\n";
+    cl << "RAPID\nGOTO/112,-20,30,0,0,1\n";
+    for (int i = 0; i < 100; ++i) cl << "GOTO/112," << -20 + 40.0 * i / 99 << ",5,0,0,1\n";
+    const cl::Program prog = cl::read_text(cl.str(), "arm.cls");
+    const plan::Plan whole = plan::Planner(m, m.kinematics(), &scene, &tool, o).run(prog);
+    ASSERT_EQ(whole.segments.size(), 2u) << whole.summary();
+    ASSERT_EQ(whole.segments[1].tier, plan::Tier::Fixed2) << whole.summary();
+    for (const std::size_t window : {20u, 7u}) {
+      plan::WindowOptions w;
+      w.window = window;
+      const plan::Plan p = plan::plan_windowed(m, m.kinematics(), &scene, &tool, o, prog, w);
+      const std::string what =
+          fmt::format("first segment {} moves, windows of {}:\n{}", first_len, window, p.summary());
+      ASSERT_GT(p.windows, 3u) << what;
+      ASSERT_EQ(p.segments.size(), 2u) << what;
+      EXPECT_EQ(p.segments[1].tier, plan::Tier::Fixed2) << what;
+      EXPECT_TRUE(p.segments[1].failures.empty()) << what;
+      const std::size_t s = p.segments[1].first_move;
+      for (std::size_t i = s + 1; i <= p.segments[1].last_move; ++i) {
+        EXPECT_EQ(p.axes[i][3], p.axes[s][3]) << what << "move " << i;
+        EXPECT_EQ(p.axes[i][4], p.axes[s][4]) << what << "move " << i;
+      }
+      EXPECT_GT(std::abs(rad2deg(p.axes[s][4])), 5.0) << "C = 0 puts the cutter in the cradle arm";
+      EXPECT_EQ(p.swept.collisions, 0u) << what;
+      EXPECT_EQ(p.swept.uncertified, 0u) << what;
+      EXPECT_TRUE(p.warnings.empty()) << what;
+    }
+  }
+}

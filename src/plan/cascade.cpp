@@ -68,7 +68,7 @@ void avoid_swept_collisions(const SegmentView& v, SegmentCells& d, Cascade& c, s
   // chosen axis afterwards (replace_approach_retract, which the final check follows): not judged here.
   const auto& moves = v.program.moves;
   const std::size_t first = d.layers.front().move, last = d.layers.back().move;
-  const bool pinned0 = first == 0 && v.options.start_rotaries.has_value() && v.options.start_is_join;
+  const bool pinned0 = first == 0 && v.options.start_rotaries.has_value();
   const bool open_end = v.options.continues && last + 1 == moves.size();
   const bool skip_first = d.layers.size() > 1 && !pinned0 && moves[first].kind == cl::MotionKind::Rapid &&
                           is_axial_approach(v.program, first, first + 1);

@@ -179,7 +179,7 @@ int replace_approach_retract(const kin::Kinematics& kin, const Options& opt, con
   int replaced = 0;
   // Windowed planning: move 0 is the previous window's last move (kept), and a last move that the next window
   // continues is no retract.
-  const bool pinned0 = s == 0 && opt.start_rotaries.has_value() && opt.start_is_join;
+  const bool pinned0 = s == 0 && opt.start_rotaries.has_value();
   const bool open_end = opt.continues && e + 1 == moves.size();
   if (e > s && !pinned0 && moves[s].kind == cl::MotionKind::Rapid &&
       detail::along_chosen_axis(kin, program, plan, s, s + 1)) {
@@ -271,7 +271,7 @@ void adopt_neighbour_orientations(const cspace::Space& space, const kin::Kinemat
             fixed_at(plan.axes[s][rp[0]], plan.axes[s][rp[1]], "along the previous segment's last tool axis");
       continue;
     }
-    if (s == 0 && opt.start_rotaries && opt.start_is_join) continue;
+    if (s == 0 && opt.start_rotaries) continue;
     if (opt.continues && e + 1 == program.moves.size()) continue;
     struct Candidate {
       std::size_t from;

@@ -163,7 +163,7 @@ SegmentCells make_cells(const SegmentView& v, std::size_t first, std::size_t las
     // (retract) runs along the axis of the point after (before) it, it is re-placed on that point's chosen axis and
     // retracts on the same line: that point is marked too.
     const std::size_t n = last - first + 1;
-    const bool join = first == 0 && v.options.start_rotaries.has_value() && v.options.start_is_join;
+    const bool join = first == 0 && v.options.start_rotaries.has_value();
     const bool open_end = v.options.continues && last + 1 == moves.size();
     if (!join) {
       d.layers[0].retract_end = true;
@@ -175,6 +175,11 @@ SegmentCells make_cells(const SegmentView& v, std::size_t first, std::size_t las
         d.layers[n - 2].retract_end = true;
     }
   }
+  const bool open_segment = v.options.continues && last + 1 == moves.size();
+  const std::optional<std::array<double, 2>> pinned_to = first == 0 && v.options.start_rotaries
+                                                             ? v.options.start_rotaries
+                                                         : open_segment ? v.options.open_segment_rotaries
+                                                                        : std::nullopt;
   // Only the first point's cells are needed by tier 1 (the others are tested cell by cell); the rest
   // are enumerated when a later tier needs them, or for the per-point feasibility check in exact mode.
   for (std::size_t k = 0; k < d.layers.size(); ++k) {
@@ -182,18 +187,19 @@ SegmentCells make_cells(const SegmentView& v, std::size_t first, std::size_t las
     l.move = first + k;
     l.cl = {moves[first + k].tip_in_part_mm, moves[first + k].axis_in_part.normalized()};
     // Tier 1 takes its candidates from the first point: give it a much larger share.
-    const bool pin = k == 0 && first == 0 && v.options.start_rotaries.has_value();
+    const bool pin = k == 0 && pinned_to;
     if ((k == 0 && !pin) || v.exact)
       enumerate_layer(v, l, k == 0 ? 64 * v.options.max_cells_per_point : v.options.max_cells_per_point, counters);
   }
   if (v.exact) expand_singular(v, d.layers);
-  if (first == 0 && v.options.start_rotaries) {
-    // Windowed planning: the first point keeps the rotaries the previous window ended at, as its only cell.
+  if (pinned_to) {
+    // Windowed planning: the first point keeps the rotaries the previous window ended at, or those found for the
+    // whole of a segment that runs on into the next window, as its only cell.
     Layer& l = d.layers[0];
     const double kr = v.exact ? kExactKeyRad : v.space.options().resolution_rad;
     Cell c;
-    c.r1 = (*v.options.start_rotaries)[0];
-    c.r2 = (*v.options.start_rotaries)[1];
+    c.r1 = (*pinned_to)[0];
+    c.r2 = (*pinned_to)[1];
     c.i1 = static_cast<int>(std::lround(c.r1 / kr));
     c.i2 = static_cast<int>(std::lround(c.r2 / kr));
     (void)v.space.in_cone(l.cl, c.r1, c.r2, &c.orient_err);

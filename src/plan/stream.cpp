@@ -114,27 +114,71 @@ std::size_t segment_end(const cl::Program& program, std::size_t s) {
   return e;
 }
 
-/// A grid cell feasible at every point of moves [s, e] (within the cone, inside the strokes, collision-free), tried
-/// as tier 1 tries them: closest to the CL axis at `s` first, orientation over the whole range before any query, the
-/// point that rejected the previous candidate first; feasibility with a clearance certificate (one query per margin
-/// of travel). With a finite `retract_plane_z_mm` (a machine without a Z axis) the tool must also retract from the
-/// segment's ends along its axis to that plane. At most `tries` candidates get feasibility queries. A window sees only
-/// its own points, so a segment longer than a window is given this orientation as its start.
-std::optional<std::array<double, 2>> fixed_orientation(const cspace::Space& sp, const cl::Program& program,
-                                                       std::size_t s, std::size_t e, std::size_t cap, int tries,
-                                                       double retract_plane_z_mm, cspace::Counters& c) {
-  if (sp.options().cone_rad <= 0) return std::nullopt;  // exact cells: tier 1 decides inside the windows
+/// The pre-pass's answer: an orientation for a whole segment, or why there is none.
+struct WholeSegment {
+  std::optional<std::array<double, 2>> rotaries;
+  std::size_t tried = 0, untried = 0;  ///< candidates given feasibility walks; left when the budget ran out
+};
+
+/// A grid cell feasible at every point of moves [s, e] (within the cone, inside the strokes, collision-free). The
+/// candidates are the cells of point `s`, closest to its CL axis first, then nearest `entry` (windings tie exactly).
+/// Each is tested as tier 1 tests its candidates: orientation over the whole range before any query, and the points
+/// that rejected earlier candidates first (move-to-front), so that a candidate failing where its neighbour failed
+/// costs one check; feasibility with a clearance certificate (one query per margin of travel). With a finite
+/// `retract_plane_z_mm` (a machine without a Z axis) the tool must also retract from the segment's ends along its
+/// axis to that plane. The checks spent on candidates that fail are bounded (16 walks of the segment, as many
+/// candidates as that buys); a window sees only its own points, so a segment longer than a window is given the
+/// orientation found here as its start.
+WholeSegment whole_segment_orientation(const cspace::Space& sp, const cl::Program& program, std::size_t s,
+                                       std::size_t e, std::size_t cap, std::array<double, 2> entry,
+                                       double retract_plane_z_mm, cspace::Counters& c) {
+  WholeSegment out;
+  if (sp.options().cone_rad <= 0) return out;  // exact cells: tier 1 decides inside the windows
   auto pose = [&](std::size_t m) {
     return kin::Posed{program.moves[m].tip_in_part_mm, program.moves[m].axis_in_part.normalized()};
   };
   std::vector<cspace::Cell> cells;
-  sp.enumerate(pose(s), cells, cap, c);
-  std::size_t hard = s;  // the point that rejected the last candidate's orientation
+  sp.enumerate(pose(s), cells, 64 * cap, c);  // tier 1's share for its first point
+  // Equally close orientations (every winding of one, to float precision) nearest the entry first.
+  auto rank = [&](const cspace::Cell& x) {
+    return std::pair{std::lround(static_cast<double>(x.orient_err) * 1e6),
+                     std::abs(x.r1 - entry[0]) + std::abs(x.r2 - entry[1])};
+  };
+  std::stable_sort(cells.begin(), cells.end(),
+                   [&](const cspace::Cell& x, const cspace::Cell& y) { return rank(x) < rank(y); });
+  const std::size_t n = e - s + 1;
+  // Work spent on candidates that fail, in point evaluations (an orientation check, one FK and no query, counts as
+  // 1/16 of one): at most 16 walks of the segment, as many candidates as that buys.
+  constexpr std::size_t kOrientPerEval = 16;
+  const std::size_t budget = kOrientPerEval * (16 * n + 4096);
+  std::size_t spent = 0;
+  std::vector<std::size_t> order(n);  // points, those that rejected a candidate first
+  for (std::size_t k = 0; k < n; ++k) order[k] = s + k;
+  auto to_front = [&](std::size_t oi) {
+    std::rotate(order.begin(), order.begin() + static_cast<std::ptrdiff_t>(oi),
+                order.begin() + static_cast<std::ptrdiff_t>(oi) + 1);
+  };
   geom::QueryWorkspace ws;
-  auto feasible_along = [&](const cspace::Cell& cell) {
-    cspace::Certificate cert;
+  for (std::size_t ci = 0; ci < cells.size(); ++ci) {
+    if (spent > budget) {
+      out.untried = cells.size() - ci;
+      break;
+    }
+    const cspace::Cell& cell = cells[ci];
     bool ok = true;
-    for (std::size_t m = s; m <= e && ok; ++m) {
+    double dot = 0;
+    std::size_t oi = 0;
+    for (; oi < n && ok; ++oi)
+      if (!sp.in_cone_cos(pose(order[oi]), cell.r1, cell.r2, dot)) {
+        ok = false;
+        to_front(oi);
+      }
+    spent += oi;
+    if (!ok) continue;
+    ++out.tried;
+    cspace::Certificate cert;
+    for (oi = 0; oi < n && ok; ++oi) {
+      const std::size_t m = order[oi];
       cspace::Cell x = cell;
       x.status = cspace::Status::Unknown;
       sp.evaluate(pose(m), x, ws, c, &cert);
@@ -143,34 +187,15 @@ std::optional<std::array<double, 2>> fixed_orientation(const cspace::Space& sp, 
       kin::Axes up;
       if (ok && (m == s || m == e) && std::isfinite(retract_plane_z_mm))
         ok = kin::retract_along_axis(sp.kinematics(), x.axes, retract_plane_z_mm, tol::kLimitSlackMm, up);
+      if (!ok) to_front(oi);
     }
-    return ok;
-  };
-  for (const cspace::Cell& cell : cells) {
-    double dot = 0;
-    if (!sp.in_cone_cos(pose(hard), cell.r1, cell.r2, dot)) continue;
-    bool ok = true;
-    for (std::size_t m = s; m <= e && ok; ++m)
-      if (!sp.in_cone_cos(pose(m), cell.r1, cell.r2, dot)) {
-        ok = false;
-        hard = m;
-      }
-    if (!ok) continue;
-    if (tries-- <= 0) break;
-    if (!feasible_along(cell)) continue;
-    // Every winding of this orientation is as good (the listing orders by the angle to the CL axis, where windings
-    // tie): the one nearest home, as tier 1 takes it (the program's first segment is entered from there), if the grid
-    // has it and it holds along the segment too. In listed order a vertical tool on a table's C took -317 deg for 43.
-    const cspace::Cell* nearest = &cell;
-    for (const cspace::Cell& w : cells)
-      if (std::abs(std::remainder(w.r1 - cell.r1, 2.0 * kPi)) < 1e-9 &&
-          std::abs(std::remainder(w.r2 - cell.r2, 2.0 * kPi)) < 1e-9 &&
-          std::abs(w.r1) + std::abs(w.r2) < std::abs(nearest->r1) + std::abs(nearest->r2) - 1e-9)
-        nearest = &w;
-    if (nearest != &cell && feasible_along(*nearest)) return std::array<double, 2>{nearest->r1, nearest->r2};
-    return std::array<double, 2>{cell.r1, cell.r2};
+    if (ok) {
+      out.rotaries = std::array<double, 2>{cell.r1, cell.r2};
+      return out;
+    }
+    spent += kOrientPerEval * oi;
   }
-  return std::nullopt;
+  return out;
 }
 
 /// The parts of one segment that windows planned separately.
@@ -305,7 +330,8 @@ Plan plan_windowed_on(const machine::Machine& machine, const std::shared_ptr<con
     rule = fmt::format("at most {} listed cells each", w.cell_budget);
   }
   if (wins.size() <= 1) return Planner(machine, kinematics, scene, tool, options, head).run(program);
-  CSCAM_CHECK(!options.start_rotaries, "plan_windowed pins the windows' first moves itself");
+  CSCAM_CHECK(!options.start_rotaries && !options.open_segment_rotaries,
+              "plan_windowed pins the windows' moves itself");
   const auto rp = kinematics->rotary_pair();
   const std::size_t n = program.moves.size();
   Plan out;
@@ -331,15 +357,28 @@ Plan plan_windowed_on(const machine::Machine& machine, const std::shared_ptr<con
       o.start_rotaries = std::array<double, 2>{out.axes[a][rp[0]], out.axes[a][rp[1]]};
     }
     o.continues = b + 1 < n && program.moves[b + 1].kind != cl::MotionKind::Rapid;
-    if (wi == 0 && o.continues) {
-      // The first segment runs past this window: if one orientation suits all of it, start there (as one run's
-      // tier 1 would find it), so that the windows can keep it.
+    // The window's last segment starts here (the program's first move, or a rapid after the pinned join).
+    std::size_t open = b;
+    while (open > a && program.moves[open].kind != cl::MotionKind::Rapid) --open;
+    const bool starts_here = open > a || (wi == 0 && open == 0);
+    if (o.continues && starts_here) {
+      // ... and runs past this window: if one orientation suits all of it, start there (as one run's tier 1 would
+      // find it), so that the windows can keep it.
       if (!space) space = std::make_unique<cspace::Space>(kinematics, scene, tool, options.cspace, head);
-      o.start_rotaries = fixed_orientation(
-          *space, program, a, segment_end(program, a), options.max_cells_per_point, 16,
+      const std::size_t end = segment_end(program, open);
+      const std::array<double, 2> entry =
+          wi == 0 ? std::array<double, 2>{0.0, 0.0} : std::array<double, 2>{out.axes[a][rp[0]], out.axes[a][rp[1]]};
+      const WholeSegment found = whole_segment_orientation(
+          *space, program, open, end, options.max_cells_per_point, entry,
           kinematics->traits().retract_axis < 0 ? machine.post.safe_z_mm : std::numeric_limits<double>::quiet_NaN(),
           out.counters);
-      o.start_is_join = false;
+      o.open_segment_rotaries = found.rotaries;
+      if (!found.rotaries && found.untried > 0)
+        out.warnings.push_back(fmt::format(
+            "CL lines {}-{}: windowed planning looked for one orientation for the whole segment and stopped after {} "
+            "candidates ({} untried, the search's budget); the windows chose their own, which may turn the rotaries "
+            "where one run would not (plan with a larger --window)",
+            program.moves[open].line, program.moves[end].line, found.tried, found.untried));
     }
     Plan p = Planner(machine, kinematics, scene, tool, o, head).run(sub);
     const std::size_t from = wi == 0 ? 0 : 1;  // the pinned move stays as the previous window planned it

@@ -53,9 +53,10 @@ struct Options {
   /// the previous window ended, so that the windows join without a rotary jump. Move 0 is then never re-placed as
   /// an approach, and the re-plans that could move it (leg re-plan) keep it.
   std::optional<std::array<double, 2>> start_rotaries;
-  /// With start_rotaries: move 0 is the previous window's last move, already planned and never re-placed. False for
-  /// the first window, where start_rotaries is an orientation chosen for the whole first segment (plan_windowed).
-  bool start_is_join = true;
+  /// Windowed planning, with `continues`: the program's last segment starts in this window and runs on into the
+  /// next. Its first point takes these rotary values (primary, secondary, rad), an orientation plan_windowed found
+  /// feasible along the whole segment, so that the windows can keep it fixed.
+  std::optional<std::array<double, 2>> open_segment_rotaries;
   /// Windowed planning: the program's last move is not the end of its segment (the next window continues it), so
   /// it is not re-placed as a retract.
   bool continues = false;
