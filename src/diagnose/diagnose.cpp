@@ -542,8 +542,21 @@ void joint_fit(Fit& f, const std::vector<Effect*>& fx, size_t stride = 1) {
 
 /// Physical plausibility: an explanation that needs, e.g., a 0.3 % scale error or a friction spike that decays
 /// over seconds is another effect in disguise (or one outside the library), not a finding.
-bool plausible(const Effect& e) {
+/// The recording's sample interval, s (the median step of its time column; 0 with fewer than two rows).
+double sample_interval(const Context& c) {
+  if (c.t_full.size() < 2) return 0.0;
+  std::vector<double> dt(c.t_full.size() - 1);
+  for (size_t i = 1; i < c.t_full.size(); ++i) dt[i - 1] = c.t_full[i] - c.t_full[i - 1];
+  std::nth_element(dt.begin(), dt.begin() + static_cast<std::ptrdiff_t>(dt.size() / 2), dt.end());
+  return dt[dt.size() / 2];
+}
+
+/// Whether the fitted values are physical, and resolved by a recording sampled every `sample_s` seconds.
+bool plausible(const Effect& e, double sample_s) {
   const std::string n = e.name();
+  // A spike that decays within one sample interval shows at one sample per reversal at most, where it cannot be told
+  // from where the reversal fell between two samples (it would absorb the misfit of a lost motion taken up there).
+  if (n == "friction_spike" && e.p[1] < sample_s) return false;
   const double a = std::abs(e.p[0]);
   if (n == "scale") return a <= 1000;                                         // ppm
   if (n == "thermal_scale") return a <= 1000 && e.p[1] > 0;                   // ppm at the end of the run
@@ -580,6 +593,7 @@ constexpr double kHeldReach = 1.0;
 Candidate screen(const Fit& f, const Effect& proto, const std::vector<size_t>& screen_idx,
                  const std::vector<std::vector<double>>& cur, const sim::GridHints& hints) {
   Candidate best;
+  const double sample_s = sample_interval(*f.ctx);
   const auto lin = proto.linear();
   std::vector<int> L;
   for (size_t q = 0; q < lin.size(); ++q)
@@ -665,7 +679,7 @@ Candidate screen(const Fit& f, const Effect& proto, const std::vector<size_t>& s
       auto cand = proto.clone();
       cand->p = g;
       for (size_t l = 0; l < nl; ++l) cand->p[static_cast<size_t>(L[l])] = x(static_cast<Eigen::Index>(l));
-      if (!plausible(*cand)) continue;
+      if (!plausible(*cand, sample_s)) continue;
       if (event && train_before - train_after > best.event_train_gain) {
         best.event = cand->clone();
         best.event_train_gain = train_before - train_after;
@@ -1037,6 +1051,7 @@ Report diagnose(sim::Recording& rec, const machine::Machine& m, const std::vecto
     }
     return c;
   }();
+  const double sample_s = sample_interval(ctx);
   const size_t ma = ctx.size();
   for (auto& c : comps) {
     c.res.resize(ma);
@@ -1416,7 +1431,7 @@ Report diagnose(sim::Recording& rec, const machine::Machine& m, const std::vecto
       auto trial = model_with(std::move(res[ei].event));
       joint_fit(F, fit_view(trial));
       const double new_train = weighted_ms(F, view(trial), false), new_held = weighted_ms(F, view(trial), true);
-      const bool ok = std::all_of(trial.begin(), trial.end(), [](const auto& e) { return plausible(*e); });
+      const bool ok = std::all_of(trial.begin(), trial.end(), [&](const auto& e) { return plausible(*e, sample_s); });
       if (!ok || (train_ms - new_train) * static_cast<double>(n_train_values) <= 2.0 * o.min_gain_sum ||
           new_held > held_ms + 0.5 * thr) {
         F.off = off_save;
@@ -1443,7 +1458,7 @@ Report diagnose(sim::Recording& rec, const machine::Machine& m, const std::vecto
       for (size_t pi : order) {
         auto tr = model_with(res[pi].e->clone());
         joint_fit(F, fit_view(tr), sstride);
-        const bool ok = std::all_of(tr.begin(), tr.end(), [](const auto& e) { return plausible(*e); });
+        const bool ok = std::all_of(tr.begin(), tr.end(), [&](const auto& e) { return plausible(*e, sample_s); });
         const double raw_ms = weighted_ms(F, view(tr), true);
         const double ms = raw_ms * (res[pi].e->scope() == Scope::Geometric ? 1.03 : 1.0);
         F.off = off_save;
@@ -1451,18 +1466,23 @@ Report diagnose(sim::Recording& rec, const machine::Machine& m, const std::vecto
         if (ok && ms < best_ms) best_ms = ms, bi = pi;
       }
     }
-    // A first-order lag with a time constant too short to show is the plain lag: the time constant must explain what
-    // an effect must explain to count, or the plain lag (one parameter less) is named.
-    if (res[bi].e->name() == "servo_lag_1st") {
-      double ms_1st = 0.0;
+    // Parsimony on one target: an effect with more parameters must explain what an effect must explain to count beyond
+    // one with fewer, or the simpler is named (a first-order lag whose time constant is too short to show is the plain
+    // lag; a straightness whose apex lies far outside the travel bends too little to show and is a squareness).
+    {
+      double ms_best = 0.0;
       for (const auto& [pi, ms, what] : refits)
-        if (pi == bi) ms_1st = ms;
-      for (const auto& [pi, ms, what] : refits)
-        if (res[pi].e->name() == "servo_lag" && res[pi].e->target == res[bi].e->target &&
-            res[pi].e->enc_visible == res[bi].e->enc_visible && ms - ms_1st <= thr) {
-          bi = pi;
-          break;
-        }
+        if (pi == bi) ms_best = ms;
+      const Effect& eb = *res[bi].e;
+      size_t fewest = eb.p.size();
+      for (const auto& [pi, ms, what] : refits) {
+        const Effect& e = *res[pi].e;
+        if (pi == bi || e.scope() == Scope::Geometric || eb.scope() == Scope::Geometric || e.target != eb.target ||
+            e.enc_visible != eb.enc_visible || e.p.size() >= fewest || ms - ms_best > thr)
+          continue;
+        fewest = e.p.size();
+        bi = pi;
+      }
     }
     // The others that leave a held-out residual larger by less than an effect must explain to count: the recording
     // cannot tell them from the one chosen.
@@ -1482,7 +1502,7 @@ Report diagnose(sim::Recording& rec, const machine::Machine& m, const std::vecto
     auto trial = model_with(std::move(res[bi].e));
     joint_fit(F, fit_view(trial));
     const double new_ms = weighted_ms(F, view(trial), true);
-    const bool ok = std::all_of(trial.begin(), trial.end(), [](const auto& e) { return plausible(*e); });
+    const bool ok = std::all_of(trial.begin(), trial.end(), [&](const auto& e) { return plausible(*e, sample_s); });
     if (!ok || held_ms - new_ms <= thr) {
       F.off = off_save;
       if (try_event()) continue;
