@@ -508,7 +508,8 @@ TEST(ClIso, UnknownRecordWarnsAndContinues) {
 }
 
 // Records that move, repeat or replace the motion around them (a canned cycle's GOTOs are hole positions; TRACUT,
-// COPY, INDEX, ROTABL move or repeat the path) are errors naming their line: ignored with a warning, the program
+// COPY, INDEX, ROTABL move or repeat the path; RETRCT adds a retract; incremental mode and a non-zero ORIGIN change
+// what the GOTOs' coordinates mean) are errors naming their line: ignored with a warning, the program
 // would not drill, or would cut somewhere else. TRACUT/NOMORE and CYCLE/OFF end such a state and are harmless alone.
 TEST(ClIso, RecordsThatChangeTheMotionAreErrorsNotWarnings) {
   for (const auto& [rec, what] : std::vector<std::pair<std::string, std::string>>{
@@ -519,14 +520,23 @@ TEST(ClIso, RecordsThatChangeTheMotionAreErrorsNotWarnings) {
            {"INDEX/1", "INDEX/ is not supported"},
            {"ROTABL/90,CLW", "ROTABL/ is not supported"},
            {"GOHOME/0,0,100", "GOHOME/ is not supported"},
+           {"RETRCT", "RETRCT is not supported"},
+           {"SET/MODE,INCR", "incremental CL coordinates are not supported"},
+           {"MODE/INCR", "incremental CL coordinates are not supported"},
+           {"ORIGIN/10,0,0", "ORIGIN/10,0,0 is not supported"},
+           {"ORIGIN/ZERO", "is not supported"},
            {"TLAXIS/NORMAL", "TLAXIS/"}}) {
     const InputError e = error_of("UNITS/MM\nGOTO/0,0,5\n" + rec + "\nGOTO/10,0,5\n");
     EXPECT_EQ(e.where().line, 3) << rec;
     EXPECT_NE(std::string(e.what()).find(what), std::string::npos) << rec << ": " << e.what();
   }
-  const Program p = read_text("UNITS/MM\nTRACUT/NOMORE\nCYCLE/OFF\nGOTO/0,0,0\n", "ok.cls");
+  const Program p = read_text("UNITS/MM\nTRACUT/NOMORE\nCYCLE/OFF\nORIGIN/0,0,0\nGOTO/0,0,0\n", "ok.cls");
   EXPECT_TRUE(p.warnings.empty());
   EXPECT_EQ(p.moves.size(), 1u);
+  // Absolute mode is what cscam reads anyway: a warning that it was ignored, no error.
+  const Program abs = read_text("UNITS/MM\nSET/MODE,ABSOL\nGOTO/0,0,0\n", "abs.cls");
+  EXPECT_EQ(abs.warnings.size(), 1u);
+  EXPECT_EQ(abs.moves.size(), 1u);
 }
 
 // TLAXIS/i,j,k gives the tool axis of the GOTOs without one (3-axis GOTOs after a tilted axis: a 3+2 stretch).

@@ -1087,6 +1087,39 @@ bool AptReader::statement(const Statement& st) {
            fmt::format("{}/ is not supported: it transforms, repeats or adds motion that the CL does not list, so "
                        "the program would not follow the part; output the motion itself from the CAM system",
                        h.keyword));
+  } else if (h.is("RETRCT")) {
+    // A retract to the clearance plane that the CL does not list (its plane is a CLEARP/CLRSRF the post would have to
+    // interpret): ignored, the next move would run from the cut straight through the part.
+    fail(st, h.keyword_offset,
+         "RETRCT is not supported: it adds a retract the CL does not list (to a clearance plane set elsewhere), and "
+         "without it the next move would leave the cut straight through the part; output the retract as GOTOs from the "
+         "CAM system");
+  } else if (h.is("MODE") || h.is("SET")) {
+    // SET/MODE,INCR (MODE/INCR): the GOTOs that follow are increments, which cscam would read as positions.
+    split_fields(h.args, h.args_offset, fields_);
+    bool incremental = false;
+    for (const auto& f : fields_) incremental = incremental || f.is_word("INCR");
+    if (incremental)
+      fail(st, h.keyword_offset,
+           fmt::format("{}/{}: incremental CL coordinates are not supported (the GOTOs would be read as positions): "
+                       "output absolute coordinates from the CAM system",
+                       h.keyword, trim(h.args)));
+    warn(st, h.keyword_offset, fmt::format("unknown record '{}/{}' ignored", h.keyword, trim(h.args)));
+  } else if (h.is("ORIGIN")) {
+    // ORIGIN/x,y,z moves the program's zero: the CL would be cut somewhere else, by a shift posts apply differently.
+    split_fields(h.args, h.args_offset, fields_);
+    double v[3];
+    size_t offs[4];
+    const bool numbers =
+        std::all_of(fields_.begin(), fields_.end(), [](const auto& f) { return f.status != NumStatus::Malformed; });
+    const int n = numbers ? parse_numbers(st, h.args, h.args_offset, v, offs, 3) : 0;
+    if (!(n == 3 && v[0] == 0.0 && v[1] == 0.0 && v[2] == 0.0))
+      fail(
+          st, h.keyword_offset,
+          fmt::format("ORIGIN/{} is not supported: it shifts the program's zero, which posts apply in different ways, "
+                      "so the part would be cut somewhere else; output the CL in the part's coordinates (MSYS) and set "
+                      "the work offset on the machine (post.work_offset)",
+                      trim(h.args)));
   } else if (h.is("CUTCOM")) {
     // The CL is the tool path itself: the post writes it uncompensated (G40) and says so.
     warn(st, h.keyword_offset,
