@@ -984,6 +984,53 @@ TEST(Cli, DesignSimulateCalibrateRecoversInjectedAxisErrors) {
   EXPECT_TRUE(fs::exists(out));
 }
 
+// Seed 001's parallel CMM has no 5-axis kinematics, only its calibration model: `simulate` measured nothing on it
+// ("no 5-axis machine-tool kinematics to ... simulate with"), so the design -> measure -> calibrate loop could not be
+// run from the command line. A static pose list is now measured with the model (probe tip and the passive link's gauge
+// by default), geometric deviations injected; calibration finds them. The oracle is the injected truth.
+TEST(Cli, TheParallelCmmIsMeasuredOnItsPoseListAndCalibrated) {
+  TempDir d;
+  const std::string poses = d.file("poses.csv"), meas = d.file("meas.csv"), out = d.file("corrected.yaml");
+  auto r = run_command(kCli + " calibrate --design 60 --machine pcmm --channels len,tip --seed 4 -o " + poses);
+  ASSERT_EQ(r.status, 0) << r.output;
+  r = run_command(kCli + " simulate " + poses +
+                  " --machine pcmm --inject geometric:l2=350.05,thb3=330.02 --noise tip:0.001 --noise len:0.0005 "
+                  "--seed 5 -o " +
+                  meas);
+  ASSERT_EQ(r.status, 0) << r.output;
+  EXPECT_NE(r.output.find("channels tip,len"), std::string::npos) << r.output;
+  r = run_command(kCli + " calibrate " + meas + " --json -o " + out);  // the machine from the recording's metadata
+  ASSERT_EQ(r.status, 0) << r.output;
+  const auto j = nlohmann::json::parse(r.output.substr(r.output.find('{')));
+  std::map<std::string, std::pair<double, double>> est;  // name -> (change, sd)
+  for (const auto& p : j.at("parameters")) {
+    if (p.at("stddev").is_null()) continue;
+    est[p.at("name").get<std::string>()] = {p.at("change").get<double>(), p.at("stddev").get<double>()};
+  }
+  ASSERT_TRUE(est.count("l2") && est.count("thb3")) << r.output.substr(0, 3000);
+  EXPECT_NEAR(est["l2"].first, 0.05, std::max(5 * est["l2"].second, 1e-3));
+  EXPECT_NEAR(est["thb3"].first, 0.02, std::max(5 * est["thb3"].second, 1e-3));
+  // What a CMM cannot be given: a program, an effect with time in it, a group it does not measure, an unknown
+  // parameter. Each is an error, and nothing is written.
+  struct Case {
+    std::string args, what;
+  };
+  const std::string prog = d.file("x.ngc", "G0 X0\n");
+  const std::vector<Case> cases = {
+      {prog + " --machine pcmm", "static pose list"},
+      {poses + " --machine pcmm --inject backlash:q1:0.01", "geometric deviations only"},
+      {poses + " --machine pcmm --channels enc", "a static measurement records tip, ptip, dir or len"},
+      {poses + " --machine pcmm --inject geometric:nonesuch=1", "nonesuch"},
+      {poses + " --machine pcmm --channels tip --noise len:0.001", "--noise len"},
+  };
+  for (const Case& c : cases) {
+    const auto e = run_command(kCli + " simulate " + c.args + " -o " + d.file("bad.csv"));
+    EXPECT_NE(e.status, 0) << c.args << "\n" << e.output;
+    EXPECT_NE(e.output.find(c.what), std::string::npos) << c.args << "\n" << e.output;
+    EXPECT_FALSE(fs::exists(d.path / "bad.csv")) << c.args;
+  }
+}
+
 TEST(Cli, SimulateRefusesACsvThatIsNotAPoseList) {
   TempDir d;
   const std::string bad = d.file("traj.csv", "# kind: trajectory\nt,cmd.x\n0,0\n");

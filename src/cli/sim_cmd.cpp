@@ -3,6 +3,8 @@
 #include "sim_cmd.hpp"
 
 #include <fmt/format.h>
+#include <fmt/ranges.h>
+#include <yaml-cpp/yaml.h>
 
 #include <cctype>
 #include <chrono>
@@ -14,6 +16,7 @@
 #include <sstream>
 #include <string_view>
 
+#include "cscam/calib/model.hpp"
 #include "cscam/core/atomic_file.hpp"
 #include "cscam/core/error.hpp"
 #include "cscam/diagnose/diagnose.hpp"
@@ -32,7 +35,7 @@ namespace cscam::cli {
 namespace {
 
 struct SimArgs {
-  std::string program, machine, out, channels = "tip,enc", note;
+  std::string program, machine, out, channels, note;  // channels: empty for the machine's default
   double rate = 1000, accel = 2000, tool_length = -1, rpm = 0;
   int flutes = 0, decimals = 6;
   unsigned seed = 1;
@@ -93,20 +96,19 @@ std::string read_text(const std::string& path) {
   return ss.str();
 }
 
-int cmd_simulate(const SimArgs& a) {
-  const std::string mpath = resolve_machine(a.machine);
-  const machine::Machine m = machine::load(mpath);
-  auto machine_fx = sim::load_machine_effects(mpath, m);
-  std::vector<std::unique_ptr<sim::Effect>> injected;
-  for (const auto& s : a.inject)
-    for (auto& e : sim::parse_effects(s, m)) injected.push_back(std::move(e));
-  std::vector<const sim::Effect*> fx;
-  for (const auto& e : machine_fx) fx.push_back(e.get());
-  for (const auto& e : injected) fx.push_back(e.get());
+/// Whether the machine file is seed 001's parallel CMM (`kinematics: pcmm`), which only the calibration model knows.
+bool is_pcmm_file(const std::string& path) {
+  try {
+    const YAML::Node root = YAML::LoadFile(path);
+    return root.IsMap() && root["kinematics"] && root["kinematics"].IsScalar() && root["kinematics"].Scalar() == "pcmm";
+  } catch (const YAML::Exception&) {
+    return false;  // machine::load names what is wrong
+  }
+}
 
-  sim::SimulateOptions so;
-  so.channels = split(a.channels, ',');
-  for (const auto& s : a.noise) {
+std::vector<sim::NoiseSpec> parse_noise(const std::vector<std::string>& specs) {
+  std::vector<sim::NoiseSpec> out;
+  for (const auto& s : specs) {
     const auto c = s.find(':');
     if (c == std::string::npos) throw InputError(fmt::format("--noise '{}': expected GROUP:SIGMA, e.g. tip:0.001", s));
     sim::NoiseSpec ns;
@@ -120,8 +122,92 @@ int cmd_simulate(const SimArgs& a) {
     }
     if (!(ns.sigma >= 0) || !std::isfinite(ns.sigma))
       throw InputError(fmt::format("--noise '{}': sigma must be a finite number, not negative", s));
-    so.noise.push_back(ns);
+    out.push_back(ns);
   }
+  return out;
+}
+
+/// The parallel CMM: a static pose list measured with its calibration model (geometric deviations only).
+int simulate_pcmm(const SimArgs& a, const std::string& mpath) {
+  const auto model = calib::load_model(mpath);
+  std::string ext = fs::path(a.program).extension().string();
+  for (auto& c : ext) c = static_cast<char>(std::tolower(static_cast<unsigned char>(c)));
+  if (ext != ".csv")
+    throw InputError(
+        SourceLoc{a.program},
+        "machine '" + mpath +
+            "' is a parallel coordinate-measuring machine (kinematics: pcmm): it measures static poses, so "
+            "give a static pose list (e.g. from `cscam calibrate --design N --machine pcmm`), not a program");
+  std::vector<std::pair<std::string, double>> values;
+  for (const auto& s : a.inject) {
+    if (s.rfind("geometric:", 0) != 0)
+      throw InputError(
+          fmt::format("--inject '{}': a static measurement of the parallel CMM shows geometric deviations "
+                      "only (geometric:NAME=VALUE, e.g. geometric:l2=350.05)",
+                      s));
+    for (auto& kv : sim::parse_geometric_values(s)) {
+      (void)model->index(kv.first);  // an unknown name is an error listing the model's parameters
+      values.push_back(std::move(kv));
+    }
+  }
+  if (!a.temperatures.empty()) throw InputError("--temperatures: a static measurement has no time to follow");
+  const sim::Recording poses = sim::read_recording(a.program);
+  if (poses.meta_value("kind").value_or("") != "static")
+    throw InputError(poses.meta_value("kind") ? poses.meta_loc("kind") : SourceLoc{a.program, 1, 0},
+                     "a CSV input must be a static pose list ('# kind: static' with cmd.<axis> columns)");
+  const auto& axes = model->axis_names();
+  std::vector<int> col(axes.size());
+  for (std::size_t j = 0; j < axes.size(); ++j) {
+    col[j] = poses.column("cmd." + axes[j]);
+    if (col[j] < 0)
+      throw InputError(SourceLoc{a.program, poses.header_line, 0},
+                       fmt::format("missing column cmd.{} for axis {} of machine {}", axes[j], axes[j], mpath));
+  }
+  std::vector<std::vector<double>> q(poses.rows(), std::vector<double>(axes.size()));
+  for (std::size_t i = 0; i < poses.rows(); ++i)
+    for (std::size_t j = 0; j < axes.size(); ++j) {
+      q[i][j] = poses.data[static_cast<std::size_t>(col[j])][i];
+      if (!std::isfinite(q[i][j]))
+        throw InputError(SourceLoc{a.program, poses.row_line[i], 0},
+                         fmt::format("cmd.{} is empty: every pose needs every axis", axes[j]));
+    }
+  if (q.empty()) throw InputError(SourceLoc{a.program}, "no poses in the file");
+  sim::SimulateOptions so;
+  // The CMM's own groups: the probe tip and the passive link's gauge (the default tip,enc has no encoders here).
+  so.channels = a.channels.empty() ? std::vector<std::string>{"tip", "len"} : split(a.channels, ',');
+  so.noise = parse_noise(a.noise);
+  so.seed = a.seed;
+  so.note = a.note;
+  so.machine_ref = a.machine;
+  sim::Recording rec;
+  try {
+    rec = sim::simulate_static(*model, q, values, so);
+  } catch (const InputError& e) {
+    throw InputError(SourceLoc{a.program}, e.what());
+  }
+  const std::string out = a.out.empty() ? fs::path(a.program).stem().string() + ".rec.csv" : a.out;
+  write_file_atomically(out, [&](std::ostream& os) { sim::write_recording(os, rec, a.decimals); });
+  std::cout << fmt::format("wrote {} ({} static poses, channels {}, {} geometric deviation(s))\n", out, rec.rows(),
+                           fmt::join(so.channels, ","), values.size());
+  return 0;
+}
+
+int cmd_simulate(const SimArgs& a) {
+  const std::string mpath = resolve_machine(a.machine);
+  if (is_pcmm_file(mpath)) return simulate_pcmm(a, mpath);
+  const machine::Machine m = machine::load(mpath);
+  auto machine_fx = sim::load_machine_effects(mpath, m);
+  std::vector<std::unique_ptr<sim::Effect>> injected;
+  for (const auto& s : a.inject)
+    for (auto& e : sim::parse_effects(s, m)) injected.push_back(std::move(e));
+  std::vector<const sim::Effect*> fx;
+  for (const auto& e : machine_fx) fx.push_back(e.get());
+  for (const auto& e : injected) fx.push_back(e.get());
+
+  sim::SimulateOptions so;
+  const std::string channels = a.channels.empty() ? "tip,enc" : a.channels;
+  so.channels = split(channels, ',');
+  so.noise = parse_noise(a.noise);
   so.seed = a.seed;
   so.spindle_rpm = a.rpm;
   so.flutes = a.flutes;
@@ -203,7 +289,7 @@ int cmd_simulate(const SimArgs& a) {
     }
     const std::string out = a.out.empty() ? fs::path(a.program).stem().string() + ".rec.csv" : a.out;
     write_file_atomically(out, [&](std::ostream& os) { sim::write_recording(os, rec, a.decimals); });
-    std::cout << fmt::format("wrote {} ({} static poses, channels {}, {} effect(s))\n", out, rec.rows(), a.channels,
+    std::cout << fmt::format("wrote {} ({} static poses, channels {}, {} effect(s))\n", out, rec.rows(), channels,
                              fx.size());
     return 0;
   }
@@ -227,7 +313,7 @@ int cmd_simulate(const SimArgs& a) {
   const std::string out = a.out.empty() ? fs::path(a.program).stem().string() + ".rec.csv" : a.out;
   write_file_atomically(out, [&](std::ostream& os) { sim::write_recording(os, rec, a.decimals); });
   std::cout << fmt::format("wrote {} ({} samples at {} Hz, {:.3f} s, channels {}, {} effect(s))\n", out, rec.rows(),
-                           a.rate, tr.t.empty() ? 0.0 : tr.t.back(), a.channels, fx.size());
+                           a.rate, tr.t.empty() ? 0.0 : tr.t.back(), channels, fx.size());
   return 0;
 }
 
@@ -307,7 +393,9 @@ std::function<int()> add_sim_commands(CLI::App& app) {
   sim_cmd->add_option("-o,--output", sa->out, "recording to write (CSV, spec/recording.md)");
   sim_cmd->add_option("--rate", sa->rate, "sample rate, Hz (default 1000)");
   sim_cmd->add_option("--accel", sa->accel, "path acceleration of the trapezoidal profile, mm/s^2 (default 2000)");
-  sim_cmd->add_option("--channels", sa->channels, "channel groups: tip,ptip,enc,acc,dir (default tip,enc)");
+  sim_cmd->add_option("--channels", sa->channels,
+                      "channel groups: tip,ptip,enc,acc,dir (default tip,enc; the parallel CMM: tip,len, with len its "
+                      "passive link's gauge)");
   sim_cmd->add_option("--inject", sa->inject,
                       "EFFECT:TARGET:PARAMS, e.g. backlash:q2:0.012 or vibration:tip.z:166.7:0.00322");
   sim_cmd->add_option("--noise", sa->noise,

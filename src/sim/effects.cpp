@@ -823,30 +823,38 @@ std::unique_ptr<Effect> geometric_from(const std::string& name, double value, bo
 }
 }  // namespace
 
+std::vector<std::pair<std::string, double>> parse_geometric_values(const std::string& spec) {
+  std::vector<std::pair<std::string, double>> out;
+  if (spec.rfind("geometric:", 0) != 0)
+    throw InputError(fmt::format("--inject '{}': expected geometric:PARAM=VALUE (e.g. geometric:A1x=-150.06)", spec));
+  const std::string rest = spec.substr(10);
+  size_t a = 0;
+  while (a < rest.size()) {
+    size_t b = rest.find_first_of(",:", a);
+    if (b == std::string::npos) b = rest.size();
+    const std::string item = rest.substr(a, b - a);
+    const auto eq = item.find('=');
+    if (eq == std::string::npos)
+      throw InputError(fmt::format("--inject '{}': expected geometric:PARAM=VALUE (e.g. geometric:A1x=-150.06)", spec));
+    double v = 0;
+    try {
+      size_t used = 0;
+      v = std::stod(item.substr(eq + 1), &used);
+      if (used != item.size() - eq - 1 || !std::isfinite(v)) throw std::invalid_argument(item);
+    } catch (const std::exception&) {
+      throw InputError(fmt::format("--inject '{}': expected a finite number after '{}='", spec, item.substr(0, eq)));
+    }
+    out.emplace_back(item.substr(0, eq), v);
+    a = b + 1;
+  }
+  if (out.empty()) throw InputError(fmt::format("--inject '{}': no PARAM=VALUE after 'geometric:'", spec));
+  return out;
+}
+
 std::vector<std::unique_ptr<Effect>> parse_effects(const std::string& spec, const machine::Machine& m) {
   std::vector<std::unique_ptr<Effect>> out;
   if (spec.rfind("geometric:", 0) == 0) {
-    std::string rest = spec.substr(10);
-    size_t a = 0;
-    while (a < rest.size()) {
-      size_t b = rest.find_first_of(",:", a);
-      if (b == std::string::npos) b = rest.size();
-      const std::string item = rest.substr(a, b - a);
-      const auto eq = item.find('=');
-      if (eq == std::string::npos)
-        throw InputError(
-            fmt::format("--inject '{}': expected geometric:PARAM=VALUE (e.g. geometric:A1x=-150.06)", spec));
-      double v = 0;
-      try {
-        size_t used = 0;
-        v = std::stod(item.substr(eq + 1), &used);
-        if (used != item.size() - eq - 1 || !std::isfinite(v)) throw std::invalid_argument(item);
-      } catch (const std::exception&) {
-        throw InputError(fmt::format("--inject '{}': expected a finite number after '{}='", spec, item.substr(0, eq)));
-      }
-      out.push_back(geometric_from(item.substr(0, eq), v, true, m));
-      a = b + 1;
-    }
+    for (const auto& [name, value] : parse_geometric_values(spec)) out.push_back(geometric_from(name, value, true, m));
     return out;
   }
   out.push_back(parse_effect(spec, m));

@@ -439,4 +439,81 @@ Recording simulate(const Trajectory& traj, const machine::Machine& m, const std:
   return rec;
 }
 
+Recording simulate_static(const calib::Model& model, const std::vector<std::vector<double>>& poses,
+                          const std::vector<std::pair<std::string, double>>& values, const SimulateOptions& o) {
+  std::vector<double> p = model.nominal();
+  for (const auto& [name, v] : values) p[model.index(name)] = v;
+  const std::vector<std::string> names = model.channel_names();
+  const auto& axes = model.axis_names();
+  auto sigma_of = [&](const std::string& g) {
+    double s = 0;
+    for (const auto& ns : o.noise)
+      if (ns.group == g) s = ns.sigma;
+    return s;
+  };
+  for (const auto& c : o.channels)
+    if (c != "tip" && c != "ptip" && c != "dir" && c != "len")
+      throw InputError(fmt::format("--channels: a static measurement records tip, ptip, dir or len, not '{}'", c));
+  for (const auto& ns : o.noise)
+    if (std::find(o.channels.begin(), o.channels.end(), ns.group) == o.channels.end())
+      throw InputError(fmt::format("--noise {}: that channel group is not recorded (--channels)", ns.group));
+  // Every channel of the chosen groups, predicted for every pose.
+  const std::size_t n = poses.size();
+  std::vector<std::vector<double>> out(names.size(), std::vector<double>(n));
+  auto scratch = model.make_scratch();
+  std::vector<double> row(names.size());
+  for (std::size_t i = 0; i < n; ++i) {
+    CSCAM_CHECK(poses[i].size() == axes.size(), "a pose has one value per axis");
+    model.predict_channels(poses[i].data(), p.data(), row.data(), scratch.get());
+    for (std::size_t c = 0; c < names.size(); ++c) out[c][i] = row[c];
+  }
+  Recording rec;
+  rec.set_meta("machine", o.machine_ref.empty() ? model.file() : o.machine_ref);
+  rec.set_meta("kind", "static");
+  if (!o.note.empty()) rec.set_meta("note", o.note);
+  for (std::size_t j = 0; j < axes.size(); ++j) {
+    std::vector<double> v(n);
+    for (std::size_t i = 0; i < n; ++i) v[i] = poses[i][j];
+    rec.add_column("cmd." + axes[j], std::move(v));
+  }
+  std::mt19937_64 rng(o.seed);
+  for (const auto& g : o.channels) {
+    if (g == "dir" && sigma_of("dir") > 0) {
+      // A measured direction is a unit vector: the noise turns it, and it is normalised (as simulate() does).
+      std::normal_distribution<double> nd(0.0, sigma_of("dir"));
+      const auto at = [&](const char* c) {
+        return static_cast<std::size_t>(std::find(names.begin(), names.end(), std::string("dir.") + c) - names.begin());
+      };
+      const std::size_t cx = at("x"), cy = at("y"), cz = at("z");
+      if (cz < names.size())
+        for (std::size_t i = 0; i < n; ++i) {
+          Eigen::Vector3d u(out[cx][i], out[cy][i], out[cz][i]);
+          if (!u.allFinite()) continue;
+          for (int c = 0; c < 3; ++c) u[c] += nd(rng);
+          u.normalize();
+          out[cx][i] = u.x(), out[cy][i] = u.y(), out[cz][i] = u.z();
+        }
+    }
+    bool any = false;
+    for (std::size_t c = 0; c < names.size(); ++c) {
+      if (names[c].rfind(g + ".", 0) != 0) continue;
+      std::vector<double>& v = out[c];
+      // A channel the model does not measure is NaN at every pose: not recorded (len on a machine without links).
+      if (std::all_of(v.begin(), v.end(), [](double x) { return std::isnan(x); })) continue;
+      for (std::size_t i = 0; i < n; ++i)
+        if (!std::isfinite(v[i]))
+          throw InputError(fmt::format("pose {}: the {}machine has no solution there ({} is not finite)", i + 1,
+                                       values.empty() ? "" : "deviated ", names[c]));
+      if (const double s = sigma_of(g); s > 0 && g != "dir") {
+        std::normal_distribution<double> nd(0.0, s);
+        for (double& x : v) x += nd(rng);
+      }
+      rec.add_column(names[c], std::move(v));
+      any = true;
+    }
+    if (!any) throw InputError(fmt::format("--channels {}: machine '{}' does not measure that group", g, model.file()));
+  }
+  return rec;
+}
+
 }  // namespace cscam::sim

@@ -134,6 +134,8 @@ std::vector<std::string> effect_names();
 std::unique_ptr<Effect> make_effect(const std::string& name, const std::string& target, const machine::Machine& m);
 /// Parses `NAME:TARGET:V1[:V2...]` or `NAME:TARGET:key=value,key=value` (the --inject syntax).
 std::unique_ptr<Effect> parse_effect(const std::string& spec, const machine::Machine& m);
+/// `geometric:NAME=VALUE[,NAME=VALUE]` as (name, absolute machine-file value) pairs. Throws InputError on bad syntax.
+std::vector<std::pair<std::string, double>> parse_geometric_values(const std::string& spec);
 /// The same, and `geometric:NAME=VALUE[,NAME=VALUE]` (absolute machine-file values) as one effect per parameter.
 std::vector<std::unique_ptr<Effect>> parse_effects(const std::string& spec, const machine::Machine& m);
 /// The `effects:` section of a machine file (list of {effect, target, parameters: {key: value}}).

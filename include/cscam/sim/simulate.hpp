@@ -9,6 +9,7 @@
 #include <string>
 #include <vector>
 
+#include "cscam/calib/model.hpp"
 #include "cscam/kin/kinematics.hpp"
 #include "cscam/machine/machine.hpp"
 #include "cscam/sim/effects.hpp"
@@ -101,5 +102,14 @@ std::vector<double> temperature_at(const SimulateOptions::Temperature& readings,
 /// the data come from (geometric deviations); predictions in diagnose use the nominal one.
 Recording simulate(const Trajectory& traj, const machine::Machine& m, const std::vector<const Effect*>& effects,
                    const SimulateOptions& o, const machine::Machine* truth_machine = nullptr);
+
+/// Measures static poses on a machine known only by its calibration model (the parallel CMM, which has no 5-axis
+/// kinematics to run a program on): every pose's channels predicted with the parameters set to `values` (name,
+/// absolute machine-file value; the others nominal), white noise per group (`tip`, `ptip`, `dir`, `len`: every
+/// len.<link>), `o.channels` the groups to record. Poses are in the model's axis order and file units. Throws
+/// InputError naming the pose (1-based) where the deviated machine has no solution, and on a group the model does
+/// not measure.
+Recording simulate_static(const calib::Model& model, const std::vector<std::vector<double>>& poses,
+                          const std::vector<std::pair<std::string, double>>& values, const SimulateOptions& o);
 
 }  // namespace cscam::sim
