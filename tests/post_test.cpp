@@ -2352,3 +2352,65 @@ FINI
     }
   }
 }
+
+// The post retracts by raising Z to the safe plane. On a horizontal spindle whose file calls the vertical axis `z`,
+// that retract drags the tool sideways through the part: refused at the machine file's axis, not posted. The same
+// machine described as ISO 841 has it (Z along the spindle, + away from the work) posts, and every retract it writes
+// moves the tip straight back along the tool axis.
+TEST(Post, ARetractAcrossTheSpindleIsRefusedAndOneAlongItRetracts) {
+  auto machine_with = [](const std::string& z_dir, const std::string& y_dir) {
+    const std::string yaml =
+        "name: hor\nkinematics: serial\ntool_direction: [0, -1, 0]\nspindle_gauge_mm: [0, 300, 0]\n"
+        "default_tool_length_mm: 100\naxes:\n"
+        "  - {name: x, type: linear, side: head, direction: [1, 0, 0], limits: [-500, 500], max_feed: 30000}\n"
+        "  - {name: y, type: linear, side: head, direction: " +
+        y_dir +
+        ", limits: [-500, 500], max_feed: 30000}\n"
+        "  - {name: z, type: linear, side: head, direction: " +
+        z_dir +
+        ", limits: [-500, 500], max_feed: 30000}\n"
+        "  - {name: a, type: rotary, side: table, direction: [1, 0, 0], pivot_mm: [0, 0, 0], limits: [-100, 100], "
+        "max_feed: 3600}\n"
+        "  - {name: b, type: rotary, side: table, direction: [0, 0, 1], pivot_mm: [0, 0, 0], limits: [-360, 360], "
+        "max_feed: 7200}\n"
+        "chains:\n  table: [a, b]\n  head: [x, y, z]\npost:\n  dialect: linuxcnc\n  safe_z_mm: 60\n"
+        "  letters: {x: X, y: Y, z: Z, a: A, b: B}\n";
+    return machine::load_text(yaml, test::source_path("machines/hor.yaml"));
+  };
+  // A path on the part's face toward the spindle (-Y): two cuts with a rapid between them.
+  const cl::Program prog = cl::read_text(
+      "UNITS/MM\nMULTAX/ON\nFEDRAT/MMPM,1000\nGOTO/0,0,0,0,-1,0\nGOTO/10,0,0,0,-1,0\nRAPID\nGOTO/10,0,20,0,-1,0\n"
+      "GOTO/0,0,20,0,-1,0\n",
+      "face.cls");
+  {
+    const auto m = machine_with("[0, 0, 1]", "[0, 1, 0]");  // z vertical: across the spindle
+    try {
+      (void)post_program(prog, m, *m.kinematics());
+      ADD_FAILURE() << "posted with a sideways retract";
+    } catch (const InputError& e) {
+      EXPECT_NE(std::string(e.what()).find("axis 'z'"), std::string::npos) << e.what();
+      EXPECT_NE(std::string(e.what()).find("sideways"), std::string::npos) << e.what();
+      EXPECT_NE(std::string(e.what()).find("hor.yaml"), std::string::npos) << e.what();
+    }
+  }
+  const auto m = machine_with("[0, -1, 0]", "[0, 0, 1]");  // ISO 841: Z along the spindle, + toward it
+  const auto k = m.kinematics();
+  const Posted p = post_program(prog, m, *k);
+  const auto gs = gate::check(p.text, "face.ngc", prog, m, *k, gate::options_for(m, 0, 0, 0));
+  EXPECT_TRUE(gs.ok) << gs.message;
+  // Every block that moves Z alone (the retracts and plunges) moves the tip along the tool axis.
+  const nc::Program nc = nc::read_text(p.text, "face.ngc", report::axis_letters(m));
+  int along = 0;
+  for (std::size_t i = 1; i < nc.blocks.size(); ++i) {
+    const auto& b0 = nc.blocks[i - 1];
+    if (!std::all_of(b0.known.begin(), b0.known.end(), [](bool x) { return x; })) continue;
+    const kin::Axes q0 = Eigen::Map<const kin::Axes>(b0.axes.data()),
+                    q1 = Eigen::Map<const kin::Axes>(nc.blocks[i].axes.data());
+    const kin::Axes d = q1 - q0;
+    if (std::abs(d[2]) < 1e-9 || d.cwiseAbs().sum() - std::abs(d[2]) > 1e-9) continue;
+    const kin::Posed a = k->forward(q0), b = k->forward(q1);
+    EXPECT_GT(std::abs((b.tip_mm - a.tip_mm).normalized().dot(a.axis)), 1 - 1e-9) << "NC block " << i;
+    ++along;
+  }
+  EXPECT_GE(along, 2) << p.text;
+}

@@ -64,6 +64,30 @@ void Sequencer::refuse_mixed_tool_lengths() const {
   }
 }
 
+/// The post retracts by raising the machine's Z to the safe plane: that is away from the part only if +Z moves the tool
+/// back along its own axis (ISO 841: Z is the spindle's axis, + away from the work). A machine file whose `z` runs
+/// across the spindle (a horizontal spindle with a vertical `z`) would have every retract drag the tool sideways
+/// through the part: refused, naming the axis. Judged at home, where the file gives the tool's direction.
+void Sequencer::refuse_a_sideways_retract() const {
+  const kin::Axes home = kin::Axes::Zero();
+  kin::Axes up = home;
+  up[z_] += 1.0;  // mm
+  const kin::Posed p0 = kin_.forward(home), p1 = kin_.forward(up);
+  const Vec3 moved = p1.tip_mm - p0.tip_mm;  // the tip's motion relative to the part
+  const double along = moved.norm() > 0 ? moved.normalized().dot(p0.axis) : 0.0;
+  if (along > std::cos(deg2rad(1.0))) return;
+  const auto& a = m_.axes[static_cast<size_t>(z_)];
+  throw InputError(
+      m_.where(fmt::format("axes[{}]", z_)),
+      fmt::format("axis '{}': the post retracts by raising it to post.safe_z_mm, but +{} moves the tool along ({:.3f}, "
+                  "{:.3f}, {:.3f}) while the tool points along ({:.3f}, {:.3f}, {:.3f}) (tip to spindle) at home: the "
+                  "retract would {}. Name the linear axis that runs along the spindle '{}' with + away from the work "
+                  "(ISO 841)",
+                  a.name, a.name, moved.x(), moved.y(), moved.z(), p0.axis.x(), p0.axis.y(), p0.axis.z(),
+                  along < -std::cos(deg2rad(1.0)) ? "plunge the tool into the part" : "drag the tool sideways",
+                  a.name));
+}
+
 Sequencer::Sequencer(std::ostream& out, const cl::Program& program, const machine::Machine& machine,
                      const kin::Kinematics& kin, const Options& opt, Summary& summary)
     : out_(out),
@@ -93,6 +117,7 @@ Sequencer::Sequencer(std::ostream& out, const cl::Program& program, const machin
   feed_to_file_ = to_inch;
   refuse_mixed_tool_lengths();
   z_ = traits_.retract_axis;
+  if (z_ >= 0) refuse_a_sideways_retract();
   safe_z_ = m_.post.safe_z_mm;
   if (z_ >= 0 && std::isnan(safe_z_)) safe_z_ = m_.axes[static_cast<size_t>(z_)].max;
   info_.letters = m_.post.letters;
