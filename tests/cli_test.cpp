@@ -957,6 +957,19 @@ TEST(Cli, JsonSurvivesQuotesAndBackslashesInPaths) {
   EXPECT_EQ(j["machine"], "trunnion-ac");
 }
 
+namespace {
+/// `calibrate --json`'s identified parameters: name -> (change from nominal, standard deviation).
+std::map<std::string, std::pair<double, double>> calibrated_changes(const std::string& output) {
+  const auto j = nlohmann::json::parse(output.substr(output.find('{')));
+  std::map<std::string, std::pair<double, double>> est;
+  for (const auto& p : j.at("parameters")) {
+    if (p.at("stddev").is_null()) continue;
+    est[p.at("name").get<std::string>()] = {p.at("change").get<double>(), p.at("stddev").get<double>()};
+  }
+  return est;
+}
+}  // namespace
+
 // Calibration end to end as a user runs it: choose poses, measure them on a simulated machine whose C axis
 // is 0.02 mm off and whose A axis is tilted 0.01 deg, identify, and write the corrected file. The oracle is
 // the injected truth (independent of the estimator).
@@ -972,12 +985,7 @@ TEST(Cli, DesignSimulateCalibrateRecoversInjectedAxisErrors) {
   ASSERT_EQ(r.status, 0) << r.output;
   r = run_command(kCli + " calibrate " + meas + " --machine trunnion-ac --json -o " + out);
   ASSERT_EQ(r.status, 0) << r.output;
-  const auto j = nlohmann::json::parse(r.output.substr(r.output.find('{')));
-  std::map<std::string, std::pair<double, double>> est;  // name -> (change, sd)
-  for (const auto& p : j.at("parameters")) {
-    if (p.at("stddev").is_null()) continue;
-    est[p.at("name").get<std::string>()] = {p.at("change").get<double>(), p.at("stddev").get<double>()};
-  }
+  auto est = calibrated_changes(r.output);
   ASSERT_TRUE(est.count("EX0C") && est.count("EB0A")) << r.output.substr(0, 3000);
   EXPECT_NEAR(est["EX0C"].first, 0.02, std::max(5 * est["EX0C"].second, 1e-3));
   EXPECT_NEAR(est["EB0A"].first, 0.01, std::max(5 * est["EB0A"].second, 1e-3));
@@ -1001,12 +1009,7 @@ TEST(Cli, TheParallelCmmIsMeasuredOnItsPoseListAndCalibrated) {
   EXPECT_NE(r.output.find("channels tip,len"), std::string::npos) << r.output;
   r = run_command(kCli + " calibrate " + meas + " --json -o " + out);  // the machine from the recording's metadata
   ASSERT_EQ(r.status, 0) << r.output;
-  const auto j = nlohmann::json::parse(r.output.substr(r.output.find('{')));
-  std::map<std::string, std::pair<double, double>> est;  // name -> (change, sd)
-  for (const auto& p : j.at("parameters")) {
-    if (p.at("stddev").is_null()) continue;
-    est[p.at("name").get<std::string>()] = {p.at("change").get<double>(), p.at("stddev").get<double>()};
-  }
+  auto est = calibrated_changes(r.output);
   ASSERT_TRUE(est.count("l2") && est.count("thb3")) << r.output.substr(0, 3000);
   EXPECT_NEAR(est["l2"].first, 0.05, std::max(5 * est["l2"].second, 1e-3));
   EXPECT_NEAR(est["thb3"].first, 0.02, std::max(5 * est["thb3"].second, 1e-3));

@@ -663,6 +663,20 @@ TEST(PlannerIssue11, ConeZeroOnAVerticalAxisWorksOnEveryBundledMachine) {
   }
 }
 
+namespace {
+/// A machine file's bodies for a tool: the planner's scene (table side and base) and the head's meshes, both built.
+/// Held by pointer: spaces and plans point into them.
+struct BodyScenes {
+  geom::Scene scene, head;
+};
+std::unique_ptr<BodyScenes> machine_body_scenes(const machine::Machine& m, const geom::ToolShape& tool) {
+  auto b = std::make_unique<BodyScenes>();
+  cspace::add_machine_bodies(m, tool.gauge_length_mm(), b->scene, b->head);
+  b->scene.build(false);
+  b->head.build(false);
+  return b;
+}
+}  // namespace
 // NX's 3-axis zigzag (vertical tool, x up to 165 mm) on the small A/C trunnion, cone 0: at C = 0 the cutter runs into
 // the cradle's support at +x, the only primary the IK offered (the tool axis is the primary's own, so the primary is
 // free). The planner answered "collision: all cells collide; nearest feasible cell 0.00 deg from the CL axis". Every
@@ -676,10 +690,8 @@ TEST(PlannerIssue11, AVerticalToolTurnsTheTableAwayFromTheMachine) {
   ASSERT_GT(prog.tools.size(), 0u);
   const auto& t = prog.tools.front();
   const auto tool = geom::ToolShape::from_cutter(t.diameter_mm, t.corner_radius_mm, 3.0 * t.diameter_mm);
-  geom::Scene scene, head;
-  cspace::add_machine_bodies(m, tool.gauge_length_mm(), scene, head);
-  scene.build(false);
-  head.build(false);
+  const auto bodies = machine_body_scenes(m, tool);
+  const geom::Scene &scene = bodies->scene, &head = bodies->head;
   plan::Options o;  // cone 0
   o.cspace.check_collision = true;
   const plan::Plan p = plan::Planner(m, k, &scene, &tool, o, &head).run(prog);
@@ -2108,9 +2120,8 @@ TEST(PlannerWindows, AFixedOrientationTakesTheWindingNearestHome) {
   const cl::Program prog = cl::read_file(test::source_path("examples/nx-haas-umc750/zigzag_smoothed.cls"));
   const auto tool = geom::ToolShape::from_cutter(prog.tools.front().diameter_mm, prog.tools.front().corner_radius_mm,
                                                  prog.tools.front().length_mm > 0 ? prog.tools.front().length_mm : 50);
-  geom::Scene scene, head;
-  cspace::add_machine_bodies(m, tool.gauge_length_mm(), scene, head);
-  scene.build(false);
+  const auto bodies = machine_body_scenes(m, tool);
+  const geom::Scene& scene = bodies->scene;
   plan::Options o;
   o.cspace.cone_rad = deg2rad(10.0);
   o.cspace.check_collision = true;
@@ -2133,9 +2144,8 @@ TEST(PlannerWindows, AFixedOrientationTakesTheWindingNearestHome) {
 TEST(PlannerWindows, ASegmentThatStartsInsideAWindowKeepsOneOrientationForAllOfIt) {
   const machine::Machine m = trunnion();
   const auto tool = geom::ToolShape::from_cutter(10, 5, 30);
-  geom::Scene scene, head;
-  cspace::add_machine_bodies(m, tool.gauge_length_mm(), scene, head);
-  scene.build(false);
+  const auto bodies = machine_body_scenes(m, tool);
+  const geom::Scene& scene = bodies->scene;
   plan::Options o;
   o.cspace.cone_rad = deg2rad(10.0);
   o.cspace.check_collision = true;

@@ -19,6 +19,21 @@
 namespace cscam::sim {
 
 namespace {
+
+/// The white noise's sigma of channel group `g` (0: none).
+double noise_sigma(const SimulateOptions& o, const std::string& g) {
+  double s = 0;
+  for (const auto& ns : o.noise)
+    if (ns.group == g) s = ns.sigma;
+  return s;
+}
+
+/// Noise for a group that is not recorded is a mistake on the command line, not a no-op.
+void check_noise_groups(const SimulateOptions& o) {
+  for (const auto& ns : o.noise)
+    if (std::find(o.channels.begin(), o.channels.end(), ns.group) == o.channels.end())
+      throw InputError(fmt::format("--noise {}: that channel group is not recorded (--channels)", ns.group));
+}
 constexpr double kRad2Deg = 180.0 / 3.14159265358979323846;
 
 kin::Axes to_file_units(const kin::Axes& q, const machine::Machine& m) {
@@ -371,15 +386,8 @@ Recording simulate(const Trajectory& traj, const machine::Machine& m, const std:
       }
     }
   std::mt19937_64 rng(o.seed);
-  auto sigma_of = [&](const std::string& g) {
-    double s = 0;
-    for (const auto& ns : o.noise)
-      if (ns.group == g) s = ns.sigma;
-    return s;
-  };
-  for (const auto& ns : o.noise)
-    if (!want(ns.group))
-      throw InputError(fmt::format("--noise {}: that channel group is not recorded (--channels)", ns.group));
+  auto sigma_of = [&](const std::string& g) { return noise_sigma(o, g); };
+  check_noise_groups(o);
   auto add_channel = [&](const std::string& name, std::vector<double> v, double sigma) {
     for (const Effect* e : effects)
       if (e->scope() == Scope::Channel && e->channel == name)
@@ -445,18 +453,11 @@ Recording simulate_static(const calib::Model& model, const std::vector<std::vect
   for (const auto& [name, v] : values) p[model.index(name)] = v;
   const std::vector<std::string> names = model.channel_names();
   const auto& axes = model.axis_names();
-  auto sigma_of = [&](const std::string& g) {
-    double s = 0;
-    for (const auto& ns : o.noise)
-      if (ns.group == g) s = ns.sigma;
-    return s;
-  };
+  auto sigma_of = [&](const std::string& g) { return noise_sigma(o, g); };
   for (const auto& c : o.channels)
     if (c != "tip" && c != "ptip" && c != "dir" && c != "len")
       throw InputError(fmt::format("--channels: a static measurement records tip, ptip, dir or len, not '{}'", c));
-  for (const auto& ns : o.noise)
-    if (std::find(o.channels.begin(), o.channels.end(), ns.group) == o.channels.end())
-      throw InputError(fmt::format("--noise {}: that channel group is not recorded (--channels)", ns.group));
+  check_noise_groups(o);
   // Every channel of the chosen groups, predicted for every pose.
   const std::size_t n = poses.size();
   std::vector<std::vector<double>> out(names.size(), std::vector<double>(n));
