@@ -360,6 +360,7 @@ struct Fit {
   std::vector<Eigen::Matrix3d> Rpw;            ///< machine frame -> part frame per analysis sample (tool.* effects)
   std::vector<char> held;                      ///< held-out flag per analysis sample
   std::vector<double> off;                     ///< offset per component (index into comps)
+  double sample_s = 0.0;                       ///< the recording's sample interval (what a transient must outlast)
 
   [[nodiscard]] double sens(const Comp& c, const Effect& e, size_t k) const {
     if (e.scope() == Scope::Channel) {
@@ -637,7 +638,7 @@ constexpr double kHeldReach = 1.0;
 Candidate screen(const Fit& f, const Effect& proto, const std::vector<size_t>& screen_idx,
                  const std::vector<std::vector<double>>& cur, const sim::GridHints& hints) {
   Candidate best;
-  const double sample_s = sample_interval(*f.ctx);
+  const double sample_s = f.sample_s;
   const auto lin = proto.linear();
   std::vector<int> L;
   for (size_t q = 0; q < lin.size(); ++q)
@@ -1105,6 +1106,7 @@ Report diagnose(sim::Recording& rec, const machine::Machine& m, const std::vecto
   Fit F;
   F.ctx = &ctx;
   F.comps = &comps;
+  F.sample_s = sample_s;
   for (size_t ci = 0; ci < comps.size(); ++ci)
     if (comps[ci].fit) F.fitc.push_back(static_cast<int>(ci));
   const bool need_j =
@@ -1404,6 +1406,15 @@ Report diagnose(sim::Recording& rec, const machine::Machine& m, const std::vecto
   // linear in it; it is recomputed as the effects change). Returns the largest correction, in noise units.
   std::vector<std::vector<double>> res_linear(comps.size());
   for (int ci : F.fitc) res_linear[static_cast<size_t>(ci)] = comps[static_cast<size_t>(ci)].res;
+  // Below these deviations the curvature term is under 1 % of a 0.5 um noise (dq^2 / 2R for a path radius R above
+  // 40 mm; r theta^2 / 2 for a tool point within 500 mm of a rotary axis), and two FKs per sample (the XMINI's are
+  // iterative) are not worth it.
+  constexpr double kCurvedMm = 0.02, kCurvedDeg = 0.01;
+  auto curved = [&](const kin::Axes& dq) {
+    for (int j = 0; j < 5; ++j)
+      if (std::abs(dq[j]) > (rot[static_cast<size_t>(j)] ? kCurvedDeg : kCurvedMm)) return true;
+    return false;
+  };
   auto relinearise = [&](const std::vector<const Effect*>& fx) {
     if (!need_j) return 0.0;
     std::vector<const Effect*> ax;
@@ -1416,7 +1427,7 @@ Report diagnose(sim::Recording& rec, const machine::Machine& m, const std::vecto
         kin::Axes dq = kin::Axes::Zero();
         for (const Effect* e : ax) dq[e->axis] += e->value(ctx, k, e->p.data());
         Eigen::Matrix<double, 9, 1> d = Eigen::Matrix<double, 9, 1>::Zero();
-        if (!dq.isZero(0.0)) {
+        if (curved(dq)) {
           const kin::Axes& q = cmd[ctx.index[k]];
           Eigen::Vector3d t0, p0, u0, t1, p1, u1;
           P.fk(q, t0, p0, u0);
