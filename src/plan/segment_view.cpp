@@ -157,6 +157,8 @@ SegmentCells make_cells(const SegmentView& v, std::size_t first, std::size_t las
   SegmentCells d(counters, v.space);
   d.layers.resize(last - first + 1);
   const auto& moves = v.program.moves;
+  // Windowed planning: the program's last move is not its segment's end (the next window continues it).
+  const bool open_end = v.options.continues && last + 1 == moves.size();
   if (std::isfinite(v.retract_plane_z_mm)) {
     // The post retracts along the tool axis at both ends of a segment, and approaches the first point the same way
     // (replace_approach_retract's cases: a window that joins or continues has no such end). Where the CL approach
@@ -164,7 +166,6 @@ SegmentCells make_cells(const SegmentView& v, std::size_t first, std::size_t las
     // retracts on the same line: that point is marked too.
     const std::size_t n = last - first + 1;
     const bool join = first == 0 && v.options.start_rotaries.has_value();
-    const bool open_end = v.options.continues && last + 1 == moves.size();
     if (!join) {
       d.layers[0].retract_end = true;
       if (n > 1 && is_axial_approach(v.program, first, first + 1)) d.layers[1].retract_end = true;
@@ -175,11 +176,10 @@ SegmentCells make_cells(const SegmentView& v, std::size_t first, std::size_t las
         d.layers[n - 2].retract_end = true;
     }
   }
-  const bool open_segment = v.options.continues && last + 1 == moves.size();
   const std::optional<std::array<double, 2>> pinned_to = first == 0 && v.options.start_rotaries
                                                              ? v.options.start_rotaries
-                                                         : open_segment ? v.options.open_segment_rotaries
-                                                                        : std::nullopt;
+                                                         : open_end ? v.options.open_segment_rotaries
+                                                                    : std::nullopt;
   // Only the first point's cells are needed by tier 1 (the others are tested cell by cell); the rest
   // are enumerated when a later tier needs them, or for the per-point feasibility check in exact mode.
   for (std::size_t k = 0; k < d.layers.size(); ++k) {
