@@ -1437,6 +1437,8 @@ TEST(Cli, PlannerJobsHonourTcpAndReportMeshRepairsAsWarnings) {
 TEST(Cli, JobsFileErrorsNameTheLineAndRunNothing) {
   TempDir d;
   d.file("a.cls", dome_cl(31, 2, 10));
+  d.file("b.cls", dome_cl(31, 2, 10));
+  const std::string cl_a = dome_cl(31, 2, 10);
   const std::string head = "defaults:\n  machine: trunnion-ac\njobs:\n  - a.cls\n";
   const std::vector<std::pair<std::string, std::string>> cases = {
       {head + "  - cl: a.cls\n    tolerence: 0.01\n", "jobs.yaml:6:5: 'tolerence': unknown key"},
@@ -1455,6 +1457,11 @@ TEST(Cli, JobsFileErrorsNameTheLineAndRunNothing) {
       {"defaults:\n  machine: trunnion-ac\n", "'jobs': missing"},
       {"jobs: [\n", "YAML syntax error"},
       {head + "colour: red\n", "jobs.yaml:5:1: 'colour': unknown key"},
+      // One job's output is another's input: which happens first would depend on the threads.
+      {"defaults:\n  machine: trunnion-ac\njobs:\n  - cl: b.cls\n    output: a.cls\n  - a.cls\n",
+       "jobs.yaml:4:5: output " + (d.path / "a.cls").string() + " is the CL input of the job at line 6"},
+      {"defaults:\n  machine: trunnion-ac\njobs:\n  - cl: a.cls\n    output: a.cls\n",
+       "jobs.yaml:4:5: output " + (d.path / "a.cls").string() + " is its own CL input"},
   };
   for (const auto& [text, expected] : cases) {
     d.file("jobs.yaml", text);
@@ -1462,7 +1469,17 @@ TEST(Cli, JobsFileErrorsNameTheLineAndRunNothing) {
     EXPECT_EQ(r.status, 2) << text << r.output;
     EXPECT_NE(r.output.find(expected), std::string::npos) << text << "\n" << r.output;
     EXPECT_FALSE(fs::exists(d.path / "a.ngc")) << text;
+    EXPECT_EQ(cscam::test::read_text((d.path / "a.cls").string()), cl_a) << text;  // no input overwritten
   }
+  // An output that names a folder (a trailing slash, or one that exists) takes the job's file under its stem.
+  fs::create_directories(d.path / "there");
+  d.file("jobs.yaml",
+         "defaults:\n  machine: trunnion-ac\njobs:\n  - cl: a.cls\n    output: nc/\n  - cl: b.cls\n"
+         "    output: there\n");
+  const auto ok = run_command(kCli + " batch " + q((d.path / "jobs.yaml").string()));
+  EXPECT_EQ(ok.status, 0) << ok.output;
+  EXPECT_TRUE(fs::exists(d.path / "nc" / "a.ngc")) << ok.output;
+  EXPECT_TRUE(fs::exists(d.path / "there" / "b.ngc")) << ok.output;
   const auto r = run_command(kCli + " batch " + q((d.path / "missing.yaml").string()));
   EXPECT_EQ(r.status, 2) << r.output;
   EXPECT_NE(r.output.find("missing.yaml: cannot open jobs file"), std::string::npos) << r.output;
@@ -1620,7 +1637,10 @@ TEST(Cli, PostOptionsOutOfRangeAreRefused) {
            {"--tool-length -5", "--tool-length: must be a finite number >= 0, got '-5'"},
            {"--tolerance -1", "--tolerance: must be a finite number >= 0, got '-1'"},
            {"--axis-tolerance nan", "--axis-tolerance: must be a finite number >= 0, got 'nan'"},
-           {"--default-feed 0", "--default-feed: must be a finite number > 0, got '0'"}}) {
+           {"--default-feed 0", "--default-feed: must be a finite number > 0, got '0'"},
+           // Finer than the words' last decimal: the printed words alone leave it, and G64 P would print as 0.
+           {"--tolerance 1e-7", "tolerance 1e-07 mm is finer than the program's linear words carry (4 decimals"},
+           {"--axis-tolerance 1e-6", "axis tolerance 1e-06 deg is finer than the program's rotary words carry"}}) {
     const std::string out = d.file("o.ngc");
     const auto r = run_command(kCli + " post " + cl + " --machine trunnion-ac " + opts + " -o " + out);
     EXPECT_EQ(r.status, 2) << opts << "\n" << r.output;
@@ -1732,4 +1752,56 @@ TEST(Cli, VerifyRefusesAFeedAboveMaxFeedAndAnAxisPastItsLimit) {
   r = run_command(kCli + " verify " + d.file("turned.ngc", turned) + " --machine trunnion-ac --cl " + cl);
   EXPECT_EQ(r.status, 1) << r.output;
   EXPECT_NE(r.output.find("outside its limits"), std::string::npos) << r.output;
+}
+
+// M428 selects LinuxCNC's trunnion kinematics (xyzac-trt / xyzbc-trt) in its sample configurations: on a machine built
+// otherwise the program is right only where M428 switches to that machine's own tool-tip kinematics, and the post
+// says so; on the trunnions it does not.
+TEST(Cli, LinuxcncToolTipControlWarnsOffTheTrunnionsItsKinematicsDescribe) {
+  TempDir d;
+  const std::string cl = d.file("dome.cls", dome_cl(5, 2, 20));
+  for (const std::string machine : {"head-head-ac", "head-table-bc45", "trunnion-ac", "haas-umc750"}) {
+    const bool trunnion = machine == "trunnion-ac" || machine == "haas-umc750";
+    const std::string out = d.file(machine + ".ngc");
+    const auto r =
+        run_command(kCli + " post " + q(cl) + " --machine " + machine + " --dialect linuxcnc --tcp -o " + q(out));
+    EXPECT_EQ(r.status, 0) << machine << "\n" << r.output;
+    EXPECT_NE(cscam::test::read_text(out).find("M428"), std::string::npos) << machine;
+    EXPECT_EQ(
+        r.output.find(machine + ".yaml: dialect 'linuxcnc' with tool-tip control writes M428") != std::string::npos,
+        !trunnion)
+        << r.output;
+  }
+}
+
+// The planner checks and posts every move for one cutter: a program that changes to a cutter of another shape is
+// refused at the first move of that cutter (a ball after a flat end mill was planned with the flat one, and the
+// gate refused the tilted ball's program as leaving the path). The conventional post says which cutter its check of
+// the machine's bodies used.
+TEST(Cli, ThePlannerRefusesASecondCutterShapeAndThePostSaysWhichItChecked) {
+  TempDir d;
+  const std::string cl = d.file("two.cls",
+                                "UNITS/MM\nMULTAX/ON\nCUTTER/10,0,0,0,0,0,40\nLOADTL/1\nSPINDL/RPM,6000,CLW\nRAPID\n"
+                                "GOTO/20,0,50,0,0,1\nFEDRAT/MMPM,600\nGOTO/20,0,30,0,0,1\nGOTO/0,20,30,0,0,1\nRAPID\n"
+                                "GOTO/0,20,50,0,0,1\nCUTTER/6,3,0,3,0,0,30\nLOADTL/2\nRAPID\n"
+                                "GOTO/0,0,60,0,0.3,0.9539392\nFEDRAT/MMPM,800\nGOTO/0,0,30,0,0.3,0.9539392\n"
+                                "GOTO/10,0,30,0.3,0,0.9539392\nRAPID\nGOTO/10,0,60,0.3,0,0.9539392\nEND\n");
+  for (const std::string cmd : {"plan", "compare"}) {
+    const std::string out = d.file(cmd + ".ngc");
+    const auto r = run_command(kCli + " " + cmd + " " + q(cl) + " --machine trunnion-ac --cone 5" +
+                               (cmd == "plan" ? " -o " + q(out) : std::string()));
+    EXPECT_EQ(r.status, 2) << r.output;
+    EXPECT_NE(r.output.find("two.cls:16: this move is cut with tool 2 (diameter 6, corner radius 3, length 30 mm) "
+                            "after tool 1 (diameter 10, corner radius 0, length 40 mm)"),
+              std::string::npos)
+        << r.output;
+    EXPECT_FALSE(fs::exists(out));
+  }
+  const std::string out = d.file("post.ngc");
+  const auto r = run_command(kCli + " post " + q(cl) + " --machine trunnion-ac -o " + q(out));
+  EXPECT_EQ(r.status, 0) << r.output;
+  EXPECT_NE(r.output.find("tool 2 has another shape than tool 1: the moves are checked against the machine's bodies "
+                          "with tool 1's shape only"),
+            std::string::npos)
+      << r.output;
 }

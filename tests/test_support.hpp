@@ -1,7 +1,9 @@
 #pragma once
 // Shared test helpers: paths, seeded randomness, and the tolerances (all from cscam/core/tolerances.hpp).
 #include <cstdio>
+#include <fstream>
 #include <functional>
+#include <iterator>
 #include <random>
 #include <string>
 
@@ -11,6 +13,12 @@
 namespace cscam::test {
 
 inline std::string source_path(const std::string& rel) { return std::string(CSCAM_SOURCE_DIR) + "/" + rel; }
+
+/// A file's whole text ("" if it cannot be read).
+inline std::string read_text(const std::string& path) {
+  std::ifstream in(path, std::ios::binary);
+  return {std::istreambuf_iterator<char>(in), std::istreambuf_iterator<char>()};
+}
 
 /// The message of the InputError that f throws, or "(no error)".
 inline std::string error_of(const std::function<void()>& f) {

@@ -310,6 +310,21 @@ int run_jobs(const std::vector<PostJob>& jobs, bool json) {
                        fmt::format("output {} is also the output of {}: give the files distinct names", jobs[i].out,
                                    jobs[it->second].cl));
   }
+  // An output that is some job's CL input would replace that input, before or after the job reads it (which one
+  // depends on the threads): refused before anything runs, as a job writing over its own input is.
+  std::map<std::string, std::size_t> inputs;
+  for (std::size_t i = 0; i < jobs.size(); ++i)
+    inputs.emplace(fs::weakly_canonical(fs::absolute(jobs[i].cl)).string(), i);
+  for (const auto& j : jobs)
+    if (const auto it = inputs.find(fs::weakly_canonical(fs::absolute(j.out)).string()); it != inputs.end()) {
+      const PostJob& reader = jobs[it->second];
+      const std::string whose = &reader == &j ? std::string("its own CL input")
+                                : reader.entry.line > 0
+                                    ? fmt::format("the CL input of the job at line {}", reader.entry.line)
+                                    : fmt::format("the CL input {}", reader.cl);
+      throw InputError(j.entry.file.empty() ? SourceLoc{j.cl} : j.entry,
+                       fmt::format("output {} is {}: it would be overwritten; give another output", j.out, whose));
+    }
   const std::size_t threads = worker_threads();
   // TBB's own pool follows the hardware; CSCAM_THREADS may ask for more (or fewer) workers than cores.
   const tbb::global_control pool(tbb::global_control::max_allowed_parallelism, threads);
@@ -580,7 +595,11 @@ std::vector<PostJob> read_jobs_file(const std::string& path) {
     if (out_node) {
       const fs::path o(r.str(*out_node, "output"));
       if (o.empty()) r.fail(*out_node, "output", "empty path");
-      j.out = (o.is_absolute() ? o : out_dir / o).lexically_normal().string();
+      const fs::path at = (o.is_absolute() ? o : out_dir / o).lexically_normal();
+      // A folder (written with a trailing slash, or one that exists): the job's file goes into it under its stem.
+      const std::string raw = r.str(*out_node, "output");
+      const bool folder = raw.back() == '/' || fs::is_directory(at);
+      j.out = folder ? (at / stem_out.filename()).lexically_normal().string() : at.string();
     } else {
       j.out = stem_out.lexically_normal().string();
     }

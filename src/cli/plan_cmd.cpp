@@ -2,6 +2,7 @@
 
 #include <fmt/format.h>
 
+#include <algorithm>
 #include <chrono>
 #include <cmath>
 #include <filesystem>
@@ -131,6 +132,36 @@ void check_plan_args(const PlanArgs& a) {
     throw InputError(SourceLoc{a.svg_dir}, "--svg: exists and is not a folder");
 }
 
+/// The planner checks every move with one cutter (the CL's first) and, tilting a ball mill, keeps that ball's centre on
+/// the path: where the program changes to a cutter of another shape, the later moves would be checked and posted for
+/// the wrong one (the safety gate then refuses the plan, or a collision of the real cutter goes unseen). Refused at the
+/// first move cut with it, while the cutter matters (collision checks, or a cone with a ball mill).
+void refuse_a_second_cutter(const Setup& s) {
+  const bool ball_cone = s.opt.cspace.cone_rad > 0 && std::any_of(s.prog.tools.begin(), s.prog.tools.end(),
+                                                                  [](const cl::Tool& t) { return t.is_ball(); });
+  if (!s.opt.cspace.check_collision && !ball_cone) return;
+  const cl::Tool* first = nullptr;
+  for (const auto& mv : s.prog.moves) {
+    if (mv.tool_index < 0) continue;
+    const cl::Tool& t = s.prog.tools[static_cast<std::size_t>(mv.tool_index)];
+    if (!(t.diameter_mm > 0)) continue;
+    if (!first) {
+      first = &t;
+      continue;
+    }
+    const auto differs = [](double x, double y) { return std::abs(x - y) > 1e-9 * std::max(1.0, std::abs(x)); };
+    if (differs(t.diameter_mm, first->diameter_mm) || differs(t.corner_radius_mm, first->corner_radius_mm) ||
+        differs(t.length_mm, first->length_mm))
+      throw InputError(
+          SourceLoc{s.prog.file, mv.line, 0},
+          fmt::format("this move is cut with tool {} (diameter {:g}, corner radius {:g}, length {:g} mm) after tool {} "
+                      "(diameter {:g}, corner radius {:g}, length {:g} mm): the planner plans one cutter per run; plan "
+                      "each tool's operations as a CL file of its own",
+                      t.number, t.diameter_mm, t.corner_radius_mm, t.length_mm, first->number, first->diameter_mm,
+                      first->corner_radius_mm, first->length_mm));
+  }
+}
+
 std::unique_ptr<Setup> setup(const PlanArgs& a, std::vector<std::string>* warnings = nullptr) {
   check_plan_args(a);
   auto s = std::make_unique<Setup>();
@@ -149,6 +180,7 @@ std::unique_ptr<Setup> setup(const PlanArgs& a, std::vector<std::string>* warnin
   if (!tool_note.empty()) s->warn(tool_note);
   s->kin = s->m.make_kinematics(s->tool_length);
   add_scene(*s, a, s->prog.tools, true);
+  refuse_a_second_cutter(*s);
   return s;
 }
 
@@ -251,6 +283,17 @@ void add_scene(Setup& s, const PlanArgs& a, const std::vector<cl::Tool>& tools, 
   // safety gate still check against them (as with --no-collision).
   if (!s.m.geometry.bodies.empty() && !s.tool)
     s.warn(a.cl + ": no CUTTER/ or TLDATA/: the machine's bodies are not checked");
+  // (The planner refuses a second cutter shape: refuse_a_second_cutter. The post's gate checks with the first.)
+  if (!require_tool && t && !s.m.geometry.bodies.empty())
+    for (const auto& tt : tools)
+      if (tt.diameter_mm > 0 && (tt.diameter_mm != t->diameter_mm || tt.corner_radius_mm != t->corner_radius_mm ||
+                                 tt.length_mm != t->length_mm)) {
+        s.warn(
+            fmt::format("{}: tool {} has another shape than tool {}: the moves are checked against the machine's "
+                        "bodies with tool {}'s shape only (post each tool's operations separately to check each)",
+                        a.cl, tt.number, t->number, t->number));
+        break;
+      }
   if (!s.m.geometry.bodies.empty() && s.tool) {
     const double lift = std::max(0.0, s.tool->gauge_length_mm() - s.tool_length);
     auto bodies = cspace::add_machine_bodies(s.m, lift, s.scene, s.head);
@@ -568,6 +611,9 @@ int run_compare(const PlanArgs& a) {
   std::cout << fmt::format("{:<28}{:>22}{:>22}\n", "NC blocks", conv_cell(sc.blocks), sp.blocks);
   std::cout << fmt::format("{:<28}{:>22}{:>22}\n", "verify", has_conv ? (vc.ok ? "ok" : "FAILED") : "-",
                            vp.ok ? "ok" : "FAILED");
+  // Why a program failed back-simulation (the table has room for the verdict only).
+  if (has_conv && !vc.ok) std::cout << "conventional program: verify " << vc.message << "\n";
+  if (!vp.ok) std::cout << "planned program: verify " << vp.message << "\n";
   if (s->has_meshes) {
     std::cout << fmt::format("{:<28}{:>22}{:>22}\n", "colliding CL points", conv_axes_cell(hc.n), hp.n);
     std::cout << fmt::format("{:<28}{:>22}{:>22}\n", "colliding moves (swept)", conv_axes_cell(hc.swept.collisions),
@@ -618,6 +664,7 @@ int run_compare(const PlanArgs& a) {
                        {"conventional", has_conv ? nlohmann::json{{"stats", stc.json()},
                                                                   {"blocks", sc.blocks},
                                                                   {"verify_ok", vc.ok},
+                                                                  {"verify", vc.message},
                                                                   {"colliding_points", conv_collisions},
                                                                   {"colliding_moves_swept", hc.swept.collisions},
                                                                   {"uncertified_moves_swept", hc.swept.uncertified},
@@ -627,6 +674,7 @@ int run_compare(const PlanArgs& a) {
                         {{"stats", stp.json()},
                          {"blocks", sp.blocks},
                          {"verify_ok", vp.ok},
+                         {"verify", vp.message},
                          {"colliding_points", hp.n},
                          {"colliding_moves_swept", hp.swept.collisions},
                          {"uncertified_moves_swept", hp.swept.uncertified},

@@ -2,6 +2,7 @@
 
 #include <fmt/format.h>
 
+#include <cmath>
 #include <cstddef>
 #include <ostream>
 #include <sstream>
@@ -10,6 +11,7 @@
 #include <vector>
 
 #include "cscam/core/error.hpp"
+#include "cscam/core/units.hpp"
 #include "cscam/post/dialect.hpp"
 #include "linearize.hpp"
 #include "sequencer.hpp"
@@ -66,6 +68,25 @@ void write_nc(std::ostream& out, const cl::Program& program, const machine::Mach
   CSCAM_CHECK(axes.size() == program.moves.size(), "one axis vector per CL move");
   CSCAM_CHECK(!options.cone_reference || options.cone_reference->moves.size() == program.moves.size(),
               "the cone's reference CL has the program's moves");
+  {
+    // A tolerance finer than the words' last decimal cannot be held: rounding the words alone moves the tip by up to
+    // half that unit, and the blend limit (G64 P) would print as 0, which LinuxCNC reads as no limit at all.
+    const double tol_mm = options.tolerance_mm > 0 ? options.tolerance_mm : machine.post.tolerance_mm;
+    const double unit_mm = std::pow(10.0, -machine.post.decimals_linear) * (machine.post.inch ? kMmPerInch : 1.0);
+    if (tol_mm < unit_mm)
+      throw InputError(
+          fmt::format("tolerance {:g} mm is finer than the program's linear words carry ({} decimals{}: "
+                      "{:g} mm): give at least that, or more decimals (post.decimals_linear)",
+                      tol_mm, machine.post.decimals_linear, machine.post.inch ? " of an inch" : "", unit_mm));
+    const double axis_tol_deg =
+        options.axis_tolerance_deg > 0 ? options.axis_tolerance_deg : machine.post.axis_tolerance_deg;
+    const double unit_deg = std::pow(10.0, -machine.post.decimals_rotary);
+    if (axis_tol_deg < unit_deg)
+      throw InputError(
+          fmt::format("axis tolerance {:g} deg is finer than the program's rotary words carry ({} "
+                      "decimals: {:g} deg): give at least that, or more decimals (post.decimals_rotary)",
+                      axis_tol_deg, machine.post.decimals_rotary, unit_deg));
+  }
   reserve_text(out, 96 * program.moves.size() + (std::size_t{1} << 16));  // ~50-65 bytes a block, a block a move
   {
     Summary probe;

@@ -34,6 +34,34 @@ Linearizer::Settings linearizer_settings(const machine::Machine& m, const Option
 // run. A relative 1e-9 is far below any feed's meaning.
 constexpr double kFeedFloorSlack = 1e-9;
 
+void Sequencer::warn_tcp_without_trunnion_kinematics(const std::string& dialect) {
+  // LinuxCNC's M428 is the remap of its sample configurations' switchable trunnion kinematics (xyzac-trt /
+  // xyzbc-trt): both rotaries in the table, the outer one tilting about X (A) or Y (B), the inner one turning the part
+  // about Z (C), the spindle along Z. Another machine needs switchable kinematics of its own behind M428 (a control
+  // without any stops at the unknown M-code). (Within a degree: a calibrated machine's axes are a little off.)
+  const double near = std::cos(deg2rad(1.0));
+  auto along = [&](const Vec3& d, int k) { return std::abs(d[k]) >= near * d.norm(); };
+  bool trunnion = false;
+  if (m_.serial) {
+    const auto& g = *m_.serial;
+    std::vector<int> rot;
+    for (int j : g.table_chain)
+      if (g.joints[static_cast<size_t>(j)].type == kin::AxisType::Rotary) rot.push_back(j);
+    if (rot.size() == 2) {
+      const Vec3 outer = g.joints[static_cast<size_t>(rot[0])].direction;
+      const Vec3 inner = g.joints[static_cast<size_t>(rot[1])].direction;
+      trunnion = (along(outer, 0) || along(outer, 1)) && along(inner, 2) && along(g.tool_direction_home, 2);
+    }
+  }
+  if (!trunnion)
+    sum_.warnings.push_back(fmt::format(
+        "{}: dialect '{}' with tool-tip control writes M428, which LinuxCNC's sample configurations map to the "
+        "switchable trunnion kinematics (xyzac-trt / xyzbc-trt: A or B tilting the table, C turning on it); machine "
+        "'{}' is not built that way: run the program only on a LinuxCNC whose M428 switches to this machine's own "
+        "tool-tip kinematics, or post it without TCP (--no-tcp)",
+        m_.file, dialect, m_.name));
+}
+
 void Sequencer::refuse_mixed_tool_lengths() const {
   // A rotary in the head turns the tool about the gauge point: in machine coordinates every tool length gives other
   // axis words, and the program is computed for one. (Under TCP the control applies each tool's own length.)
@@ -115,6 +143,7 @@ Sequencer::Sequencer(std::ostream& out, const cl::Program& program, const machin
     shortest_[static_cast<size_t>(i)] = a.rotary() && a.cyclic && m_.post.rotary_output == "shortest";
   }
   feed_to_file_ = to_inch;
+  if (cart_ && dialect == "linuxcnc") warn_tcp_without_trunnion_kinematics(dialect);
   refuse_mixed_tool_lengths();
   z_ = traits_.retract_axis;
   if (z_ >= 0) refuse_a_sideways_retract();

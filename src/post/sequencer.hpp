@@ -88,6 +88,7 @@ class Sequencer {
 
  private:
   /// Throws InputError where the CL's tools differ in length on a machine whose head carries a rotary, without TCP.
+  void warn_tcp_without_trunnion_kinematics(const std::string& dialect);
   void refuse_mixed_tool_lengths() const;
   void refuse_a_sideways_retract() const;
   // --- sequencer.cpp: the program frame, CL events, the buffer, words and blocks -----------------------------
