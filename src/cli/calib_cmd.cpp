@@ -513,9 +513,18 @@ int run_calibrate(const CalibArgs& a) {
   // Whether the fit may become a machine file: residuals that the noise explains, and a change larger than the noise
   // would make on a perfect machine.
   const calib::WriteCheck wc = calib::check_for_writing(*model, data, r, opt.loss);
-  t << fmt::format("fit: chi^2 {:.4g} for {:.0f} degrees of freedom, {}{}\n", r.chi2, r.chi2_dof,
-                   calib::p_value_text(r.chi2_p),
-                   data.sigma.given ? "" : " (sigmas not given: estimated from the residuals)");
+  if (data.sigma.given) {
+    t << fmt::format("fit: chi^2 {:.4g} for {:.0f} degrees of freedom, {}\n", r.chi2, r.chi2_dof,
+                     calib::p_value_text(r.chi2_p));
+  } else {
+    // Without the recording's sigmas the chi^2 is only the default weights' (1 um): the noise is what the residuals
+    // say, the standard deviations are scaled to it, and there is nothing to test the fit against.
+    t << fmt::format(
+        "fit: the recording gives no sigmas (sigma.tip, ...): the residuals put the noise at {:.3g} times the default "
+        "weights (tip, ptip, len {:g} um; dir {:g} urad), and the standard deviations are scaled to that; the fit is "
+        "not tested against a noise level\n",
+        std::sqrt(std::max(0.0, r.chi2_reduced)), 1e3 * data.sigma.tip_mm, 1e6 * data.sigma.dir);
+  }
   t << fmt::format("change: joint chi^2 {:.4g} ({}); largest |change| / std dev {:.2f} ({}, Bonferroni {})\n",
                    wc.mahalanobis, calib::p_value_text(wc.p_joint), wc.max_z, wc.largest,
                    calib::p_value_text(wc.p_max));

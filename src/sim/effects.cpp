@@ -890,7 +890,9 @@ std::unique_ptr<Effect> parse_effect(const std::string& spec, const machine::Mac
       const std::string item = rest.substr(a, b - a);
       const auto eq = item.find('=');
       if (eq == std::string::npos)
-        throw InputError(fmt::format("--inject '{}': expected key=value, got '{}'", spec, item));
+        throw InputError(fmt::format("--inject '{}': expected key=value, got '{}' (the parameters are all given in "
+                                     "order, {}:{}:VALUE:..., or all as key=value)",
+                                     spec, item, name, target));
       const std::string key = item.substr(0, eq);
       if (key == "sensor" && e->follows_temperature()) {  // the one text parameter: the temp.<sensor> it follows
         e->note = item.substr(eq + 1);

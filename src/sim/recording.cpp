@@ -2,6 +2,8 @@
 
 #include <fmt/format.h>
 
+#include <algorithm>
+#include <cctype>
 #include <charconv>
 #include <cmath>
 #include <fstream>
@@ -193,8 +195,19 @@ Recording parse_recording(const std::string& text, const std::string& name) {
   if (kind && *kind != "trajectory" && *kind != "static")
     throw InputError(rec.meta_loc("kind"),
                      fmt::format("metadata kind: expected trajectory or static, got '{}'", *kind));
-  if (tc < 0 && (!kind || *kind == "trajectory"))
-    throw InputError(SourceLoc{name}, "a trajectory recording needs a time column 't'");
+  if (tc < 0 && (!kind || *kind == "trajectory")) {
+    // Column names are case-sensitive (spec/recording.md): say so where the header would match in lower case.
+    bool other_case = false;
+    for (const auto& col : rec.columns) {
+      std::string lower = col;
+      std::transform(lower.begin(), lower.end(), lower.begin(), [](unsigned char ch) { return std::tolower(ch); });
+      other_case |= lower != col && (lower == "t" || lower.rfind("cmd.", 0) == 0 || lower.rfind("tip.", 0) == 0);
+    }
+    throw InputError(SourceLoc{name, rec.header_line},
+                     other_case ? "a trajectory recording needs a time column 't': column names are lower case (t, "
+                                  "cmd.x, tip.x, ...), and this header's are not"
+                                : "a trajectory recording needs a time column 't'");
+  }
   if (tc >= 0) {
     const auto& t = rec.data[static_cast<size_t>(tc)];
     for (size_t i = 0; i < t.size(); ++i) {
