@@ -209,34 +209,62 @@ double noise_from_spectrum(const std::vector<double>& P, size_t n, double floor 
   return std::max(floor, std::sqrt(median(hi) / (static_cast<double>(n) * std::log(2.0))));
 }
 
-/// The frequency (in bins of the length-n grid, fractional) where the periodogram of `y` peaks near bin `k0`: the
-/// maximum of |X(w)|^2, X(w) = sum y_k e^{-iwk}, by Newton's method from `k0`, within half a bin of it. That maximum is
-/// the least-squares frequency of one sinusoid in white noise; an interpolation between FFT bins is off by up to a
-/// tenth of a bin, which over a run of 20 s drifts the fitted sinusoid's phase by 30 deg or more (the frequency is
-/// not refitted: the fits subsample in time).
-double refine_peak(const std::vector<double>& y, double k0, double k_bin) {
+/// The frequency (in bins of the length-n grid, fractional) where the periodogram of `y` peaks near bin `k_bin`: the
+/// maximum of |X(w)|^2, X(w) = sum y_k e^{-iwk}, within a bin of `k_bin`. That maximum is the least-squares frequency
+/// of one sinusoid in white noise; an interpolation between FFT bins is off by up to a tenth of a bin, which over a run
+/// of 20 s drifts the fitted sinusoid's phase by 30 deg or more (the frequency is not refitted: the fits subsample in
+/// time). |X|^2 is first scanned on a fine grid over +-1 bin, then Newton's method polishes the best point of the
+/// scan within one scan step. The scan is what makes this hold for a recording with gaps: there the periodogram is
+/// fringed (the spectral window of two stretches of data has side lobes about a bin apart), so Newton from a
+/// parabolic guess between bins can start in a trough or on the slope of the wrong fringe and stop there (it ran
+/// only while the curvature is negative, and was clamped to half a bin of the FFT's bin).
+double refine_peak(const std::vector<double>& y, double k_bin) {
   const auto n = static_cast<double>(y.size());
-  double w = 2.0 * kPi * k0 / n;
-  const double w_lo = 2.0 * kPi * (k_bin - 0.5) / n, w_hi = 2.0 * kPi * (k_bin + 0.5) / n;
   double mean = 0;
   for (double v : y) mean += v;
   mean /= n;
-  // |X|^2 and its first two derivatives in w (sums of y_k (-ik)^j e^{-iwk}, j = 0, 1, 2).
+  // |X|^2 and its first two derivatives in w (sums of y_k (-ik)^j e^{-iwk}, j = 0, 1, 2); the phasor e^{-iwk} by
+  // rotation, renormalised now and then against the rounding's drift.
   auto eval = [&](double ww, double& q, double& dq, double& ddq) {
     std::complex<double> x0, x1, x2;
+    const std::complex<double> step = std::polar(1.0, -ww);
+    std::complex<double> e = 1.0;
     for (size_t k = 0; k < y.size(); ++k) {
+      if ((k & 1023) == 0) e = std::polar(1.0, -ww * static_cast<double>(k));
       const double kk = static_cast<double>(k);
-      const std::complex<double> e = std::polar(y[k] - mean, -ww * kk);
-      x0 += e;
-      x1 += std::complex<double>(0.0, -kk) * e;
-      x2 += -kk * kk * e;
+      const std::complex<double> v = (y[k] - mean) * e;
+      x0 += v;
+      x1 += std::complex<double>(0.0, -kk) * v;
+      x2 += -kk * kk * v;
+      e *= step;
     }
     q = std::norm(x0);
     dq = 2.0 * std::real(x1 * std::conj(x0));
     ddq = 2.0 * (std::norm(x1) + std::real(x2 * std::conj(x0)));
   };
+  // |X|^2 alone, for the scan.
+  auto power = [&](double ww) {
+    std::complex<double> x0;
+    const std::complex<double> step = std::polar(1.0, -ww);
+    std::complex<double> e = 1.0;
+    for (size_t k = 0; k < y.size(); ++k) {
+      if ((k & 1023) == 0) e = std::polar(1.0, -ww * static_cast<double>(k));
+      x0 += (y[k] - mean) * e;
+      e *= step;
+    }
+    return std::norm(x0);
+  };
+  constexpr int kScan = 16;  // steps per bin: a fringe of a gapped recording is at least a bin wide
+  const double dw = 2.0 * kPi / n / kScan;
+  double w = 2.0 * kPi * k_bin / n, best = -1;
+  for (int j = -kScan; j <= kScan; ++j) {
+    const double wj = 2.0 * kPi * k_bin / n + j * dw;
+    const double qj = power(wj);
+    if (qj > best) w = wj, best = qj;
+  }
   double q = 0, dq = 0, ddq = 0;
   eval(w, q, dq, ddq);
+  const double w_lo = w - dw, w_hi = w + dw;
   for (int it = 0; it < 8 && ddq < 0.0; ++it) {
     const double wn = std::clamp(w - dq / ddq, w_lo, w_hi);
     double qn = 0, dqn = 0, ddqn = 0;
@@ -271,12 +299,8 @@ std::vector<Peak> find_peaks(const std::vector<double>& P, const std::vector<dou
     const size_t a = k > w ? k - w : 1, b = std::min(P.size() - 1, k + w);
     std::vector<double> loc(P.begin() + static_cast<std::ptrdiff_t>(a), P.begin() + static_cast<std::ptrdiff_t>(b));
     if (P[k] < 40 * median(loc)) continue;
-    // Parabolic interpolation of the peak on log power.
-    const double l = std::log(P[k - 1] + 1e-300), c = std::log(P[k]), r = std::log(P[k + 1] + 1e-300);
-    const double den = l - 2 * c + r;
-    const double d = std::abs(den) > 1e-12 ? std::clamp(0.5 * (l - r) / den, -0.5, 0.5) : 0.0;
     Peak pk;
-    pk.f = refine_peak(y, static_cast<double>(k) + d, static_cast<double>(k)) * fs / static_cast<double>(n);
+    pk.f = refine_peak(y, static_cast<double>(k)) * fs / static_cast<double>(n);
     pk.amp = 2.0 * std::sqrt(P[k]) / static_cast<double>(std::max<size_t>(present, 1));
     bool dup = false;
     for (const auto& q : out) dup |= std::abs(q.f - pk.f) < 3 * fs / static_cast<double>(n);
