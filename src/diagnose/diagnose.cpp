@@ -1475,8 +1475,12 @@ Report diagnose(sim::Recording& rec, const machine::Machine& m, const std::vecto
   };
   double held_ms = weighted_ms(F, {}, true);
   const double held_ms_start = held_ms;
-  std::vector<char> event_only;                        // per accepted effect: judged on the training blocks (try_event)
-  std::vector<std::vector<std::string>> alternatives;  // per accepted effect: others that explain as well
+  std::vector<char> event_only;  // per accepted effect: judged on the training blocks (try_event)
+  // Per accepted effect: others that explain as well, by identity (name, target) and description.
+  struct Alternative {
+    std::string name, target, what;
+  };
+  std::vector<std::vector<Alternative>> alternatives;
   std::vector<std::vector<double>> cur(comps.size());
   for (int step = 0; step < o.max_effects; ++step) {
     // The curvature term of the effects accepted so far; where it is more than a tenth of the noise, the effects
@@ -1614,7 +1618,7 @@ Report diagnose(sim::Recording& rec, const machine::Machine& m, const std::vecto
     }
     // The others that leave a held-out residual larger by less than an effect must explain to count: the recording
     // cannot tell them from the one chosen.
-    std::vector<std::string> same;
+    std::vector<Alternative> same;
     double chosen_ms = 0.0;
     for (const auto& [pi, ms, what] : refits)
       if (pi == bi) chosen_ms = ms;
@@ -1625,8 +1629,8 @@ Report diagnose(sim::Recording& rec, const machine::Machine& m, const std::vecto
       if (pi != bi && ms - chosen_ms <= thr && held_ms - chosen_ms > thr &&
           (res[pi].e->name() != res[bi].e->name() || res[pi].e->target != res[bi].e->target) &&
           !(lag(res[pi].e->name()) && lag(res[bi].e->name()) && res[pi].e->target == res[bi].e->target) &&
-          std::find(same.begin(), same.end(), what) == same.end())
-        same.push_back(what);
+          std::none_of(same.begin(), same.end(), [&](const Alternative& a) { return a.what == what; }))
+        same.push_back({res[pi].e->name(), res[pi].e->target, what});
     auto trial = model_with(std::move(res[bi].e));
     joint_fit(F, fit_view(trial));
     const double new_ms = weighted_ms(F, view(trial), true);
@@ -1665,7 +1669,16 @@ Report diagnose(sim::Recording& rec, const machine::Machine& m, const std::vecto
     fd.effect = model[i]->clone();
     // An effect the held-out blocks do not reach is judged, and its figures taken, on the training blocks.
     fd.judged_on_training = event_only[i] != 0;
-    if (i < alternatives.size()) fd.alternatives = alternatives[i];
+    // An alternative that is itself in the model (accepted before or after this one) is no alternative: the
+    // recording told it apart, as a finding of its own. (A plain lag and its first-order form are one effect.)
+    if (i < alternatives.size())
+      for (const auto& a : alternatives[i]) {
+        const bool accepted = std::any_of(model.begin(), model.end(), [&](const auto& e) {
+          return e->target == a.target &&
+                 (e->name() == a.name || (is_lag(*e) && (a.name == "servo_lag" || a.name == "servo_lag_1st")));
+        });
+        if (!accepted) fd.alternatives.push_back(a.what);
+      }
     const bool on_held = !fd.judged_on_training;
     if (fd.effect->name() == "vibration") fd.effect->note = source_of(fd.effect->p[0], rpm, flutes, sample_hz);
     // The group where it matters most, and its dominant component. Before/after are judged where the effect
