@@ -1158,3 +1158,39 @@ TEST(Diagnose, AnAcceptedEffectIsNotAnotherFindingsAlternative) {
               << f.effect->name() << " " << f.effect->target << " lists the finding " << a << "\n"
               << r.text();
 }
+
+// A following error of 10 ms on an XMINI leg and a 3 um vibration at 100 Hz in tip.x: the lag's broadband residual
+// (about a millimetre) raised the local spectral level around 100 Hz, so the first search for peaks found none
+// there and no vibration was ever a candidate; the lag was found, and the residual called "still above the noise".
+// The peaks are now searched again in the residual under the accepted model. Oracle: both injected effects, and
+// what is left is the noise.
+TEST(Diagnose, AVibrationHiddenByALargeLagIsFoundOnceTheLagIsModelled) {
+  // The trial's program: twice round a circle of 15 mm at 1500 mm/min, z waving by 3 mm three times a turn, the tool
+  // tilted outward by 10 to 20 deg.
+  const auto cls = std::filesystem::temp_directory_path() / fmt::format("cscam_hidden_{}.cls", ::getpid());
+  {
+    std::ofstream os(cls);
+    os << "PARTNO XMINI TEST\nUNITS/MM\nMULTAX\nCUTTER/6\nLOADTL/1\nSPINDL/6000,CLW\nFEDRAT/MMPM,1500\n"
+          "RAPID\nGOTO/15,0,5,0.1736,0,0.9848\n";
+    for (int k = 0; k <= 144; ++k) {
+      const double th = k * 5 * 3.14159265358979 / 180, tilt = (10 + 5 * std::sin(2 * th)) * 3.14159265358979 / 180;
+      os << fmt::format("GOTO/{:.5f},{:.5f},{:.5f},{:.5f},{:.5f},{:.5f}\n", 15 * std::cos(th), 15 * std::sin(th),
+                        3 * std::sin(3 * th), std::sin(tilt) * std::cos(th), std::sin(tilt) * std::sin(th),
+                        std::cos(tilt));
+    }
+    os << "RAPID\nGOTO/15,0,10,0.1736,0,0.9848\nFINI\n";
+  }
+  sim::ProfileOptions po;
+  po.rate_hz = 300;
+  po.accel = 2000;
+  const auto tr = sim::profile(sim::blocks_from_cl(cls.string(), xmini(), 50), po);
+  std::filesystem::remove(cls);
+  const auto r = run(tr, xmini(), {"servo_lag:q3:0.01", "vibration:tip.x:100:0.003"}, {"tip", "enc"}, 0.001);
+  expect_found(r, "servo_lag", "q3", "lag_s", 0.01);
+  const auto* f = find(r, "vibration", "tip.x");
+  ASSERT_NE(f, nullptr) << r.text();
+  EXPECT_NEAR(param(*f, "frequency_hz"), 100.0, tol::kDiagnoseFrequencyHz) << r.text();
+  EXPECT_NEAR(param(*f, "amplitude_mm"), 0.003, 0.05 * 0.003) << r.text();
+  EXPECT_EQ(r.findings.size(), 2u) << r.text();
+  EXPECT_EQ(r.verdict.find("still above the noise"), std::string::npos) << r.text();
+}
