@@ -209,34 +209,62 @@ double noise_from_spectrum(const std::vector<double>& P, size_t n, double floor 
   return std::max(floor, std::sqrt(median(hi) / (static_cast<double>(n) * std::log(2.0))));
 }
 
-/// The frequency (in bins of the length-n grid, fractional) where the periodogram of `y` peaks near bin `k0`: the
-/// maximum of |X(w)|^2, X(w) = sum y_k e^{-iwk}, by Newton's method from `k0`, within half a bin of it. That maximum is
-/// the least-squares frequency of one sinusoid in white noise; an interpolation between FFT bins is off by up to a
-/// tenth of a bin, which over a run of 20 s drifts the fitted sinusoid's phase by 30 deg or more (the frequency is
-/// not refitted: the fits subsample in time).
-double refine_peak(const std::vector<double>& y, double k0, double k_bin) {
+/// The frequency (in bins of the length-n grid, fractional) where the periodogram of `y` peaks near bin `k_bin`: the
+/// maximum of |X(w)|^2, X(w) = sum y_k e^{-iwk}, within a bin of `k_bin`. That maximum is the least-squares frequency
+/// of one sinusoid in white noise; an interpolation between FFT bins is off by up to a tenth of a bin, which over a run
+/// of 20 s drifts the fitted sinusoid's phase by 30 deg or more (the frequency is not refitted: the fits subsample in
+/// time). |X|^2 is first scanned on a fine grid over +-1 bin, then Newton's method polishes the best point of the
+/// scan within one scan step. The scan is what makes this hold for a recording with gaps: there the periodogram is
+/// fringed (the spectral window of two stretches of data has side lobes about a bin apart), so Newton from a
+/// parabolic guess between bins can start in a trough or on the slope of the wrong fringe and stop there (it ran
+/// only while the curvature is negative, and was clamped to half a bin of the FFT's bin).
+double refine_peak(const std::vector<double>& y, double k_bin) {
   const auto n = static_cast<double>(y.size());
-  double w = 2.0 * kPi * k0 / n;
-  const double w_lo = 2.0 * kPi * (k_bin - 0.5) / n, w_hi = 2.0 * kPi * (k_bin + 0.5) / n;
   double mean = 0;
   for (double v : y) mean += v;
   mean /= n;
-  // |X|^2 and its first two derivatives in w (sums of y_k (-ik)^j e^{-iwk}, j = 0, 1, 2).
+  // |X|^2 and its first two derivatives in w (sums of y_k (-ik)^j e^{-iwk}, j = 0, 1, 2); the phasor e^{-iwk} by
+  // rotation, renormalised now and then against the rounding's drift.
   auto eval = [&](double ww, double& q, double& dq, double& ddq) {
     std::complex<double> x0, x1, x2;
+    const std::complex<double> step = std::polar(1.0, -ww);
+    std::complex<double> e = 1.0;
     for (size_t k = 0; k < y.size(); ++k) {
+      if ((k & 1023) == 0) e = std::polar(1.0, -ww * static_cast<double>(k));
       const double kk = static_cast<double>(k);
-      const std::complex<double> e = std::polar(y[k] - mean, -ww * kk);
-      x0 += e;
-      x1 += std::complex<double>(0.0, -kk) * e;
-      x2 += -kk * kk * e;
+      const std::complex<double> v = (y[k] - mean) * e;
+      x0 += v;
+      x1 += std::complex<double>(0.0, -kk) * v;
+      x2 += -kk * kk * v;
+      e *= step;
     }
     q = std::norm(x0);
     dq = 2.0 * std::real(x1 * std::conj(x0));
     ddq = 2.0 * (std::norm(x1) + std::real(x2 * std::conj(x0)));
   };
+  // |X|^2 alone, for the scan.
+  auto power = [&](double ww) {
+    std::complex<double> x0;
+    const std::complex<double> step = std::polar(1.0, -ww);
+    std::complex<double> e = 1.0;
+    for (size_t k = 0; k < y.size(); ++k) {
+      if ((k & 1023) == 0) e = std::polar(1.0, -ww * static_cast<double>(k));
+      x0 += (y[k] - mean) * e;
+      e *= step;
+    }
+    return std::norm(x0);
+  };
+  constexpr int kScan = 16;  // steps per bin: a fringe of a gapped recording is at least a bin wide
+  const double dw = 2.0 * kPi / n / kScan;
+  double w = 2.0 * kPi * k_bin / n, best = -1;
+  for (int j = -kScan; j <= kScan; ++j) {
+    const double wj = 2.0 * kPi * k_bin / n + j * dw;
+    const double qj = power(wj);
+    if (qj > best) w = wj, best = qj;
+  }
   double q = 0, dq = 0, ddq = 0;
   eval(w, q, dq, ddq);
+  const double w_lo = w - dw, w_hi = w + dw;
   for (int it = 0; it < 8 && ddq < 0.0; ++it) {
     const double wn = std::clamp(w - dq / ddq, w_lo, w_hi);
     double qn = 0, dqn = 0, ddqn = 0;
@@ -253,7 +281,7 @@ double refine_peak(const std::vector<double>& y, double k0, double k_bin) {
 /// `n`: the grid's length (frequency k fs / n); `present`: the samples on it (the amplitude: 2 |X_k| / present);
 /// `y`: the series on the grid (for the peaks' exact frequencies).
 std::vector<Peak> find_peaks(const std::vector<double>& P, const std::vector<double>& y, size_t n, size_t present,
-                             double fs, double duration) {
+                             double fs, double duration, const std::vector<double>& known = {}) {
   std::vector<Peak> out;
   if (P.size() < 16) return out;
   const double gmed = median(std::vector<double>(P.begin() + 1, P.end()));
@@ -262,7 +290,12 @@ std::vector<Peak> find_peaks(const std::vector<double>& P, const std::vector<dou
   for (size_t k = 2; k + 1 < P.size(); ++k) {
     const double f = static_cast<double>(k) * fs / static_cast<double>(n);
     if (f < fmin) continue;
-    if (P[k] > P[k - 1] && P[k] >= P[k + 1] && P[k] > 40 * gmed) cand.push_back(k);
+    if (!(P[k] > P[k - 1] && P[k] >= P[k + 1] && P[k] > 40 * gmed)) continue;
+    // A frequency already known (a peak found before): not searched again.
+    if (std::any_of(known.begin(), known.end(),
+                    [&](double fk) { return std::abs(fk - f) < 3 * fs / static_cast<double>(n); }))
+      continue;
+    cand.push_back(k);
   }
   std::sort(cand.begin(), cand.end(), [&](size_t a, size_t b) { return P[a] > P[b]; });
   if (cand.size() > 60) cand.resize(60);
@@ -271,12 +304,8 @@ std::vector<Peak> find_peaks(const std::vector<double>& P, const std::vector<dou
     const size_t a = k > w ? k - w : 1, b = std::min(P.size() - 1, k + w);
     std::vector<double> loc(P.begin() + static_cast<std::ptrdiff_t>(a), P.begin() + static_cast<std::ptrdiff_t>(b));
     if (P[k] < 40 * median(loc)) continue;
-    // Parabolic interpolation of the peak on log power.
-    const double l = std::log(P[k - 1] + 1e-300), c = std::log(P[k]), r = std::log(P[k + 1] + 1e-300);
-    const double den = l - 2 * c + r;
-    const double d = std::abs(den) > 1e-12 ? std::clamp(0.5 * (l - r) / den, -0.5, 0.5) : 0.0;
     Peak pk;
-    pk.f = refine_peak(y, static_cast<double>(k) + d, static_cast<double>(k)) * fs / static_cast<double>(n);
+    pk.f = refine_peak(y, static_cast<double>(k)) * fs / static_cast<double>(n);
     pk.amp = 2.0 * std::sqrt(P[k]) / static_cast<double>(std::max<size_t>(present, 1));
     bool dup = false;
     for (const auto& q : out) dup |= std::abs(q.f - pk.f) < 3 * fs / static_cast<double>(n);
@@ -1262,7 +1291,7 @@ Report diagnose(sim::Recording& rec, const machine::Machine& m, const std::vecto
     for (int ci : F.fitc) {
       const Comp& c = comps[static_cast<size_t>(ci)];
       if ((c.kind == Kind::Tip && c.idx == w - 'x') || c.kind == Kind::PTip)
-        for (const auto& pk : peaks[static_cast<size_t>(ci)]) h.frequencies_hz.push_back(pk.f);
+        for (double f : hints[static_cast<size_t>(ci)].frequencies_hz) h.frequencies_hz.push_back(f);
     }
     return h;
   };
@@ -1276,7 +1305,8 @@ Report diagnose(sim::Recording& rec, const machine::Machine& m, const std::vecto
       m.serial && std::any_of(m.serial->table_chain.begin(), m.serial->table_chain.end(), [&](int j) {
         return m.serial->joints[static_cast<size_t>(j)].type == kin::AxisType::Rotary;
       });
-  if (fitted(Kind::PTip) && (fitted(Kind::Tip) || table_turns))
+  const bool tool_candidates = fitted(Kind::PTip) && (fitted(Kind::Tip) || table_turns);
+  if (tool_candidates)
     for (const char* c : {"tool.x", "tool.y", "tool.z"}) {
       protos.push_back(sim::make_effect("thermal_drift", c, m));
       growth(c);
@@ -1449,10 +1479,85 @@ Report diagnose(sim::Recording& rec, const machine::Machine& m, const std::vecto
     });
     return *std::max_element(worst.begin(), worst.end());
   };
+  // Spectral peaks of the residual under the model accepted so far. The first search, on the residual before any
+  // effect, misses a vibration that a large broadband effect hides (a 3 um vibration at 100 Hz beside the following
+  // error of a 10 ms lag on an XMINI leg): the lag's spectrum raises the local level around the peak. Searched again
+  // after each acceptance, new frequencies join the channel's vibration hints (and a vibration candidate is added
+  // where the channel had none), so the next step can screen them; the acceptance thresholds still decide. The
+  // spectrum is taken at full rate, on the regular grid as the first one: at an analysis stride of 1 the model's
+  // residual is there at every row; with a stride, the model's prediction between analysis samples is interpolated
+  // (a modelled vibration evaluated at every row, as it is faster than the stride), which never puts a frequency
+  // above the analysis samples' Nyquist frequency at its alias.
+  auto late_peaks = [&](const std::vector<const Effect*>& fx) {
+    std::vector<const Effect*> slow, vib;
+    for (const Effect* e : fx) (e->name() == "vibration" ? vib : slow).push_back(e);
+    Context tctx;  // time only: all a vibration reads
+    if (stride > 1 && !vib.empty()) tctx.t = t;
+    std::vector<std::vector<Peak>> found(comps.size());
+    const size_t nt = worker_threads();
+    on_workers(nt, [&](size_t w) {
+      for (size_t fi = w; fi < F.fitc.size(); fi += nt) {
+        const int ci = F.fitc[fi];
+        const Comp& c = comps[static_cast<size_t>(ci)];
+        std::vector<double> r(n, kNaN);
+        if (stride == 1) {
+          for (size_t k = 0; k < ma; ++k)
+            if (!std::isnan(c.res[k])) r[ctx.index[k]] = model_residual(F, fx, ci, k);
+        } else {
+          // The slow part of the prediction (offset, curvature term included) at the analysis samples.
+          std::vector<double> pred(ma, kNaN), sv(ma * vib.size(), 0.0);
+          for (size_t k = 0; k < ma; ++k) {
+            if (!std::isnan(c.res[k])) pred[k] = c.res_full[ctx.index[k]] - model_residual(F, slow, ci, k);
+            for (size_t v = 0; v < vib.size(); ++v)
+              if (F.reaches(c, *vib[v])) sv[k * vib.size() + v] = F.sens(c, *vib[v], k);
+          }
+          for (size_t k = 0; k < ma; ++k) {
+            const size_t a = ctx.index[k], b = k + 1 < ma ? ctx.index[k + 1] : n;
+            for (size_t i = a; i < b; ++i) {
+              if (std::isnan(c.res_full[i])) continue;
+              const double f = k + 1 < ma ? static_cast<double>(i - a) / static_cast<double>(b - a) : 0.0;
+              const double pa = pred[k], pb = k + 1 < ma ? pred[k + 1] : pa;
+              const double pi = std::isnan(pa) ? pb : std::isnan(pb) ? pa : (1 - f) * pa + f * pb;
+              if (std::isnan(pi)) continue;
+              double x = c.res_full[i] - pi;
+              for (size_t v = 0; v < vib.size(); ++v) {
+                const double sa = sv[k * vib.size() + v], sb = k + 1 < ma ? sv[(k + 1) * vib.size() + v] : sa;
+                x -= ((1 - f) * sa + f * sb) * vib[v]->value(tctx, i, vib[v]->p.data());
+              }
+              r[i] = x;
+            }
+          }
+        }
+        size_t present = 0;
+        const std::vector<double> y = on_grid(r, tg, present);
+        const auto P = periodogram(y);
+        found[static_cast<size_t>(ci)] =
+            find_peaks(P, y, ngrid, present, fs, duration, hints[static_cast<size_t>(ci)].frequencies_hz);
+      }
+    });
+    for (int ci : F.fitc) {
+      const auto& fk = found[static_cast<size_t>(ci)];
+      if (fk.empty()) continue;
+      auto& h = hints[static_cast<size_t>(ci)].frequencies_hz;
+      if (h.empty()) protos.push_back(sim::make_effect("vibration", comps[static_cast<size_t>(ci)].name, m));
+      for (const auto& pk : fk) h.push_back(pk.f);
+    }
+    if (tool_candidates)
+      for (const char* c : {"tool.x", "tool.y", "tool.z"})
+        if (!tool_hints(std::string(c).back()).frequencies_hz.empty() &&
+            std::none_of(protos.begin(), protos.end(), [&](const auto& e) {
+              return e->name() == "vibration" && e->scope() == Scope::Channel && e->channel == c;
+            }))
+          protos.push_back(sim::make_effect("vibration", c, m));
+  };
   double held_ms = weighted_ms(F, {}, true);
   const double held_ms_start = held_ms;
-  std::vector<char> event_only;                        // per accepted effect: judged on the training blocks (try_event)
-  std::vector<std::vector<std::string>> alternatives;  // per accepted effect: others that explain as well
+  std::vector<char> event_only;  // per accepted effect: judged on the training blocks (try_event)
+  // Per accepted effect: others that explain as well, by identity (name, target) and description.
+  struct Alternative {
+    std::string name, target, what;
+  };
+  std::vector<std::vector<Alternative>> alternatives;
   std::vector<std::vector<double>> cur(comps.size());
   for (int step = 0; step < o.max_effects; ++step) {
     // The curvature term of the effects accepted so far; where it is more than a tenth of the noise, the effects
@@ -1463,6 +1568,7 @@ Report diagnose(sim::Recording& rec, const machine::Machine& m, const std::vecto
       held_ms = weighted_ms(F, view(model), true);
     }
     const auto fx = view(model);
+    if (!model.empty()) late_peaks(fx);
     for (int ci : F.fitc) {
       auto& v = cur[static_cast<size_t>(ci)];
       v.resize(sidx.size());
@@ -1590,7 +1696,7 @@ Report diagnose(sim::Recording& rec, const machine::Machine& m, const std::vecto
     }
     // The others that leave a held-out residual larger by less than an effect must explain to count: the recording
     // cannot tell them from the one chosen.
-    std::vector<std::string> same;
+    std::vector<Alternative> same;
     double chosen_ms = 0.0;
     for (const auto& [pi, ms, what] : refits)
       if (pi == bi) chosen_ms = ms;
@@ -1601,8 +1707,8 @@ Report diagnose(sim::Recording& rec, const machine::Machine& m, const std::vecto
       if (pi != bi && ms - chosen_ms <= thr && held_ms - chosen_ms > thr &&
           (res[pi].e->name() != res[bi].e->name() || res[pi].e->target != res[bi].e->target) &&
           !(lag(res[pi].e->name()) && lag(res[bi].e->name()) && res[pi].e->target == res[bi].e->target) &&
-          std::find(same.begin(), same.end(), what) == same.end())
-        same.push_back(what);
+          std::none_of(same.begin(), same.end(), [&](const Alternative& a) { return a.what == what; }))
+        same.push_back({res[pi].e->name(), res[pi].e->target, what});
     auto trial = model_with(std::move(res[bi].e));
     joint_fit(F, fit_view(trial));
     const double new_ms = weighted_ms(F, view(trial), true);
@@ -1641,7 +1747,16 @@ Report diagnose(sim::Recording& rec, const machine::Machine& m, const std::vecto
     fd.effect = model[i]->clone();
     // An effect the held-out blocks do not reach is judged, and its figures taken, on the training blocks.
     fd.judged_on_training = event_only[i] != 0;
-    if (i < alternatives.size()) fd.alternatives = alternatives[i];
+    // An alternative that is itself in the model (accepted before or after this one) is no alternative: the
+    // recording told it apart, as a finding of its own. (A plain lag and its first-order form are one effect.)
+    if (i < alternatives.size())
+      for (const auto& a : alternatives[i]) {
+        const bool accepted = std::any_of(model.begin(), model.end(), [&](const auto& e) {
+          return e->target == a.target &&
+                 (e->name() == a.name || (is_lag(*e) && (a.name == "servo_lag" || a.name == "servo_lag_1st")));
+        });
+        if (!accepted) fd.alternatives.push_back(a.what);
+      }
     const bool on_held = !fd.judged_on_training;
     if (fd.effect->name() == "vibration") fd.effect->note = source_of(fd.effect->p[0], rpm, flutes, sample_hz);
     // The group where it matters most, and its dominant component. Before/after are judged where the effect
