@@ -1535,9 +1535,11 @@ Report diagnose(sim::Recording& rec, const machine::Machine& m, const std::vecto
             find_peaks(P, y, ngrid, present, fs, duration, hints[static_cast<size_t>(ci)].frequencies_hz);
       }
     });
+    bool added = false;
     for (int ci : F.fitc) {
       const auto& fk = found[static_cast<size_t>(ci)];
       if (fk.empty()) continue;
+      added = true;
       auto& h = hints[static_cast<size_t>(ci)].frequencies_hz;
       if (h.empty()) protos.push_back(sim::make_effect("vibration", comps[static_cast<size_t>(ci)].name, m));
       for (const auto& pk : fk) h.push_back(pk.f);
@@ -1549,6 +1551,16 @@ Report diagnose(sim::Recording& rec, const machine::Machine& m, const std::vecto
               return e->name() == "vibration" && e->scope() == Scope::Channel && e->channel == c;
             }))
           protos.push_back(sim::make_effect("vibration", c, m));
+    return added;
+  };
+  // Searched when the greedy steps would stop (nothing else explains enough), once per model: a spectrum of every
+  // fitted channel at full rate costs about as much as a step on a long recording, and a hidden vibration is found
+  // as well last as in between.
+  std::size_t peaks_searched_at = 0;  // the model size of the last late search (0: none)
+  auto search_again = [&]() {
+    if (model.empty() || peaks_searched_at == model.size()) return false;
+    peaks_searched_at = model.size();
+    return late_peaks(view(model));
   };
   double held_ms = weighted_ms(F, {}, true);
   const double held_ms_start = held_ms;
@@ -1568,7 +1580,6 @@ Report diagnose(sim::Recording& rec, const machine::Machine& m, const std::vecto
       held_ms = weighted_ms(F, view(model), true);
     }
     const auto fx = view(model);
-    if (!model.empty()) late_peaks(fx);
     for (int ci : F.fitc) {
       auto& v = cur[static_cast<size_t>(ci)];
       v.resize(sidx.size());
@@ -1654,7 +1665,7 @@ Report diagnose(sim::Recording& rec, const machine::Machine& m, const std::vecto
       return true;
     };
     if (order.empty()) {
-      if (try_event()) continue;
+      if (search_again() || try_event()) continue;
       break;
     }
     std::sort(order.begin(), order.end(), [&](size_t a, size_t b) { return score(a) > score(b); });
@@ -1715,7 +1726,7 @@ Report diagnose(sim::Recording& rec, const machine::Machine& m, const std::vecto
     const bool ok = std::all_of(trial.begin(), trial.end(), [&](const auto& e) { return plausible(*e, sample_s); });
     if (!ok || held_ms - new_ms <= thr) {
       F.off = off_save;
-      if (try_event()) continue;
+      if (search_again() || try_event()) continue;
       break;
     }
     held_ms = new_ms;
