@@ -132,6 +132,7 @@ struct TimeGrid {
   size_t gaps = 0, missing = 0;  ///< time steps longer than 1.5 intervals, and the rows they leave out
   double largest_gap_s = 0, largest_gap_at_s = 0;
   size_t off_grid = 0;        ///< rows more than a quarter interval off their slot (jittered stamps)
+  double scatter_s = 0;       ///< robust RMS of the stamps about their slots (1.4826 x the median |offset|), s
   bool stretch_only = false;  ///< the grid would be mostly empty: only the longest stretch without a gap is used
   static constexpr size_t kNoSlot = std::numeric_limits<size_t>::max();
 };
@@ -172,11 +173,23 @@ TimeGrid time_grid(const std::vector<double>& t) {
   // longest regular stretch tells the frequencies better then.
   size_t a = 0, b = n;
   if (span > 4.0 * static_cast<double>(n) && best_len >= 64) a = best_a, b = best_b, g.stretch_only = true;
+  // The scatter about the clock's phase (the circular mean of the stamps' fractional positions: the first stamp's own
+  // offset must not bias every other).
+  double sum_c = 0.0, sum_s = 0.0;
   for (size_t i = a; i < b; ++i) {
     const double x = (t[i] - t[a]) / g.dt;
     g.slot[i] = static_cast<size_t>(std::llround(x));
     if (std::abs(x - static_cast<double>(g.slot[i])) > 0.25) ++g.off_grid;
+    sum_c += std::cos(2.0 * kPi * x), sum_s += std::sin(2.0 * kPi * x);
   }
+  const double phase = std::atan2(sum_s, sum_c) / (2.0 * kPi);
+  std::vector<double> off;
+  off.reserve(b - a);
+  for (size_t i = a; i < b; ++i) {
+    const double x = (t[i] - t[a]) / g.dt - phase;
+    off.push_back(std::abs(x - std::round(x)));
+  }
+  g.scatter_s = 1.4826 * median(std::move(off)) * g.dt;
   g.slots = g.slot[b - 1] + 1;
   return g;
 }
@@ -625,12 +638,14 @@ double sample_interval(const Context& c) {
 
 /// Physical plausibility: an explanation that needs, e.g., a 0.3 % scale error or a friction spike that decays
 /// over seconds is another effect in disguise (or one outside the library), not a finding. And resolution: the
-/// recording is sampled every `sample_s` seconds.
-bool plausible(const Effect& e, double sample_s) {
+/// recording is sampled every `sample_s` seconds, from `t_first` to `t_last`.
+bool plausible(const Effect& e, double sample_s, double t_first, double t_last) {
   const std::string n = e.name();
   // A spike that decays within one sample interval shows at one sample per reversal at most, where it cannot be told
   // from where the reversal fell between two samples (it would absorb the misfit of a lost motion taken up there).
   if (n == "friction_spike" && e.p[1] < sample_s) return false;
+  // Likewise a first-order lag whose time constant is shorter than a sample interval is a plain lag to the recording.
+  if (n == "servo_lag_1st" && e.p[1] < sample_s) return false;
   const double a = std::abs(e.p[0]);
   if (n == "scale") return a <= 1000;                                         // ppm
   if (n == "thermal_scale") return a <= 1000 && e.p[1] > 0;                   // ppm at the end of the run
@@ -643,8 +658,11 @@ bool plausible(const Effect& e, double sample_s) {
   if (n == "thermal_drift") return e.p[1] > 0 && a <= 1.0;                    // mm over the run (a wrong machine: 28)
   if (n == "thermal_growth") return a <= 0.1;                                 // mm/degC (steel: 0.012 per metre)
   if (n == "thermal_expansion") return a <= 100;                              // ppm/degC (steel 12, aluminium 23)
-  if (n == "step") return a <= 1.0;                                           // mm
-  if (n == "vibration") return std::hypot(e.p[1], e.p[2]) <= 1.0;             // mm amplitude
+  if (n == "step") {  // mm; and samples on both sides: at a run's first or last few it is an outlier, not a step
+    const double edge = std::max(10.0 * sample_s, 0.01 * (t_last - t_first));
+    return a <= 1.0 && e.p[1] >= t_first + edge && e.p[1] <= t_last - edge;
+  }
+  if (n == "vibration") return std::hypot(e.p[1], e.p[2]) <= 1.0;  // mm amplitude
   if (n == "geometric") return a <= 1.0;  // mm or deg: linearised at nominal, valid for tens of micrometres
   if (n == "cyclic") return std::hypot(e.p[1], e.p[2]) <= 1.0;  // mm or deg amplitude
   return true;
@@ -753,7 +771,7 @@ Candidate screen(const Fit& f, const Effect& proto, const std::vector<size_t>& s
       auto cand = proto.clone();
       cand->p = g;
       for (size_t l = 0; l < nl; ++l) cand->p[static_cast<size_t>(L[l])] = x(static_cast<Eigen::Index>(l));
-      if (!plausible(*cand, sample_s)) continue;
+      if (!plausible(*cand, sample_s, f.ctx->t_full.front(), f.ctx->t_full.back())) continue;
       if (event && train_before - train_after > best.event_train_gain) {
         best.event = cand->clone();
         best.event_train_gain = train_before - train_after;
@@ -1105,6 +1123,61 @@ Report diagnose(sim::Recording& rec, const machine::Machine& m, const std::vecto
     for (const auto& c : comps)
       if (c.group == g) s += c.sigma * c.sigma;
     R.noise.emplace_back(g, std::sqrt(s));
+  }
+  // A time column in another unit than seconds: the commanded speeds come out a thousand (milliseconds) or sixty
+  // (minutes) times off, far beyond the axes' max_feed or far below any feed, and every effect that depends on time
+  // is fitted to nonsense.
+  if (n > 2) {
+    double peak_ratio = 0.0;  // the largest commanded speed / max_feed over the slides with a max_feed
+    std::string fastest;
+    for (int j = 0; j < 5; ++j) {
+      const auto& ax = m.axes[static_cast<size_t>(j)];
+      if (ax.rotary() || !(ax.max_feed > 0)) continue;
+      double peak = 0.0;
+      for (size_t i = 1; i < n; ++i)
+        peak = std::max(peak, std::abs(cmd[i][j] - cmd[i - 1][j]) / std::max(t[i] - t[i - 1], 1e-12) * 60.0);
+      if (peak / ax.max_feed > peak_ratio) peak_ratio = peak / ax.max_feed, fastest = ax.name;
+    }
+    const double dt_s = tg.dt > 0 ? tg.dt : (t.back() - t.front()) / static_cast<double>(n - 1);
+    if (peak_ratio > 2.0)
+      R.warnings.push_back(fmt::format(
+          "the command moves {} at up to {:.3g} times its max_feed: is t in seconds (spec/recording.md)? A time in "
+          "minutes makes every speed 60 times too high",
+          fastest, peak_ratio));
+    else if (peak_ratio > 0 && peak_ratio < 1e-3 && dt_s >= 0.5)
+      R.warnings.push_back(fmt::format(
+          "the slides move at most {:.2g} of their max_feed, sampled every {:.4g} s: is t in seconds "
+          "(spec/recording.md)? A time in milliseconds makes every speed 1000 times too low and every time-dependent "
+          "finding meaningless",
+          peak_ratio, dt_s));
+  }
+  // Stamps that scatter about a regular clock, where the samples themselves were taken on it (a logger that stamps
+  // late by a varying delay), move each sample along the path by its speed times the scatter: white noise that grows
+  // with speed, which speed-dependent effects (lags, compliance) and steps then partly fit. Told where it reaches a
+  // third of the noise at the program's speeds (the slides' RMS speed, the fastest slide's).
+  if (tg.scatter_s > 0 && n > 2) {
+    double v_rms = 0.0;
+    for (int j = 0; j < 5; ++j) {
+      if (m.axes[static_cast<size_t>(j)].rotary()) continue;
+      double s2 = 0.0;
+      for (size_t i = 1; i < n; ++i) {
+        const double v = (cmd[i][j] - cmd[i - 1][j]) / std::max(t[i] - t[i - 1], 1e-12);
+        s2 += v * v;
+      }
+      v_rms = std::max(v_rms, std::sqrt(s2 / static_cast<double>(n - 1)));
+    }
+    double noise_mm = 0.0;
+    for (const auto& [g, v] : R.noise)
+      if (g == "tip" || g == "ptip") noise_mm = std::max(noise_mm, v);
+    const double moved_mm = v_rms * tg.scatter_s;
+    if (noise_mm > 0 && moved_mm > noise_mm / 3.0)
+      R.warnings.push_back(fmt::format(
+          "time stamps scatter by {:.3g} ms RMS about a regular {:.4g} s clock ({:.1f} % of the interval): if the "
+          "samples were taken on the clock and only their stamps scatter, each moves along the path by its speed "
+          "times the scatter, {:.2f} um RMS at this program's speeds (noise {:.2f} um); speed-dependent findings "
+          "(servo "
+          "lag, compliance) and steps may then be the clock's",
+          1e3 * tg.scatter_s, tg.dt, 100.0 * tg.scatter_s / tg.dt, 1e3 * moved_mm, 1e3 * noise_mm));
   }
   R.seconds.emplace_back("noise_and_spectra", secs(tstage));
   tstage = Clock::now();
@@ -1652,7 +1725,8 @@ Report diagnose(sim::Recording& rec, const machine::Machine& m, const std::vecto
       auto trial = model_with(std::move(res[ei].event));
       joint_fit(F, fit_view(trial));
       const double new_train = weighted_ms(F, view(trial), false), new_held = weighted_ms(F, view(trial), true);
-      const bool ok = std::all_of(trial.begin(), trial.end(), [&](const auto& e) { return plausible(*e, sample_s); });
+      const bool ok = std::all_of(trial.begin(), trial.end(),
+                                  [&](const auto& e) { return plausible(*e, sample_s, t.front(), t.back()); });
       if (!ok || (train_ms - new_train) * static_cast<double>(n_train_values) <= 2.0 * o.min_gain_sum ||
           new_held > held_ms + 0.5 * thr) {
         F.off = off_save;
@@ -1679,7 +1753,8 @@ Report diagnose(sim::Recording& rec, const machine::Machine& m, const std::vecto
       for (size_t pi : order) {
         auto tr = model_with(res[pi].e->clone());
         joint_fit(F, fit_view(tr), sstride);
-        const bool ok = std::all_of(tr.begin(), tr.end(), [&](const auto& e) { return plausible(*e, sample_s); });
+        const bool ok = std::all_of(tr.begin(), tr.end(),
+                                    [&](const auto& e) { return plausible(*e, sample_s, t.front(), t.back()); });
         const double raw_ms = weighted_ms(F, view(tr), true);
         const double ms = raw_ms * (res[pi].e->scope() == Scope::Geometric ? 1.03 : 1.0);
         F.off = off_save;
@@ -1723,7 +1798,8 @@ Report diagnose(sim::Recording& rec, const machine::Machine& m, const std::vecto
     auto trial = model_with(std::move(res[bi].e));
     joint_fit(F, fit_view(trial));
     const double new_ms = weighted_ms(F, view(trial), true);
-    const bool ok = std::all_of(trial.begin(), trial.end(), [&](const auto& e) { return plausible(*e, sample_s); });
+    const bool ok = std::all_of(trial.begin(), trial.end(),
+                                [&](const auto& e) { return plausible(*e, sample_s, t.front(), t.back()); });
     if (!ok || held_ms - new_ms <= thr) {
       F.off = off_save;
       if (search_again() || try_event()) continue;
