@@ -73,7 +73,7 @@ void BM_PostPipeline(benchmark::State& state) {
   auto checks = std::make_shared<std::vector<std::shared_ptr<cscam::cspace::PathCheck>>>();
   auto checks_mutex = std::make_shared<std::mutex>();
   if (bodies)
-    go.make_collision = [space, checks, checks_mutex]() -> cscam::gate::Options::CollisionCheck {
+    go.make_collision = [space, checks, checks_mutex](int) -> cscam::gate::Options::CollisionCheck {
       auto check = std::make_shared<cscam::cspace::PathCheck>(space);
       {
         const std::lock_guard<std::mutex> lock(*checks_mutex);

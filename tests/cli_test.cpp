@@ -1776,9 +1776,8 @@ TEST(Cli, LinuxcncToolTipControlWarnsOffTheTrunnionsItsKinematicsDescribe) {
 
 // The planner checks and posts every move for one cutter: a program that changes to a cutter of another shape is
 // refused at the first move of that cutter (a ball after a flat end mill was planned with the flat one, and the
-// gate refused the tilted ball's program as leaving the path). The conventional post says which cutter its check of
-// the machine's bodies used.
-TEST(Cli, ThePlannerRefusesASecondCutterShapeAndThePostSaysWhichItChecked) {
+// gate refused the tilted ball's program as leaving the path). The conventional post takes it.
+TEST(Cli, ThePlannerRefusesASecondCutterShapeAndThePostTakesIt) {
   TempDir d;
   const std::string cl = d.file("two.cls",
                                 "UNITS/MM\nMULTAX/ON\nCUTTER/10,0,0,0,0,0,40\nLOADTL/1\nSPINDL/RPM,6000,CLW\nRAPID\n"
@@ -1800,8 +1799,32 @@ TEST(Cli, ThePlannerRefusesASecondCutterShapeAndThePostSaysWhichItChecked) {
   const std::string out = d.file("post.ngc");
   const auto r = run_command(kCli + " post " + q(cl) + " --machine trunnion-ac -o " + q(out));
   EXPECT_EQ(r.status, 0) << r.output;
-  EXPECT_NE(r.output.find("tool 2 has another shape than tool 1: the moves are checked against the machine's bodies "
-                          "with tool 1's shape only"),
-            std::string::npos)
-      << r.output;
+}
+
+// The conventional post's gate checks each move with the cutter in the spindle: a D10 end mill cuts beside the
+// trunnion's +x cradle arm (5 mm of x between its body and the arm), then a D40 follows the same path and its body
+// runs 15 mm into the arm. Checked with the first cutter only, the program was written. Control: the same program
+// with a second D10 passes; the D40 alone is refused as well.
+TEST(Cli, TheConventionalPostChecksEveryToolWithItsOwnCutter) {
+  TempDir d;
+  auto program = [](const std::string& second) {
+    std::string cl =
+        "UNITS/MM\nMULTAX/ON\nCUTTER/10,0,0,0,0,0,20\nLOADTL/1\nSPINDL/RPM,6000,CLW\nRAPID\n"
+        "GOTO/100,-20,60,0,0,1\nFEDRAT/MMPM,600\nGOTO/100,-20,10,0,0,1\nGOTO/100,20,10,0,0,1\nRAPID\n"
+        "GOTO/100,20,60,0,0,1\n";
+    cl += second +
+          "LOADTL/2\nRAPID\nGOTO/100,-20,60,0,0,1\nFEDRAT/MMPM,600\nGOTO/100,-20,10,0,0,1\n"
+          "GOTO/100,20,10,0,0,1\nRAPID\nGOTO/100,20,60,0,0,1\nEND\n";
+    return cl;
+  };
+  const std::string bad = d.file("d40.cls", program("CUTTER/40,0,0,0,0,0,30\n"));
+  const std::string out = d.file("d40.ngc");
+  auto r = run_command(kCli + " post " + q(bad) + " --machine trunnion-ac -o " + q(out));
+  EXPECT_EQ(r.status, 2) << r.output;
+  EXPECT_NE(r.output.find("hits machine cradle arm +x"), std::string::npos) << r.output;
+  EXPECT_NE(r.output.find("d40.cls:18)"), std::string::npos) << "the second tool's cut\n" << r.output;
+  EXPECT_FALSE(fs::exists(out));
+  const std::string good = d.file("d10.cls", program("CUTTER/10,0,0,0,0,0,20\n"));
+  r = run_command(kCli + " post " + q(good) + " --machine trunnion-ac -o " + q(d.file("d10.ngc")));
+  EXPECT_EQ(r.status, 0) << r.output;
 }

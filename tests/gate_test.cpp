@@ -55,9 +55,9 @@ Posted post_program(const cl::Program& prog, const machine::Machine& m, const ki
 }
 
 /// The gate's collision check against `space` (which must outlive it): one workspace and counters per worker.
-std::function<gate::Options::CollisionCheck()> collision_against(const cspace::Space& space) {
-  // As the commands do: a path check per worker (the space is the caller's: not owned).
-  return [&space]() -> gate::Options::CollisionCheck {
+std::function<gate::Options::CollisionCheck(int)> collision_against(const cspace::Space& space) {
+  // As the commands do: a path check per worker (the space is the caller's: not owned), one cutter for every tool.
+  return [&space](int) -> gate::Options::CollisionCheck {
     auto check =
         std::make_shared<cspace::PathCheck>(std::shared_ptr<const cspace::Space>(std::shared_ptr<void>(), &space));
     return [check](const kin::Axes& q, bool whole_tool) {

@@ -398,3 +398,23 @@ TEST(NcReader, SpindleStopsCoverTheBlocksReadWhileItIsStopped) {
   EXPECT_EQ(h.spindle_stops[0].first_block, 1u);
   EXPECT_EQ(h.spindle_stops[0].end_block, 2u);
 }
+
+// Which tool is in the spindle at each block, as the gate checks every move with its own cutter: a tool change is an
+// M6 (with its T word, or after it on a line of its own, as Sinumerik writes it) or a Heidenhain TOOL CALL with a tool
+// number; "TOOL CALL Z S..." alone only sets the spindle speed.
+TEST(NcReader, ToolChangesAreCountedBlockByBlock) {
+  const auto g = nc::read_text(
+      "G21 G90\nG0 X0 Y0 Z50 B0 C0\nT1 M6\nG43 H1\nG1 X1 F100\nT2\nG1 X2\nM6\nG43 H2\nG1 X3\nT3 M6\nG43 H3\nG0 Z60\n",
+      "t.ngc", xyzbc());
+  ASSERT_EQ(g.blocks.size(), 5u);
+  const std::vector<int> expected{0, 1, 1, 2, 3};  // before any change; T2 alone preselects
+  for (std::size_t i = 0; i < expected.size(); ++i) EXPECT_EQ(g.blocks[i].tool_changes, expected[i]) << i;
+  const auto h = nc::read_text(
+      "0 BEGIN PGM P MM\n1 L X+0 Y+0 Z+50 B+0 C+0 R0 FMAX\n2 TOOL CALL 4 Z\n3 TOOL CALL Z S8000\n4 L X+1 R0 F100\n"
+      "5 TOOL CALL \"D6\" Z\n6 L X+2 R0 F100\n7 END PGM P MM\n",
+      "t.h", xyzbc());
+  ASSERT_EQ(h.blocks.size(), 3u);
+  EXPECT_EQ(h.blocks[0].tool_changes, 0);
+  EXPECT_EQ(h.blocks[1].tool_changes, 1);
+  EXPECT_EQ(h.blocks[2].tool_changes, 2);
+}

@@ -274,7 +274,7 @@ void run_job(const PostJob& job, JobResult& r) {
       scene_args.cl = job.cl;
       scene_args.parts = job.parts;
       scene_args.fixtures = job.fixtures;
-      go.make_collision = collision_for_post(m, kin, L, prog.tools, scene_args, r.warnings);
+      go.make_collision = collision_for_post(m, kin, L, prog, scene_args, r.warnings);
     }
     auto gate_and_write = [&] {
       gs = gate::write_checked(job.out, nc_text, prog, m, *kin, go, &sum.cl_line_of_nc_line,

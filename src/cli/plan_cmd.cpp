@@ -283,17 +283,6 @@ void add_scene(Setup& s, const PlanArgs& a, const std::vector<cl::Tool>& tools, 
   // safety gate still check against them (as with --no-collision).
   if (!s.m.geometry.bodies.empty() && !s.tool)
     s.warn(a.cl + ": no CUTTER/ or TLDATA/: the machine's bodies are not checked");
-  // (The planner refuses a second cutter shape: refuse_a_second_cutter. The post's gate checks with the first.)
-  if (!require_tool && t && !s.m.geometry.bodies.empty())
-    for (const auto& tt : tools)
-      if (tt.diameter_mm > 0 && (tt.diameter_mm != t->diameter_mm || tt.corner_radius_mm != t->corner_radius_mm ||
-                                 tt.length_mm != t->length_mm)) {
-        s.warn(
-            fmt::format("{}: tool {} has another shape than tool {}: the moves are checked against the machine's "
-                        "bodies with tool {}'s shape only (post each tool's operations separately to check each)",
-                        a.cl, tt.number, t->number, t->number));
-        break;
-      }
   if (!s.m.geometry.bodies.empty() && s.tool) {
     const double lift = std::max(0.0, s.tool->gauge_length_mm() - s.tool_length);
     auto bodies = cspace::add_machine_bodies(s.m, lift, s.scene, s.head);
@@ -373,7 +362,8 @@ gate::Options gate_options(const Setup& s, const PlanArgs& a, double cone_deg) {
     auto space =
         std::make_shared<const cspace::Space>(s.kin, &s.scene, s.tool.get(), co, s.has_head ? &s.head : nullptr);
     // One path check per worker: the gate's samples come in path order, so most are covered by a certificate.
-    g.make_collision = [space]() -> gate::Options::CollisionCheck {
+    g.make_collision =
+        [space](int /*tool_changes: the planner's program has one cutter*/) -> gate::Options::CollisionCheck {
       auto check = std::make_shared<cspace::PathCheck>(space);
       return [check](const kin::Axes& q, bool whole_tool) {
         return (*check)(q, whole_tool ? cspace::SweepMode::Rapid : cspace::SweepMode::Cutting);
@@ -758,22 +748,70 @@ void common_options(CLI::App* c, PlanArgs& a) {
 
 }  // namespace
 
-std::function<gate::Options::CollisionCheck()> collision_for_post(const machine::Machine& m,
-                                                                  std::shared_ptr<const kin::Kinematics> kin,
-                                                                  double tool_length,
-                                                                  const std::vector<cl::Tool>& tools, const PlanArgs& a,
-                                                                  std::vector<std::string>& warnings) {
-  auto s = std::make_shared<Setup>();
-  s->warnings = &warnings;
-  s->m = m;
-  s->tool_length = tool_length;
-  s->kin = std::move(kin);
-  add_scene(*s, a, tools, false);
-  s->warnings = nullptr;  // (the setup outlives this call: nothing may point at the caller's list)
-  auto make = gate_options(*s, a, 0.0).make_collision;
-  if (!make) return {};
-  // The scene lives as long as the checks that use it.
-  return [s, make = std::move(make)]() { return make(); };
+std::function<gate::Options::CollisionCheck(int)> collision_for_post(const machine::Machine& m,
+                                                                     const std::shared_ptr<const kin::Kinematics>& kin,
+                                                                     double tool_length, const cl::Program& prog,
+                                                                     const PlanArgs& a,
+                                                                     std::vector<std::string>& warnings) {
+  // The scene with the CL's first cutter: the moves before any tool change, and any tool without a size of its own.
+  auto first = std::make_shared<Setup>();
+  first->warnings = &warnings;
+  first->m = m;
+  first->tool_length = tool_length;
+  first->kin = kin;
+  add_scene(*first, a, prog.tools, false);
+  first->warnings = nullptr;  // (the setup outlives this call: nothing may point at the caller's list)
+  auto make_first = gate_options(*first, a, 0.0).make_collision;
+  if (!make_first) return {};
+  // Each tool change's cutter, in the program's order (the k-th change of the NC program loads the k-th tool of the
+  // CL's changes, as the post writes them), a scene per distinct shape: each move is checked with the cutter that
+  // cuts it.
+  using Make = std::function<gate::Options::CollisionCheck(int)>;
+  std::vector<std::shared_ptr<Setup>> keep{first};
+  std::vector<Make> by_change{make_first};  // [k]: after the k-th tool change (0: before any)
+  std::vector<std::pair<const cl::Tool*, Make>> shapes;
+  const cl::Tool* first_tool = nullptr;
+  for (const auto& t : prog.tools)
+    if (t.diameter_mm > 0) {
+      first_tool = &t;
+      break;
+    }
+  auto same_shape = [](const cl::Tool& x, const cl::Tool& y) {
+    return x.diameter_mm == y.diameter_mm && x.corner_radius_mm == y.corner_radius_mm && x.length_mm == y.length_mm;
+  };
+  for (const cl::Event& e : prog.events) {
+    if (e.kind != cl::Event::Kind::ToolChange) continue;
+    const cl::Tool* t = e.tool_index >= 0 && static_cast<std::size_t>(e.tool_index) < prog.tools.size()
+                            ? &prog.tools[static_cast<std::size_t>(e.tool_index)]
+                            : nullptr;
+    if (!t || !(t->diameter_mm > 0) || !first_tool || same_shape(*t, *first_tool)) {
+      by_change.push_back(make_first);
+      continue;
+    }
+    Make make;
+    for (const auto& [shape, mk] : shapes)
+      if (same_shape(*shape, *t)) make = mk;
+    if (!make) {
+      auto s = std::make_shared<Setup>();
+      std::vector<std::string> again;  // the meshes' warnings were given with the first cutter's scene
+      s->warnings = &again;
+      s->m = m;
+      s->tool_length = tool_length;
+      s->kin = kin;
+      add_scene(*s, a, {*t}, false);
+      s->warnings = nullptr;
+      make = gate_options(*s, a, 0.0).make_collision;
+      keep.push_back(s);
+      shapes.emplace_back(t, make);
+    }
+    by_change.push_back(make);
+  }
+  // The scenes live as long as the checks that use them. A change the CL does not have (more in the NC than in the
+  // CL) is checked with the first cutter, as before the tools were told apart.
+  return [keep = std::move(keep), by_change = std::move(by_change)](int k) {
+    const std::size_t at = k >= 0 && static_cast<std::size_t>(k) < by_change.size() ? static_cast<std::size_t>(k) : 0;
+    return by_change[at](k);
+  };
 }
 
 PlanWritten plan_and_write(const PlanArgs& a, const std::string& out) {

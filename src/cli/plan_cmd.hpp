@@ -43,14 +43,14 @@ struct PlanWritten {
 PlanWritten plan_and_write(const PlanArgs& a, const std::string& out);
 
 /// The safety gate's collision check for a conventional post (gate::Options::make_collision): the moves against the
-/// machine file's bodies and meshes, and `a.parts` / `a.fixtures`, with the cutter of `tools` and the machine's holder,
-/// as the planner's programs are checked. Empty when there is nothing to check against, or no cutter size (then a
-/// warning).
-std::function<gate::Options::CollisionCheck()> collision_for_post(const machine::Machine& m,
-                                                                  std::shared_ptr<const kin::Kinematics> kin,
-                                                                  double tool_length,
-                                                                  const std::vector<cl::Tool>& tools, const PlanArgs& a,
-                                                                  std::vector<std::string>& warnings);
+/// machine file's bodies and meshes, and `a.parts` / `a.fixtures`, with the machine's holder and the cutter in the
+/// spindle: the CL's first cutter before any tool change, after the k-th change the cutter of `prog`'s k-th tool
+/// change. Empty when there is nothing to check against, or no cutter size (then a warning).
+std::function<gate::Options::CollisionCheck(int)> collision_for_post(const machine::Machine& m,
+                                                                     const std::shared_ptr<const kin::Kinematics>& kin,
+                                                                     double tool_length, const cl::Program& prog,
+                                                                     const PlanArgs& a,
+                                                                     std::vector<std::string>& warnings);
 
 /// Adds `plan` and `compare` to the app; returns a runner that executes whichever was chosen (or null).
 std::function<int()> add_plan_commands(CLI::App& app);

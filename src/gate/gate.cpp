@@ -5,6 +5,7 @@
 #include <algorithm>
 #include <cmath>
 #include <filesystem>
+#include <map>
 #include <stdexcept>
 #include <unordered_map>
 
@@ -285,7 +286,17 @@ Summary check(const std::string& nc_text, const std::string& nc_name, const cl::
     const double step = std::max(options.collision_step, 1e-6);
     const bool translate = kinematics.traits().linear_axes_translate;
     auto body = [&](const tbb::blocked_range<std::size_t>& r) {
-      const Options::CollisionCheck collides = options.make_collision();
+      std::map<int, Options::CollisionCheck> checks;  // per tool in the spindle (made when first needed)
+      int last_tool = -1;
+      const Options::CollisionCheck* last = nullptr;  // (the tool changes rarely: no lookup per sample)
+      auto collides = [&](int tool_changes, const kin::Axes& q, bool whole_tool) {
+        if (!last || tool_changes != last_tool) {
+          Options::CollisionCheck& c = checks[tool_changes];
+          if (!c) c = options.make_collision(tool_changes);
+          last = &c, last_tool = tool_changes;
+        }
+        return (*last)(q, whole_tool);
+      };
       std::vector<double> at;  // fractions of a block to check
       for (std::size_t c = r.begin(); c != r.end(); ++c) {
         const std::size_t b0 = 1 + c * kCollisionChunk, b1 = std::min(ncp.blocks.size(), 1 + (c + 1) * kCollisionChunk);
@@ -338,7 +349,7 @@ Summary check(const std::string& nc_text, const std::string& nc_name, const cl::
                   straight_rapid ? Eigen::Vector3d(tip_a + t * (tip_b - tip_a)) : kinematics.forward(q).tip_mm;
               whole_tool = std::min((tip - tip_a).norm(), (tip - tip_b).norm()) > options.rapid_contact_mm;
             }
-            if (std::string hit = collides(q, whole_tool); !hit.empty()) {
+            if (std::string hit = collides(b.tool_changes, q, whole_tool); !hit.empty()) {
               hits[c].emplace_back(bi, std::move(hit));
               break;
             }

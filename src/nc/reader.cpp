@@ -335,6 +335,13 @@ Program read_heidenhain(const std::string& text, const std::string& name, const 
       inch = s.find(" INCH") != std::string_view::npos;
       continue;
     }
+    if (s.rfind("TOOL CALL", 0) == 0) {
+      // A tool number or name loads a tool; "TOOL CALL Z S..." alone changes the spindle speed.
+      const std::string_view rest = trim(s.substr(9));
+      if (!rest.empty() && (is_digit(rest.front()) || rest.front() == '"' || rest.front() == '\'') &&
+          state.tool_changes < UINT16_MAX)
+        ++state.tool_changes;
+    }
     if (s.rfind("END PGM", 0) == 0) break;
     if (s.rfind("FUNCTION TCPM", 0) == 0) {
       prog.tcp = prog.tcp_words = tcp_on = true;
@@ -1037,6 +1044,8 @@ Program read_text(const std::string& text, const std::string& name, const AxisLe
             fmt::format("the work offset changes from {} to {}", offset_name(work_offset), offset_name(offset_word)));
       work_offset = offset_word;
     }
+    if (tool_change && state.tool_changes < UINT16_MAX)  // (a block without a position leaves `state` as is)
+      ++state.tool_changes, ++b.tool_changes;
     if (tool_change && uses_length_offset) {
       tlo_lost_line = lineno;
       tlo_lost_why = "a tool change (M6) without a new tool length offset (G43 H) before the next move";

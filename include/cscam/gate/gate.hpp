@@ -42,7 +42,9 @@ struct Options {
   double rapid_contact_mm = 10.0;
   /// Optional: makes a collision check for one worker (each keeps its own query workspace, so that the moves are
   /// checked in parallel). Applied inside every move, rapid or feed.
-  std::function<CollisionCheck()> make_collision;
+  /// The argument is the tool in the spindle, as nc::Block::tool_changes counts it (0: before the first tool change;
+  /// k: the tool the program's k-th change loads): a program with several tools is checked with each one's shape.
+  std::function<CollisionCheck(int tool_changes)> make_collision;
 };
 
 /// Options for a program posted with `tolerance_mm` / `axis_tolerance_deg` (0: the machine file's)

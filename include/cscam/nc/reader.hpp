@@ -7,6 +7,7 @@
 /// kinematics (report::resolve_work_planes). Haas G254 / G255 (dynamic work offset) keep the words as they are.
 #include <Eigen/Core>
 #include <array>
+#include <cstdint>
 #include <memory>
 #include <optional>
 #include <string>
@@ -79,6 +80,9 @@ struct Block {
   /// in the part frame. A program that switches TCP off for tilted planes has both kinds; report::resolve_work_planes
   /// turns the machine-word blocks into tip words.
   bool tcp = false;
+  /// Tool changes (M6, TOOL CALL) at or before this block: which of the program's tools is in the spindle, counted in
+  /// the order the program loads them (0: before the first change).
+  std::uint16_t tool_changes = 0;  ///< (16 bits: Block stays within two cache lines; saturates at 65535)
 };
 
 /// The axis values at parameter t in [0, 1] of block `b` travelled from `start` (the previous block's axes):
