@@ -678,7 +678,8 @@ TEST(Gate, AWalkThatCrossesItselfLaterIsJudgedWhereverItsTipCouldBe) {
 // A state change the read-back does not model moves the machine where the gate does not look: a coordinate shift,
 // rotation, scaling or mirror, offset data, a new work offset, a cancelled or changed length offset, a tool change
 // without one. Each, put in front of a cut (as an INSERT/ would), is refused at its own line, and verify fails on it;
-// the same words that change nothing (a cancel, the offset in force, the same H, a tool change with its G43) pass.
+// the same words that change nothing (a cancel, the offset in force, the same H, a tool change with its G43 and the
+// spindle started again) pass.
 TEST(Gate, AStateChangeTheReadBackDoesNotModelIsRefusedAtItsLine) {
   Fixture f;
   const auto lines = lines_of(f.posted.text);
@@ -700,7 +701,7 @@ TEST(Gate, AStateChangeTheReadBackDoesNotModelIsRefusedAtItsLine) {
     EXPECT_NE(v.message.find(fmt::format("t.ngc:{}:", cut)), std::string::npos) << w << ": " << v.message;
   }
   for (const std::vector<std::string> w :
-       {std::vector<std::string>{"G92.1"}, {"G54"}, {"G43 H1"}, {"G69"}, {"T5 M6", "G43 H5"}, {"G4 P1."}})
+       {std::vector<std::string>{"G92.1"}, {"G54"}, {"G43 H1"}, {"G69"}, {"T5 M6", "G43 H5", "M3"}, {"G4 P1."}})
     EXPECT_TRUE(f.run(with(w)).ok) << w.front() << ": " << f.run(with(w)).message;
   // After the last move it changes nothing the gate checks.
   auto l = lines;
@@ -736,5 +737,40 @@ TEST(Gate, AFeedMoveWithTheSpindleStoppedWhereTheClCutsIsRefused) {
     EXPECT_EQ(stopped.violations.front().cl_line, 11) << stopped.message;  // the GOTO after the INSERT
     EXPECT_TRUE(run("INSERT/M5\nINSERT/M3\n").ok) << run("INSERT/M5\nINSERT/M3\n").message;
     EXPECT_TRUE(run("SPINDL/OFF\n").ok) << run("SPINDL/OFF\n").message;
+  }
+}
+
+// A tool change stops the spindle (M6; LinuxCNC's interpreter reports STOP_SPINDLE_TURNING at CHANGE_TOOL). Where the
+// CL switched it on before the change and not again after it, the post restarts it as it was (it cut with the second
+// tool with the spindle stopped, and the gate passed that); a program without that restart is refused at the cut.
+TEST(Gate, TheSpindleStoppedByAToolChangeIsRestartedAndRequired) {
+  const auto m = load_machine("trunnion-ac");
+  const auto k = m.kinematics();
+  const cl::Program prog = cl::read_text(
+      "UNITS/MM\nMULTAX\nCUTTER/6\nLOADTL/1\nSPINDL/8000,CLW\nFEDRAT/MMPM,1000\nRAPID\nGOTO/0,0,20,0,0,1\n"
+      "GOTO/0,0,10,0,0,1\nGOTO/20,0,10,0,0,1\nRAPID\nGOTO/20,0,40,0,0,1\nCUTTER/8\nLOADTL/2\nRAPID\n"
+      "GOTO/0,20,20,0,0,1\nGOTO/0,20,10,0,0,1\nGOTO/20,20,10,0,0,1\n",
+      "t.cls");
+  for (const char* dialect : {"linuxcnc", "fanuc", "haas", "siemens"}) {
+    SCOPED_TRACE(dialect);
+    const auto axes = post::conventional_axes(prog, m, *k);
+    post::Options o;
+    o.dialect = dialect;
+    post::Summary sum;
+    std::ostringstream os;
+    post::write_nc(os, prog, m, *k, axes, o, sum);
+    std::string text = os.str();
+    const auto change = text.find("M6\n");
+    const auto second = text.find("M6\n", change + 1);
+    ASSERT_NE(second, std::string::npos) << text;
+    const auto restart = text.find("S8000 M3\n", second);
+    ASSERT_NE(restart, std::string::npos) << "restarted after the second change\n" << text;
+    const auto ok = gate::check(text, "t.nc", prog, m, *k, gate::options_for(m, 0, 0, 0), &sum.cl_line_of_nc_line);
+    EXPECT_TRUE(ok.ok) << ok.message;
+    text.replace(restart, 9, "(no M3)\n");  // the same line count: the NC -> CL line map still holds
+    const auto stopped = gate::check(text, "t.nc", prog, m, *k, gate::options_for(m, 0, 0, 0), &sum.cl_line_of_nc_line);
+    EXPECT_FALSE(stopped.ok) << text;
+    EXPECT_NE(stopped.message.find("spindle stopped (the tool change (M6) at line"), std::string::npos)
+        << stopped.message;
   }
 }

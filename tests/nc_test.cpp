@@ -418,3 +418,30 @@ TEST(NcReader, ToolChangesAreCountedBlockByBlock) {
   EXPECT_EQ(h.blocks[1].tool_changes, 1);
   EXPECT_EQ(h.blocks[2].tool_changes, 2);
 }
+
+// Motion the read-back cannot follow is not modelled (the gate refuses it, verify fails at its line): subprogram and
+// macro calls, cutter compensation, canned cycles, G28 through an intermediate point, a feed from where G53 left an
+// axis, a move after M30. NX's Haas post's own home moves (G53 G0 Z0, G91 G28 X0 Y0 between operations) are not.
+TEST(NcReader, MotionTheReadBackCannotFollowIsNotModelled) {
+  const std::string head = "G21 G90\nG0 X0 Y0 Z50 B0 C0\nG1 Z10 F100\n";
+  for (const auto& [line, says] : std::vector<std::pair<std::string, std::string>>{
+           {"M98 P1000", "M98 calls a subprogram"},
+           {"M99", "M99 returns from a subprogram"},
+           {"G65 P9000", "G65 calls a macro"},
+           {"G41 D1", "G41 offsets the tool"},
+           {"G81 Z-5 R2", "G81 is a canned cycle"},
+           {"G90 G28 Z0", "G28 goes home through an intermediate point"},
+           {"o100 call", "o-word 'call'"},
+           {"L100", "L100 calls a subprogram"},
+           {"G53 G0 Z0", "the move starts where G53 at line 4 left axis Z"},
+           {"M30", "a move after the program's end (M30 at line 4)"}}) {
+    const auto p = nc::read_text(head + line + "\nG1 X5 F100\nG1 X10\n", "u.ngc", xyzbc());
+    ASSERT_FALSE(p.unmodelled.empty()) << line;
+    EXPECT_NE(p.unmodelled.front().what.find(says), std::string::npos) << line << ": " << p.unmodelled.front().what;
+  }
+  const auto nx = nc::read_text(
+      "G21 G90\nG53 G0 Z0\nG91 G28 X0 Y0\nG91 G28 B0 C0\nG90\nT1 M6\nS1000 M3\nG0 X1 Y1 B0 C0\nG43 Z5 H1\n"
+      "G1 Z1 F100\nG1 X5\nG0 Z5\nG53 G0 Z0\nG91 G28 X0 Y0\nG90\nM30\n",
+      "nx.ngc", xyzbc());
+  EXPECT_TRUE(nx.unmodelled.empty()) << nx.unmodelled.front().what;
+}

@@ -1789,12 +1789,14 @@ Report diagnose(sim::Recording& rec, const machine::Machine& m, const std::vecto
     // (Not the chosen effect's own twin, seen or not by the encoder, nor a plain lag's first-order form, which only
     // generalises it; one line per explanation.)
     const auto lag = [](const std::string& n) { return n == "servo_lag" || n == "servo_lag_1st"; };
-    for (const auto& [pi, ms, what] : refits)
+    for (const auto& [pi, ms, what] : refits) {
+      const std::string& says = what;  // (a structured binding cannot be captured before C++20 in clang)
       if (pi != bi && ms - chosen_ms <= thr && held_ms - chosen_ms > thr &&
           (res[pi].e->name() != res[bi].e->name() || res[pi].e->target != res[bi].e->target) &&
           !(lag(res[pi].e->name()) && lag(res[bi].e->name()) && res[pi].e->target == res[bi].e->target) &&
-          std::none_of(same.begin(), same.end(), [&](const Alternative& a) { return a.what == what; }))
-        same.push_back({res[pi].e->name(), res[pi].e->target, what});
+          std::none_of(same.begin(), same.end(), [&](const Alternative& a) { return a.what == says; }))
+        same.push_back({res[pi].e->name(), res[pi].e->target, says});
+    }
     auto trial = model_with(std::move(res[bi].e));
     joint_fit(F, fit_view(trial));
     const double new_ms = weighted_ms(F, view(trial), true);

@@ -98,8 +98,8 @@ Summary check(const std::string& nc_text, const std::string& nc_name, const cl::
         const int cl_line = cl_line_of(b.line);
         if (const auto it = cl_running.find(cl_line); it != cl_running.end() && it->second) {
           add(Violation::Kind::Limit, b.line, cl_line,
-              fmt::format("feed move with the spindle stopped (M5 at line {}) where the CL cuts with it running",
-                          stop.line));
+              fmt::format("feed move with the spindle stopped ({} at line {}) where the CL cuts with it running",
+                          stop.what, stop.line));
           break;
         }
       }

@@ -12,6 +12,7 @@
 #include <fstream>
 #include <functional>
 #include <optional>
+#include <set>
 #include <sstream>
 
 #include "cscam/core/error.hpp"
@@ -258,14 +259,15 @@ class SpindleState {
       pending_ = 0;
       if (open_) p.spindle_stops.back().end_block = p.blocks.size();
       open_ = false;
-    } else if (m == 5 && ran_) {
+    } else if ((m == 5 || m == 6) && ran_) {  // a tool change stops the spindle too (M6; TOOL CALL n on a TNC)
       pending_ = lineno;
+      pending_what_ = m == 5 ? "M5" : "the tool change (M6)";
     }
   }
   /// At the start of every line: an M5 of an earlier line opens its stop here.
   void line(Program& p) {
     if (pending_ && !open_) {
-      p.spindle_stops.push_back({pending_, p.blocks.size(), p.blocks.size()});
+      p.spindle_stops.push_back({pending_, p.blocks.size(), p.blocks.size(), pending_what_});
       open_ = true;
     }
     pending_ = 0;
@@ -278,6 +280,7 @@ class SpindleState {
  private:
   bool ran_ = false, open_ = false;
   int pending_ = 0;
+  const char* pending_what_ = "M5";
 };
 
 /// Heidenhain conversational: "n L X+1.5 Y-2 Z+0 A+0 C+90 R0 F1500 M3" (FMAX: rapid), M128 / FUNCTION TCPM
@@ -339,8 +342,10 @@ Program read_heidenhain(const std::string& text, const std::string& name, const 
       // A tool number or name loads a tool; "TOOL CALL Z S..." alone changes the spindle speed.
       const std::string_view rest = trim(s.substr(9));
       if (!rest.empty() && (is_digit(rest.front()) || rest.front() == '"' || rest.front() == '\'') &&
-          state.tool_changes < UINT16_MAX)
+          state.tool_changes < UINT16_MAX) {
         ++state.tool_changes;
+        spindle.word(6, lineno, prog);
+      }
     }
     if (s.rfind("END PGM", 0) == 0) break;
     if (s.rfind("FUNCTION TCPM", 0) == 0) {
@@ -417,6 +422,8 @@ Program read_heidenhain(const std::string& text, const std::string& name, const 
       if (s.rfind("TRANS ", 0) == 0 && s.find("RESET") == std::string_view::npos)
         prog.unmodelled.push_back({lineno, fmt::format("{} transforms the coordinates", s), prog.blocks.size()});
     }
+    if (!is_l && (s.rfind("CALL LBL", 0) == 0 || s.rfind("CALL PGM", 0) == 0 || s.rfind("CYCL CALL", 0) == 0))
+      prog.unmodelled.push_back({lineno, fmt::format("{} calls a subprogram or cycle", s), prog.blocks.size()});
     if (!is_l) {  // M functions on their own line (M128 / M129, the spindle's)
       for (std::size_t a = 0; a < s.size();) {
         const std::size_t e = std::min(s.find(' ', a), s.size());
@@ -544,6 +551,9 @@ Program read_text(const std::string& text, const std::string& name, const AxisLe
   Block state;
   Motion motion = Motion::Rapid;
   bool inch = false, absolute = true, g93 = false, g435 = false;
+  int ended_line = 0, ended_word = 0;  // the program's end (M2 / M30), if read: -1 once a move after it was told
+  // Per axis: the line and G word (28, 30, 53) that last moved it home or in machine coordinates (0: none since).
+  std::array<std::pair<int, int>, 5> left_at{};
   bool tcp_on =
       false;  // tool-tip control in force: G43.4/G43.5/G234 ... G49 (or G43), M428 ... M429, TRAORI ... TRAFOOF
   int plane = 17;
@@ -662,6 +672,7 @@ Program read_text(const std::string& text, const std::string& name, const AxisLe
     std::optional<double> f_word;
     int offset_word = 0;  // G54 ... G59.3, G500 (x10) in this block
     bool length_offset = false, length_cancel = false, tool_change = false;
+    int home_word = 0;  // G28 / G30 (to home, through an intermediate point) or G53 (machine coordinates) in this block
     std::optional<double> h_word;
     auto unmodelled = [&](std::string what) {
       prog.unmodelled.push_back({lineno, std::move(what), prog.blocks.size()});
@@ -753,8 +764,39 @@ Program read_text(const std::string& text, const std::string& name, const AxisLe
             break;
           case 280:
           case 300:
-          case 530:
+            home_word = g10 / 10;
             non_modal_skip = true;
+            break;
+          case 530:
+            home_word = 53;
+            non_modal_skip = true;
+            break;
+          case 410:
+          case 420:
+            unmodelled(
+                fmt::format("G{} offsets the tool from the programmed path by its radius (cutter "
+                            "compensation)",
+                            g10 / 10));
+            break;
+          case 650:
+          case 660:
+            non_modal_skip = true;  // its words are the macro's arguments
+            unmodelled(fmt::format("G{} calls a macro", g10 / 10));
+            break;
+          case 730:
+          case 740:
+          case 760:
+          case 810:
+          case 820:
+          case 830:
+          case 840:
+          case 850:
+          case 860:
+          case 870:
+          case 880:
+          case 890:
+            non_modal_skip = true;  // its words are the cycle's (depth, R plane, peck), not a position
+            unmodelled(fmt::format("G{} is a canned cycle (its moves are the control's)", g10 / 10));
             break;
           case 40:  // dwell: its P, X, U (or F) words are its time, not a position or a feed
             dwell = true;
@@ -844,8 +886,19 @@ Program read_text(const std::string& text, const std::string& name, const AxisLe
         h_word = v;
         return;
       }
+      // Sinumerik "L100": a subprogram call (G10's L is its data form, already not modelled).
+      if (L == 'L' && !non_modal_skip) {
+        unmodelled(fmt::format("L{:g} calls a subprogram", v));
+        return;
+      }
       if (L == 'M') {
-        if (v == 6.0) tool_change = true;
+        if (v == 6.0) {
+          tool_change = true;
+          spindle.word(6, lineno, prog);
+        }
+        if (v == 98.0 || v == 97.0) unmodelled(fmt::format("M{:g} calls a subprogram", v));
+        if (v == 99.0) unmodelled("M99 returns from a subprogram (or loops the program)");
+        if ((v == 2.0 || v == 30.0) && !ended_line) ended_line = lineno, ended_word = static_cast<int>(v);
         if (v == 3.0 || v == 4.0 || v == 5.0) spindle.word(static_cast<int>(v), lineno, prog);
         // LinuxCNC's switchable trunnion kinematics: M428 world (TCP) coordinates, M429 identity (joints).
         if (std::lround(v) == 428) tcp_word = tcp_on = true;
@@ -895,7 +948,21 @@ Program read_text(const std::string& text, const std::string& name, const AxisLe
       if (!is_alpha(c)) fail(i, fmt::format("unexpected character '{}'", c));
       const char L = to_upper(c);
       const int word_column = static_cast<int>(i) + 1;
-      if (L == 'O') break;  // program number/name ("O2021-11-28_part"): not a block
+      if (L == 'O') {  // program number/name ("O2021-11-28_part"): not a block; LinuxCNC's o-word flow control is
+        std::size_t e = i + 1;
+        while (e < s.size() && (is_alnum(s[e]) || s[e] == '<' || s[e] == '>' || s[e] == '_')) ++e;
+        while (e < s.size() && s[e] == ' ') ++e;
+        std::size_t k = e;
+        while (k < s.size() && is_alpha(s[k])) ++k;
+        std::string kw(s.substr(e, k - e));
+        for (char& ch : kw) ch = static_cast<char>(std::tolower(static_cast<unsigned char>(ch)));
+        static const std::set<std::string> flow{"call",   "sub",    "endsub",    "return", "if",
+                                                "elseif", "else",   "endif",     "while",  "endwhile",
+                                                "do",     "repeat", "endrepeat", "break",  "continue"};
+        if (flow.count(kw))
+          unmodelled(fmt::format("o-word '{}' (LinuxCNC flow control: a subroutine, loop or condition)", kw));
+        break;
+      }
       // Sinumerik identifiers (TRAORI, TRAFOOF, ORIWKS, CYCLE800(...), MCALL ...): skipped, TRAORI noted.
       if (i + 1 < s.size() && (is_alpha(s[i + 1]) || s[i + 1] == '_')) {
         size_t e = i;
@@ -905,6 +972,8 @@ Program read_text(const std::string& text, const std::string& name, const AxisLe
         if (id == "TRAORI") tcp_word = tcp_on = true;
         if (id == "TRAFOOF") tcp_on = false;
         if (id == "SUPA") non_modal_skip = true;  // machine coordinates: every frame suppressed for this block
+        if (id == "CALL" || id == "PCALL" || id == "MCALL" || id == "EXTCALL")
+          unmodelled(fmt::format("{} calls a subprogram or cycle", id));
         if (id == "TRANS" || id == "ATRANS" || id == "CTRANS" || id == "ROT" || id == "AROT" || id == "CROT" ||
             id == "ROTS" || id == "AROTS" || id == "SCALE" || id == "ASCALE" || id == "MIRROR" || id == "AMIRROR") {
           // Alone it resets that part of the frame (what the reader assumes anyway); with words it sets one.
@@ -1067,6 +1136,22 @@ Program read_text(const std::string& text, const std::string& name, const AxisLe
       prog.unmodelled.push_back({tlo_lost_line, tlo_lost_why, prog.blocks.size()});
       tlo_lost_line = 0;
     }
+    if ((home_word == 28 || home_word == 30) && !any_axis) {
+      // Without words every axis goes to the stored home position.
+      for (int a = 0; a < 5; ++a) left_at[static_cast<size_t>(a)] = {lineno, home_word};
+    }
+    if (home_word && any_axis) {
+      // G28 / G30 go home through the words' point: in G90 a point of the work coordinates (G28 Z0 dips to the part's
+      // zero on its way up), in G91 one that far from here (zero: straight home).
+      bool via = home_word != 53 && absolute;
+      for (int a = 0; a < 5; ++a)
+        if (home_word != 53 && b.words[static_cast<size_t>(a)] && word_val[static_cast<size_t>(a)] != 0.0) via = true;
+      if (via) unmodelled(fmt::format("G{} goes home through an intermediate point", home_word));
+      // Where the axes it moves end, in the program's coordinates, the read-back does not know: a feed must not
+      // start there (a rapid may: the program positions them again before it cuts).
+      for (int a = 0; a < 5; ++a)
+        if (b.words[static_cast<size_t>(a)]) left_at[static_cast<size_t>(a)] = {lineno, home_word};
+    }
     if (non_modal_skip) {
       if (any_axis)
         prog.notes.push_back(
@@ -1074,6 +1159,25 @@ Program read_text(const std::string& text, const std::string& name, const AxisLe
       continue;
     }
     if (!any_axis) continue;
+    if (ended_line > 0) {
+      unmodelled(fmt::format("a move after the program's end (M{} at line {}): the control never runs it", ended_word,
+                             ended_line));
+      ended_line = -1;  // said once
+    }
+    if (motion != Motion::Rapid)
+      for (int a = 0; a < 5; ++a) {
+        auto& [at, by] = left_at[static_cast<size_t>(a)];
+        if (at > 0 && !b.words[static_cast<size_t>(a)]) {
+          unmodelled(
+              fmt::format("the move starts where G{} at line {} left axis {} (at machine home or in machine "
+                          "coordinates)",
+                          by, at, letters.letter[static_cast<size_t>(a)]));
+          left_at.fill({0, 0});
+          break;
+        }
+      }
+    for (int a = 0; a < 5; ++a)
+      if (b.words[static_cast<size_t>(a)]) left_at[static_cast<size_t>(a)] = {0, 0};
     for (int a = 0; a < 5; ++a) {
       if (!b.words[static_cast<size_t>(a)]) continue;
       double v = word_val[static_cast<size_t>(a)];

@@ -409,15 +409,27 @@ void Sequencer::event(const cl::Event& e) {
         const auto plane = tcp_program_ && planes_ ? plane_ahead(*axes_, e.before_move) : std::nullopt;
         if (!plane.value_or(false)) tool_tip_control_on(e.line);
       }
+      // M6 stops the spindle (LinuxCNC's interpreter, Fanuc, Haas; TOOL CALL on a TNC): where the CL had it on before
+      // the change and does not switch it on again itself, it is restarted as it was.
+      if (spindle_.on) {
+        bool set_again = false;  // the CL switches it on (or off) itself before the next move
+        const auto& ev = prog_.events;
+        if (&e >= ev.data() && &e < ev.data() + ev.size())
+          for (const cl::Event* x = &e + 1; x < ev.data() + ev.size() && x->before_move == e.before_move; ++x)
+            set_again |= x->kind == K::SpindleOn || x->kind == K::SpindleOff;
+        if (!set_again) fmt_->spindle(buf_, spindle_.rpm, spindle_.clockwise);
+      }
       break;
     }
     case K::SpindleOn:
       fmt_->spindle(buf_, e.spindle_rpm, e.clockwise);
+      spindle_ = Spindle{true, e.spindle_rpm, e.clockwise};
       break;
     case K::SpindleOff:
       exit_along_axis();  // leave the cut while the spindle still turns
       if (cart_ && have_state_) axis_retract(SourceLoc{prog_.file, e.line, 0});
       fmt_->spindle_off(buf_);
+      spindle_.on = false;
       break;
     case K::CoolantOn:
       fmt_->coolant(buf_, true, e.text == "MIST");

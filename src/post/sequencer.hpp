@@ -90,6 +90,12 @@ class Sequencer {
   /// Throws InputError where the CL's tools differ in length on a machine whose head carries a rotary, without TCP.
   void warn_tcp_without_trunnion_kinematics(const std::string& dialect);
   void refuse_mixed_tool_lengths() const;
+  /// The spindle as the CL last set it (restarted after a tool change, which stops it).
+  struct Spindle {
+    bool on = false;
+    double rpm = 0.0;
+    bool clockwise = true;
+  } spindle_;
   void refuse_a_sideways_retract() const;
   // --- sequencer.cpp: the program frame, CL events, the buffer, words and blocks -----------------------------
 

@@ -141,6 +141,7 @@ struct Program {
   struct SpindleStop {
     int line = 0;
     std::size_t first_block = 0, end_block = 0;
+    const char* what = "M5";  ///< what stopped it: M5, or a tool change
   };
   std::vector<SpindleStop> spindle_stops;
 };
