@@ -1828,3 +1828,30 @@ TEST(Cli, TheConventionalPostChecksEveryToolWithItsOwnCutter) {
   r = run_command(kCli + " post " + q(good) + " --machine trunnion-ac -o " + q(d.file("d10.ngc")));
   EXPECT_EQ(r.status, 0) << r.output;
 }
+
+// backlash simulates the machine coordinates of a program: one whose read-back cannot follow it (a G52 shift) is
+// refused at that line as verify refuses it (it simulated it in the wrong frame), and one under tool-tip control is
+// refused at its first TCP block, naming the words of every dialect (it said "G43.4/G234" for M428, with no line).
+TEST(Cli, BacklashRefusesWhatItCannotModelAtItsLine) {
+  TempDir d;
+  const std::string cl = d.file("dome.cls", dome_cl(7, 2, 20));
+  const std::string nc = d.file("m.ngc"), tcp = d.file("t.ngc");
+  ASSERT_EQ(run_command(kCli + " post " + q(cl) + " --machine trunnion-ac -o " + q(nc)).status, 0);
+  ASSERT_EQ(run_command(kCli + " post " + q(cl) + " --machine trunnion-ac --tcp -o " + q(tcp)).status, 0);
+  std::string text = cscam::test::read_text(nc);
+  const auto cut = text.find("\nG1 ");
+  ASSERT_NE(cut, std::string::npos);
+  const int line =
+      static_cast<int>(std::count(text.begin(), text.begin() + static_cast<std::ptrdiff_t>(cut), '\n')) + 2;
+  text.insert(cut + 1, "G52 X5.\n");
+  const std::string shifted = d.file("s.ngc", text);
+  auto r = run_command(kCli + " backlash " + q(shifted) + " --machine trunnion-ac --axis x --width-mm 0.01");
+  EXPECT_EQ(r.status, 2) << r.output;
+  EXPECT_NE(r.output.find("s.ngc:" + std::to_string(line) + ": G52 shifts the coordinate system"), std::string::npos)
+      << r.output;
+  r = run_command(kCli + " backlash " + q(tcp) + " --machine trunnion-ac --axis x --width-mm 0.01");
+  EXPECT_EQ(r.status, 2) << r.output;
+  EXPECT_TRUE(std::regex_search(r.output, std::regex("t\\.ngc:[0-9]+: this program runs under tool-tip control")))
+      << r.output;
+  EXPECT_EQ(run_command(kCli + " backlash " + q(nc) + " --machine trunnion-ac --axis x --width-mm 0.01").status, 0);
+}

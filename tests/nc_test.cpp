@@ -445,3 +445,15 @@ TEST(NcReader, MotionTheReadBackCannotFollowIsNotModelled) {
       "nx.ngc", xyzbc());
   EXPECT_TRUE(nx.unmodelled.empty()) << nx.unmodelled.front().what;
 }
+
+// A UTF-8 byte-order mark before the program is skipped (a Windows editor writes one); a byte that is not text is
+// named by its value, not printed raw.
+TEST(NcReader, AByteOrderMarkIsSkippedAndABinaryByteNamed) {
+  const std::string prog = "G21 G90\nG0 X0 Y0 Z50 B0 C0\nG1 X5 F100\n";
+  const auto plain = nc::read_text(prog, "p.ngc", xyzbc());
+  const auto bom = nc::read_text("\xEF\xBB\xBF" + prog, "b.ngc", xyzbc());
+  ASSERT_EQ(bom.blocks.size(), plain.blocks.size());
+  EXPECT_EQ(bom.blocks.back().axes, plain.blocks.back().axes);
+  const std::string err = test::error_of([&] { nc::read_text("G21\nG1 X5 \x01 F100\n", "x.ngc", xyzbc()); });
+  EXPECT_NE(err.find("x.ngc:2:7: unexpected byte 0x01"), std::string::npos) << err;
+}

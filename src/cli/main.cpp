@@ -318,8 +318,22 @@ int cmd_backlash(const BacklashArgs& a) {
     nc::Program ncp = nc::read_file(f, report::axis_letters(m));
     if (const auto mismatch = report::check_machine_of(ncp, m)) throw *mismatch;
     report::resolve_work_planes(ncp, m);  // tilted-plane words as the machine axes they move
-    if (ncp.tcp)
-      throw InputError(SourceLoc{f}, "this program uses TCP (G43.4/G234): its axis values are not machine coordinates");
+    if (const nc::Program::Unmodelled* u = nc::first_unmodelled_before_motion(ncp))
+      throw InputError(
+          SourceLoc{f, u->line, 0},
+          fmt::format("{}, which backlash does not model: the moves after it go where it does not look", u->what));
+    if (ncp.tcp) {
+      int at = 0;
+      for (const auto& b : ncp.blocks)
+        if (b.tcp) {
+          at = b.line;
+          break;
+        }
+      throw InputError(SourceLoc{f, at, 0},
+                       "this program runs under tool-tip control (G43.4, G43.5, G234, M428, TRAORI, TCPM or M128): its "
+                       "words are the tip in the part frame, not machine axes; backlash simulates machine-coordinate "
+                       "programs (post with --no-tcp)");
+    }
     const double L = a.tool_length >= 0 ? a.tool_length : ncp.tool_length_mm.value_or(m.default_tool_length_mm);
     const auto kin = m.make_kinematics(L);
     results.push_back(report::simulate_backlash(report::sample_nc(ncp, axis, step), *kin, axis, width));

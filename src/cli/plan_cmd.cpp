@@ -154,11 +154,14 @@ void refuse_a_second_cutter(const Setup& s) {
         differs(t.length_mm, first->length_mm))
       throw InputError(
           SourceLoc{s.prog.file, mv.line, 0},
-          fmt::format("this move is cut with tool {} (diameter {:g}, corner radius {:g}, length {:g} mm) after tool {} "
+          fmt::format("this move is cut with {} (diameter {:g}, corner radius {:g}, length {:g} mm) after {} "
                       "(diameter {:g}, corner radius {:g}, length {:g} mm): the planner plans one cutter per run; plan "
                       "each tool's operations as a CL file of its own",
-                      t.number, t.diameter_mm, t.corner_radius_mm, t.length_mm, first->number, first->diameter_mm,
-                      first->corner_radius_mm, first->length_mm));
+                      t.number > 0 ? fmt::format("tool {}", t.number) : std::string("a cutter"), t.diameter_mm,
+                      t.corner_radius_mm, t.length_mm,
+                      first->number > 0 && first->number != t.number ? fmt::format("tool {}", first->number)
+                                                                     : std::string("another cutter"),
+                      first->diameter_mm, first->corner_radius_mm, first->length_mm));
   }
 }
 

@@ -526,6 +526,8 @@ Program read_text(const std::string& text, const std::string& name, const AxisLe
   std::vector<std::string_view> lines;
   {
     std::string_view all(text);
+    // A UTF-8 byte-order mark (an editor on Windows writes one) is not part of the first line.
+    if (all.size() >= 3 && all.substr(0, 3) == "\xEF\xBB\xBF") all.remove_prefix(3);
     // Counted first (memchr): a million-line program's list is then filled without regrowing.
     std::size_t newlines = 0;
     for (const char *p = all.data(), *end = p + all.size();
@@ -945,7 +947,13 @@ Program read_text(const std::string& text, const std::string& name, const AxisLe
         ++i;
         continue;
       }
-      if (!is_alpha(c)) fail(i, fmt::format("unexpected character '{}'", c));
+      if (!is_alpha(c)) {
+        const auto byte = static_cast<unsigned char>(c);
+        fail(i, byte >= 0x20 && byte < 0x7f
+                    ? fmt::format("unexpected character '{}'", c)
+                    : fmt::format("unexpected byte 0x{:02X} (not G-code text{})", byte,
+                                  byte == 0xEF && i == 0 ? ": a UTF-8 byte-order mark? save the file without it" : ""));
+      }
       const char L = to_upper(c);
       const int word_column = static_cast<int>(i) + 1;
       if (L == 'O') {  // program number/name ("O2021-11-28_part"): not a block; LinuxCNC's o-word flow control is
