@@ -392,6 +392,14 @@ TEST(Trace, ReaderRejectsLostSamplesAndBadLines) {
             std::string::npos);
   EXPECT_NE(message_of("0 1 2 3\n").find("s.txt:1"), std::string::npos);
   EXPECT_NE(message_of("").find("no samples"), std::string::npos);
+  // The sample number and the program line are whole numbers (a sample 1e30 read as a negative index, 2.7 as 3).
+  EXPECT_NE(message_of("0 1 2 3 4 5 6 7 8 9 10 7 2 1.5 0\n1e30 1 2 3 4 5 6 7 8 9 10 7 2 1.5 0\n")
+                .find("s.txt:2: column 1 (the sample number) is 1e+30"),
+            std::string::npos);
+  EXPECT_NE(message_of("0.5 1 2 3 4 5 6 7 8 9 10 7 2 1.5 0\n").find("s.txt:1: column 1 (the sample number) is 0.5"),
+            std::string::npos);
+  EXPECT_NE(message_of("0 1 2 3 4 5 6 7 8 9 10 1e20 2 1.5 0\n").find("column 12 (the program line"), std::string::npos);
+  EXPECT_EQ(message_of("0 1 2 3 4 5 6 7 8 9 10 -1 2 1.5 0\n"), "no error");  // an s32 pin: -1 is a state
 }
 
 TEST(Stats, CycleTimeByHand) {

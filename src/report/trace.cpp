@@ -86,6 +86,16 @@ Trace read_halsampler_text(const std::string& text, const std::string& name, con
     }
     while (p < end && (*p == ' ' || *p == '\t' || *p == '\r')) ++p;
     if (p != end) throw InputError(where, fmt::format("more than {} columns", kColumns));
+    // The sample number and the program line are whole numbers that halsampler prints as such (a sampler column
+    // of another kind, or a hand-edited file, is not a trace).
+    auto whole = [&](int column, double lo, double hi, const char* what) {
+      const double x = v[static_cast<size_t>(column)];
+      if (!(x >= lo && x <= hi && x == std::round(x)))
+        throw InputError(where, fmt::format("column {} ({}) is {:g}: expected a whole number from {:g} to {:g}",
+                                            column + 1, what, x, lo, hi));
+    };
+    whole(0, 0.0, 9.0e15, "the sample number");
+    whole(11, -2147483648.0, 2147483647.0, "the program line, a signed 32-bit pin");
     TraceSample smp;
     smp.index = std::lround(v[0]);
     if (!tr.samples.empty() && smp.index != tr.samples.back().index + 1)
