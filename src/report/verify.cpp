@@ -994,6 +994,7 @@ VerifyResult verify(const nc::Program& nc, const cl::Program& cl, const kin::Kin
     if (!cover_ok)
       r.message += fmt::format(" CL point at line {} not reached (nearest NC point {:.5f} mm away);",
                                r.max_uncovered_cl_line, r.max_uncovered_cl_mm);
+    r.message.pop_back();  // the last item's ';'
   }
   return r;
 }
