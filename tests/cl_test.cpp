@@ -664,7 +664,7 @@ TEST(ClErrors, FileLineColumn) {
   expect_error_at("FEDRAT/0.1,MMPR\nGOTO/1,2,3\n", "1:1", "feed per revolution (IPR/MMPR) before any spindle");
 }
 
-// MULTAX/OFF is 3-axis mode: the tool axis is +Z until a GOTO/ gives one again.
+// MULTAX/OFF is 3-axis mode: the tool axis is +Z (or the last TLAXIS/) until a GOTO/ gives one again.
 TEST(ClIso, MultaxOffMeansAVerticalTool) {
   const Program p = read_text(
       "UNITS/MM\nMULTAX/ON\nFEDRAT/MMPM,600\nGOTO/0,0,0,0.1,0,0.995\nMULTAX/OFF\nGOTO/10,0,0\nMULTAX/ON\n"
@@ -676,6 +676,15 @@ TEST(ClIso, MultaxOffMeansAVerticalTool) {
   EXPECT_LT((p.moves[2].axis_in_part - Eigen::Vector3d::UnitZ()).norm(), kExactMm);  // until a GOTO/ gives one
   EXPECT_LT((p.moves[3].axis_in_part - Eigen::Vector3d(0, 0.6, 0.8)).norm(), kExactMm);
   EXPECT_TRUE(p.multax);
+  // A fixed axis given by TLAXIS/ (a 3+2 stretch) is kept by MULTAX/OFF: the 3-coordinate GOTOs after it were cut
+  // with a vertical tool.
+  const Program t = read_text(
+      "UNITS/MM\nFEDRAT/MMPM,600\nTLAXIS/0,-0.6,0.8\nGOTO/0,0,0\nGOTO/0,0,0,0.1,0,0.995\nMULTAX/OFF\n"
+      "GOTO/10,0,0\n",
+      "t.cls");
+  ASSERT_EQ(t.moves.size(), 3u);
+  EXPECT_LT((t.moves[0].axis_in_part - Eigen::Vector3d(0, -0.6, 0.8)).norm(), kExactMm);
+  EXPECT_LT((t.moves[2].axis_in_part - Eigen::Vector3d(0, -0.6, 0.8)).norm(), kExactMm);
 }
 
 // Inputs found by fuzz/cl_fuzz (tests/data/fuzz-regressions): each is refused quickly with a located error.

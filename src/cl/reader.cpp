@@ -547,6 +547,7 @@ class AptReader {
   double scale_ = 1.0;            ///< file length unit -> mm
   std::vector<Field> fields_;
   Vector3d axis_ = Vector3d::UnitZ();
+  std::optional<Vector3d> tlaxis_;  ///< the axis of the last TLAXIS/i,j,k (what MULTAX/OFF keeps)
   double feed_mm_per_min_ = 0.0;
   double feed_mm_per_rev_ = 0.0;  ///< the FEDRAT/ in force is per revolution (IPR/MMPR): recomputed at each SPINDL/
   double rpm_ = 0.0;
@@ -1032,7 +1033,8 @@ bool AptReader::statement(const Statement& st) {
     if (fields_.empty() || !fields_[0].is_word("OFF")) {
       prog_.multax = true;
     } else {
-      axis_ = Vector3d::UnitZ();  // 3-axis mode: the tool axis is +Z until a GOTO gives one again
+      // 3-axis mode: the GOTOs give no axis; it is the fixed one of the last TLAXIS/ (a 3+2 stretch), else +Z.
+      axis_ = tlaxis_.value_or(Vector3d::UnitZ());
     }
   } else if (h.is("SPINDL")) {
     spindl(st, h);
@@ -1069,6 +1071,7 @@ bool AptReader::statement(const Statement& st) {
            "TLAXIS/ is supported as TLAXIS/i,j,k only (a fixed tool axis); the other forms (NORMAL, ATANGL, ...) "
            "define the axis from geometry cscam does not have: output GOTO/x,y,z,i,j,k from the CAM system");
     axis_ = unit_vector(st, v, offs[0], "TLAXIS tool axis");
+    tlaxis_ = axis_;
   } else if (h.is("CYCLE")) {
     // The GOTOs under a canned cycle are hole positions, not the tool path: posting them as moves would not drill.
     split_fields(h.args, h.args_offset, fields_);
