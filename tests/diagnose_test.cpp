@@ -1021,6 +1021,33 @@ TEST(Diagnose, OfTwoEffectsOnOneTargetThatExplainAlikeTheSimplerIsNamed) {
   EXPECT_NE(r.verdict.find("straightness"), std::string::npos) << "named as the alternative:\n" << r.text();
 }
 
+namespace {
+/// examples/diagnose/circle.ngc on the trunnion, profiled at 200 Hz (2000 mm/s^2).
+sim::Trajectory example_circle_at_200hz() {
+  sim::ProfileOptions po;
+  po.rate_hz = 200;
+  po.accel = 2000;
+  return sim::profile(sim::blocks_from_nc(nc::read_file(std::string(CSCAM_SOURCE_DIR) + "/examples/diagnose/circle.ngc",
+                                                        report::axis_letters(trunnion())),
+                                          trunnion()),
+                      po);
+}
+}  // namespace
+
+namespace {
+/// The report's one finding is a vibration on `channel` at `hz` (within a twentieth of a bin of a run `duration_s`
+/// long) of `amp_mm` (within the fraction `amp_rel`), leaving less than `left_mm` RMS held out.
+void expect_one_vibration(const diagnose::Report& r, const std::string& channel, double hz, double amp_mm,
+                          double amp_rel, double duration_s, double left_mm) {
+  ASSERT_EQ(r.findings.size(), 1u) << r.text();
+  const auto* f = find(r, "vibration", channel);
+  ASSERT_NE(f, nullptr) << r.text();
+  EXPECT_NEAR(param(*f, "frequency_hz"), hz, 0.05 / duration_s) << "a twentieth of a bin\n" << r.text();
+  EXPECT_NEAR(param(*f, "amplitude_mm"), amp_mm, amp_rel * amp_mm) << r.text();
+  EXPECT_LT(f->heldout_rms_after, left_mm) << r.text();
+}
+}  // namespace
+
 // A vibration between two FFT bins (17.12 Hz over a 22.35 s run: bin 383.1 of 0.0447 Hz). Its frequency was taken from
 // the bins by interpolation, 17.1264 Hz, and held there: over the run the fitted sinusoid's phase slid 50 deg, its
 // amplitude came out 4 % low, and what it left at the end of the run was named a step. The frequency is now where the
@@ -1029,14 +1056,8 @@ TEST(Diagnose, AVibrationBetweenTwoBinsIsFittedAtItsOwnFrequency) {
   static const auto haas = machine::load(std::string(CSCAM_SOURCE_DIR) + "/machines/haas-umc750.yaml");
   const auto tr = swinging_circle(haas, 'B', -100, 500);
   const auto r = run(tr, haas, {"vibration:tip.z:17.12:0.0063"}, {"tip", "enc"}, 0.0005);
-  ASSERT_EQ(r.findings.size(), 1u) << r.text();
-  const auto* f = find(r, "vibration", "tip.z");
-  ASSERT_NE(f, nullptr) << r.text();
-  const double duration = tr.t.back() - tr.t.front();
-  EXPECT_NEAR(param(*f, "frequency_hz"), 17.12, 0.05 / duration) << "a twentieth of a bin\n" << r.text();
-  EXPECT_NEAR(param(*f, "amplitude_mm"), 0.0063, 0.02 * 0.0063) << r.text();
   // What is left is the noise (3 components of 0.5 um: 0.87 um), not a sinusoid that slid out of phase.
-  EXPECT_LT(f->heldout_rms_after, 0.001) << r.text();
+  expect_one_vibration(r, "tip.z", 17.12, 0.0063, 0.02, tr.t.back() - tr.t.front(), 0.001);
 }
 
 // The XMINI's legs at a rapid's speed with a 3 ms following error on q1: the leg trails by up to about a millimetre,
@@ -1071,6 +1092,21 @@ TEST(Diagnose, ALargeAxisDeviationIsFollowedThroughTheMachinesCurvature) {
   EXPECT_EQ(r.findings.size(), 1u) << r.text();
 }
 
+namespace {
+/// `full` with its rows [from, to) left out, as a logger that stalls loses them.
+sim::Recording without_rows(const sim::Recording& full, size_t from, size_t to) {
+  sim::Recording rec = full;
+  rec.row_line.clear();
+  for (auto& col : rec.data) col.clear();
+  for (size_t i = 0; i < full.rows(); ++i) {
+    if (i >= from && i < to) continue;
+    for (size_t c = 0; c < full.data.size(); ++c) rec.data[c].push_back(full.data[c][i]);
+    rec.row_line.push_back(full.row_line.empty() ? static_cast<int>(i) + 2 : full.row_line[i]);
+  }
+  return rec;
+}
+}  // namespace
+
 // A logger that stalls for 5 s in the middle of a 47 Hz vibration of 4 um (rows 1500..2499 of 4310 left out, as the
 // trial did to `simulate circle.ngc --rate 200`): the grid and the spectrum were right (a DTFT with the real stamps
 // peaks at 47.000 Hz), but the peak's refinement was not. The gap fringes the periodogram about a bin apart; Newton's
@@ -1078,14 +1114,7 @@ TEST(Diagnose, ALargeAxisDeviationIsFollowedThroughTheMachinesCurvature) {
 // out of phase over the 21 s: 2.6 um were found, not 4. Oracle: the injected frequency, to a twentieth of a bin, and
 // amplitude; what is left is the noise.
 TEST(Diagnose, AVibrationAcrossALongGapInTheTimeStampsKeepsItsFrequency) {
-  sim::ProfileOptions po;
-  po.rate_hz = 200;
-  po.accel = 2000;
-  const auto tr =
-      sim::profile(sim::blocks_from_nc(nc::read_file(std::string(CSCAM_SOURCE_DIR) + "/examples/diagnose/circle.ngc",
-                                                     report::axis_letters(trunnion())),
-                                       trunnion()),
-                   po);
+  const auto tr = example_circle_at_200hz();
   auto v = sim::parse_effect("vibration:tip.z:47:0.004", trunnion());
   sim::SimulateOptions so;
   so.channels = {"tip"};
@@ -1094,24 +1123,11 @@ TEST(Diagnose, AVibrationAcrossALongGapInTheTimeStampsKeepsItsFrequency) {
   so.tool_length_mm = trunnion().default_tool_length_mm;
   const auto full = sim::simulate(tr, trunnion(), {v.get()}, so);
   ASSERT_GT(full.rows(), 3000u);
-  sim::Recording rec = full;
+  sim::Recording rec = without_rows(full, 1500, 2500);
   rec.file = "stall.csv";
-  rec.row_line.clear();
-  for (auto& col : rec.data) col.clear();
-  for (size_t i = 0; i < full.rows(); ++i) {
-    if (i >= 1500 && i < 2500) continue;
-    for (size_t c = 0; c < full.data.size(); ++c) rec.data[c].push_back(full.data[c][i]);
-    rec.row_line.push_back(full.row_line.empty() ? static_cast<int>(i) + 2 : full.row_line[i]);
-  }
   const auto r = diagnose::diagnose(rec, trunnion(), {});
-  ASSERT_EQ(r.findings.size(), 1u) << r.text();
-  const auto* f = find(r, "vibration", "tip.z");
-  ASSERT_NE(f, nullptr) << r.text();
-  const double duration = tr.t.back() - tr.t.front();
-  EXPECT_NEAR(param(*f, "frequency_hz"), 47.0, 0.05 / duration) << "a twentieth of a bin\n" << r.text();
-  EXPECT_NEAR(param(*f, "amplitude_mm"), 0.004, 0.05 * 0.004) << r.text();
   // The noise of 1 um in each of 3 components: 1.7 um.
-  EXPECT_LT(f->heldout_rms_after, 0.002) << r.text();
+  expect_one_vibration(r, "tip.z", 47.0, 0.004, 0.05, tr.t.back() - tr.t.front(), 0.002);
 }
 
 // Table and trunnion turning under a probe measured from the part (ptip), three times 0 -> 360 -> 0 deg of C with A
@@ -1200,14 +1216,7 @@ namespace {
 /// The circle of examples/diagnose on the trunnion at 200 Hz with a servo lag on y and lost motion on x (tip and
 /// encoders, 1 um and 0.2 um noise), as a recording.
 sim::Recording lag_and_lost_motion_on_the_circle() {
-  sim::ProfileOptions po;
-  po.rate_hz = 200;
-  po.accel = 2000;
-  const auto tr =
-      sim::profile(sim::blocks_from_nc(nc::read_file(std::string(CSCAM_SOURCE_DIR) + "/examples/diagnose/circle.ngc",
-                                                     report::axis_letters(trunnion())),
-                                       trunnion()),
-                   po);
+  const auto tr = example_circle_at_200hz();
   auto lag = sim::parse_effect("servo_lag:y:0.003", trunnion());
   auto lost = sim::parse_effect("backlash:x:0.01", trunnion());
   sim::SimulateOptions so;
@@ -1269,15 +1278,7 @@ TEST(Diagnose, ATimeColumnInAnotherUnitThanSecondsIsTold) {
 // constant of 0.000125 ms ("0.00 ms"), far below the 5 ms between samples, where the recording cannot tell it from
 // the plain lag. Oracle: the injected plain lag, found as such with its value.
 TEST(Diagnose, AFirstOrderLagFasterThanTheSamplesIsThePlainLag) {
-  const sim::Recording full = lag_and_lost_motion_on_the_circle();
-  sim::Recording rec = full;
-  rec.row_line.clear();
-  for (auto& col : rec.data) col.clear();
-  for (size_t i = 0; i < full.rows(); ++i) {
-    if (i >= 1500 && i < 2500) continue;
-    for (size_t c = 0; c < full.data.size(); ++c) rec.data[c].push_back(full.data[c][i]);
-    rec.row_line.push_back(full.row_line.empty() ? static_cast<int>(i) + 2 : full.row_line[i]);
-  }
+  sim::Recording rec = without_rows(lag_and_lost_motion_on_the_circle(), 1500, 2500);
   const auto r = diagnose::diagnose(rec, trunnion(), {});
   EXPECT_EQ(find(r, "servo_lag_1st", "y"), nullptr) << r.text();
   const auto* lag = find(r, "servo_lag", "y");

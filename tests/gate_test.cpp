@@ -14,6 +14,7 @@
 #include <functional>
 #include <regex>
 #include <sstream>
+#include <utility>
 
 #include "cscam/cl/program.hpp"
 #include "cscam/core/error.hpp"
@@ -55,6 +56,17 @@ Posted post_program(const cl::Program& prog, const machine::Machine& m, const ki
 }
 
 /// The gate's collision check against `space` (which must outlive it): one workspace and counters per worker.
+/// `prog` posted with the conventional strategy in `dialect`: the text and the post's summary.
+std::pair<std::string, post::Summary> conventionally_posted(const cl::Program& prog, const machine::Machine& m,
+                                                            const kin::Kinematics& k, const std::string& dialect) {
+  post::Options o;
+  o.dialect = dialect;
+  post::Summary sum;
+  std::ostringstream os;
+  post::write_nc(os, prog, m, k, post::conventional_axes(prog, m, k), o, sum);
+  return {os.str(), std::move(sum)};
+}
+
 std::function<gate::Options::CollisionCheck(int)> collision_against(const cspace::Space& space) {
   // As the commands do: a path check per worker (the space is the caller's: not owned), one cutter for every tool.
   return [&space](int) -> gate::Options::CollisionCheck {
@@ -722,13 +734,8 @@ TEST(Gate, AFeedMoveWithTheSpindleStoppedWhereTheClCutsIsRefused) {
     SCOPED_TRACE(dialect);
     auto run = [&](const std::string& middle) {
       const cl::Program prog = cl::read_text(head + middle + "GOTO/20,0,10,0,0,1\nGOTO/20,20,10,0,0,1\n", "s.cls");
-      const auto axes = post::conventional_axes(prog, m, *k);
-      post::Options o;
-      o.dialect = dialect;
-      post::Summary sum;
-      std::ostringstream os;
-      post::write_nc(os, prog, m, *k, axes, o, sum);
-      return gate::check(os.str(), "s.nc", prog, m, *k, gate::options_for(m, 0, 0, 0), &sum.cl_line_of_nc_line);
+      const auto [text, sum] = conventionally_posted(prog, m, *k, dialect);
+      return gate::check(text, "s.nc", prog, m, *k, gate::options_for(m, 0, 0, 0), &sum.cl_line_of_nc_line);
     };
     const gate::Summary stopped = run("INSERT/M5\n");
     EXPECT_FALSE(stopped.ok);
@@ -753,13 +760,7 @@ TEST(Gate, TheSpindleStoppedByAToolChangeIsRestartedAndRequired) {
       "t.cls");
   for (const char* dialect : {"linuxcnc", "fanuc", "haas", "siemens"}) {
     SCOPED_TRACE(dialect);
-    const auto axes = post::conventional_axes(prog, m, *k);
-    post::Options o;
-    o.dialect = dialect;
-    post::Summary sum;
-    std::ostringstream os;
-    post::write_nc(os, prog, m, *k, axes, o, sum);
-    std::string text = os.str();
+    auto [text, sum] = conventionally_posted(prog, m, *k, dialect);
     const auto change = text.find("M6\n");
     const auto second = text.find("M6\n", change + 1);
     ASSERT_NE(second, std::string::npos) << text;
