@@ -132,6 +132,13 @@ void check_plan_args(const PlanArgs& a) {
     throw InputError(SourceLoc{a.svg_dir}, "--svg: exists and is not a folder");
 }
 
+/// The first tool with a size (CUTTER/ or TLDATA/): the cutter the checks use until a tool change says otherwise.
+const cl::Tool* first_sized_tool(const std::vector<cl::Tool>& tools) {
+  for (const auto& t : tools)
+    if (t.diameter_mm > 0) return &t;
+  return nullptr;
+}
+
 /// The planner checks every move with one cutter (the CL's first) and, tilting a ball mill, keeps that ball's centre on
 /// the path: where the program changes to a cutter of another shape, the later moves would be checked and posted for
 /// the wrong one (the safety gate then refuses the plan, or a collision of the real cutter goes unseen). Refused at the
@@ -149,9 +156,7 @@ void refuse_a_second_cutter(const Setup& s) {
       first = &t;
       continue;
     }
-    const auto differs = [](double x, double y) { return std::abs(x - y) > 1e-9 * std::max(1.0, std::abs(x)); };
-    if (differs(t.diameter_mm, first->diameter_mm) || differs(t.corner_radius_mm, first->corner_radius_mm) ||
-        differs(t.length_mm, first->length_mm))
+    if (!t.same_shape(*first))
       throw InputError(
           SourceLoc{s.prog.file, mv.line, 0},
           fmt::format("this move is cut with {} (diameter {:g}, corner radius {:g}, length {:g} mm) after {} "
@@ -245,12 +250,7 @@ void add_scene(Setup& s, const PlanArgs& a, const std::vector<cl::Tool>& tools, 
     s.has_head = true;
   }
   // The tool: from the CL (first tool), the rest from the machine file's holder settings.
-  const cl::Tool* t = nullptr;
-  for (const auto& tt : tools)
-    if (tt.diameter_mm > 0) {
-      t = &tt;
-      break;
-    }
+  const cl::Tool* t = first_sized_tool(tools);
   auto& o = s.opt;
   o.cspace.cone_rad = deg2rad(a.cone_deg);
   o.cspace.min_tilt_rad = deg2rad(a.min_tilt_deg);
@@ -773,27 +773,19 @@ std::function<gate::Options::CollisionCheck(int)> collision_for_post(const machi
   std::vector<std::shared_ptr<Setup>> keep{first};
   std::vector<Make> by_change{make_first};  // [k]: after the k-th tool change (0: before any)
   std::vector<std::pair<const cl::Tool*, Make>> shapes;
-  const cl::Tool* first_tool = nullptr;
-  for (const auto& t : prog.tools)
-    if (t.diameter_mm > 0) {
-      first_tool = &t;
-      break;
-    }
-  auto same_shape = [](const cl::Tool& x, const cl::Tool& y) {
-    return x.diameter_mm == y.diameter_mm && x.corner_radius_mm == y.corner_radius_mm && x.length_mm == y.length_mm;
-  };
+  const cl::Tool* first_tool = first_sized_tool(prog.tools);
   for (const cl::Event& e : prog.events) {
     if (e.kind != cl::Event::Kind::ToolChange) continue;
     const cl::Tool* t = e.tool_index >= 0 && static_cast<std::size_t>(e.tool_index) < prog.tools.size()
                             ? &prog.tools[static_cast<std::size_t>(e.tool_index)]
                             : nullptr;
-    if (!t || !(t->diameter_mm > 0) || !first_tool || same_shape(*t, *first_tool)) {
+    if (!t || !(t->diameter_mm > 0) || !first_tool || t->same_shape(*first_tool)) {
       by_change.push_back(make_first);
       continue;
     }
     Make make;
     for (const auto& [shape, mk] : shapes)
-      if (same_shape(*shape, *t)) make = mk;
+      if (shape->same_shape(*t)) make = mk;
     if (!make) {
       auto s = std::make_shared<Setup>();
       std::vector<std::string> again;  // the meshes' warnings were given with the first cutter's scene

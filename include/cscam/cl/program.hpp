@@ -24,6 +24,10 @@ struct Tool {
   [[nodiscard]] bool is_ball() const {
     return diameter_mm > 0 && std::abs(corner_radius_mm - 0.5 * diameter_mm) < 1e-6 * diameter_mm;
   }
+  /// The same cutting shape as `o` (diameter, corner radius, length): what a collision check or a planner sees.
+  [[nodiscard]] bool same_shape(const Tool& o) const {
+    return diameter_mm == o.diameter_mm && corner_radius_mm == o.corner_radius_mm && length_mm == o.length_mm;
+  }
 };
 
 enum class MotionKind { Rapid, Feed };
